@@ -1,0 +1,1 @@
+"""The `colony` command line: one entry point for every process role and lab script."""

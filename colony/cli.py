@@ -1,0 +1,34 @@
+"""Root of the `colony` CLI. Each role's subcommands live in their own module and are added here."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(
+    name="colony",
+    help="EvoColony: evolve neural controllers for EvBots in simulation and run them on a colony.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+@app.command()
+def demo() -> None:
+    """Evolve, then drive virtual robots, on the embedded defaults (not yet: see issue 7)."""
+    typer.echo("colony demo: not yet. Run `colony evolve` for the paper's experiment.")
+
+
+@app.command()
+def presets() -> None:
+    """List the named network presets with their weight counts."""
+    from schemas.network import PRESETS
+
+    for name, spec in PRESETS.items():
+        typer.echo(
+            f"{name:16s} {spec.weight_count:6d} weights  hidden={list(spec.hidden)} "
+            f"T={spec.delays} S={spec.recurrence} out={spec.output_activation}"
+        )
+
+
+def main() -> None:
+    app()

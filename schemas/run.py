@@ -1,0 +1,94 @@
+"""An evolutionary run's configuration: every field optional, defaulting to the paper's experiment.
+
+This is the single description of a run that crosses process boundaries: `colony evolve`
+flags, `POST /api/runs` bodies, evaluation jobs sent to workers. A run is a pure function of it.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from schemas.network import NetworkSpec, resolve_network
+
+
+class FitnessWeights(BaseModel):
+    """Eq 12: F = k1 total_curve_length + k2 net_offset + k3 max_offset - k4 stuck (metres)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    k1: float = 0.0
+    k2: float = 20.0
+    k3: float = 20.0
+    k4: float = Field(50.0, description="penalty subtracted once per trial that ends stuck")
+
+
+class GAConfig(BaseModel):
+    """Genetic algorithm parameters (Eqs 7, 9-11)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    replacement: float = Field(
+        0.25, gt=0.0, lt=0.5, description="m/n: fraction kept unchanged and fraction mutated"
+    )
+    selection: Literal["prose", "literal"] = Field(
+        "prose",
+        description="fill the rest with the fittest remaining (prose) or ranks 2m+1..n-1 (Eq 11 as printed)",
+    )
+    base_rate: float = Field(2.0, gt=0.0, description="Eq 9: expected mutations per sub-matrix")
+    eta: float = Field(0.5, gt=0.0, description="Eq 10: base mutation step")
+    init_scale: float = Field(1.0, gt=0.0, description="Eq 7: mu(1), the layer-1 init range")
+    layer_slope: float = Field(
+        0.25,
+        ge=0.0,
+        lt=1.0,
+        description="mu(m) = scale * max(1 - slope*(m-1), 0.1): linear decrease",
+    )
+    delay_decay: float = Field(0.5, ge=0.0, description="tau(t) = exp(-decay * t), max 1 at t=0")
+    recurrence_decay: float = Field(
+        0.5, ge=0.0, description="sigma(s) = exp(-decay * s), max 1 at s=0"
+    )
+
+
+class RunConfig(BaseModel):
+    """One evolutionary experiment; defaults are the paper's (section 4)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    population: int = Field(100, ge=4, le=10_000)
+    generations: int = Field(350, ge=1, le=100_000)
+    trials: int = Field(3, ge=1, le=100)
+    steps: int = Field(40, ge=1, le=100_000)
+    seed: int = Field(0, ge=0, lt=2**63)
+    maze: str = Field("paper", min_length=1, max_length=4096, description="maze name or text")
+    network: str | NetworkSpec = Field("paper-best", description="preset name or a spec")
+    fitness: FitnessWeights = FitnessWeights()
+    reality_gap: bool = False
+    ga: GAConfig = GAConfig()
+    job_size: int = Field(
+        25, ge=1, le=10_000, description="individuals per evaluation job (fixed slices)"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> RunConfig:
+        if isinstance(self.network, str):
+            resolve_network(self.network)  # raises ValueError naming the presets
+        m = self.replacement_count
+        if 2 * m + 1 > self.population:
+            raise ValueError(
+                f"population {self.population} is too small for replacement "
+                f"{self.ga.replacement}: Eq 11 needs n >= 2m+1 with m = {m}"
+            )
+        return self
+
+    @property
+    def network_spec(self) -> NetworkSpec:
+        return (
+            self.network if isinstance(self.network, NetworkSpec) else resolve_network(self.network)
+        )
+
+    @property
+    def replacement_count(self) -> int:
+        """m of Eq 11: round(n * m/n), at least 1."""
+        return max(1, round(self.population * self.ga.replacement))

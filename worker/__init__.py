@@ -1,0 +1,1 @@
+"""worker role (see docs/architecture.md)."""
