@@ -1,0 +1,329 @@
+"""The controller network (paper Eqs 1-6, 8): one step of a batch of controllers, state explicit.
+
+Semantics. Layers m = 1..M (M = len(hidden) + 1, layer M the outputs); layer 0 is the input
+vector. At step k, a_0(k) = inputs, then for m = 1..M in order
+
+    u_m = sum over the blocks W[m,t,s] of layer m of  W[m,t,s] @ [x; 1]   (Eq 3: bias last)
+        s = 0:  x = a_{m-1}(k - t)        (t = 0 is this step's value, just computed)
+        s >= 1: x = a_{m-1+s}(k - 1 - t)  (recurrent: the previous step and earlier)
+    a_m(k) = sigmoid(u_m), or u_m for a linear output layer (Eqs 1-2).
+
+Before the first step every past activation and input is 0, so a zero weight is exactly an
+absent connection.
+
+State layout. The state of one controller is a float64 row of `state_size(spec)` values:
+layer j = 0..M in order, each as T+1 slots of n_j values, most recent first. After step k,
+slot r of layer j holds a_j(k - r), at `hist_off[j] + r * n_j`. Hence state_size =
+(T+1) * sum(n_j). A step reads slot t-1 for feed-forward lags t >= 1 and slot t for recurrent
+lags, then shifts every layer's slots by one and writes this step's activations to slot 0.
+
+Kernel call convention (for fused numba kernels, e.g. the simulator's episode loop). With
+`plan = kernel_plan(spec)` (a `KernelPlan`, fields in this order):
+
+    step_one(w, plan.sizes, plan.hist_off, plan.act_off, plan.blocks, plan.delays,
+             plan.linear_output, state_row, inputs_row, out_row, scratch)
+
+  w           float64[:]  (n_weights,)  one chromosome (Layout order m, t, s, neuron, input)
+  sizes       int64[:]    (M+1,)        neurons of layers 0..M
+  hist_off    int64[:]    (M+1,)        offset of layer j's history in a state row
+  act_off     int64[:]    (M+1,)        offset of layer j's new activations in scratch
+  blocks      int64[:, :] (n_blocks, 5) rows (m, t, s, src, offset) in chromosome order
+  delays      int                       T
+  linear_output int                     1 for linear outputs, 0 for sigmoid
+  state_row   float64[:]  (state_size,) advanced in place
+  inputs_row  float64[:]  (inputs,)     read only
+  out_row     float64[:]  (outputs,)    receives the raw outputs a_M(k)
+  scratch     float64[:]  (scratch_size,) work space, contents irrelevant between calls
+
+It allocates nothing. From Python, `step_one(w, *plan, state_row, inputs_row, out_row,
+scratch)` is the same call. `motor_one(out_row, linear_output, motor_row)` is the compiled
+twin of `motor_commands` for one robot.
+
+`step` is a compiled loop over rows calling `step_one`: the only compiled path, so a
+controller's outputs are bit-identical whatever the batch size and wherever it runs.
+`step_reference` is an independent vectorised numpy version used by the tests.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from evorobotics.layout import layout
+from schemas.network import NetworkSpec
+
+
+class KernelPlan(NamedTuple):
+    """Everything `step_one` needs about a spec, as numba-friendly arrays and ints."""
+
+    sizes: np.ndarray
+    """int64 (M+1,): neurons of layers 0..M."""
+    hist_off: np.ndarray
+    """int64 (M+1,): where layer j's T+1 history slots start in a state row."""
+    act_off: np.ndarray
+    """int64 (M+1,): where layer j's activations of this step start in scratch."""
+    blocks: np.ndarray
+    """int64 (n_blocks, 5): (m, t, s, src, offset) of each W[m,t,s], chromosome order."""
+    delays: int
+    """T: the deepest delay lag."""
+    linear_output: int
+    """1 if the output layer is linear (Eq 2), 0 if sigmoid (Eq 1)."""
+
+
+@cache
+def kernel_plan(spec: NetworkSpec) -> KernelPlan:
+    """The plan of `spec` (cached; arrays are read-only because they are shared)."""
+    sizes = np.array(spec.sizes, dtype=np.int64)
+    act_off = np.concatenate(([0], np.cumsum(sizes)[:-1])).astype(np.int64)
+    hist_off = act_off * (spec.delays + 1)
+    blocks = np.array(
+        [(b.m, b.t, b.s, b.src, b.offset) for b in layout(spec).blocks], dtype=np.int64
+    ).reshape(-1, 5)
+    for arr in (sizes, act_off, hist_off, blocks):
+        arr.flags.writeable = False
+    return KernelPlan(
+        sizes, hist_off, act_off, blocks, spec.delays, int(spec.output_activation == "linear")
+    )
+
+
+def state_size(spec: NetworkSpec) -> int:
+    """Length of one controller's state row: T+1 history slots of every layer 0..M."""
+    return (spec.delays + 1) * sum(spec.sizes)
+
+
+def scratch_size(spec: NetworkSpec) -> int:
+    """Length of the work array `step_one` needs: this step's activations of layers 0..M."""
+    return sum(spec.sizes)
+
+
+def reset(spec: NetworkSpec, batch: int) -> np.ndarray:
+    """The state of `batch` controllers before their first step: every past value is 0."""
+    if batch < 0:
+        raise ValueError(f"batch must be >= 0, got {batch}")
+    return np.zeros((batch, state_size(spec)), dtype=np.float64)
+
+
+@njit(cache=True)
+def _sigmoid(u: float) -> float:
+    # Written so exp never overflows: the same formula as `_sigmoid_array`.
+    e = math.exp(-abs(u))
+    if u >= 0.0:
+        return 1.0 / (1.0 + e)
+    return e / (1.0 + e)
+
+
+@njit(cache=True)
+def _accumulate(
+    w: np.ndarray,
+    off: int,
+    rows: int,
+    n_src: int,
+    x: np.ndarray,
+    x_off: int,
+    u: np.ndarray,
+    u_off: int,
+) -> None:
+    # u[u_off + n] += sum_i W[n, i] x[x_off + i] + W[n, bias]; fixed order, no reassociation.
+    cols = n_src + 1
+    for n in range(rows):
+        row = off + n * cols
+        acc = 0.0
+        for i in range(n_src):
+            acc += w[row + i] * x[x_off + i]
+        acc += w[row + n_src]
+        u[u_off + n] += acc
+
+
+@njit(cache=True)
+def step_one(
+    w: np.ndarray,
+    sizes: np.ndarray,
+    hist_off: np.ndarray,
+    act_off: np.ndarray,
+    blocks: np.ndarray,
+    delays: int,
+    linear_output: int,
+    state_row: np.ndarray,
+    inputs_row: np.ndarray,
+    out_row: np.ndarray,
+    scratch: np.ndarray,
+) -> None:
+    """Advance one controller by one step in place (see the module docstring)."""
+    top = sizes.shape[0] - 1
+    for i in range(sizes[0]):
+        scratch[act_off[0] + i] = inputs_row[i]
+    b = 0
+    n_blocks = blocks.shape[0]
+    for m in range(1, top + 1):
+        rows = sizes[m]
+        base = act_off[m]
+        for n in range(rows):
+            scratch[base + n] = 0.0
+        while b < n_blocks and blocks[b, 0] == m:
+            t = blocks[b, 1]
+            s = blocks[b, 2]
+            src = blocks[b, 3]
+            off = blocks[b, 4]
+            n_src = sizes[src]
+            if s == 0 and t == 0:
+                _accumulate(w, off, rows, n_src, scratch, act_off[src], scratch, base)
+            elif s == 0:
+                x_off = hist_off[src] + (t - 1) * n_src
+                _accumulate(w, off, rows, n_src, state_row, x_off, scratch, base)
+            else:
+                x_off = hist_off[src] + t * n_src
+                _accumulate(w, off, rows, n_src, state_row, x_off, scratch, base)
+            b += 1
+        if m < top or linear_output == 0:
+            for n in range(rows):
+                scratch[base + n] = _sigmoid(scratch[base + n])
+    for j in range(top + 1):
+        n_j = sizes[j]
+        h = hist_off[j]
+        for r in range(delays, 0, -1):
+            for i in range(n_j):
+                state_row[h + r * n_j + i] = state_row[h + (r - 1) * n_j + i]
+        for i in range(n_j):
+            state_row[h + i] = scratch[act_off[j] + i]
+    for i in range(sizes[top]):
+        out_row[i] = scratch[act_off[top] + i]
+
+
+@njit(cache=True)
+def _step_batch(
+    weights: np.ndarray,
+    sizes: np.ndarray,
+    hist_off: np.ndarray,
+    act_off: np.ndarray,
+    blocks: np.ndarray,
+    delays: int,
+    linear_output: int,
+    state: np.ndarray,
+    inputs: np.ndarray,
+    out: np.ndarray,
+    scratch: np.ndarray,
+) -> None:
+    for r in range(weights.shape[0]):
+        step_one(
+            weights[r],
+            sizes,
+            hist_off,
+            act_off,
+            blocks,
+            delays,
+            linear_output,
+            state[r],
+            inputs[r],
+            out[r],
+            scratch,
+        )
+
+
+def _checked(
+    spec: NetworkSpec, weights: np.ndarray, inputs: np.ndarray, state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """C-contiguous float64 views of the arguments, or ValueError naming the wrong one."""
+    w = np.ascontiguousarray(weights, dtype=np.float64)
+    x = np.ascontiguousarray(inputs, dtype=np.float64)
+    st = np.ascontiguousarray(state, dtype=np.float64)
+    n_weights = spec.weight_count
+    if w.ndim != 2 or w.shape[1] != n_weights:
+        raise ValueError(f"weights must have shape (batch, {n_weights}), got {w.shape}")
+    batch = w.shape[0]
+    if x.shape != (batch, spec.inputs):
+        raise ValueError(f"inputs must have shape ({batch}, {spec.inputs}), got {x.shape}")
+    size = state_size(spec)
+    if st.shape != (batch, size):
+        raise ValueError(f"state must have shape ({batch}, {size}), got {st.shape}")
+    return w, x, st
+
+
+def step(
+    spec: NetworkSpec, weights: np.ndarray, inputs: np.ndarray, state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """One step of a batch: (outputs (B, outputs), new state); the arguments are not modified.
+
+    The canonical path (compiled, one row at a time), bit-identical for any batch size.
+    """
+    w, x, st = _checked(spec, weights, inputs, state)
+    new_state = st.copy()
+    out = np.empty((w.shape[0], spec.outputs), dtype=np.float64)
+    scratch = np.empty(scratch_size(spec), dtype=np.float64)
+    _step_batch(w, *kernel_plan(spec), new_state, x, out, scratch)
+    return out, new_state
+
+
+def _sigmoid_array(u: np.ndarray) -> np.ndarray:
+    e = np.exp(-np.abs(u))
+    a: np.ndarray = np.where(u >= 0.0, 1.0 / (1.0 + e), e / (1.0 + e))
+    return a
+
+
+def step_reference(
+    spec: NetworkSpec, weights: np.ndarray, inputs: np.ndarray, state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The same contract as `step` in vectorised numpy (no loop over individuals, no BLAS).
+
+    Agrees with `step` to rounding (exp may differ in the last ulp); used as its test oracle.
+    """
+    w, x, st = _checked(spec, weights, inputs, state)
+    lay = layout(spec)
+    batch = w.shape[0]
+    slots = spec.delays + 1
+    sizes = spec.sizes
+    # history[j][:, r, :] = a_j(k - 1 - r) for the step being computed
+    history: list[np.ndarray] = []
+    offset = 0
+    for n_j in sizes:
+        history.append(st[:, offset : offset + slots * n_j].reshape(batch, slots, n_j))
+        offset += slots * n_j
+    act: list[np.ndarray] = [x]
+    for m in range(1, spec.layers + 1):
+        u = np.zeros((batch, sizes[m]))
+        for blk in lay.blocks:
+            if blk.m != m:
+                continue
+            if blk.s == 0 and blk.t == 0:
+                src = act[blk.src]
+            elif blk.s == 0:
+                src = history[blk.src][:, blk.t - 1, :]
+            else:
+                src = history[blk.src][:, blk.t, :]
+            mat = lay.view(w, blk)
+            u = u + (mat[:, :, :-1] * src[:, None, :]).sum(axis=-1) + mat[:, :, -1]
+        linear = m == spec.layers and spec.output_activation == "linear"
+        act.append(u if linear else _sigmoid_array(u))
+    new_state = np.concatenate(
+        [
+            np.concatenate([a[:, None, :], h[:, :-1, :]], axis=1).reshape(batch, -1)
+            for a, h in zip(act, history, strict=True)
+        ],
+        axis=1,
+    )
+    return act[-1].copy(), new_state
+
+
+def motor_commands(spec: NetworkSpec, outputs: np.ndarray) -> np.ndarray:
+    """Wheel commands in [-1, 1] from raw outputs: 2y - 1 for sigmoid, clipped if linear."""
+    y = np.asarray(outputs, dtype=np.float64)
+    if y.ndim == 0 or y.shape[-1] != spec.outputs:
+        raise ValueError(f"outputs must have last dimension {spec.outputs}, got {y.shape}")
+    motors: np.ndarray = (
+        np.clip(y, -1.0, 1.0) if spec.output_activation == "linear" else 2.0 * y - 1.0
+    )
+    return motors
+
+
+@njit(cache=True)
+def motor_one(out_row: np.ndarray, linear_output: int, motor_row: np.ndarray) -> None:
+    """Compiled `motor_commands` for one robot: writes motor_row from out_row."""
+    for i in range(out_row.shape[0]):
+        y = out_row[i]
+        if linear_output != 0:
+            motor_row[i] = min(max(y, -1.0), 1.0)
+        else:
+            motor_row[i] = 2.0 * y - 1.0

@@ -1,0 +1,256 @@
+"""The controller network (Eqs 1-6, 8): compiled path, numpy reference, state and semantics."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evorobotics.layout import layout
+from evorobotics.network import (
+    kernel_plan,
+    motor_commands,
+    motor_one,
+    reset,
+    scratch_size,
+    state_size,
+    step,
+    step_one,
+    step_reference,
+)
+from schemas.network import PRESETS, NetworkSpec
+
+StepFn = Callable[[NetworkSpec, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@st.composite
+def specs(draw: st.DrawFn, max_hidden: int = 3, max_delays: int = 3) -> NetworkSpec:
+    """Random small specs: hidden 0..3 layers, T 0..3, S 0..M, both output activations."""
+    hidden = tuple(draw(st.lists(st.integers(1, 5), max_size=max_hidden)))
+    return NetworkSpec(
+        inputs=draw(st.integers(1, 5)),
+        hidden=hidden,
+        outputs=draw(st.integers(1, 3)),
+        output_activation=draw(st.sampled_from(["sigmoid", "linear"])),
+        delays=draw(st.integers(0, max_delays)),
+        recurrence=draw(st.integers(0, len(hidden) + 1)),
+    )
+
+
+def _run(
+    spec: NetworkSpec, weights: np.ndarray, inputs: np.ndarray, *, reference: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Outputs (steps, B, outputs) and final state of a whole input sequence (steps, B, inputs)."""
+    fn = step_reference if reference else step
+    state = reset(spec, weights.shape[0])
+    outs = []
+    for x in inputs:
+        out, state = fn(spec, weights, x, state)
+        outs.append(out)
+    return np.stack(outs), state
+
+
+def _sequence(rng: np.random.Generator, steps: int, batch: int, spec: NetworkSpec) -> np.ndarray:
+    return rng.integers(0, 2, size=(steps, batch, spec.inputs)).astype(np.float64)
+
+
+@settings(max_examples=40, deadline=None)
+@given(spec=specs(), seed=st.integers(0, 2**32 - 1), batch=st.integers(1, 6))
+def test_compiled_agrees_with_reference(spec: NetworkSpec, seed: int, batch: int) -> None:
+    rng = np.random.default_rng(seed)
+    w = rng.normal(scale=0.7, size=(batch, spec.weight_count))
+    xs = _sequence(rng, 6, batch, spec)
+    out_c, state_c = _run(spec, w, xs)
+    out_r, state_r = _run(spec, w, xs, reference=True)
+    np.testing.assert_allclose(out_c, out_r, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(state_c, state_r, rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(spec=specs(), seed=st.integers(0, 2**32 - 1), batch=st.integers(2, 9))
+def test_batch_equals_single_rows_bit_for_bit(spec: NetworkSpec, seed: int, batch: int) -> None:
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=(batch, spec.weight_count))
+    xs = _sequence(rng, 5, batch, spec)
+    out_b, state_b = _run(spec, w, xs)
+    for r in range(batch):
+        out_r, state_r = _run(spec, w[r : r + 1], xs[:, r : r + 1])
+        assert np.array_equal(out_b[:, r], out_r[:, 0])
+        assert np.array_equal(state_b[r], state_r[0])
+
+
+@settings(max_examples=30, deadline=None)
+@given(spec=specs(), seed=st.integers(0, 2**32 - 1))
+def test_zero_weights_are_absent_connections(spec: NetworkSpec, seed: int) -> None:
+    """Zero delayed and recurrent blocks give exactly the outputs of the T=0, S=0 network."""
+    rng = np.random.default_rng(seed)
+    lay = layout(spec)
+    plain = spec.model_copy(update={"delays": 0, "recurrence": 0})
+    w = np.zeros((2, spec.weight_count))
+    kept = []
+    for blk in lay.blocks:
+        if blk.t == 0 and blk.s == 0:
+            sl = slice(blk.offset, blk.offset + blk.size)
+            w[:, sl] = rng.normal(size=(2, blk.size))
+            kept.append(w[:, sl])
+    w_plain = np.concatenate(kept, axis=1)
+    assert w_plain.shape[1] == plain.weight_count
+    xs = _sequence(rng, 6, 2, spec)
+    out_full, _ = _run(spec, w, xs)
+    out_plain, _ = _run(plain, w_plain, xs)
+    assert np.array_equal(out_full, out_plain)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    hidden=st.lists(st.integers(1, 4), max_size=3),
+    delays=st.integers(1, 3),
+    linear=st.booleans(),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_delayed_network_sees_exactly_m_times_t_steps_back(
+    hidden: list[int], delays: int, linear: bool, seed: int
+) -> None:
+    spec = NetworkSpec(
+        hidden=tuple(hidden),
+        delays=delays,
+        recurrence=0,
+        output_activation="linear" if linear else "sigmoid",
+    )
+    horizon = spec.layers * delays
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=(1, spec.weight_count))
+    steps = horizon + 3
+    xs = rng.normal(size=(steps, 1, spec.inputs))
+    base, _ = _run(spec, w, xs)
+    last = steps - 1
+    at_horizon = xs.copy()
+    at_horizon[last - horizon] += 1.0
+    changed, _ = _run(spec, w, at_horizon)
+    assert not np.array_equal(changed[last], base[last])
+    for earlier in range(last - horizon):
+        before = xs.copy()
+        before[earlier] += 1.0
+        same, _ = _run(spec, w, before)
+        assert np.array_equal(same[last], base[last])
+
+
+def test_reactive_network_forgets_at_once_and_reset_is_zero() -> None:
+    spec = PRESETS["reactive"]
+    rng = np.random.default_rng(1)
+    w = rng.normal(size=(3, spec.weight_count))
+    state = reset(spec, 3)
+    assert state.shape == (3, state_size(spec)) and not state.any()
+    x = np.ones((3, spec.inputs))
+    first, state = step(spec, w, x, state)
+    again, _ = step(spec, w, x, state)
+    assert np.array_equal(first, again)
+
+
+def test_recurrent_network_remembers() -> None:
+    spec = PRESETS["recurrent-small"]
+    w = np.random.default_rng(2).normal(size=(1, spec.weight_count))
+    state = reset(spec, 1)
+    x = np.zeros((1, spec.inputs))
+    outs = []
+    for _ in range(4):
+        out, state = step(spec, w, x, state)
+        outs.append(out)
+    # Same input every step, different outputs: the feedback carries the past.
+    assert not np.array_equal(outs[0], outs[3])
+
+
+def test_step_does_not_modify_its_arguments() -> None:
+    spec = PRESETS["recurrent-small"]
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=(2, spec.weight_count))
+    x = np.ones((2, spec.inputs))
+    state = rng.normal(size=(2, state_size(spec)))
+    copies = (w.copy(), x.copy(), state.copy())
+    for fn in (step, step_reference):
+        _, new_state = fn(spec, w, x, state)
+        assert not np.shares_memory(new_state, state)
+        for before, after in zip(copies, (w, x, state), strict=True):
+            assert np.array_equal(before, after)
+
+
+def test_state_layout_most_recent_first() -> None:
+    """Slot r of layer 0 holds the input of r steps ago, as the module docstring says."""
+    spec = NetworkSpec(inputs=2, hidden=(3,), outputs=1, delays=2)
+    plan = kernel_plan(spec)
+    w = np.zeros((1, spec.weight_count))
+    state = reset(spec, 1)
+    for k in (1.0, 2.0, 3.0):
+        _, state = step(spec, w, np.full((1, 2), k), state)
+    h = int(plan.hist_off[0])
+    assert state[0, h : h + 6].tolist() == [3.0, 3.0, 2.0, 2.0, 1.0, 1.0]
+    # zero weights: every neuron of layers 1..M is sigmoid(0) = 0.5 in slot 0
+    h1 = int(plan.hist_off[1])
+    assert state[0, h1 : h1 + 3].tolist() == [0.5, 0.5, 0.5]
+
+
+def test_step_one_is_the_same_call_from_python() -> None:
+    spec = PRESETS["paper-largest"]
+    rng = np.random.default_rng(4)
+    w = rng.normal(scale=0.3, size=(1, spec.weight_count))
+    x = rng.integers(0, 2, size=(1, spec.inputs)).astype(np.float64)
+    state = rng.normal(size=(1, state_size(spec)))
+    out, new_state = step(spec, w, x, state)
+    row = state[0].copy()
+    out_row = np.empty(spec.outputs)
+    step_one(w[0], *kernel_plan(spec), row, x[0], out_row, np.empty(scratch_size(spec)))
+    assert np.array_equal(out_row, out[0])
+    assert np.array_equal(row, new_state[0])
+
+
+@pytest.mark.parametrize("activation", ["sigmoid", "linear"])
+def test_motor_commands_in_range_and_compiled_twin_agrees(activation: str) -> None:
+    spec = NetworkSpec(output_activation=activation)
+    y = np.array([[0.0, 1.0], [0.25, 0.5], [-3.0, 3.0]])
+    motors = motor_commands(spec, y)
+    expected = {
+        "sigmoid": [[-1.0, 1.0], [-0.5, 0.0], [-7.0, 5.0]],
+        "linear": [[0.0, 1.0], [0.25, 0.5], [-1.0, 1.0]],
+    }[activation]
+    assert motors.tolist() == expected
+    row = np.empty(2)
+    for r in range(3):
+        motor_one(y[r], kernel_plan(spec).linear_output, row)
+        assert np.array_equal(row, motors[r])
+
+
+def test_motor_commands_rejects_wrong_width() -> None:
+    with pytest.raises(ValueError, match="last dimension 2"):
+        motor_commands(PRESETS["paper-best"], np.zeros((4, 3)))
+
+
+@pytest.mark.parametrize("fn", [step, step_reference])
+def test_shapes_are_validated(fn: StepFn) -> None:
+    spec = PRESETS["paper-best"]
+    w = np.zeros((2, 222))
+    x = np.zeros((2, 5))
+    s = reset(spec, 2)
+    with pytest.raises(ValueError, match=r"weights must have shape \(batch, 222\)"):
+        fn(spec, np.zeros((2, 221)), x, s)
+    with pytest.raises(ValueError, match="weights must have shape"):
+        fn(spec, np.zeros(222), x, s)
+    with pytest.raises(ValueError, match=r"inputs must have shape \(2, 5\), got \(2, 4\)"):
+        fn(spec, w, np.zeros((2, 4)), s)
+    with pytest.raises(ValueError, match=r"state must have shape \(2, 48\), got \(3, 48\)"):
+        fn(spec, w, x, reset(spec, 3))
+    with pytest.raises(ValueError, match="batch must be >= 0"):
+        reset(spec, -1)
+
+
+def test_sizes_of_the_presets() -> None:
+    spec = PRESETS["paper-best"]
+    assert state_size(spec) == 3 * (5 + 9 + 2)
+    assert scratch_size(spec) == 16
+    plan = kernel_plan(spec)
+    assert plan.sizes.tolist() == [5, 9, 2]
+    assert plan.blocks.shape == (len(layout(spec).blocks), 5)
+    assert plan is kernel_plan(spec)
+    assert not plan.blocks.flags.writeable
