@@ -293,7 +293,7 @@ def test_eq9_rate_is_capped_at_one_for_small_blocks() -> None:
 
 
 def test_eq10_mutants_differ_only_where_p_is_one_within_the_step() -> None:
-    params = make_params(5, 1, base_rate=4.0)
+    params = make_params(5, 1, base_rate=4.0, init_scale=2.0)  # steps scale by eta, not init_scale
     parents = initial_population(np.random.default_rng(1), DEEP, make_params(300, 1))
     children, mask = mutate(np.random.default_rng(2), parents, DEEP, params)
     assert mask.any() and not mask.all()
