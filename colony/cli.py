@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import typer
 
+from colony.evolve import evolve_command
+
 app = typer.Typer(
     name="colony",
     help="EvoColony: evolve neural controllers for EvBots in simulation and run them on a colony.",
@@ -28,6 +30,9 @@ def presets() -> None:
             f"{name:16s} {spec.weight_count:6d} weights  hidden={list(spec.hidden)} "
             f"T={spec.delays} S={spec.recurrence} out={spec.output_activation}"
         )
+
+
+app.command(name="evolve")(evolve_command)
 
 
 def main() -> None:

@@ -1,0 +1,214 @@
+"""`colony evolve`: a whole evolutionary experiment in one process, with its files and plots.
+
+Flags override a `--config` RunConfig JSON, which overrides the paper's defaults. A maze or
+network given as a FILE is read here and shipped inside the config (maze text, NetworkSpec),
+so `config.json` alone reproduces the run anywhere.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from pydantic import ValidationError
+
+from evorobotics.errors import EvoError
+from evorobotics.evolution import EvolutionResult, GenerationSummary, evolve
+from evorobotics.maze import load_maze
+from schemas.network import PRESETS, NetworkSpec
+from schemas.run import RunConfig
+
+LOG_LINES = 20
+"""Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
+
+
+class ConfigError(Exception):
+    """A flag, config file, maze or network is invalid; the message is one line for the user."""
+
+
+def _validation_message(err: ValidationError, prefix: str = "") -> str:
+    """'field: reason; ...' from pydantic's errors, naming every offending field."""
+    parts = []
+    for e in err.errors():
+        loc = ".".join(str(x) for x in (prefix, *e["loc"]) if x != "")
+        parts.append(f"{loc}: {e['msg']}" if loc else str(e["msg"]))
+    return "; ".join(parts)
+
+
+def _network_value(value: str) -> str | NetworkSpec:
+    """A preset name stays a name; an existing file is read as a NetworkSpec JSON."""
+    if value in PRESETS:
+        return value
+    path = Path(value)
+    if path.is_file():
+        try:
+            return NetworkSpec.model_validate_json(path.read_text())
+        except ValidationError as err:
+            raise ConfigError(f"network file {value}: {_validation_message(err)}") from None
+    return value  # RunConfig rejects it with the list of presets
+
+
+def _maze_value(value: str) -> str:
+    """An existing file becomes its text (remote workers need no file); a name stays a name."""
+    path = Path(value)
+    return path.read_text() if path.is_file() else value
+
+
+def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunConfig:
+    """Defaults < config file < flags (None = not given); ConfigError with a one-line reason."""
+    data: dict[str, Any] = {}
+    if config_file is not None:
+        try:
+            loaded = json.loads(config_file.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise ConfigError(f"config file {config_file}: {err}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"config file {config_file}: expected a JSON object")
+        data.update(loaded)
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if "maze" in given:
+        given["maze"] = _maze_value(given["maze"])
+    if "network" in given:
+        given["network"] = _network_value(given["network"])
+    data.update(given)
+    try:
+        config = RunConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_validation_message(err)) from None
+    try:
+        load_maze(config.maze)
+    except (EvoError, ValueError) as err:
+        raise ConfigError(f"maze: {err}") from None
+    return config
+
+
+def write_generations_csv(path: Path, history: tuple[GenerationSummary, ...]) -> None:
+    """`generation,best,mean,worst`; floats as repr so they parse back to the same bits."""
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(["generation", "best", "mean", "worst"])
+        for h in history:
+            writer.writerow([h.generation, repr(h.best), repr(h.mean), repr(h.worst)])
+
+
+def write_outputs(out: Path, config: RunConfig, result: EvolutionResult) -> list[Path]:
+    """best.json, generations.csv, config.json and the three plots; returns the paths."""
+    from evorobotics import plots  # matplotlib is slow to import: only when writing
+
+    out.mkdir(parents=True, exist_ok=True)
+    files = {
+        name: out / name
+        for name in (
+            "best.json",
+            "generations.csv",
+            "config.json",
+            "fitness.png",
+            "paths.png",
+            "network.png",
+        )
+    }
+    files["best.json"].write_text(result.best.to_json())
+    write_generations_csv(files["generations.csv"], result.history)
+    files["config.json"].write_text(config.model_dump_json(indent=2) + "\n")
+    plots.fitness_plot(result.history, files["fitness.png"])
+    plots.paths_plot(config, result.best, files["paths.png"])
+    plots.network_plot(result.best.spec, result.best.weights, files["network.png"])
+    return list(files.values())
+
+
+def _line(s: GenerationSummary, total: int) -> str:
+    return (
+        f"generation {s.generation + 1}/{total} best {s.best:.4f} mean {s.mean:.4f} "
+        f"worst {s.worst:.4f}" + (f" nan {s.nan_count}" if s.nan_count else "")
+    )
+
+
+@contextmanager
+def _progress(total: int) -> Iterator[Callable[[GenerationSummary], None]]:
+    """A rich bar on a terminal; otherwise a plain line every ~total/LOG_LINES generations."""
+    if sys.stdout.isatty():
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+        with Progress(
+            "[progress.description]{task.description}",
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+        ) as bar:
+            task = bar.add_task("evolving", total=total)
+
+            def tick(s: GenerationSummary) -> None:
+                bar.update(task, advance=1, description=f"best {s.best:.3f} mean {s.mean:.3f}")
+
+            yield tick
+        return
+    every = max(1, total // LOG_LINES)
+
+    def log(s: GenerationSummary) -> None:
+        if (s.generation + 1) % every == 0 or s.generation + 1 == total:
+            print(_line(s, total), flush=True)
+
+    yield log
+
+
+def evolve_command(
+    population: Annotated[int | None, typer.Option(help="individuals per generation [100]")] = None,
+    generations: Annotated[int | None, typer.Option(help="generations [350]")] = None,
+    trials: Annotated[int | None, typer.Option(help="trials per individual [3]")] = None,
+    steps: Annotated[int | None, typer.Option(help="time steps per trial [40]")] = None,
+    seed: Annotated[int | None, typer.Option(help="run seed [0]")] = None,
+    maze: Annotated[
+        str | None, typer.Option(metavar="NAME_OR_FILE", help="shipped maze name or maze file")
+    ] = None,
+    network: Annotated[
+        str | None,
+        typer.Option(metavar="PRESET_OR_FILE", help="network preset or NetworkSpec JSON file"),
+    ] = None,
+    reality_gap: Annotated[
+        bool | None,
+        typer.Option("--reality-gap/--no-reality-gap", help="evolve under the reality-gap model"),
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option("--config", metavar="FILE", help="a RunConfig JSON")
+    ] = None,
+    out: Annotated[Path, typer.Option(help="output directory")] = Path("out"),
+) -> None:
+    """Evolve a controller in one process (defaults: the paper's experiment) and plot it."""
+    overrides: dict[str, Any] = {
+        "population": population,
+        "generations": generations,
+        "trials": trials,
+        "steps": steps,
+        "seed": seed,
+        "maze": maze,
+        "network": network,
+        "reality_gap": reality_gap,
+    }
+    try:
+        cfg = resolve_config(config, overrides)
+    except ConfigError as err:
+        typer.echo(f"colony evolve: invalid {err}", err=True)
+        raise typer.Exit(code=2) from None
+    spec = cfg.network_spec
+    typer.echo(
+        f"evolving: population {cfg.population}, {cfg.generations} generations, "
+        f"{cfg.trials} x {cfg.steps} steps, {spec.weight_count} weights, seed {cfg.seed}"
+    )
+    started = time.perf_counter()
+    with _progress(cfg.generations) as report:
+        result = evolve(cfg, on_generation=report)
+    evolved = time.perf_counter() - started
+    files = write_outputs(out, cfg, result)
+    total = time.perf_counter() - started
+    typer.echo(f"best fitness {result.best.fitness} (controller {result.best.sha256[:12]})")
+    typer.echo(f"wrote {', '.join(str(p) for p in files)}")
+    typer.echo(
+        f"wall time {total:.2f} s (evolution {evolved:.2f} s, files {total - evolved:.2f} s)"
+    )

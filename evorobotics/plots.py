@@ -1,0 +1,193 @@
+"""Figures of a run, like the paper's: fitness curves (Fig 4), paths (Fig 6), networks (Figs 1, 5).
+
+Matplotlib with the Agg backend only (no display); imported by the CLI when it writes files,
+never by the science modules. PNGs carry no timestamp metadata, so reruns give equal bytes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.collections import LineCollection
+from matplotlib.lines import Line2D
+
+from evorobotics.document import ControllerDocument
+from evorobotics.evaluate import record_path, start_poses
+from evorobotics.evolution import GenerationSummary
+from evorobotics.layout import layout
+from evorobotics.maze import load_maze
+from evorobotics.sim import WorldParams
+from schemas.network import NetworkSpec
+from schemas.run import RunConfig
+
+PNG_METADATA: dict[str, Any] = {"Software": None}
+"""Drop matplotlib's version stamp so a PNG depends on its data only."""
+
+PATH_STEPS = 200
+"""Fig 6: the best controller drives longer than in training, to show its behaviour."""
+
+PATH_TRIALS = 3
+
+
+def _save(fig: Any, path: Path) -> None:
+    fig.savefig(path, dpi=110, metadata=PNG_METADATA)
+    plt.close(fig)
+
+
+def fitness_plot(history: Sequence[GenerationSummary], path: Path) -> None:
+    """Best, mean and worst fitness against generation (Fig 4)."""
+    if not history:
+        raise ValueError("history is empty: nothing to plot")
+    gens = np.array([h.generation for h in history])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, style in (("best", "-"), ("mean", "--"), ("worst", ":")):
+        ax.plot(gens, [getattr(h, name) for h in history], style, color="black", label=name)
+    ax.set_xlabel("generation")
+    ax.set_ylabel("fitness (Eq 12)")
+    ax.set_title("training performance")
+    ax.legend(loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _curve(p0: np.ndarray, p1: np.ndarray, bend: float, points: int = 16) -> np.ndarray:
+    """A quadratic Bezier from p0 to p1 bulging by `bend` (a loop when p0 == p1)."""
+    d = p1 - p0
+    length = float(np.hypot(*d))
+    if length == 0:  # self loop: a small circle to the right of the neuron
+        angle = np.linspace(np.pi, -np.pi, points)
+        radius = bend / 2
+        return np.stack([p0[0] + radius * (1 + np.cos(angle)), p0[1] + radius * np.sin(angle)], 1)
+    ctrl = (p0 + p1) / 2 + bend * np.array([-d[1], d[0]]) / length
+    u = np.linspace(0, 1, points)[:, None]
+    return np.asarray(((1 - u) ** 2) * p0 + 2 * (1 - u) * u * ctrl + (u**2) * p1)
+
+
+KIND_COLOURS = {"feed-forward": "black", "delayed": "tab:blue", "recurrent": "tab:red"}
+
+
+def network_plot(spec: NetworkSpec, weights: np.ndarray, path: Path) -> None:
+    """Neurons in layer columns; line width proportional to |w| (Figs 1, 5).
+
+    Feed-forward (t = 0, s = 0) lines are straight black, delayed ones (t >= 1) blue arcs
+    bending more with the lag, recurrent ones (s >= 1) red arcs back from deeper layers or
+    loops on the same layer. Biases are the grey node under each source column.
+    """
+    lay = layout(spec)
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (lay.n_weights,):
+        raise ValueError(f"weights must have shape ({lay.n_weights},), got {w.shape}")
+    sizes = spec.sizes
+
+    def pos(layer: int, k: int) -> np.ndarray:
+        n = sizes[layer]
+        return np.array([float(layer), (k - (n - 1) / 2) / max(max(sizes) - 1, 1)])
+
+    def bias_pos(layer: int) -> np.ndarray:
+        return np.asarray(pos(layer, 0) - [0.0, 1.0 / max(max(sizes) - 1, 1) + 0.05])
+
+    scale = float(np.max(np.abs(w))) or 1.0
+    segments: list[np.ndarray] = []
+    widths: list[float] = []
+    colours: list[str] = []
+    for b in lay.blocks:
+        mat = lay.view(w, b)
+        kind = "recurrent" if b.s > 0 else ("delayed" if b.t > 0 else "feed-forward")
+        for n in range(b.rows):
+            dst = pos(b.m, n)
+            for i in range(b.cols):
+                value = float(mat[n, i])
+                if value == 0.0:
+                    continue  # a zero weight is an absent connection
+                src = bias_pos(b.src) if i == b.cols - 1 else pos(b.src, i)
+                if kind == "feed-forward":
+                    bend = 0.0
+                elif kind == "delayed":
+                    bend = 0.06 * b.t
+                else:
+                    bend = 0.15 + 0.05 * (b.s + b.t)
+                segments.append(_curve(src, dst, bend))
+                widths.append(0.1 + 3.0 * abs(value) / scale)
+                colours.append(KIND_COLOURS[kind])
+    fig, ax = plt.subplots(figsize=(2.0 + 1.6 * len(sizes), 5))
+    ax.add_collection(LineCollection(segments, linewidths=widths, colors=colours, alpha=0.7))
+    for layer, n in enumerate(sizes):
+        xy = np.array([pos(layer, k) for k in range(n)])
+        ax.scatter(xy[:, 0], xy[:, 1], s=120, color="white", edgecolors="black", zorder=3)
+        if layer < len(sizes) - 1:
+            bx, by = bias_pos(layer)
+            ax.scatter([bx], [by], s=60, color="lightgrey", edgecolors="grey", zorder=3)
+    names = ["inputs", *[f"hidden {k}" for k in range(1, len(spec.hidden) + 1)], "outputs"]
+    ax.set_xticks(range(len(sizes)), names)
+    ax.set_yticks([])
+    ax.set_xlim(-0.4, len(sizes) - 0.4)
+    for side in ("top", "right", "left"):
+        ax.spines[side].set_visible(False)
+    ax.legend(
+        handles=[Line2D([], [], color=c, label=k) for k, c in KIND_COLOURS.items()],
+        loc="upper center",
+        bbox_to_anchor=(0.5, 1.08),
+        ncol=3,
+        frameon=False,
+        fontsize=8,
+    )
+    ax.set_title(
+        f"{lay.n_weights} weights, T={spec.delays}, S={spec.recurrence} (width ~ |w|)", pad=22
+    )
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _body_outline(pose: np.ndarray, length: float, width: float) -> np.ndarray:
+    """The EvBot body rectangle (closed polygon) at pose (x, y, heading), centred on it."""
+    x, y, th = (float(v) for v in pose)
+    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1], [1, 1]], dtype=np.float64) * np.array(
+        [length / 2, width / 2]
+    )
+    c, s = np.cos(th), np.sin(th)
+    return np.asarray(corners @ np.array([[c, s], [-s, c]]) + [x, y])
+
+
+def paths_plot(
+    config: RunConfig, best: ControllerDocument, path: Path, steps: int = PATH_STEPS
+) -> None:
+    """The best controller driving from three UNSEEN start poses (Fig 6).
+
+    The start poses are those of generation `config.generations`, one past the last trained
+    generation, so evolution never saw them. Dotted path, start dot, final body outline.
+    """
+    maze = load_maze(config.maze)
+    params = WorldParams()
+    starts = start_poses(maze, config.seed, config.generations, PATH_TRIALS)
+    rows, cols = maze.grid.shape
+    extent = (0.0, cols * maze.cell_size, 0.0, rows * maze.cell_size)
+    fig, axes = plt.subplots(1, PATH_TRIALS, figsize=(4.2 * PATH_TRIALS, 4.4))
+    for k, ax in enumerate(np.atleast_1d(axes)):
+        sim = record_path(config, best.weights, starts[k], steps)
+        if sim.poses is None:
+            raise ValueError("record_path returned no poses")
+        poses = sim.poses.reshape(-1, 3)
+        ax.imshow(maze.grid, cmap="Greys", extent=extent, origin="upper", vmin=0, vmax=1.4)
+        ax.plot(poses[:, 0], poses[:, 1], ":", color="tab:blue", linewidth=1.2)
+        ax.plot(poses[0, 0], poses[0, 1], "o", color="tab:green", markersize=4)
+        outline = _body_outline(poses[-1], params.body_length, params.body_width)
+        ax.plot(outline[:, 0], outline[:, 1], "-", color="tab:red", linewidth=1.5)
+        stuck = " (stuck)" if bool(np.asarray(sim.stuck).reshape(-1)[0]) else ""
+        ax.set_title(f"start {k + 1}: max offset {float(sim.max_offset[0]):.2f} m{stuck}")
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        ax.set_xticks([])
+        ax.set_yticks([])
+    score = "n/a" if best.fitness is None else f"{best.fitness:.3f}"
+    fig.suptitle(f"best controller, {steps} steps from unseen start poses (fitness {score})")
+    fig.tight_layout()
+    _save(fig, path)
