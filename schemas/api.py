@@ -1,0 +1,120 @@
+"""Request and response bodies of the server's REST API (see docs/api.md).
+
+Requests: `POST /api/runs` takes a `schemas.run.RunConfig` as is (every field optional).
+Controller documents are returned as the document's own JSON (evorobotics.document).
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.run import RunConfig
+
+RunStatus = Literal["queued", "running", "paused", "completed", "failed", "cancelled"]
+TERMINAL: frozenset[str] = frozenset({"completed", "failed", "cancelled"})
+
+
+class RunOut(BaseModel):
+    """A run as the API reports it."""
+
+    model_config = ConfigDict(frozen=True)
+
+    id: int
+    status: RunStatus
+    seed: int
+    config: RunConfig
+    generation: int = Field(description="generations committed so far (0..generations)")
+    generations: int = Field(description="generations the run evolves in total")
+    best_fitness: float | None = Field(description="fitness of rank 0 of the latest generation")
+    evaluations: int = Field(description="controllers evaluated so far (each over `trials`)")
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    error: str | None
+
+
+class GenerationOut(BaseModel):
+    """Fitness statistics of one committed generation."""
+
+    model_config = ConfigDict(frozen=True)
+
+    generation: int
+    best: float
+    mean: float
+    worst: float
+    nan_count: int = Field(description="evaluations that gave NaN (ranked last)")
+
+
+class IndividualOut(BaseModel):
+    """One evaluated controller of a generation; rank 0 is the fittest."""
+
+    model_config = ConfigDict(frozen=True)
+
+    rank: int
+    index: int = Field(description="position in the population as evaluated")
+    parent: int | None = Field(description="rank in the previous generation it descends from")
+    fitness: float
+    components: list[list[float]] = Field(
+        description="per trial: curve length, net offset, max offset, stuck (Eq 12)"
+    )
+    genome_sha256: str = Field(description="sha256 of the genome's raw float64 bytes")
+
+
+class IndividualsOut(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    run_id: int
+    generation: int
+    individuals: list[IndividualOut]
+
+
+class WorkerOut(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    id: str
+    status: str
+    jobs_done: int
+    last_seen: datetime
+
+
+class RobotOut(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    id: str
+    status: str
+    controller_sha256: str | None
+    last_seen: datetime
+
+
+class JobCounts(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    pending: int
+    leased: int
+    done: int
+
+
+class ColonyOut(BaseModel):
+    """Everything a status query needs in one response."""
+
+    model_config = ConfigDict(frozen=True)
+
+    runs: dict[str, int] = Field(description="number of runs in each status")
+    active: list[RunOut] = Field(description="runs queued, running or paused")
+    jobs: JobCounts
+    workers: list[WorkerOut]
+    robots: list[RobotOut]
+
+
+class HealthOut(BaseModel):
+    status: Literal["ok"] = "ok"
+    version: str
+
+
+class ErrorOut(BaseModel):
+    """Body of every error response (FastAPI's shape)."""
+
+    detail: str

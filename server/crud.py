@@ -1,0 +1,108 @@
+"""Reads and small writes of the store, keyword-only so call sites name what they pass.
+
+The run loop's writes (jobs, generation commits) live in `server.jobs` and `server.manager`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from server.models import Controller, Generation, Individual, Job, Robot, Run, Worker
+
+
+def get_run(session: Session, *, run_id: int) -> Run | None:
+    return session.get(Run, run_id)
+
+
+def list_runs(
+    session: Session, *, statuses: Sequence[str] | None = None, limit: int = 100, offset: int = 0
+) -> list[Run]:
+    """Newest first."""
+    if limit < 1 or offset < 0:
+        raise ValueError(f"need limit >= 1 and offset >= 0, got {limit}, {offset}")
+    query = select(Run).order_by(Run.id.desc()).limit(limit).offset(offset)
+    if statuses is not None:
+        query = query.where(Run.status.in_(list(statuses)))
+    return list(session.scalars(query))
+
+
+def count_runs_by_status(session: Session) -> dict[str, int]:
+    rows = session.execute(select(Run.status, func.count()).group_by(Run.status))
+    return {status: int(count) for status, count in rows}
+
+
+def list_generations(session: Session, *, run_id: int) -> list[Generation]:
+    query = select(Generation).where(Generation.run_id == run_id).order_by(Generation.generation)
+    return list(session.scalars(query))
+
+
+def get_generation(session: Session, *, run_id: int, generation: int) -> Generation | None:
+    return session.get(Generation, (run_id, generation))
+
+
+def latest_generation(session: Session, *, run_id: int) -> Generation | None:
+    query = (
+        select(Generation)
+        .where(Generation.run_id == run_id)
+        .order_by(Generation.generation.desc())
+        .limit(1)
+    )
+    return session.scalars(query).first()
+
+
+def list_individuals(session: Session, *, run_id: int, generation: int) -> list[Individual]:
+    """Ranked, fittest first."""
+    query = (
+        select(Individual)
+        .where(Individual.run_id == run_id, Individual.generation == generation)
+        .order_by(Individual.rank)
+    )
+    return list(session.scalars(query))
+
+
+def get_individual(
+    session: Session, *, run_id: int, generation: int, rank: int
+) -> Individual | None:
+    return session.get(Individual, (run_id, generation, rank))
+
+
+def get_controller(session: Session, *, sha256: str) -> Controller | None:
+    return session.get(Controller, sha256.lower())
+
+
+def put_controller(
+    session: Session,
+    *,
+    sha256: str,
+    document: str,
+    run_id: int | None,
+    generation: int | None,
+    fitness: float | None,
+) -> Controller:
+    """Store a document once; the same sha256 is the same document, so a repeat is a no-op."""
+    existing = session.get(Controller, sha256)
+    if existing is not None:
+        return existing
+    row = Controller(
+        sha256=sha256, document=document, run_id=run_id, generation=generation, fitness=fitness
+    )
+    session.add(row)
+    return row
+
+
+def job_counts(session: Session) -> dict[str, int]:
+    rows = session.execute(select(Job.status, func.count()).group_by(Job.status))
+    counts = {"pending": 0, "leased": 0, "done": 0}
+    counts.update({status: int(count) for status, count in rows})
+    return counts
+
+
+def list_workers(session: Session) -> list[Worker]:
+    return list(session.scalars(select(Worker).order_by(Worker.id)))
+
+
+def list_robots(session: Session) -> list[Robot]:
+    return list(session.scalars(select(Robot).order_by(Robot.id)))

@@ -1,0 +1,21 @@
+"""Exceptions of the server package.
+
+Hierarchy:
+    ServerError              root; catch this to handle any failure of `server`
+    ├── NotFoundError        no run, generation or controller with that id (HTTP 404)
+    └── TransitionError      the run's status does not allow the requested change (HTTP 409)
+
+Bad arguments raise plain `ValueError`; `HTTPException` is raised only in `server/routes`.
+"""
+
+
+class ServerError(Exception):
+    """Root of every error raised by `server`."""
+
+
+class NotFoundError(ServerError):
+    """The requested run, generation or controller does not exist."""
+
+
+class TransitionError(ServerError):
+    """A lifecycle change that the run's current status forbids (e.g. resuming a completed run)."""

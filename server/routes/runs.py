@@ -1,0 +1,177 @@
+"""/api/runs: create runs, follow them, steer their lifecycle."""
+
+from __future__ import annotations
+
+import hashlib
+from datetime import UTC, datetime
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Body, HTTPException, Query, Response, status
+
+from schemas.api import GenerationOut, IndividualOut, IndividualsOut, RunOut, RunStatus
+from schemas.run import RunConfig
+from server import crud
+from server.deps import ManagerDep, SessionDep
+from server.errors import ServerError, TransitionError
+from server.models import Run
+
+router = APIRouter(prefix="/api/runs", tags=["runs"])
+
+
+def aware(moment: datetime | None) -> datetime | None:
+    """SQLite drops the zone of stored UTC times; put it back."""
+    if moment is None or moment.tzinfo is not None:
+        return moment
+    return moment.replace(tzinfo=UTC)
+
+
+def run_out(run: Run) -> RunOut:
+    config = RunConfig.model_validate_json(run.config)
+    created = aware(run.created_at)
+    if created is None:
+        raise ValueError(f"run {run.id} has no creation time")
+    return RunOut(
+        id=run.id,
+        status=run.status,  # the manager writes only RunStatus values
+        seed=run.seed,
+        config=config,
+        generation=run.generation,
+        generations=config.generations,
+        best_fitness=run.best_fitness,
+        evaluations=run.evaluations,
+        created_at=created,
+        started_at=aware(run.started_at),
+        finished_at=aware(run.finished_at),
+        error=run.error,
+    )
+
+
+def http_error(exc: ServerError) -> HTTPException:
+    code = status.HTTP_409_CONFLICT if isinstance(exc, TransitionError) else 404
+    return HTTPException(status_code=code, detail=str(exc))
+
+
+def _run(session: SessionDep, run_id: int) -> Run:
+    run = crud.get_run(session, run_id=run_id)
+    if run is None:
+        raise HTTPException(status_code=404, detail=f"no run with id {run_id}")
+    return run
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=RunOut)
+def create_run(
+    manager: ManagerDep,
+    session: SessionDep,
+    config: Annotated[RunConfig | None, Body()] = None,
+) -> RunOut:
+    """Start a run; every config field is optional and defaults to the paper's experiment."""
+    run_id = manager.create_run(config or RunConfig())
+    return run_out(_run(session, run_id))
+
+
+@router.get("", response_model=list[RunOut])
+def list_runs(
+    session: SessionDep,
+    status_: Annotated[list[RunStatus] | None, Query(alias="status")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> list[RunOut]:
+    """Newest first; `?status=running&status=paused` filters."""
+    runs = crud.list_runs(session, statuses=status_, limit=limit, offset=offset)
+    return [run_out(r) for r in runs]
+
+
+@router.get("/{run_id}", response_model=RunOut)
+def get_run(session: SessionDep, run_id: int) -> RunOut:
+    return run_out(_run(session, run_id))
+
+
+@router.get("/{run_id}/generations", response_model=list[GenerationOut])
+def list_generations(session: SessionDep, run_id: int) -> list[GenerationOut]:
+    _run(session, run_id)
+    return [
+        GenerationOut(
+            generation=g.generation, best=g.best, mean=g.mean, worst=g.worst, nan_count=g.nan_count
+        )
+        for g in crud.list_generations(session, run_id=run_id)
+    ]
+
+
+@router.get("/{run_id}/individuals", response_model=IndividualsOut)
+def list_individuals(
+    session: SessionDep,
+    run_id: int,
+    generation: Annotated[int | None, Query(ge=0, description="default: the latest")] = None,
+) -> IndividualsOut:
+    """The individuals of a committed generation, fittest first."""
+    run = _run(session, run_id)
+    if generation is None:
+        latest = crud.latest_generation(session, run_id=run_id)
+        if latest is None:
+            raise HTTPException(404, detail=f"run {run_id} has no completed generation yet")
+        generation = latest.generation
+    elif generation >= run.generation:
+        raise HTTPException(
+            404, detail=f"run {run_id} has committed generations 0..{run.generation - 1} only"
+        )
+    rows = crud.list_individuals(session, run_id=run_id, generation=generation)
+    return IndividualsOut(
+        run_id=run_id,
+        generation=generation,
+        individuals=[
+            IndividualOut(
+                rank=i.rank,
+                index=i.index,
+                parent=i.parent,
+                fitness=i.fitness,
+                components=np.frombuffer(i.components, np.float64).reshape(-1, 4).tolist(),
+                genome_sha256=hashlib.sha256(i.genome).hexdigest(),
+            )
+            for i in rows
+        ],
+    )
+
+
+@router.get(
+    "/{run_id}/best",
+    response_class=Response,
+    responses={200: {"content": {"application/json": {}}, "description": "controller document"}},
+)
+def best(manager: ManagerDep, session: SessionDep, run_id: int) -> Response:
+    """The controller document of the fittest individual so far (rank 0, latest generation)."""
+    try:
+        sha = manager.best(run_id)
+    except ServerError as exc:
+        raise http_error(exc) from exc
+    document = crud.get_controller(session, sha256=sha)
+    if document is None:
+        raise HTTPException(404, detail=f"controller {sha} vanished")
+    return Response(content=document.document, media_type="application/json")
+
+
+def _steer(manager: ManagerDep, session: SessionDep, run_id: int, action: str) -> RunOut:
+    try:
+        getattr(manager, action)(run_id)
+    except ServerError as exc:
+        raise http_error(exc) from exc
+    session.expire_all()
+    return run_out(_run(session, run_id))
+
+
+@router.post("/{run_id}/pause", response_model=RunOut)
+def pause(manager: ManagerDep, session: SessionDep, run_id: int) -> RunOut:
+    """running or queued -> paused (jobs in hand still finish; none are handed out)."""
+    return _steer(manager, session, run_id, "pause")
+
+
+@router.post("/{run_id}/resume", response_model=RunOut)
+def resume(manager: ManagerDep, session: SessionDep, run_id: int) -> RunOut:
+    """paused -> running (or queued if it never started)."""
+    return _steer(manager, session, run_id, "resume")
+
+
+@router.post("/{run_id}/cancel", response_model=RunOut)
+def cancel(manager: ManagerDep, session: SessionDep, run_id: int) -> RunOut:
+    """queued, running or paused -> cancelled; its pending jobs are dropped."""
+    return _steer(manager, session, run_id, "cancel")
