@@ -1,0 +1,38 @@
+"""`colony worker`: a simulation worker that takes evaluation jobs from a server until stopped."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Annotated
+
+import typer
+
+
+def worker_command(
+    connect: Annotated[
+        list[str],
+        typer.Option(
+            "--connect",
+            envvar="COLONY_CONNECT",
+            help="zenoh endpoint of the server (or a lab zenohd), e.g. tcp/SERVER:7447; repeatable",
+        ),
+    ] = ["tcp/127.0.0.1:7447"],  # noqa: B006 - typer reads the default, never mutates it
+    name: Annotated[
+        str | None,
+        typer.Option(help="worker name shown in GET /api/workers (default: hostname-pid)"),
+    ] = None,
+    log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR")] = "INFO",
+) -> None:
+    """Pull evaluation jobs over zenoh and evaluate them; Ctrl-C finishes the current job."""
+    from worker.main import WorkerSettings, default_name, install_signal_handlers, run_worker
+
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(message)s")
+    try:
+        settings = WorkerSettings(connect=tuple(connect), name=name or default_name())
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    stats = run_worker(settings, stop)
+    typer.echo(f"worker {settings.name}: {stats.jobs_done} jobs done, {stats.errors} errors")

@@ -1,0 +1,381 @@
+"""The zenoh wire between the server and simulation workers: key expressions, messages, codecs.
+
+Defined once here and documented in docs/protocol.md. Control messages are JSON; numpy arrays
+travel as raw little-endian C-order bytes with dtype and shape beside them, never pickle.
+
+Every payload is one *frame*:
+
+    b"EVC1" | u32 little-endian header length | JSON header | array bytes, concatenated
+
+The header is a JSON object whose `arrays` entry lists `{name, dtype, shape}` in body order.
+Decoders check every length, dtype and shape and raise `WireError` on anything malformed, so a
+receiver can log and drop a bad message and keep serving.
+
+Hierarchy:
+    WireError (ValueError)   a payload cannot be decoded or fails validation
+    └── InvalidJobError           a job whose key parsed but whose content is unusable: the worker
+                             reports an error result for `key` instead of running it
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import struct
+from dataclasses import dataclass
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from schemas.run import RunConfig
+
+PROTOCOL = 1
+"""Wire protocol version, sent in every job request; the server idles other versions."""
+
+KEY_JOB_NEXT = "evocolony/jobs/next"
+"""Queryable (server): a worker's `get` asks for its next job; reply is a job or idle."""
+KEY_JOB_RESULT = "evocolony/jobs/result"
+"""Queryable (server): a worker's `get` carries a result; reply is an acknowledgement."""
+KEY_WORKERS = "evocolony/workers/*"
+"""Liveliness key expression matching every worker's token."""
+
+MAGIC = b"EVC1"
+_HEADER = struct.Struct("<4sI")
+MAX_HEADER = 1 << 20
+"""A header longer than this (1 MiB) is malformed: configs are a few kilobytes."""
+ALLOWED_DTYPES = frozenset({"<f8", "<f4", "<i8", "<i4", "|u1", "|b1"})
+"""Plain numeric dtypes only: object arrays would need pickle."""
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
+"""Worker names: one key-expression chunk, no wildcards or separators."""
+
+
+class WireError(ValueError):
+    """A payload cannot be decoded or fails validation."""
+
+
+class InvalidJobError(WireError):
+    """A job whose identity parsed but whose content cannot be evaluated."""
+
+    def __init__(self, key: JobKey, reason: str) -> None:
+        super().__init__(f"job {key.label()}: {reason}")
+        self.key = key
+        self.reason = reason
+
+
+def worker_key(name: str) -> str:
+    """The liveliness key of the worker called `name`."""
+    check_worker_name(name)
+    return f"evocolony/workers/{name}"
+
+
+def check_worker_name(name: str) -> str:
+    """`name` if it is a valid worker name, else ValueError (it becomes a key chunk)."""
+    if not NAME_PATTERN.match(name):
+        raise ValueError(f"worker name {name!r} must match {NAME_PATTERN.pattern}")
+    return name
+
+
+def encode_frame(header: dict[str, Any], arrays: dict[str, np.ndarray] | None = None) -> bytes:
+    """One frame: the JSON header (with an `arrays` index added) then each array's raw bytes."""
+    if "arrays" in header:
+        raise ValueError("header key 'arrays' is reserved for the array index")
+    index: list[dict[str, Any]] = []
+    bodies: list[bytes] = []
+    for name, array in (arrays or {}).items():
+        le = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
+        if le.dtype.str not in ALLOWED_DTYPES:
+            raise ValueError(f"array {name!r} has dtype {array.dtype}; allowed {ALLOWED_DTYPES}")
+        index.append({"name": name, "dtype": le.dtype.str, "shape": list(le.shape)})
+        bodies.append(le.tobytes())
+    head = json.dumps({**header, "arrays": index}, separators=(",", ":")).encode()
+    return b"".join([_HEADER.pack(MAGIC, len(head)), head, *bodies])
+
+
+def decode_frame(payload: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Header and arrays of a frame; WireError on a bad magic, length, dtype or shape."""
+    if len(payload) < _HEADER.size:
+        raise WireError(
+            f"frame of {len(payload)} bytes is shorter than its {_HEADER.size}-byte prefix"
+        )
+    magic, size = _HEADER.unpack_from(payload)
+    if magic != MAGIC:
+        raise WireError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if size > MAX_HEADER or _HEADER.size + size > len(payload):
+        raise WireError(f"header length {size} exceeds the frame of {len(payload)} bytes")
+    try:
+        header = json.loads(payload[_HEADER.size : _HEADER.size + size])
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise WireError(f"header is not JSON: {exc}") from exc
+    if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
+        raise WireError("header must be a JSON object with an 'arrays' list")
+    arrays: dict[str, np.ndarray] = {}
+    offset = _HEADER.size + size
+    for entry in header.pop("arrays"):
+        name, dtype, shape = _array_entry(entry)
+        nbytes = math.prod(shape) * np.dtype(dtype).itemsize
+        if offset + nbytes > len(payload):
+            raise WireError(f"array {name!r} needs {nbytes} bytes; the frame is too short")
+        buffer = payload[offset : offset + nbytes]
+        arrays[name] = np.frombuffer(buffer, dtype=dtype).reshape(shape).copy()
+        offset += nbytes
+    if offset != len(payload):
+        raise WireError(f"{len(payload) - offset} trailing bytes after the last array")
+    return header, arrays
+
+
+def _array_entry(entry: object) -> tuple[str, str, tuple[int, ...]]:
+    if not isinstance(entry, dict):
+        raise WireError("array index entries must be objects")
+    name, dtype, shape = entry.get("name"), entry.get("dtype"), entry.get("shape")
+    if not isinstance(name, str) or dtype not in ALLOWED_DTYPES or not isinstance(shape, list):
+        raise WireError(f"bad array index entry {entry!r}")
+    if not all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < 2**31 for n in shape):
+        raise WireError(f"bad shape {shape!r} for array {name!r}")
+    if len(shape) > 8:
+        raise WireError(f"array {name!r} has {len(shape)} dimensions; at most 8")
+    return name, str(dtype), tuple(shape)
+
+
+_M = TypeVar("_M", bound=BaseModel)
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class JobKey(_Model):
+    """Identity of one evaluation job: results are idempotent under it."""
+
+    run_id: int = Field(ge=0)
+    generation: int = Field(ge=0)
+    index: int = Field(ge=0)
+
+    def label(self) -> str:
+        return f"run {self.run_id} gen {self.generation} job {self.index}"
+
+
+class JobRequest(_Model):
+    """Worker -> server on KEY_JOB_NEXT: who asks, and how fast it last ran."""
+
+    kind: Literal["next"] = "next"
+    protocol: int = PROTOCOL
+    worker: str
+    host: str = Field("", max_length=255)
+    robot_steps_per_s: float | None = Field(None, ge=0.0, allow_inf_nan=False)
+
+    @field_validator("worker")
+    @classmethod
+    def _check_name(cls, value: str) -> str:
+        return check_worker_name(value)
+
+
+class Idle(_Model):
+    """Server -> worker on KEY_JOB_NEXT: no job within the long-poll; ask again."""
+
+    kind: Literal["idle"] = "idle"
+    reason: str = ""
+
+
+class Ack(_Model):
+    """Server -> worker on KEY_JOB_RESULT: stop retrying; `accepted` False means dropped."""
+
+    kind: Literal["ack"] = "ack"
+    key: JobKey
+    accepted: bool
+    reason: str = ""
+
+
+class JobHeader(_Model):
+    """The JSON part of a job; the genomes travel as the frame's `genomes` array."""
+
+    kind: Literal["job"] = "job"
+    key: JobKey
+    start: int = Field(ge=0)
+    stop: int = Field(ge=1)
+    lease_s: float = Field(gt=0.0, allow_inf_nan=False)
+    config: RunConfig
+
+
+@dataclass(frozen=True)
+class Job:
+    """One evaluation job: individuals start..stop of a generation, with their genomes."""
+
+    key: JobKey
+    start: int
+    stop: int
+    config: RunConfig
+    genomes: np.ndarray
+    lease_s: float = 60.0
+
+    def __post_init__(self) -> None:
+        check_job(self.key, self.start, self.stop, self.config, self.genomes)
+
+    @property
+    def robot_steps(self) -> int:
+        """Robot-steps this job simulates: individuals x trials x steps."""
+        return (self.stop - self.start) * self.config.trials * self.config.steps
+
+
+def check_job(key: JobKey, start: int, stop: int, config: RunConfig, genomes: np.ndarray) -> None:
+    """InvalidJobError unless the slice lies in the population and genomes fit it and are finite."""
+    if not 0 <= start < stop <= config.population:
+        raise InvalidJobError(key, f"slice {start}:{stop} outside population {config.population}")
+    shape = (stop - start, config.network_spec.weight_count)
+    if genomes.shape != shape:
+        raise InvalidJobError(key, f"genomes have shape {genomes.shape}, expected {shape}")
+    if genomes.dtype != np.float64:
+        raise InvalidJobError(key, f"genomes have dtype {genomes.dtype}, expected float64")
+    if not np.isfinite(genomes).all():
+        raise InvalidJobError(key, "genomes contain NaN or infinity")
+
+
+def encode_job(job: Job) -> bytes:
+    header = JobHeader(
+        key=job.key, start=job.start, stop=job.stop, lease_s=job.lease_s, config=job.config
+    )
+    return encode_frame(header.model_dump(mode="json"), {"genomes": job.genomes})
+
+
+def decode_job(payload: bytes) -> Job:
+    """A validated job; InvalidJobError (carrying the key) if only its content is bad."""
+    header, arrays = decode_frame(payload)
+    if header.get("kind") != "job":
+        raise WireError(f"expected a job, got kind {header.get('kind')!r}")
+    try:
+        key = JobKey.model_validate(header.get("key"))
+    except ValidationError as exc:
+        raise WireError(f"job key: {exc}") from exc
+    try:
+        parsed = JobHeader.model_validate(header)
+    except ValidationError as exc:
+        raise InvalidJobError(key, str(exc)) from exc
+    if set(arrays) != {"genomes"}:
+        raise InvalidJobError(key, f"expected one array 'genomes', got {sorted(arrays)}")
+    return Job(
+        key=key,
+        start=parsed.start,
+        stop=parsed.stop,
+        config=parsed.config,
+        genomes=arrays["genomes"],
+        lease_s=parsed.lease_s,
+    )
+
+
+class ResultHeader(_Model):
+    """The JSON part of a result; fitness and components travel as arrays."""
+
+    kind: Literal["result"] = "result"
+    key: JobKey
+    worker: str
+    robot_steps_per_s: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+    seconds: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+    error: str | None = Field(None, max_length=65536)
+
+    @field_validator("worker")
+    @classmethod
+    def _check_name(cls, value: str) -> str:
+        return check_worker_name(value)
+
+
+@dataclass(frozen=True)
+class Result:
+    """A worker's answer to a job: fitness (n,) and components (n, trials, k), or an error."""
+
+    key: JobKey
+    worker: str
+    fitness: np.ndarray | None = None
+    components: np.ndarray | None = None
+    robot_steps_per_s: float = 0.0
+    seconds: float = 0.0
+    error: str | None = None
+
+    def __post_init__(self) -> None:
+        check_worker_name(self.worker)
+        if self.error is None:
+            if self.fitness is None or self.fitness.ndim != 1:
+                raise WireError(f"result {self.key.label()} needs a 1-D fitness array")
+            if self.fitness.dtype != np.float64 or not np.isfinite(self.fitness).all():
+                raise WireError(f"result {self.key.label()}: fitness must be finite float64")
+            if self.components is not None and (
+                self.components.ndim < 1 or self.components.shape[0] != self.fitness.shape[0]
+            ):
+                raise WireError(f"result {self.key.label()}: components do not match fitness")
+
+
+def encode_result(result: Result) -> bytes:
+    header = ResultHeader(
+        key=result.key,
+        worker=result.worker,
+        robot_steps_per_s=result.robot_steps_per_s,
+        seconds=result.seconds,
+        error=result.error,
+    )
+    arrays: dict[str, np.ndarray] = {}
+    if result.fitness is not None:
+        arrays["fitness"] = result.fitness
+    if result.components is not None:
+        arrays["components"] = result.components
+    return encode_frame(header.model_dump(mode="json"), arrays)
+
+
+def decode_result(payload: bytes) -> Result:
+    header, arrays = decode_frame(payload)
+    try:
+        parsed = ResultHeader.model_validate(header)
+    except ValidationError as exc:
+        raise WireError(f"result header: {exc}") from exc
+    if not set(arrays) <= {"fitness", "components"}:
+        raise WireError(f"unexpected arrays {sorted(arrays)} in a result")
+    return Result(
+        key=parsed.key,
+        worker=parsed.worker,
+        fitness=arrays.get("fitness"),
+        components=arrays.get("components"),
+        robot_steps_per_s=parsed.robot_steps_per_s,
+        seconds=parsed.seconds,
+        error=parsed.error,
+    )
+
+
+def encode_message(message: JobRequest | Idle | Ack) -> bytes:
+    """A control message as an array-less frame."""
+    return encode_frame(message.model_dump(mode="json"))
+
+
+def decode_request(payload: bytes) -> JobRequest:
+    return _decode_model(payload, JobRequest)
+
+
+def decode_ack(payload: bytes) -> Ack:
+    return _decode_model(payload, Ack)
+
+
+def decode_next_reply(payload: bytes) -> Job | Idle:
+    """The server's answer on KEY_JOB_NEXT: a job (possibly InvalidJobError) or idle."""
+    header, _ = decode_frame(payload)
+    if header.get("kind") == "idle":
+        return _decode_model(payload, Idle)
+    return decode_job(payload)
+
+
+def _decode_model(payload: bytes, model: type[_M]) -> _M:
+    header, arrays = decode_frame(payload)
+    if arrays:
+        raise WireError(f"{model.__name__} carries no arrays, got {sorted(arrays)}")
+    try:
+        return model.model_validate(header)
+    except ValidationError as exc:
+        raise WireError(f"{model.__name__}: {exc}") from exc
+
+
+class WorkerStatus(_Model):
+    """One row of GET /api/workers."""
+
+    name: str
+    host: str
+    state: Literal["idle", "busy", "gone"]
+    jobs_done: int
+    robot_steps_per_s: float | None
+    last_seen: float = Field(description="Unix time the server last heard from the worker")

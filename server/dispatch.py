@@ -1,0 +1,422 @@
+"""The zenoh side of the server: a router session, the job and result queryables, worker leases.
+
+Workers pull (docs/protocol.md): a `get` on KEY_JOB_NEXT is answered with one job or held for
+the long-poll and answered idle; a `get` on KEY_JOB_RESULT is answered with an Ack. A job is
+leased to one worker with a deadline derived from its robot-steps and the worker's measured
+speed; the lease ends early when the worker's liveliness token vanishes. Only the result of the
+current lease holder counts: a late or duplicate result is acknowledged and dropped.
+
+All zenoh callbacks only put into a queue; one dispatcher thread does every zenoh reply and
+every JobSource call, so the source needs no locking of its own against the dispatcher.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+import zenoh
+
+from schemas.wire import (
+    KEY_JOB_NEXT,
+    KEY_JOB_RESULT,
+    KEY_WORKERS,
+    PROTOCOL,
+    Ack,
+    Idle,
+    Job,
+    JobKey,
+    Result,
+    WireError,
+    WorkerStatus,
+    check_worker_name,
+    decode_request,
+    decode_result,
+    encode_job,
+    encode_message,
+)
+
+log = logging.getLogger(__name__)
+
+
+class JobSource(Protocol):
+    """What the dispatcher needs from a job queue; every call comes from the dispatcher thread."""
+
+    def lease(self, worker: str) -> Job | None:
+        """The next job for `worker` (now leased to it), or None if there is none."""
+
+    def complete(self, result: Result) -> bool:
+        """Store a successful result once; False if it was a duplicate or its run is over."""
+
+    def fail(self, key: JobKey, error: str) -> None:
+        """The worker reported an error: retry the job or, past the attempt limit, fail the run."""
+
+    def release(self, key: JobKey) -> None:
+        """The lease is over without a result (worker gone or late): the job is pending again."""
+
+
+@dataclass(frozen=True)
+class DispatchSettings:
+    """Zenoh endpoints and lease policy; the defaults serve a lab network."""
+
+    listen: tuple[str, ...] = ("tcp/0.0.0.0:7447",)
+    connect: tuple[str, ...] = ()
+    """Optional routers to join (a lab's zenohd); empty means this process is the router."""
+    multicast_scouting: bool = False
+    long_poll_s: float = 1.0
+    """How long a job request is held before the server answers idle."""
+    lease_min_s: float = 10.0
+    lease_factor: float = 10.0
+    """lease = max(lease_min_s, lease_factor x robot-steps / worker robot-steps/s)."""
+    lease_unknown_s: float = 120.0
+    """Lease for a worker with no measured speed yet (its first job compiles the kernels)."""
+    poll_s: float = 0.02
+    """How often held requests retry the source when nobody calls `notify`."""
+    gone_keep_s: float = 600.0
+    """How long a departed worker stays listed as gone."""
+
+    def __post_init__(self) -> None:
+        if not self.listen and not self.connect:
+            raise ValueError("a dispatcher needs at least one listen or connect endpoint")
+        for name in ("long_poll_s", "lease_min_s", "lease_factor", "lease_unknown_s", "poll_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.gone_keep_s < 0:
+            raise ValueError(f"gone_keep_s must be >= 0, got {self.gone_keep_s}")
+
+    def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
+        """The lease of a job of `robot_steps` for a worker running `speed` robot-steps/s."""
+        if not speed:
+            return self.lease_unknown_s
+        return max(self.lease_min_s, self.lease_factor * robot_steps / speed)
+
+    def zenoh_config(self) -> zenoh.Config:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"router"')
+        conf.insert_json5("listen/endpoints", _json_list(self.listen))
+        conf.insert_json5("connect/endpoints", _json_list(self.connect))
+        conf.insert_json5(
+            "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
+        )
+        return conf
+
+
+def _json_list(items: tuple[str, ...]) -> str:
+    return "[" + ",".join(f'"{item}"' for item in items) + "]"
+
+
+@dataclass
+class _Lease:
+    key: JobKey
+    worker: str
+    deadline: float
+    robot_steps: int
+
+
+@dataclass
+class _WorkerRecord:
+    name: str
+    host: str = ""
+    state: str = "idle"
+    jobs_done: int = 0
+    speed: float | None = None
+    last_seen: float = field(default_factory=time.time)
+    gone_at: float | None = None
+    """Monotonic time the token vanished (None while alive)."""
+
+    def status(self) -> WorkerStatus:
+        state = "gone" if self.gone_at is not None else self.state
+        return WorkerStatus(
+            name=self.name,
+            host=self.host,
+            state="busy" if state == "busy" else "gone" if state == "gone" else "idle",
+            jobs_done=self.jobs_done,
+            robot_steps_per_s=self.speed,
+            last_seen=self.last_seen,
+        )
+
+
+@dataclass
+class _Held:
+    query: zenoh.Query
+    worker: str
+    until: float
+
+
+_WAKE = object()
+
+
+class Dispatcher:
+    """A running dispatcher: the router session and its thread. Close it exactly once."""
+
+    def __init__(
+        self,
+        settings: DispatchSettings,
+        source: JobSource,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.settings = settings
+        self._source = source
+        self._clock = clock
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._leases: dict[JobKey, _Lease] = {}
+        self._held: list[_Held] = []
+        self._workers: dict[str, _WorkerRecord] = {}
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self.jobs_served = 0
+        self.results_accepted = 0
+        self.results_dropped = 0
+        self.malformed = 0
+        self._session = zenoh.open(settings.zenoh_config())
+        try:
+            self._next = self._session.declare_queryable(
+                KEY_JOB_NEXT, lambda q: self._inbox.put(("next", q))
+            )
+            self._result = self._session.declare_queryable(
+                KEY_JOB_RESULT, lambda q: self._inbox.put(("result", q))
+            )
+            self._alive = self._session.liveliness().declare_subscriber(
+                KEY_WORKERS, lambda s: self._inbox.put(("alive", s)), history=True
+            )
+        except BaseException:
+            self._session.close()  # type: ignore[no-untyped-call]
+            raise
+        self._thread = threading.Thread(target=self._run, name="dispatcher", daemon=True)
+        self._thread.start()
+
+    def notify(self) -> None:
+        """New jobs may be leasable: answer held requests now instead of at the next poll."""
+        self._inbox.put(_WAKE)
+
+    def workers(self) -> list[WorkerStatus]:
+        """Every known worker, gone ones included until `gone_keep_s` after they left."""
+        with self._lock:
+            return [w.status() for w in sorted(self._workers.values(), key=lambda w: w.name)]
+
+    def close(self) -> None:
+        """Stop the thread, answer held requests idle, undeclare everything, close the session."""
+        if self._stopping.is_set():
+            return
+        self._stopping.set()
+        self._inbox.put(_WAKE)
+        self._thread.join(timeout=10.0)
+        for held in self._held:
+            self._answer_idle(held, "server stopping")
+        self._held.clear()
+        for entity in (self._next, self._result, self._alive):
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()  # type: ignore[no-untyped-call]
+        self._session.close()  # type: ignore[no-untyped-call]
+
+    def __enter__(self) -> Dispatcher:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # -- the dispatcher thread ---------------------------------------------------------------
+
+    def _run(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                event = self._inbox.get(timeout=self._wait_time())
+            except queue.Empty:
+                event = _WAKE
+            if self._stopping.is_set():
+                self._finish(event)
+                break
+            try:
+                self._handle(event)
+                self._serve_held()
+                self._expire()
+            except Exception:  # a failing source must not stop the dispatcher
+                log.exception("dispatcher step failed; continuing")
+
+    def _finish(self, event: Any) -> None:
+        if isinstance(event, tuple) and isinstance(event[1], zenoh.Query):
+            with event[1] as query:
+                query.reply_err(b"server stopping")
+
+    def _wait_time(self) -> float:
+        now = self._clock()
+        deadlines = [lease.deadline for lease in self._leases.values()]
+        if self._held:
+            deadlines.append(now + self.settings.poll_s)
+        if not deadlines:
+            return 0.5
+        return min(max(min(deadlines) - now, 0.0), 0.5)
+
+    def _handle(self, event: Any) -> None:
+        if event is _WAKE:
+            return
+        kind, item = event
+        if kind == "next":
+            self._on_next(item)
+        elif kind == "result":
+            with item as query:
+                self._on_result(query)
+        else:
+            self._on_alive(item)
+
+    def _on_next(self, query: zenoh.Query) -> None:
+        try:
+            request = decode_request(_payload(query))
+        except WireError as exc:
+            self._reject(query, exc)
+            return
+        record = self._touch(request.worker, request.host)
+        if request.robot_steps_per_s:
+            record.speed = request.robot_steps_per_s
+        for key in [k for k, lease in self._leases.items() if lease.worker == request.worker]:
+            # The worker asks again while holding a lease: its reply got lost; put it back.
+            log.warning("%s asked for work while leasing %s; releasing it", request.worker, key)
+            del self._leases[key]
+            self._source.release(key)
+        held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s)
+        if request.protocol != PROTOCOL:
+            self._answer_idle(held, f"server speaks protocol {PROTOCOL}")
+        elif not self._try_serve(held):
+            self._held.append(held)
+
+    def _try_serve(self, held: _Held) -> bool:
+        job = self._source.lease(held.worker)
+        if job is None:
+            return False
+        record = self._workers[held.worker]
+        lease_s = self.settings.lease_seconds(job.robot_steps, record.speed)
+        lease = _Lease(job.key, held.worker, self._clock() + lease_s, job.robot_steps)
+        try:
+            with held.query as query:
+                query.reply(KEY_JOB_NEXT, encode_job(replace(job, lease_s=lease_s)))
+        except zenoh.ZError:
+            log.warning("could not send %s to %s; releasing it", job.key.label(), held.worker)
+            self._source.release(job.key)
+            return True
+        self._leases[job.key] = lease
+        with self._lock:
+            record.state = "busy"
+        self.jobs_served += 1
+        return True
+
+    def _serve_held(self) -> None:
+        """Lease to held requests in arrival order; answer idle those past their long-poll."""
+        now = self._clock()
+        waiting: list[_Held] = []
+        exhausted = False
+        for held in self._held:
+            if not exhausted and self._try_serve(held):
+                continue
+            exhausted = True
+            if held.until <= now:
+                self._answer_idle(held, "no job")
+            else:
+                waiting.append(held)
+        self._held = waiting
+
+    def _answer_idle(self, held: _Held, reason: str) -> None:
+        with contextlib.suppress(zenoh.ZError), held.query as query:
+            query.reply(KEY_JOB_NEXT, encode_message(Idle(reason=reason)))
+
+    def _on_result(self, query: zenoh.Query) -> None:
+        try:
+            result = decode_result(_payload(query))
+        except WireError as exc:
+            self._reject(query, exc)
+            return
+        record = self._touch(result.worker, None)
+        lease = self._leases.get(result.key)
+        if lease is None or lease.worker != result.worker:
+            self.results_dropped += 1
+            ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
+        else:
+            del self._leases[result.key]
+            ack = self._settle(result, lease)
+            with self._lock:
+                record.state = "idle"
+                if result.robot_steps_per_s:
+                    record.speed = result.robot_steps_per_s
+        query.reply(KEY_JOB_RESULT, encode_message(ack))
+
+    def _settle(self, result: Result, lease: _Lease) -> Ack:
+        if result.error is not None:
+            log.warning("%s failed %s: %s", result.worker, result.key.label(), result.error)
+            self._source.fail(result.key, f"{result.worker}: {result.error}")
+            return Ack(key=result.key, accepted=True, reason="error recorded")
+        accepted = self._source.complete(result)
+        if accepted:
+            self.results_accepted += 1
+            with self._lock:
+                self._workers[result.worker].jobs_done += 1
+        else:
+            self.results_dropped += 1
+        return Ack(key=result.key, accepted=accepted, reason="" if accepted else "duplicate")
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        try:
+            check_worker_name(name)
+        except ValueError:
+            self.malformed += 1
+            log.warning("ignoring liveliness token with a bad worker name %r", name)
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._touch(name, None)
+            return
+        with self._lock:
+            record = self._workers.setdefault(name, _WorkerRecord(name))
+            record.gone_at = self._clock()
+        for key in [k for k, lease in self._leases.items() if lease.worker == name]:
+            log.warning("worker %s vanished holding %s; releasing it", name, key.label())
+            del self._leases[key]
+            self._source.release(key)
+
+    def _touch(self, name: str, host: str | None) -> _WorkerRecord:
+        with self._lock:
+            record = self._workers.setdefault(name, _WorkerRecord(name))
+            record.last_seen = time.time()
+            record.gone_at = None
+            if host:
+                record.host = host
+            return record
+
+    def _expire(self) -> None:
+        now = self._clock()
+        for key, lease in list(self._leases.items()):
+            if lease.deadline <= now:
+                log.warning("lease of %s to %s expired; releasing it", key.label(), lease.worker)
+                del self._leases[key]
+                self._source.release(key)
+                with self._lock:
+                    record = self._workers.get(lease.worker)
+                    if record is not None:
+                        record.state = "idle"
+        with self._lock:
+            for name, record in list(self._workers.items()):
+                if record.gone_at is not None and now - record.gone_at > self.settings.gone_keep_s:
+                    del self._workers[name]
+
+    def _reject(self, query: zenoh.Query, exc: Exception) -> None:
+        self.malformed += 1
+        log.warning("dropping malformed message on %s: %s", query.key_expr, exc)
+        with contextlib.suppress(zenoh.ZError), query:
+            query.reply_err(f"malformed: {exc}".encode())
+
+
+def _payload(query: zenoh.Query) -> bytes:
+    payload = query.payload
+    if payload is None:
+        raise WireError("query has no payload")
+    return payload.to_bytes()
+
+
+def start_dispatcher(settings: DispatchSettings, source: JobSource) -> Dispatcher:
+    """Open the router session and start serving `source`; call `.close()` on shutdown."""
+    return Dispatcher(settings, source)

@@ -1,0 +1,249 @@
+"""The simulation worker: pull a job, evaluate its whole slice at once, return the result.
+
+A client zenoh session to the server's router (retried with backoff until one is reachable;
+zenoh itself reconnects a live session after a server restart), a liveliness token
+`evocolony/workers/NAME`, then the loop of docs/protocol.md. Every job is validated before it
+runs; a bad job or a failing evaluation becomes an error result, never a crash. A stop request
+(SIGINT, SIGTERM) lets the current job finish and its result go back, then the worker exits.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import FrameType
+
+import numpy as np
+import zenoh
+
+from schemas.run import RunConfig
+from schemas.wire import (
+    KEY_JOB_NEXT,
+    KEY_JOB_RESULT,
+    Idle,
+    InvalidJobError,
+    Job,
+    JobRequest,
+    Result,
+    WireError,
+    check_worker_name,
+    decode_ack,
+    decode_next_reply,
+    encode_message,
+    encode_result,
+    worker_key,
+)
+
+log = logging.getLogger(__name__)
+
+Evaluator = Callable[[RunConfig, int, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""(config, generation, genomes (n, w)) -> fitness (n,), components (n, trials, 4)."""
+
+
+def evaluate_slice(
+    config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The science: `evorobotics.evaluate.evaluate` over the whole slice, vectorised."""
+    from evorobotics.evaluate import evaluate
+
+    evaluation = evaluate(config, generation, genomes)
+    return evaluation.fitness, evaluation.components
+
+
+def default_name() -> str:
+    """hostname-pid, reduced to the characters a key chunk allows."""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:100] or "worker"
+    return f"{host}-{os.getpid()}"
+
+
+@dataclass(frozen=True)
+class WorkerSettings:
+    """Where the server is and how patiently to talk to it."""
+
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    name: str = field(default_factory=default_name)
+    request_timeout_s: float = 10.0
+    """Timeout of each `get`; above the server's long-poll (1 s) plus the job's transfer."""
+    backoff_initial_s: float = 0.1
+    backoff_max_s: float = 5.0
+    multicast_scouting: bool = False
+
+    def __post_init__(self) -> None:
+        check_worker_name(self.name)
+        if not self.connect:
+            raise ValueError("a worker needs at least one connect endpoint")
+        for name in ("request_timeout_s", "backoff_initial_s", "backoff_max_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+
+    def zenoh_config(self) -> zenoh.Config:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", "[" + ",".join(f'"{e}"' for e in self.connect) + "]")
+        conf.insert_json5(
+            "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
+        )
+        return conf
+
+
+@dataclass
+class WorkerStats:
+    """What a worker did, returned when it stops."""
+
+    jobs_done: int = 0
+    errors: int = 0
+    robot_steps_per_s: float | None = None
+
+
+class _Backoff:
+    def __init__(self, settings: WorkerSettings) -> None:
+        self._settings = settings
+        self._delay = settings.backoff_initial_s
+
+    def next(self) -> float:
+        delay = self._delay
+        self._delay = min(self._delay * 2, self._settings.backoff_max_s)
+        return delay
+
+    def reset(self) -> None:
+        self._delay = self._settings.backoff_initial_s
+
+
+def run_worker(
+    settings: WorkerSettings,
+    stop: threading.Event,
+    *,
+    evaluator: Evaluator = evaluate_slice,
+) -> WorkerStats:
+    """Serve jobs until `stop` is set; open (and reopen) the session as needed."""
+    stats = WorkerStats()
+    backoff = _Backoff(settings)
+    host = socket.gethostname()
+    while not stop.is_set():
+        try:
+            session = zenoh.open(settings.zenoh_config())
+        except zenoh.ZError as exc:
+            delay = backoff.next()
+            log.info("no router at %s (%s); retrying in %.1f s", settings.connect, exc, delay)
+            stop.wait(delay)
+            continue
+        try:
+            token = session.liveliness().declare_token(worker_key(settings.name))
+            try:
+                log.info("worker %s connected to %s", settings.name, settings.connect)
+                _serve(session, settings, host, stop, evaluator, stats, backoff)
+            finally:
+                token.undeclare()  # type: ignore[no-untyped-call]
+        finally:
+            session.close()  # type: ignore[no-untyped-call]
+    return stats
+
+
+def _serve(
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    host: str,
+    stop: threading.Event,
+    evaluator: Evaluator,
+    stats: WorkerStats,
+    backoff: _Backoff,
+) -> None:
+    while not stop.is_set():
+        request = JobRequest(
+            worker=settings.name, host=host[:255], robot_steps_per_s=stats.robot_steps_per_s
+        )
+        reply = _ask(session, KEY_JOB_NEXT, encode_message(request), settings.request_timeout_s)
+        if reply is None:
+            stop.wait(backoff.next())
+            continue
+        backoff.reset()
+        try:
+            job = decode_next_reply(reply)
+        except InvalidJobError as exc:
+            log.warning("rejecting invalid job: %s", exc)
+            stats.errors += 1
+            _deliver(session, settings, stop, Result(exc.key, settings.name, error=exc.reason))
+            continue
+        except WireError as exc:
+            log.warning("dropping malformed reply: %s", exc)
+            stop.wait(backoff.next())
+            continue
+        if isinstance(job, Idle):
+            continue
+        result = _evaluate(job, settings.name, evaluator, stats)
+        _deliver(session, settings, stop, result)
+
+
+def _evaluate(job: Job, name: str, evaluator: Evaluator, stats: WorkerStats) -> Result:
+    began = time.perf_counter()
+    try:
+        fitness, components = evaluator(job.config, job.key.generation, job.genomes)
+        fitness = np.ascontiguousarray(fitness, dtype=np.float64)
+        components = np.ascontiguousarray(components, dtype=np.float64)
+        n = job.stop - job.start
+        if fitness.shape != (n,) or components.shape[:1] != (n,):
+            raise ValueError(f"evaluator returned {fitness.shape} and {components.shape} for {n}")
+        if not np.isfinite(fitness).all():
+            raise ValueError("evaluator returned non-finite fitness")
+    except Exception as exc:  # report it to the server instead of crashing the worker
+        log.exception("evaluating %s failed", job.key.label())
+        stats.errors += 1
+        return Result(job.key, name, error=f"{type(exc).__name__}: {exc}")
+    seconds = time.perf_counter() - began
+    speed = job.robot_steps / seconds if seconds > 0 else None
+    stats.jobs_done += 1
+    stats.robot_steps_per_s = speed
+    return Result(job.key, name, fitness, components, speed or 0.0, seconds)
+
+
+def _deliver(
+    session: zenoh.Session, settings: WorkerSettings, stop: threading.Event, result: Result
+) -> None:
+    """Send `result` until acknowledged; once stopping, one more try, then the lease lapses."""
+    payload = encode_result(result)
+    backoff = _Backoff(settings)
+    tries_after_stop = 0
+    while tries_after_stop < 2:
+        reply = _ask(session, KEY_JOB_RESULT, payload, settings.request_timeout_s)
+        if reply is not None:
+            try:
+                ack = decode_ack(reply)
+            except WireError as exc:
+                log.warning("malformed acknowledgement for %s: %s", result.key.label(), exc)
+            else:
+                if ack.key == result.key:
+                    if not ack.accepted:
+                        log.info("%s dropped by the server: %s", result.key.label(), ack.reason)
+                    return
+        if stop.is_set():
+            tries_after_stop += 1
+        stop.wait(backoff.next())
+    log.warning("gave up delivering %s while stopping", result.key.label())
+
+
+def _ask(session: zenoh.Session, key: str, payload: bytes, timeout: float) -> bytes | None:
+    """The first successful reply's payload, or None (no server, timeout, or error reply)."""
+    for reply in session.get(key, payload=payload, timeout=timeout):
+        if reply.ok is not None:
+            return reply.ok.payload.to_bytes()
+        if reply.err is not None:
+            log.warning("server error on %s: %s", key, reply.err.payload.to_bytes()[:200])
+    return None
+
+
+def install_signal_handlers(stop: threading.Event) -> None:
+    """SIGINT and SIGTERM set `stop`: the current job finishes and goes back, then exit."""
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        log.info("signal %d: finishing the current job, then exiting", signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
