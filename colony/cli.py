@@ -5,6 +5,7 @@ from __future__ import annotations
 import typer
 
 from colony.evolve import evolve_command
+from colony.server_cli import register as register_server_commands
 
 app = typer.Typer(
     name="colony",
@@ -33,6 +34,7 @@ def presets() -> None:
 
 
 app.command(name="evolve")(evolve_command)
+register_server_commands(app)
 
 
 def main() -> None:
