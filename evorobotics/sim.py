@@ -1,0 +1,674 @@
+"""The maze simulator (paper section 2.2): differential-drive EvBots with five binary whiskers.
+
+Every robot is independent (robots do not interact) and carries its own controller, a row of a
+(batch, n_weights) weight array. One step of one robot, in this order:
+
+1. sense: whisker k triggers (bit 1) iff a wall cell lies within the robot's trigger distance
+   (nominal 50 mm) of its attachment point along its direction. Exact ray vs grid: slab test of
+   the segment against every wall cell its bounding box touches (outside the grid is wall).
+2. think: the controller maps the five bits to two wheel commands in [-1, 1]
+   (`network.motor_commands`).
+3. act: wheel speed = command * gain * max_speed; v = (vl + vr) / 2, w = (vr - vl) / wheel_base;
+   midpoint integration over dt: heading' = heading + w dt, position += v dt (cos, sin)(heading
+   + w dt / 2); heading wrapped to [-pi, pi).
+4. collide: the body is the 165 x 127 mm rectangle centred on the pose (the wheel axle passes
+   through its centre). If the moved body overlaps a wall cell (exact separating-axis test;
+   touching is not overlap) the move is blocked and the pose stays unchanged. A robot blocked
+   on `stuck_after` consecutive steps (default 1: the paper's "a robot whose body would enter a
+   wall is stuck") is stuck: it stays immobile for the rest of the trial (its controller keeps
+   running so recordings stay complete) and its trial scores stuck = 1.
+
+Fitness terms (Eq 12) are accumulated on the way: curve_length sums the straight distance of
+every accepted move, net_offset is the final distance from the start position, max_offset the
+largest distance from the start position at any step.
+
+`simulate` is the canonical path: one numba kernel runs controller, physics and fitness for all
+robots and steps. `simulate_reference` is the same science as vectorised numpy over the batch,
+kept as the reference the tests compare against.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+from numba import njit
+
+from evorobotics import network
+from evorobotics.maze import Maze
+from evorobotics.network import motor_one, step_one
+from schemas.network import NetworkSpec
+
+N_WHISKERS = 5
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class WorldParams:
+    """Every physical constant of the simulated world (metres, seconds, radians)."""
+
+    dt: float = 0.1
+    """Control period: the robot agent runs its loop at 10 Hz."""
+    max_speed: float = 0.3
+    """Wheel surface speed at command 1: 30 mm per step, well under the 50 mm whisker range;
+    40 steps cover at most 1.2 m, half the 2.4 m "paper" maze, so no crossing and return."""
+    wheel_base: float = 0.11
+    """Distance between the wheel contact points, inside the 127 mm body width."""
+    body_length: float = 0.165
+    """Along the heading (EvBot: 165 mm)."""
+    body_width: float = 0.127
+    """Across the heading (EvBot: 127 mm)."""
+    whisker_range: float = 0.05
+    """Nominal trigger distance from the attachment point (paper: exactly 50 mm)."""
+    whisker_x: tuple[float, ...] = (0.0825,) * N_WHISKERS
+    """Attachment points, forward coordinate in the body frame: all on the front edge."""
+    whisker_y: tuple[float, ...] = (0.055, 0.0275, 0.0, -0.0275, -0.055)
+    """Attachment points, leftward coordinate: spread across the front edge, left to right."""
+    whisker_angle: tuple[float, ...] = tuple(math.radians(a) for a in (60, 30, 0, -30, -60))
+    """Direction of each whisker relative to the heading (counter-clockwise positive)."""
+    stuck_after: int = 1
+    """Consecutive blocked steps after which a robot is stuck for the rest of its trial."""
+
+    def __post_init__(self) -> None:
+        for name in ("dt", "max_speed", "wheel_base", "body_length", "body_width"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"WorldParams.{name} must be positive, got {value}")
+        if not (math.isfinite(self.whisker_range) and self.whisker_range >= 0):
+            raise ValueError(f"whisker_range must be >= 0, got {self.whisker_range}")
+        lengths = {len(self.whisker_x), len(self.whisker_y), len(self.whisker_angle)}
+        if lengths != {N_WHISKERS}:
+            raise ValueError(f"need {N_WHISKERS} whisker positions and angles, got {lengths}")
+        if self.stuck_after < 1:
+            raise ValueError(f"stuck_after must be >= 1, got {self.stuck_after}")
+
+    @property
+    def half_diagonal(self) -> float:
+        """Radius of the circle around the body: bounds every cell the body can touch."""
+        return math.hypot(self.body_length / 2, self.body_width / 2)
+
+
+DEFAULT_WORLD = WorldParams()
+"""The default world: every function's `params` default."""
+
+
+@dataclass(frozen=True)
+class Gap:
+    """Reality-gap draws per robot: whisker trigger distance (B,) m and wheel gains (B, 2)."""
+
+    whisker_range: np.ndarray
+    motor_gain: np.ndarray
+
+    @classmethod
+    def nominal(cls, batch: int, params: WorldParams = DEFAULT_WORLD) -> Gap:
+        """No gap: every robot at the nominal whisker range and unit gains."""
+        return cls(np.full(batch, params.whisker_range), np.ones((batch, 2)))
+
+
+@dataclass(frozen=True)
+class SimResult:
+    """Final poses (B, 3), the Eq-12 terms (B,), and with record=True the per-step traces."""
+
+    poses_final: np.ndarray
+    curve_length: np.ndarray
+    net_offset: np.ndarray
+    max_offset: np.ndarray
+    stuck: np.ndarray
+    poses: np.ndarray | None = field(default=None)
+    """(B, steps+1, 3) pose before each step and after the last."""
+    whiskers: np.ndarray | None = field(default=None)
+    """(B, steps, 5) uint8 bits sensed at the start of each step."""
+    motors: np.ndarray | None = field(default=None)
+    """(B, steps, 2) wheel commands in [-1, 1] the controller chose at each step."""
+
+    @property
+    def components(self) -> np.ndarray:
+        """(B, 4) in fitness.COMPONENTS order."""
+        return np.stack(
+            [self.curve_length, self.net_offset, self.max_offset, self.stuck.astype(np.float64)],
+            axis=-1,
+        )
+
+
+# ---------------------------------------------------------------- numpy geometry (reference)
+
+
+def _wall_at(solid: np.ndarray, j: np.ndarray, i: np.ndarray) -> np.ndarray:
+    """solid[j, i] with everything outside the grid a wall."""
+    ny, nx = solid.shape
+    inside = (j >= 0) & (j < ny) & (i >= 0) & (i < nx)
+    return np.where(inside, solid[np.clip(j, 0, ny - 1), np.clip(i, 0, nx - 1)], True)
+
+
+def body_hits_wall(
+    maze: Maze, poses: np.ndarray, params: WorldParams = DEFAULT_WORLD
+) -> np.ndarray:
+    """(B,) True where the body rectangle at `poses` (B, 3) overlaps a wall cell (SAT, exact)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    cell = maze.cell_size
+    h = cell / 2
+    a, b = params.body_length / 2, params.body_width / 2
+    k = math.ceil(2 * params.half_diagonal / cell) + 1
+    x, y, th = poses[:, 0:1], poses[:, 1:2], poses[:, 2:3]
+    c, s = np.cos(th), np.sin(th)
+    ac, as_ = np.abs(c), np.abs(s)
+    i0 = np.floor((x - params.half_diagonal) / cell).astype(np.int64)
+    j0 = np.floor((y - params.half_diagonal) / cell).astype(np.int64)
+    offs = np.arange(k)
+    ii = (i0 + offs[None, :])[:, :, None]  # (B, k, 1)
+    jj = (j0 + offs[None, :])[:, None, :]  # (B, 1, k)
+    wall = _wall_at(maze.solid, jj, ii)  # (B, k, k)
+    dx = ((ii + 0.5) * cell - x[:, :, None]) + 0.0 * jj
+    dy = ((jj + 0.5) * cell - y[:, :, None]) + 0.0 * ii
+    c3, s3, ac3, as3 = c[:, :, None], s[:, :, None], ac[:, :, None], as_[:, :, None]
+    ox = np.abs(dx) < a * ac3 + b * as3 + h
+    oy = np.abs(dy) < a * as3 + b * ac3 + h
+    ou = np.abs(dx * c3 + dy * s3) < a + h * (ac3 + as3)
+    ov = np.abs(dy * c3 - dx * s3) < b + h * (ac3 + as3)
+    return np.asarray((wall & ox & oy & ou & ov).any(axis=(1, 2)))
+
+
+def whisker_bits(
+    maze: Maze,
+    poses: np.ndarray,
+    params: WorldParams = DEFAULT_WORLD,
+    ranges: np.ndarray | None = None,
+) -> np.ndarray:
+    """(B, 5) uint8: 1 where a wall lies within `ranges` (B,) of a whisker's attachment point."""
+    poses = np.asarray(poses, dtype=np.float64)
+    batch = poses.shape[0]
+    r = np.full(batch, params.whisker_range) if ranges is None else np.asarray(ranges, float)
+    cell = maze.cell_size
+    x, y, th = poses[:, 0:1], poses[:, 1:2], poses[:, 2:3]
+    c, s = np.cos(th), np.sin(th)
+    wx, wy = np.array(params.whisker_x), np.array(params.whisker_y)
+    px = x + c * wx - s * wy  # (B, 5)
+    py = y + s * wx + c * wy
+    ca, sa = np.cos(np.array(params.whisker_angle)), np.sin(np.array(params.whisker_angle))
+    ux = c * ca - s * sa  # direction = heading rotated by the whisker angle
+    uy = s * ca + c * sa
+    r2 = r[:, None] + 0.0 * px
+    i0 = np.floor(np.minimum(px, px + r2 * ux) / cell).astype(np.int64)
+    j0 = np.floor(np.minimum(py, py + r2 * uy) / cell).astype(np.int64)
+    k = math.ceil(float(r.max(initial=0.0)) / cell) + 2
+    offs = np.arange(k)
+    ii = (i0[..., None] + offs)[..., :, None]  # (B, 5, k, 1)
+    jj = (j0[..., None] + offs)[..., None, :]  # (B, 5, 1, k)
+    wall = _wall_at(maze.solid, jj, ii)
+    tx0, tx1 = _slab(ii * cell, (ii + 1) * cell, px[..., None, None], ux[..., None, None])
+    ty0, ty1 = _slab(jj * cell, (jj + 1) * cell, py[..., None, None], uy[..., None, None])
+    t_in = np.maximum(np.maximum(tx0, ty0), 0.0)
+    t_out = np.minimum(tx1, ty1)
+    hit = wall & (t_in <= t_out) & (t_in <= r2[..., None, None])
+    return np.asarray(hit.any(axis=(2, 3)), dtype=np.uint8)
+
+
+def _slab(
+    lo: np.ndarray, hi: np.ndarray, p: np.ndarray, u: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Parameter interval where p + t u lies in [lo, hi] on one axis (all t if parallel inside)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (lo - p) / u
+        tb = (hi - p) / u
+    flat = np.abs(u) < 1e-12
+    inside = (lo <= p) & (p <= hi)
+    t0 = np.where(flat, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
+    t1 = np.where(flat, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
+    return t0, t1
+
+
+def move(
+    poses: np.ndarray, motors: np.ndarray, gain: np.ndarray, params: WorldParams
+) -> np.ndarray:
+    """(B, 3) poses after one unobstructed differential-drive step (midpoint integration)."""
+    vl = motors[:, 0] * gain[:, 0] * params.max_speed
+    vr = motors[:, 1] * gain[:, 1] * params.max_speed
+    v = (vl + vr) * 0.5
+    w = (vr - vl) / params.wheel_base
+    th = poses[:, 2]
+    mid = th + w * (params.dt * 0.5)
+    out = np.empty_like(poses)
+    out[:, 0] = poses[:, 0] + v * params.dt * np.cos(mid)
+    out[:, 1] = poses[:, 1] + v * params.dt * np.sin(mid)
+    out[:, 2] = _wrap(th + w * params.dt)
+    return out
+
+
+def _wrap(th: np.ndarray) -> np.ndarray:
+    return np.asarray(th - TWO_PI * np.floor((th + math.pi) / TWO_PI))
+
+
+# ---------------------------------------------------------------- shared argument checks
+
+
+def _prepare(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    start_poses: np.ndarray,
+    steps: int,
+    params: WorldParams,
+    gap: Gap | None,
+) -> tuple[np.ndarray, np.ndarray, Gap]:
+    if spec.inputs != N_WHISKERS or spec.outputs != 2:
+        raise ValueError(
+            f"the EvBot needs a network with {N_WHISKERS} inputs and 2 outputs, got "
+            f"{spec.inputs} and {spec.outputs}"
+        )
+    w = np.ascontiguousarray(weights, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != spec.weight_count:
+        raise ValueError(f"weights must be (batch, {spec.weight_count}), got {w.shape}")
+    batch = w.shape[0]
+    poses = np.ascontiguousarray(start_poses, dtype=np.float64)
+    if poses.shape != (batch, 3):
+        raise ValueError(f"start_poses must be ({batch}, 3), got {poses.shape}")
+    if not np.isfinite(poses).all():
+        raise ValueError("start_poses must be finite")
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    gap = Gap.nominal(batch, params) if gap is None else gap
+    ranges = np.ascontiguousarray(gap.whisker_range, dtype=np.float64)
+    gains = np.ascontiguousarray(gap.motor_gain, dtype=np.float64)
+    if ranges.shape != (batch,) or gains.shape != (batch, 2):
+        raise ValueError(
+            f"gap must hold whisker_range ({batch},) and motor_gain ({batch}, 2), got "
+            f"{ranges.shape} and {gains.shape}"
+        )
+    if not (np.isfinite(ranges).all() and (ranges >= 0).all() and np.isfinite(gains).all()):
+        raise ValueError("gap values must be finite, whisker ranges >= 0")
+    return w, poses, Gap(ranges, gains)
+
+
+# ---------------------------------------------------------------- numpy reference episode
+
+
+def simulate_reference(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    maze: Maze,
+    start_poses: np.ndarray,
+    steps: int,
+    params: WorldParams = DEFAULT_WORLD,
+    gap: Gap | None = None,
+    record: bool = False,
+) -> SimResult:
+    """`simulate` in vectorised numpy over the batch (a Python loop over steps only)."""
+    w, pose, gap = _prepare(spec, weights, start_poses, steps, params, gap)
+    batch = w.shape[0]
+    start = pose.copy()
+    state = network.reset(spec, batch)
+    blocked = np.zeros(batch, dtype=np.int64)
+    stuck = np.zeros(batch, dtype=bool)
+    curve = np.zeros(batch)
+    max_off = np.zeros(batch)
+    trace_p, trace_w, trace_m = [pose.copy()], [], []
+    for _ in range(steps):
+        bits = whisker_bits(maze, pose, params, gap.whisker_range)
+        out, state = network.step_reference(spec, w, bits.astype(np.float64), state)
+        motors = network.motor_commands(spec, out)
+        cand = move(pose, motors, gap.motor_gain, params)
+        hit = body_hits_wall(maze, cand, params)
+        moving = ~stuck
+        accept = moving & ~hit
+        blocked = np.where(moving & hit, blocked + 1, np.where(accept, 0, blocked))
+        stuck = stuck | (blocked >= params.stuck_after)
+        ddx, ddy = cand[:, 0] - pose[:, 0], cand[:, 1] - pose[:, 1]
+        curve = curve + np.where(accept, np.sqrt(ddx * ddx + ddy * ddy), 0.0)
+        pose = np.where(accept[:, None], cand, pose)
+        ox, oy = pose[:, 0] - start[:, 0], pose[:, 1] - start[:, 1]
+        max_off = np.maximum(max_off, np.sqrt(ox * ox + oy * oy))
+        if record:
+            trace_p.append(pose.copy())
+            trace_w.append(bits)
+            trace_m.append(motors)
+    ox, oy = pose[:, 0] - start[:, 0], pose[:, 1] - start[:, 1]
+    net = np.sqrt(ox * ox + oy * oy)
+    if not record:
+        return SimResult(pose, curve, net, max_off, stuck)
+    return SimResult(
+        pose,
+        curve,
+        net,
+        max_off,
+        stuck,
+        np.stack(trace_p, axis=1),
+        np.stack(trace_w, axis=1) if steps else np.zeros((batch, 0, N_WHISKERS), np.uint8),
+        np.stack(trace_m, axis=1) if steps else np.zeros((batch, 0, 2)),
+    )
+
+
+# ---------------------------------------------------------------- compiled kernel
+
+
+@njit(cache=True)
+def _wall(solid: np.ndarray, j: int, i: int) -> bool:
+    if j < 0 or i < 0 or j >= solid.shape[0] or i >= solid.shape[1]:
+        return True
+    return bool(solid[j, i])
+
+
+@njit(cache=True)
+def _blocked(
+    solid: np.ndarray,
+    cell: float,
+    x: float,
+    y: float,
+    c: float,
+    s: float,
+    a: float,
+    b: float,
+    hd: float,
+) -> bool:
+    """The SAT test of `body_hits_wall` for one pose, heading given as (cos, sin)."""
+    h = cell / 2
+    ac = abs(c)
+    as_ = abs(s)
+    ex = a * ac + b * as_ + h
+    ey = a * as_ + b * ac + h
+    eu = a + h * (ac + as_)
+    ev = b + h * (ac + as_)
+    i0 = math.floor((x - hd) / cell)
+    j0 = math.floor((y - hd) / cell)
+    i1 = math.floor((x + hd) / cell)
+    j1 = math.floor((y + hd) / cell)
+    for i in range(i0, i1 + 1):
+        dx = (i + 0.5) * cell - x
+        if not abs(dx) < ex:
+            continue
+        for j in range(j0, j1 + 1):
+            if not _wall(solid, j, i):
+                continue
+            dy = (j + 0.5) * cell - y
+            if abs(dy) < ey and abs(dx * c + dy * s) < eu and abs(dy * c - dx * s) < ev:
+                return True
+    return False
+
+
+@njit(cache=True)
+def _clearance(clear: np.ndarray, cell: float, x: float, y: float) -> float:
+    """Lower bound on the distance from (x, y) to any wall (0 outside the grid)."""
+    i = math.floor(x / cell)
+    j = math.floor(y / cell)
+    if j < 0 or i < 0 or j >= clear.shape[0] or i >= clear.shape[1]:
+        return 0.0
+    return float(clear[j, i])
+
+
+@njit(cache=True)
+def _slab1(lo: float, hi: float, p: float, u: float) -> tuple[float, float]:
+    if abs(u) < 1e-12:
+        if lo <= p and p <= hi:
+            return -np.inf, np.inf
+        return np.inf, -np.inf
+    ta = (lo - p) / u
+    tb = (hi - p) / u
+    return min(ta, tb), max(ta, tb)
+
+
+@njit(cache=True)
+def _whisker(
+    solid: np.ndarray, cell: float, px: float, py: float, ux: float, uy: float, r: float
+) -> bool:
+    """True if a wall cell meets the segment p + t u, 0 <= t <= r (exact slab test)."""
+    ex = px + r * ux
+    ey = py + r * uy
+    i0 = math.floor(min(px, ex) / cell)
+    i1 = math.floor(max(px, ex) / cell)
+    j0 = math.floor(min(py, ey) / cell)
+    j1 = math.floor(max(py, ey) / cell)
+    for i in range(i0, i1 + 1):
+        tx0, tx1 = _slab1(i * cell, (i + 1) * cell, px, ux)
+        if tx0 > tx1:
+            continue
+        for j in range(j0, j1 + 1):
+            if not _wall(solid, j, i):
+                continue
+            ty0, ty1 = _slab1(j * cell, (j + 1) * cell, py, uy)
+            t_in = max(max(tx0, ty0), 0.0)
+            t_out = min(tx1, ty1)
+            if t_in <= t_out and t_in <= r:
+                return True
+    return False
+
+
+@njit(cache=True)
+def _episodes(
+    weights: np.ndarray,
+    sizes: np.ndarray,
+    hist_off: np.ndarray,
+    act_off: np.ndarray,
+    blocks: np.ndarray,
+    delays: int,
+    linear_output: int,
+    n_state: int,
+    n_scratch: int,
+    solid: np.ndarray,
+    cell: float,
+    starts: np.ndarray,
+    steps: int,
+    world: np.ndarray,
+    wx: np.ndarray,
+    wy: np.ndarray,
+    ca: np.ndarray,
+    sa: np.ndarray,
+    clear: np.ndarray,
+    reach: float,
+    stuck_after: int,
+    ranges: np.ndarray,
+    gains: np.ndarray,
+    record: bool,
+    final: np.ndarray,
+    metrics: np.ndarray,
+    stuck_out: np.ndarray,
+    rec_poses: np.ndarray,
+    rec_whiskers: np.ndarray,
+    rec_motors: np.ndarray,
+) -> None:
+    """Every robot's whole trial: sense, think, act, collide, score (see the module docstring)."""
+    dt = world[0]
+    vmax = world[1]
+    base = world[2]
+    a = world[3]
+    b = world[4]
+    hd = world[5]
+    state = np.empty(n_state)
+    scratch = np.empty(n_scratch)
+    inputs = np.empty(wx.shape[0])
+    out = np.empty(2)
+    motor = np.empty(2)
+    for r in range(weights.shape[0]):
+        w = weights[r]
+        state[:] = 0.0
+        x0 = starts[r, 0]
+        y0 = starts[r, 1]
+        x = x0
+        y = y0
+        th = starts[r, 2]
+        rng_r = ranges[r]
+        gl = gains[r, 0]
+        gr = gains[r, 1]
+        blocked = 0
+        stuck = False
+        curve = 0.0
+        max_off = 0.0
+        if record:
+            rec_poses[r, 0, 0] = x
+            rec_poses[r, 0, 1] = y
+            rec_poses[r, 0, 2] = th
+        c = math.cos(th)
+        s = math.sin(th)
+        for k in range(steps):
+            # early out: no wall within reach of the centre, so no whisker can trigger
+            if _clearance(clear, cell, x, y) > reach + rng_r:
+                for q in range(wx.shape[0]):
+                    inputs[q] = 0.0
+            else:
+                for q in range(wx.shape[0]):
+                    px = x + c * wx[q] - s * wy[q]
+                    py = y + s * wx[q] + c * wy[q]
+                    ux = c * ca[q] - s * sa[q]
+                    uy = s * ca[q] + c * sa[q]
+                    hit = _whisker(solid, cell, px, py, ux, uy, rng_r)
+                    inputs[q] = 1.0 if hit else 0.0
+            step_one(
+                w,
+                sizes,
+                hist_off,
+                act_off,
+                blocks,
+                delays,
+                linear_output,
+                state,
+                inputs,
+                out,
+                scratch,
+            )
+            motor_one(out, linear_output, motor)
+            if not stuck:
+                vl = motor[0] * gl * vmax
+                vr = motor[1] * gr * vmax
+                v = (vl + vr) * 0.5
+                om = (vr - vl) / base
+                mid = th + om * (dt * 0.5)
+                nx = x + v * dt * math.cos(mid)
+                ny = y + v * dt * math.sin(mid)
+                nth = th + om * dt
+                nth = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
+                nc = math.cos(nth)
+                ns = math.sin(nth)
+                if _clearance(clear, cell, nx, ny) <= hd and _blocked(
+                    solid, cell, nx, ny, nc, ns, a, b, hd
+                ):
+                    blocked += 1
+                    if blocked >= stuck_after:
+                        stuck = True
+                else:
+                    blocked = 0
+                    ddx = nx - x
+                    ddy = ny - y
+                    curve += math.sqrt(ddx * ddx + ddy * ddy)
+                    x = nx
+                    y = ny
+                    th = nth
+                    c = nc
+                    s = ns
+                    ox = x - x0
+                    oy = y - y0
+                    max_off = max(max_off, math.sqrt(ox * ox + oy * oy))
+            if record:
+                rec_poses[r, k + 1, 0] = x
+                rec_poses[r, k + 1, 1] = y
+                rec_poses[r, k + 1, 2] = th
+                for q in range(wx.shape[0]):
+                    rec_whiskers[r, k, q] = np.uint8(inputs[q])
+                rec_motors[r, k, 0] = motor[0]
+                rec_motors[r, k, 1] = motor[1]
+        final[r, 0] = x
+        final[r, 1] = y
+        final[r, 2] = th
+        ox = x - x0
+        oy = y - y0
+        metrics[r, 0] = curve
+        metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
+        metrics[r, 2] = max_off
+        stuck_out[r] = stuck
+
+
+def simulate(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    maze: Maze,
+    start_poses: np.ndarray,
+    steps: int,
+    params: WorldParams = DEFAULT_WORLD,
+    gap: Gap | None = None,
+    record: bool = False,
+) -> SimResult:
+    """Run every robot (row of `weights`, row of `start_poses`) for `steps` steps in one call.
+
+    The canonical path: one compiled kernel, one robot after another, so each robot's result
+    is bit-identical whatever the batch it is part of.
+    """
+    w, starts, gap = _prepare(spec, weights, start_poses, steps, params, gap)
+    batch = w.shape[0]
+    world = np.array(
+        [
+            params.dt,
+            params.max_speed,
+            params.wheel_base,
+            params.body_length / 2,
+            params.body_width / 2,
+            params.half_diagonal,
+        ]
+    )
+    final = np.empty((batch, 3))
+    metrics = np.empty((batch, 3))
+    stuck = np.empty(batch, dtype=np.bool_)
+    shape = (batch, steps) if record else (0, 0)
+    rec_p = np.zeros((*shape[:1], steps + 1 if record else 0, 3))
+    rec_w = np.zeros((*shape, N_WHISKERS), dtype=np.uint8)
+    rec_m = np.zeros((*shape, 2))
+    _episodes(
+        w,
+        *network.kernel_plan(spec),
+        network.state_size(spec),
+        network.scratch_size(spec),
+        _solid_u8(maze),
+        maze.cell_size,
+        starts,
+        steps,
+        world,
+        np.array(params.whisker_x),
+        np.array(params.whisker_y),
+        np.cos(np.array(params.whisker_angle)),
+        np.sin(np.array(params.whisker_angle)),
+        _clearance_map(maze),
+        max(math.hypot(x, y) for x, y in zip(params.whisker_x, params.whisker_y, strict=True))
+        + 1e-9,
+        params.stuck_after,
+        gap.whisker_range,
+        gap.motor_gain,
+        record,
+        final,
+        metrics,
+        stuck,
+        rec_p,
+        rec_w,
+        rec_m,
+    )
+    curve, net, max_off = metrics[:, 0].copy(), metrics[:, 1].copy(), metrics[:, 2].copy()
+    if record:
+        return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m)
+    return SimResult(final, curve, net, max_off, stuck)
+
+
+CLEARANCE_CELLS = 4
+"""Clearance maps look this many cells around each cell (0.4 m at 0.1 m cells)."""
+
+
+@lru_cache(maxsize=64)
+def _clearance_map(maze: Maze) -> np.ndarray:
+    """clear[j, i]: a lower bound on the distance from any point of cell (j, i) to a wall.
+
+    Exact minimum over wall cells within CLEARANCE_CELLS (square-to-square gap), capped at the
+    window's reach, minus 1e-9 for rounding. The kernel skips the exact whisker and body tests
+    when it proves no wall is near: an early out that never changes a result.
+    """
+    k = CLEARANCE_CELLS
+    cell = maze.cell_size
+    padded = np.pad(maze.solid, k, constant_values=True)
+    ny, nx = maze.solid.shape
+    clear = np.full((ny, nx), k * cell)
+    for dj in range(-k, k + 1):
+        for di in range(-k, k + 1):
+            gap = math.hypot(max(abs(di) - 1, 0) * cell, max(abs(dj) - 1, 0) * cell)
+            wall = padded[k + dj : k + dj + ny, k + di : k + di + nx]
+            clear = np.where(wall, np.minimum(clear, gap), clear)
+    return np.ascontiguousarray(clear - 1e-9)
+
+
+@lru_cache(maxsize=64)
+def _solid_u8(maze: Maze) -> np.ndarray:
+    """The kernel's copy of a maze: uint8 solid[j, i], C-contiguous (cached per Maze)."""
+    return np.ascontiguousarray(maze.solid, dtype=np.uint8)
