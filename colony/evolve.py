@@ -38,7 +38,8 @@ def _validation_message(err: ValidationError, prefix: str = "") -> str:
     parts = []
     for e in err.errors():
         loc = ".".join(str(x) for x in (prefix, *e["loc"]) if x != "")
-        parts.append(f"{loc}: {e['msg']}" if loc else str(e["msg"]))
+        msg = str(e["msg"]).removeprefix("Value error, ")
+        parts.append(f"{loc}: {msg}" if loc else msg)
     return "; ".join(parts)
 
 
@@ -52,7 +53,9 @@ def _network_value(value: str) -> str | NetworkSpec:
             return NetworkSpec.model_validate_json(path.read_text())
         except ValidationError as err:
             raise ConfigError(f"network file {value}: {_validation_message(err)}") from None
-    return value  # RunConfig rejects it with the list of presets
+    raise ConfigError(
+        f"network: {value!r} is neither a preset {sorted(PRESETS)} nor a NetworkSpec JSON file"
+    )
 
 
 def _maze_value(value: str) -> str:
