@@ -141,7 +141,7 @@ class JobQueue:
             ).first()
             if row is None:
                 return None
-            job, run = row.tuple()
+            job, run = row
             job.status, job.worker = "leased", worker
             job.deadline = now + self._lease_seconds
             job.attempts += 1

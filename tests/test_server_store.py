@@ -1,0 +1,195 @@
+"""The store: migrations, array packing, GA state round trip, and the job queue's contract."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sqlalchemy as sa
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from evorobotics.evaluate import evaluate
+from evorobotics.ga import GAParams, ask, ga_rng, init, tell
+from evorobotics.layout import layout
+from schemas.run import RunConfig
+from server import crud
+from server.db import make_engine, upgrade
+from server.jobs import JobKey, JobResult
+from server.manager import RunManager, decode_state, encode_state
+from server.models import pack, unpack
+from server.settings import Settings
+
+TABLES = {"runs", "generations", "individuals", "jobs", "controllers", "workers", "robots"}
+SMALL = RunConfig(population=12, generations=3, steps=10, trials=2, job_size=5)
+
+
+@pytest.fixture
+def manager(tmp_path: Path) -> Iterator[RunManager]:
+    """A manager on a fresh SQLite file, without executors: tests drive the queue by hand."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    yield RunManager(engine, Settings(db_url="unused", lease_seconds=10.0, max_attempts=2))
+    engine.dispose()
+
+
+def test_fresh_database_gets_every_table_and_upgrade_is_idempotent(tmp_path: Path) -> None:
+    engine = make_engine(f"sqlite:///{tmp_path / 'sub' / 'c.db'}")
+    upgrade(engine)
+    upgrade(engine)
+    inspector = sa.inspect(engine)
+    assert set(inspector.get_table_names()) >= TABLES
+    with engine.connect() as conn:
+        assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() == 10_000
+        versions = conn.exec_driver_sql("SELECT version_num FROM alembic_version").all()
+    assert versions == [("0001",)]
+    engine.dispose()
+
+
+def test_memory_sqlite_is_refused() -> None:
+    with pytest.raises(ValueError, match="SQLite file"):
+        make_engine("sqlite://")
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    hnp.arrays(
+        dtype=st.sampled_from([np.dtype(t) for t in ("<f8", "<f4", "<i8", ">f8")]),
+        shape=hnp.array_shapes(min_dims=1, max_dims=3, min_side=0, max_side=5),
+    )
+)
+def test_pack_unpack_round_trips_bits(array: np.ndarray) -> None:
+    data, dtype, shape = pack(array)
+    back = unpack(data, dtype, shape)
+    assert back.shape == array.shape
+    assert np.array_equal(
+        back.view(np.uint8), np.ascontiguousarray(array, back.dtype).view(np.uint8)
+    )
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2**32), st.integers(0, 3))
+def test_ga_state_round_trips_through_the_store_encoding(seed: int, generations: int) -> None:
+    config = SMALL.model_copy(update={"seed": seed})
+    lay, params = layout(config.network_spec), GAParams.from_config(config)
+    state = init(lay, params)
+    for g in range(generations):
+        genomes, state = ask(ga_rng(seed, g), state, params, lay)
+        fitness = np.random.default_rng(g).normal(size=config.population)
+        state, _ = tell(genomes, fitness, state, params)
+    back = decode_state(encode_state(state))
+    for name, value in state.to_arrays().items():
+        assert np.array_equal(back.to_arrays()[name], value)
+    a, _ = ask(ga_rng(seed, generations), state, params, lay)
+    b, _ = ask(ga_rng(seed, generations), back, params, lay)
+    assert a.tobytes() == b.tobytes()
+
+
+def _evaluate(manager: RunManager, worker: str, now: float) -> tuple[JobKey, JobResult] | None:
+    job = manager.queue.lease(worker, now)
+    if job is None:
+        return None
+    ev = evaluate(job.config, job.key.generation, job.genomes)
+    return job.key, JobResult(ev.fitness, ev.components)
+
+
+def test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once(manager: RunManager) -> None:
+    run_id = manager.create_run(SMALL)
+    leased = [manager.queue.lease("w", 0.0) for _ in range(3)]
+    assert [(j.start, j.stop) for j in leased if j] == [(0, 5), (5, 10), (10, 12)]
+    assert manager.queue.lease("w", 0.0) is None
+    results = []
+    for job in leased:
+        assert job is not None
+        ev = evaluate(job.config, job.key.generation, job.genomes)
+        results.append((job.key, JobResult(ev.fitness, ev.components)))
+    assert manager.queue.complete(*results[0]) is True
+    assert manager.queue.complete(*results[0]) is False  # duplicate: acknowledged, dropped
+    for key, result in results[1:]:
+        assert manager.queue.complete(key, result) is True
+    assert manager.queue.complete(*results[2]) is False  # late: generation already committed
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None
+        assert (run.generation, run.evaluations) == (1, SMALL.population)
+        ranked = crud.list_individuals(session, run_id=run_id, generation=0)
+    assert [i.rank for i in ranked] == list(range(SMALL.population))
+    assert [i.fitness for i in ranked] == sorted((i.fitness for i in ranked), reverse=True)
+
+
+def test_result_of_wrong_shape_is_refused(manager: RunManager) -> None:
+    manager.create_run(SMALL)
+    job = manager.queue.lease("w", 0.0)
+    assert job is not None
+    with pytest.raises(ValueError, match="shapes"):
+        manager.queue.complete(job.key, JobResult(np.zeros(2), np.zeros((2, 2, 4))))
+
+
+def test_expired_lease_goes_back_and_late_result_is_still_counted_once(
+    manager: RunManager,
+) -> None:
+    manager.create_run(SMALL.model_copy(update={"job_size": 12}))
+    first = _evaluate(manager, "slow", now=0.0)
+    assert first is not None and manager.queue.lease("other", 1.0) is None
+    assert manager.queue.expire(now=5.0) == 0  # deadline 10 not yet passed
+    assert manager.queue.expire(now=11.0) == 1
+    second = _evaluate(manager, "fast", now=11.0)
+    assert second is not None and second[0] == first[0]
+    assert manager.queue.complete(*first) is True  # the slow worker's late result is valid
+    assert manager.queue.complete(*second) is False
+
+
+def test_runs_share_the_workers_fairly(manager: RunManager) -> None:
+    a = manager.create_run(SMALL.model_copy(update={"job_size": 3}))
+    b = manager.create_run(SMALL.model_copy(update={"job_size": 3, "seed": 1}))
+    order = []
+    for _ in range(6):
+        job = manager.queue.lease("w", 0.0)
+        assert job is not None
+        order.append(job.key.run_id)
+    assert order == [a, b, a, b, a, b]
+
+
+def test_paused_runs_get_no_jobs_and_failures_fail_the_run(manager: RunManager) -> None:
+    run_id = manager.create_run(SMALL)
+    manager.pause(run_id)
+    assert manager.queue.lease("w", 0.0) is None
+    manager.resume(run_id)
+    for attempt in range(2):
+        job = manager.queue.lease("w", float(attempt))
+        assert job is not None and job.key.index == 0
+        assert manager.queue.fail(job.key, "boom") is True
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and run.status == "failed" and "boom" in (run.error or "")
+        assert crud.job_counts(session) == {"pending": 0, "leased": 0, "done": 0}
+
+
+def test_generations_commit_whole_under_concurrent_completion(manager: RunManager) -> None:
+    """Two threads complete jobs at once; every committed generation is complete."""
+    run_id = manager.create_run(SMALL.model_copy(update={"job_size": 2}))
+    errors: list[BaseException] = []
+
+    def work(name: str) -> None:
+        try:
+            while (item := _evaluate(manager, name, 0.0)) is not None:
+                manager.queue.complete(*item)
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(f"t{i}",)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert not errors
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and run.status == "completed"
+        for g in range(SMALL.generations):
+            assert len(crud.list_individuals(session, run_id=run_id, generation=g)) == 12
