@@ -6,52 +6,25 @@ blocked move leaves the pose unchanged but does not freeze the robot for good (t
 `stuck` ends a trial; a real EvBot pressed against a wall can still back away), and the body
 records `blocked` so traces carry the ground truth the stuck detector is measured against.
 
-The reality gap (paper section 4) is drawn once per robot from
-rng(seed, 0, Purpose.REALITY_GAP, index): whisker trigger distance uniform in 25-100 mm, each
-wheel's gain uniform within +/-15 %.
+The start pose and reality gap of robot `index` are those `evorobotics.evaluate` gives trial
+`index` of generation 0 (`start_poses`, `draw_gap`): a free pose with no whisker touching, whisker
+trigger distance uniform in 25-100 mm, each wheel's gain within +/-15 % (paper section 4).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from evorobotics.evaluate import draw_gap as draw_trial_gaps
+from evorobotics.evaluate import start_poses
 from evorobotics.maze import Maze, load_maze
-from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import Gap, WorldParams, body_hits_wall, move, whisker_bits
-
-GAP_WHISKER_RANGE = (0.025, 0.100)
-"""Metres: where a real whisker may trigger (paper section 4)."""
-GAP_MOTOR = 0.15
-"""Real motors within 15 % of simulated (paper section 4)."""
-START_ATTEMPTS = 10_000
 
 
 def draw_gap(seed: int, index: int) -> Gap:
-    """The reality gap of robot `index` under `seed`: a batch-of-one Gap."""
-    gen = rng(seed, 0, Purpose.REALITY_GAP, index)
-    whisker = gen.uniform(*GAP_WHISKER_RANGE, size=1)
-    gain = gen.uniform(1.0 - GAP_MOTOR, 1.0 + GAP_MOTOR, size=(1, 2))
-    return Gap(whisker, gain)
-
-
-def free_pose(maze: Maze, seed: int, index: int, params: WorldParams) -> np.ndarray:
-    """A uniformly drawn (1, 3) pose whose body touches no wall."""
-    gen = rng(seed, 0, Purpose.AGENT, index)
-    for _ in range(START_ATTEMPTS):
-        pose = np.array(
-            [
-                [
-                    gen.uniform(0, maze.width),
-                    gen.uniform(0, maze.height),
-                    gen.uniform(-math.pi, math.pi),
-                ]
-            ]
-        )
-        if not body_hits_wall(maze, pose, params)[0]:
-            return pose
-    raise ValueError(f"no free start pose found in maze {maze.name!r}")
+    """The reality gap of robot `index` under `seed`, as a batch-of-one Gap."""
+    gaps = draw_trial_gaps(seed, 0, index + 1)
+    return Gap(gaps.whisker_range[index:], gaps.motor_gain[index:])
 
 
 class SimBody:
@@ -80,7 +53,7 @@ class SimBody:
         """Robot `index` of `seed` in the named maze at a random free pose, gap on by default."""
         loaded = load_maze(maze)
         params = WorldParams()
-        pose = free_pose(loaded, seed, index, params)
+        pose = start_poses(loaded, seed, 0, index + 1, params)[index]
         return cls(loaded, pose, draw_gap(seed, index) if gap else None, params)
 
     @property

@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 import serial
 
+from evorobotics.evaluate import GAP_MOTOR_GAIN, GAP_WHISKER_RANGE
 from evorobotics.maze import load_maze
 from evorobotics.sim import WorldParams, whisker_bits
 from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import FIRMWARE_VERSION, BasicXEmulator, FirmwareConfig
 from robot_agent.serial_protocol import UNKNOWN_SEQ, Frame, LineDecoder, encode
-from robot_agent.sim_body import GAP_MOTOR, GAP_WHISKER_RANGE, SimBody, draw_gap
+from robot_agent.sim_body import SimBody, draw_gap
 
 
 @pytest.fixture
@@ -106,7 +107,7 @@ def test_reality_gap_draws_are_in_the_paper_ranges_and_deterministic() -> None:
     ranges = np.array([g.whisker_range[0] for g in gaps])
     gains = np.array([g.motor_gain[0] for g in gaps])
     assert ((GAP_WHISKER_RANGE[0] <= ranges) & (ranges <= GAP_WHISKER_RANGE[1])).all()
-    assert (np.abs(gains - 1) <= GAP_MOTOR).all()
+    assert (np.abs(gains - 1) <= GAP_MOTOR_GAIN).all()
     assert len(set(ranges.tolist())) == 50
     assert np.array_equal(draw_gap(7, 3).motor_gain, gaps[3].motor_gain)
     a, b = SimBody.create("paper", seed=7, index=3), SimBody.create("paper", seed=7, index=3)
