@@ -84,7 +84,7 @@ def encode_frame(header: dict[str, Any], arrays: dict[str, np.ndarray] | None = 
     index: list[dict[str, Any]] = []
     bodies: list[bytes] = []
     for name, array in (arrays or {}).items():
-        le = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
+        le = np.asarray(array, dtype=array.dtype.newbyteorder("<"))
         if le.dtype.str not in ALLOWED_DTYPES:
             raise ValueError(f"array {name!r} has dtype {array.dtype}; allowed {ALLOWED_DTYPES}")
         index.append({"name": name, "dtype": le.dtype.str, "shape": list(le.shape)})

@@ -1,0 +1,323 @@
+"""The dispatcher over real zenoh on 127.0.0.1 (multicast scouting off) with an in-memory source."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+
+from schemas.run import RunConfig
+from schemas.wire import (
+    KEY_JOB_NEXT,
+    KEY_JOB_RESULT,
+    Idle,
+    Job,
+    JobKey,
+    JobRequest,
+    Result,
+    decode_ack,
+    decode_next_reply,
+    encode_message,
+    encode_result,
+    worker_key,
+)
+from server.dispatch import Dispatcher, DispatchSettings
+from worker.main import Evaluator, WorkerSettings, WorkerStats, run_worker
+
+CONFIG = RunConfig(population=12, job_size=3, generations=1, trials=2, steps=5)
+W = CONFIG.network_spec.weight_count
+WAIT = 20.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def eventually(predicate: Callable[[], bool], timeout: float = WAIT) -> bool:
+    """Poll a condition no event announces (the dispatcher's worker table) until a deadline."""
+    deadline = time.monotonic() + timeout
+    tick = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        tick.wait(0.02)
+    return True
+
+
+def fake_fitness(genomes: np.ndarray) -> np.ndarray:
+    return np.asarray(genomes.sum(axis=1), dtype=np.float64)
+
+
+def fake_evaluator(
+    config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic and fast: row sums, components of the expected shape."""
+    n = genomes.shape[0]
+    return fake_fitness(genomes), np.full((n, config.trials, 4), float(generation))
+
+
+class MemorySource:
+    """A JobSource over one generation held in memory; records every call."""
+
+    def __init__(self, config: RunConfig = CONFIG, run_id: int = 1, max_attempts: int = 2) -> None:
+        self.config = config
+        self.genomes = np.random.default_rng(5).normal(size=(config.population, W))
+        self.pending: list[int] = []
+        self.jobs: dict[int, Job] = {}
+        for index, start in enumerate(range(0, config.population, config.job_size)):
+            stop = min(start + config.job_size, config.population)
+            key = JobKey(run_id=run_id, generation=0, index=index)
+            self.jobs[index] = Job(key, start, stop, config, self.genomes[start:stop])
+            self.pending.append(index)
+        self.fitness: dict[int, np.ndarray] = {}
+        self.leased_by: list[tuple[int, str]] = []
+        self.released: list[int] = []
+        self.failures: dict[int, list[str]] = {}
+        self.failed_run: str | None = None
+        self.max_attempts = max_attempts
+        self.done = threading.Event()
+        self.changed = threading.Condition()
+
+    def lease(self, worker: str) -> Job | None:
+        if not self.pending or self.failed_run:
+            return None
+        index = self.pending.pop(0)
+        self.leased_by.append((index, worker))
+        return self.jobs[index]
+
+    def complete(self, result: Result) -> bool:
+        index = result.key.index
+        if index in self.fitness:
+            return False
+        assert result.fitness is not None
+        self.fitness[index] = result.fitness
+        if len(self.fitness) == len(self.jobs):
+            self.done.set()
+        self._changed()
+        return True
+
+    def fail(self, key: JobKey, error: str) -> None:
+        self.failures.setdefault(key.index, []).append(error)
+        if len(self.failures[key.index]) >= self.max_attempts:
+            self.failed_run = error
+            self.done.set()
+        else:
+            self.pending.insert(0, key.index)
+        self._changed()
+
+    def release(self, key: JobKey) -> None:
+        self.released.append(key.index)
+        self.pending.insert(0, key.index)
+        self._changed()
+
+    def _changed(self) -> None:
+        with self.changed:
+            self.changed.notify_all()
+
+    def wait_for(self, predicate: object, timeout: float = WAIT) -> bool:
+        assert callable(predicate)
+        with self.changed:
+            return bool(self.changed.wait_for(predicate, timeout))
+
+    def all_fitness(self) -> np.ndarray:
+        return np.concatenate([self.fitness[i] for i in sorted(self.jobs)])
+
+
+def dispatch_settings(port: int, **overrides: Any) -> DispatchSettings:
+    return DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",), **overrides)
+
+
+def client_config(port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+@contextmanager
+def worker_thread(
+    port: int, name: str, evaluator: Evaluator = fake_evaluator
+) -> Iterator[WorkerStats]:
+    """A real worker (its own client session) in a thread; stopped and joined on exit."""
+    stop = threading.Event()
+    stats = WorkerStats()
+    settings = WorkerSettings(
+        connect=(f"tcp/127.0.0.1:{port}",), name=name, backoff_max_s=0.2, request_timeout_s=5.0
+    )
+
+    def body() -> None:
+        got = run_worker(settings, stop, evaluator=evaluator)
+        stats.jobs_done, stats.errors = got.jobs_done, got.errors
+
+    thread = threading.Thread(target=body, name=f"worker-{name}")
+    thread.start()
+    try:
+        yield stats
+    finally:
+        stop.set()
+        thread.join(timeout=WAIT)
+        assert not thread.is_alive(), f"worker {name} did not stop"
+
+
+def ask(session: zenoh.Session, key: str, payload: bytes) -> zenoh.Reply:
+    """Retry until the server's queryable is reachable (declarations propagate asynchronously)."""
+    deadline = time.monotonic() + WAIT
+    while time.monotonic() < deadline:
+        replies = list(session.get(key, payload=payload, timeout=5.0))
+        if replies:
+            return replies[0]
+        threading.Event().wait(0.05)
+    raise AssertionError(f"no reply on {key}")
+
+
+def lease_raw(session: zenoh.Session, name: str) -> Job:
+    """Lease one job as a hand-driven worker that will never finish it."""
+    while True:
+        reply = ask(session, KEY_JOB_NEXT, encode_message(JobRequest(worker=name)))
+        assert reply.ok is not None
+        job = decode_next_reply(reply.ok.payload.to_bytes())
+        if isinstance(job, Job):
+            return job
+
+
+def test_two_workers_finish_a_generation_exactly_once() -> None:
+    port = free_port()
+    source = MemorySource()
+    with (
+        Dispatcher(dispatch_settings(port), source) as dispatcher,
+        worker_thread(port, "alpha") as a,
+        worker_thread(port, "beta") as b,
+    ):
+        assert source.done.wait(WAIT)
+        assert eventually(lambda: sum(w.jobs_done for w in dispatcher.workers()) == 4)
+        statuses = {w.name: w for w in dispatcher.workers()}
+    assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
+    assert sorted(i for i, _ in source.leased_by) == [0, 1, 2, 3]
+    assert a.jobs_done + b.jobs_done == 4
+    assert dispatcher.results_accepted == 4 and dispatcher.results_dropped == 0
+    assert set(statuses) == {"alpha", "beta"}
+    assert all(w.state in ("idle", "busy") and w.host for w in statuses.values())
+    assert all(w.robot_steps_per_s for w in statuses.values() if w.jobs_done)
+
+
+def test_malformed_messages_are_dropped_and_serving_goes_on() -> None:
+    port = free_port()
+    source = MemorySource()
+    with (
+        Dispatcher(dispatch_settings(port), source) as dispatcher,
+        zenoh.open(client_config(port)) as session,
+    ):
+        for key in (KEY_JOB_NEXT, KEY_JOB_RESULT):
+            for junk in (b"", b"garbage", encode_message(Idle())):
+                reply = ask(session, key, junk)
+                assert reply.err is not None
+                assert b"malformed" in reply.err.payload.to_bytes()
+        token = session.liveliness().declare_token("evocolony/workers/bad name")
+        with worker_thread(port, "good"):
+            assert source.done.wait(WAIT)
+        token.undeclare()  # type: ignore[no-untyped-call]
+    assert dispatcher.malformed >= 6
+    assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
+
+
+def test_vanished_worker_releases_its_job_and_its_late_result_is_dropped() -> None:
+    port = free_port()
+    source = MemorySource()
+    with Dispatcher(dispatch_settings(port), source):
+        with zenoh.open(client_config(port)) as doomed:
+            token = doomed.liveliness().declare_token(worker_key("doomed"))
+            job = lease_raw(doomed, "doomed")
+            token.undeclare()  # type: ignore[no-untyped-call]
+        assert source.wait_for(lambda: job.key.index in source.released)
+        with worker_thread(port, "survivor"), zenoh.open(client_config(port)) as late:
+            assert source.done.wait(WAIT)
+            result = Result(job.key, "doomed", np.zeros(job.stop - job.start))
+            ack = decode_ack(_ok(ask(late, KEY_JOB_RESULT, encode_result(result))))
+        assert not ack.accepted and ack.key == job.key
+    assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
+
+
+def test_expired_lease_returns_the_job_and_late_result_is_dropped() -> None:
+    port = free_port()
+    source = MemorySource()
+    settings = dispatch_settings(port, lease_unknown_s=0.3)
+    with Dispatcher(settings, source) as dispatcher, zenoh.open(client_config(port)) as hung:
+        token = hung.liveliness().declare_token(worker_key("hung"))
+        job = lease_raw(hung, "hung")
+        assert job.lease_s == pytest.approx(0.3)
+        assert source.wait_for(lambda: job.key.index in source.released)
+        with worker_thread(port, "fresh"):
+            assert source.done.wait(WAIT)
+        result = Result(job.key, "hung", np.zeros(job.stop - job.start))
+        ack = decode_ack(_ok(ask(hung, KEY_JOB_RESULT, encode_result(result))))
+        token.undeclare()  # type: ignore[no-untyped-call]
+    assert not ack.accepted
+    assert dispatcher.results_dropped == 1 and dispatcher.results_accepted == 4
+    assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
+
+
+def test_error_results_are_retried_then_fail_the_run() -> None:
+    port = free_port()
+    source = MemorySource(max_attempts=2)
+
+    def broken(
+        config: RunConfig, generation: int, genomes: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        raise RuntimeError("simulator exploded")
+
+    with Dispatcher(dispatch_settings(port), source), worker_thread(port, "broken", broken) as st:
+        assert source.done.wait(WAIT)
+    assert source.failed_run is not None and "simulator exploded" in source.failed_run
+    assert "broken" in source.failed_run
+    assert source.failures[0] and len(source.failures[0]) == 2
+    assert st.errors >= 2 and not source.fitness
+
+
+def test_held_request_is_served_as_soon_as_notified() -> None:
+    port = free_port()
+    source = MemorySource()
+    jobs = list(source.pending)
+    source.pending.clear()
+    settings = dispatch_settings(port, long_poll_s=30.0, poll_s=30.0)
+    with Dispatcher(settings, source) as dispatcher, worker_thread(port, "waiter"):
+        assert eventually(lambda: bool(dispatcher.workers()))
+        source.pending.extend(jobs)
+        dispatcher.notify()
+        assert source.done.wait(WAIT)
+
+
+def test_worker_that_leaves_is_listed_as_gone() -> None:
+    port = free_port()
+    source = MemorySource()
+    with Dispatcher(dispatch_settings(port), source) as dispatcher:
+        with worker_thread(port, "brief"):
+            assert source.done.wait(WAIT)
+        assert eventually(lambda: [w.state for w in dispatcher.workers()] == ["gone"])
+        (status,) = dispatcher.workers()
+    assert status.name == "brief" and status.jobs_done == 4
+
+
+def test_settings_reject_bad_values() -> None:
+    with pytest.raises(ValueError):
+        DispatchSettings(listen=(), connect=())
+    with pytest.raises(ValueError):
+        DispatchSettings(long_poll_s=0)
+    settings = DispatchSettings(lease_min_s=2.0, lease_factor=10.0, lease_unknown_s=60.0)
+    assert settings.lease_seconds(1000, None) == 60.0
+    assert settings.lease_seconds(1000, 1000.0) == 10.0
+    assert settings.lease_seconds(10, 1000.0) == 2.0
+
+
+def _ok(reply: zenoh.Reply) -> bytes:
+    assert reply.ok is not None, reply.err
+    return reply.ok.payload.to_bytes()

@@ -1,0 +1,164 @@
+"""Wire codecs: round trips, and every malformed payload raises WireError (never anything else)."""
+
+from __future__ import annotations
+
+import contextlib
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from schemas.run import RunConfig
+from schemas.wire import (
+    Ack,
+    Idle,
+    InvalidJobError,
+    Job,
+    JobKey,
+    JobRequest,
+    Result,
+    WireError,
+    decode_ack,
+    decode_frame,
+    decode_job,
+    decode_next_reply,
+    decode_request,
+    decode_result,
+    encode_frame,
+    encode_job,
+    encode_message,
+    encode_result,
+    worker_key,
+)
+
+CONFIG = RunConfig(population=10, job_size=4, generations=2)
+W = CONFIG.network_spec.weight_count
+KEY = JobKey(run_id=3, generation=7, index=1)
+
+
+def make_job(rows: int = 4, start: int = 4) -> Job:
+    genomes = np.arange(rows * W, dtype=np.float64).reshape(rows, W) / 7.0
+    return Job(KEY, start, start + rows, CONFIG, genomes, lease_s=12.5)
+
+
+@given(
+    shape=st.lists(st.integers(0, 5), min_size=0, max_size=3),
+    dtype=st.sampled_from(["<f8", "<f4", "<i8", "<i4", "|u1", "|b1", ">f8"]),
+    seed=st.integers(0, 2**32 - 1),
+)
+@settings(max_examples=60, deadline=None)
+def test_frame_round_trips_arrays_bit_exact(shape: list[int], dtype: str, seed: int) -> None:
+    raw = np.random.default_rng(seed).normal(size=shape) * 100
+    array = raw.astype(dtype)
+    header, arrays = decode_frame(encode_frame({"x": 1}, {"a": array, "b": np.ones(2)}))
+    assert header == {"x": 1}
+    assert arrays["a"].shape == array.shape
+    assert arrays["a"].tobytes() == array.astype(array.dtype.newbyteorder("<")).tobytes()
+    assert np.array_equal(arrays["a"], array)
+    assert np.array_equal(arrays["b"], np.ones(2))
+
+
+def test_job_round_trip_is_bit_exact() -> None:
+    job = make_job()
+    back = decode_next_reply(encode_job(job))
+    assert isinstance(back, Job)
+    assert back.key == KEY and (back.start, back.stop, back.lease_s) == (4, 8, 12.5)
+    assert back.config == CONFIG
+    assert back.genomes.tobytes() == job.genomes.tobytes()
+    assert back.robot_steps == 4 * CONFIG.trials * CONFIG.steps
+
+
+def test_result_and_control_round_trips() -> None:
+    fitness = np.array([1.5, -2.0, 0.0])
+    components = np.arange(3 * 3 * 4, dtype=np.float64).reshape(3, 3, 4)
+    result = Result(KEY, "w-1", fitness, components, 1234.5, 0.25)
+    back = decode_result(encode_result(result))
+    assert back.key == KEY and back.worker == "w-1" and back.error is None
+    assert back.fitness is not None and back.fitness.tobytes() == fitness.tobytes()
+    assert back.components is not None and np.array_equal(back.components, components)
+    err = decode_result(encode_result(Result(KEY, "w-1", error="boom")))
+    assert err.error == "boom" and err.fitness is None
+    request = JobRequest(worker="w-1", host="h", robot_steps_per_s=10.0)
+    assert decode_request(encode_message(request)) == request
+    ack = Ack(key=KEY, accepted=False, reason="late")
+    assert decode_ack(encode_message(ack)) == ack
+    assert decode_next_reply(encode_message(Idle())) == Idle()
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        b"",
+        b"EVC",
+        b"XXXX" + struct.pack("<I", 2) + b"{}",
+        b"EVC1" + struct.pack("<I", 100) + b"{}",
+        b"EVC1" + struct.pack("<I", 2) + b"[]",
+        b"EVC1" + struct.pack("<I", 3) + b"\xff\xfe{",
+        b"EVC1" + struct.pack("<I", 2) + b"{}",
+        encode_frame({"kind": "job"}) + b"trailing",
+        b"EVC1"
+        + struct.pack("<I", 60)
+        + b'{"arrays":[{"name":"a","dtype":"|O","shape":[1]}]}        ',
+        b"EVC1" + struct.pack("<I", 50) + b'{"arrays":[{"name":"a","dtype":"<f8","shape":[9]}]}',
+        b"EVC1" + struct.pack("<I", 51) + b'{"arrays":[{"name":"a","dtype":"<f8","shape":[-1]}]}',
+    ],
+)
+def test_malformed_frames_raise_wire_error(payload: bytes) -> None:
+    for decode in (decode_frame, decode_job, decode_result, decode_request, decode_ack):
+        with pytest.raises(WireError):
+            decode(payload)
+
+
+@given(st.binary(max_size=300))
+@settings(max_examples=200, deadline=None)
+def test_arbitrary_bytes_never_raise_anything_but_wire_error(payload: bytes) -> None:
+    for decode in (decode_next_reply, decode_result, decode_request, decode_ack):
+        with contextlib.suppress(WireError):
+            decode(payload)
+
+
+def test_invalid_job_content_carries_its_key() -> None:
+    job = make_job()
+    bad = job.genomes.copy()
+    bad[0, 0] = np.nan
+    frame = encode_job(job).replace(job.genomes.tobytes(), bad.tobytes())
+    with pytest.raises(InvalidJobError, match="NaN") as caught:
+        decode_job(frame)
+    assert caught.value.key == KEY
+    wrong_rows = encode_frame(
+        {"kind": "job", "key": KEY.model_dump(), "start": 0, "stop": 4, "lease_s": 1.0,
+         "config": CONFIG.model_dump(mode="json")},
+        {"genomes": np.zeros((3, W))},
+    )  # fmt: skip
+    with pytest.raises(InvalidJobError, match="shape"):
+        decode_job(wrong_rows)
+    bad_config = encode_frame(
+        {"kind": "job", "key": KEY.model_dump(), "start": 0, "stop": 4, "lease_s": 1.0,
+         "config": {"population": -5}},
+        {"genomes": np.zeros((4, W))},
+    )  # fmt: skip
+    with pytest.raises(InvalidJobError) as caught:
+        decode_job(bad_config)
+    assert caught.value.key == KEY
+    with pytest.raises(InvalidJobError, match="outside population"):
+        make_job(rows=4, start=8)
+
+
+def test_worker_names_are_single_key_chunks() -> None:
+    assert worker_key("lab-pc.3_a") == "evocolony/workers/lab-pc.3_a"
+    for bad in ("", "a/b", "a*", "x" * 129, "a b", "$"):
+        with pytest.raises(ValueError):
+            worker_key(bad)
+        with pytest.raises(ValueError):
+            JobRequest(worker=bad)
+
+
+def test_results_must_be_finite_and_consistent() -> None:
+    with pytest.raises(WireError, match="finite"):
+        Result(KEY, "w", np.array([np.inf]))
+    with pytest.raises(WireError, match="1-D"):
+        Result(KEY, "w")
+    with pytest.raises(WireError, match="components"):
+        Result(KEY, "w", np.zeros(2), np.zeros((3, 1, 4)))
