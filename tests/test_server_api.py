@@ -1,0 +1,143 @@
+"""The REST API and its CLI clients against a real uvicorn server on a free port."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+from typer.testing import CliRunner
+
+from colony.cli import app as cli
+from evorobotics.evolution import evolve
+from schemas.run import RunConfig
+from server.app import create_app
+from server.settings import Settings
+
+SMALL = {"population": 12, "generations": 5, "steps": 20, "job_size": 5}
+TIMEOUT_S = 60.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@pytest.fixture(scope="module")
+def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    db = tmp_path_factory.mktemp("api") / "colony.db"
+    port = free_port()
+    settings = Settings(db_url=f"sqlite:///{db}", port=port, executors=1)
+    server = uvicorn.Server(
+        uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
+    )
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + TIMEOUT_S
+        while not server.started:
+            if time.monotonic() > deadline or not thread.is_alive():
+                raise RuntimeError("uvicorn did not start")
+            thread.join(0.05)
+        yield url
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30)
+
+
+def wait_status(client: httpx.Client, run_id: int, done: set[str]) -> dict[str, Any]:
+    deadline = time.monotonic() + TIMEOUT_S
+    while time.monotonic() < deadline:
+        run: dict[str, Any] = client.get(f"/api/runs/{run_id}").json()
+        if run["status"] in done:
+            return run
+        threading.Event().wait(0.05)
+    raise TimeoutError(f"run {run_id} did not reach {done}")
+
+
+def test_small_run_completes_and_matches_evolve(base_url: str) -> None:
+    with httpx.Client(base_url=base_url, timeout=30) as client:
+        created = client.post("/api/runs", json=SMALL)
+        assert created.status_code == 201
+        run_id = created.json()["id"]
+        run = wait_status(client, run_id, {"completed", "failed"})
+        assert run["status"] == "completed", run["error"]
+        assert run["generation"] == 5 and run["evaluations"] == 60
+        assert run["started_at"] and run["finished_at"]
+        history = client.get(f"/api/runs/{run_id}/generations").json()
+        assert [g["generation"] for g in history] == list(range(5))
+        assert all(g["worst"] <= g["mean"] <= g["best"] for g in history)
+        best = client.get(f"/api/runs/{run_id}/best").json()
+        assert best["fitness"] == run["best_fitness"] == history[-1]["best"]
+        ranked = client.get(f"/api/runs/{run_id}/individuals").json()
+        assert ranked["generation"] == 4
+        assert [i["rank"] for i in ranked["individuals"]] == list(range(12))
+        first = client.get(f"/api/runs/{run_id}/individuals", params={"generation": 0}).json()
+        assert all(i["parent"] is None for i in first["individuals"])
+        stored = client.get(f"/api/controllers/{best['sha256']}")
+        assert stored.status_code == 200 and stored.json()["sha256"] == best["sha256"]
+    local = evolve(RunConfig(**SMALL))
+    assert best["sha256"] == local.best.sha256
+    assert best["weights"] == local.best.to_dict()["weights"]
+
+
+def test_errors_name_the_problem(base_url: str) -> None:
+    with httpx.Client(base_url=base_url, timeout=30) as client:
+        bad = client.post("/api/runs", json={"population": 2})
+        assert bad.status_code == 422 and "population" in bad.json()["detail"]
+        unknown = client.post("/api/runs", json={"bogus": 1})
+        assert unknown.status_code == 422 and "bogus" in unknown.json()["detail"]
+        assert client.get("/api/runs/9999").status_code == 404
+        assert client.post("/api/runs/9999/pause").status_code == 404
+        assert client.get("/api/controllers/" + "0" * 64).status_code == 404
+        assert client.get("/healthz").json()["status"] == "ok"
+
+
+def test_lifecycle_transitions(base_url: str) -> None:
+    with httpx.Client(base_url=base_url, timeout=30) as client:
+        run_id = client.post("/api/runs", json={**SMALL, "generations": 10_000}).json()["id"]
+        paused = client.post(f"/api/runs/{run_id}/pause")
+        assert paused.status_code == 200 and paused.json()["status"] == "paused"
+        assert client.post(f"/api/runs/{run_id}/pause").status_code == 409
+        assert client.post(f"/api/runs/{run_id}/resume").json()["status"] == "running"
+        colony = client.get("/api/colony").json()
+        assert run_id in [r["id"] for r in colony["active"]]
+        assert client.post(f"/api/runs/{run_id}/cancel").json()["status"] == "cancelled"
+        conflict = client.post(f"/api/runs/{run_id}/resume")
+        assert conflict.status_code == 409 and "cancelled" in conflict.json()["detail"]
+        assert client.get("/api/colony").json()["jobs"]["pending"] == 0
+
+
+def test_cli_drives_a_run(base_url: str, tmp_path: Path) -> None:
+    runner = CliRunner()
+    config = tmp_path / "run.json"
+    config.write_text(json.dumps({**SMALL, "generations": 3}))
+    started = runner.invoke(
+        cli,
+        ["run", "start", "--config", str(config), "--seed", "7", "--server", base_url, "--json"],
+    )
+    assert started.exit_code == 0, started.output
+    run = json.loads(started.output)
+    assert run["seed"] == 7 and run["config"]["generations"] == 3
+    with httpx.Client(base_url=base_url, timeout=30) as client:
+        wait_status(client, run["id"], {"completed"})
+    shown = runner.invoke(cli, ["run", "show", str(run["id"]), "--server", base_url, "--json"])
+    assert shown.exit_code == 0 and len(json.loads(shown.output)["history"]) == 3
+    listed = runner.invoke(cli, ["run", "list", "--server", base_url])
+    assert listed.exit_code == 0 and "completed" in listed.output
+    status = runner.invoke(cli, ["status", "--server", base_url, "--json"])
+    assert status.exit_code == 0 and "runs" in json.loads(status.output)
+    refused = runner.invoke(cli, ["run", "resume", str(run["id"]), "--server", base_url])
+    assert refused.exit_code == 1 and "completed" in refused.output
+    invalid = runner.invoke(cli, ["run", "start", "--population", "2", "--server", base_url])
+    assert invalid.exit_code == 1 and "population" in invalid.output
