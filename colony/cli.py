@@ -6,6 +6,7 @@ import typer
 
 from colony.evolve import evolve_command
 from colony.server_cli import register as register_server_commands
+from colony.worker_cli import worker_command
 
 app = typer.Typer(
     name="colony",
@@ -35,6 +36,7 @@ def presets() -> None:
 
 app.command(name="evolve")(evolve_command)
 register_server_commands(app)
+app.command(name="worker")(worker_command)
 
 
 def main() -> None:
