@@ -1,0 +1,105 @@
+"""`colony server` killed with SIGKILL mid-run resumes and ends bit-identical to `evolve`."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import sqlalchemy as sa
+
+from evorobotics.evolution import evolve
+from schemas.run import RunConfig
+from tests.test_server_api import free_port
+
+CONFIG = {"population": 12, "generations": 40, "steps": 20, "job_size": 5, "seed": 3}
+TIMEOUT_S = 90.0
+
+
+@contextmanager
+def colony_server(db: Path, port: int) -> Iterator[subprocess.Popen[bytes]]:
+    colony = Path(sys.executable).parent / "colony"
+    proc = subprocess.Popen(
+        [str(colony), "server", "--db", f"sqlite:///{db}", "--port", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "COLONY_HOUSEKEEPING_SECONDS": "0.2"},
+    )
+    try:
+        deadline = time.monotonic() + TIMEOUT_S
+        while True:
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).is_success:
+                    break
+            except httpx.TransportError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("colony server did not start")
+            threading.Event().wait(0.05)
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+        proc.wait(timeout=30)
+
+
+def wait_for(url: str, predicate: Any) -> dict[str, Any]:
+    deadline = time.monotonic() + TIMEOUT_S
+    while time.monotonic() < deadline:
+        run: dict[str, Any] = httpx.get(url, timeout=5).json()
+        if predicate(run):
+            return run
+        threading.Event().wait(0.02)
+    raise TimeoutError(f"{url} never satisfied the condition")
+
+
+def population_hash(db: Path, run_id: int, generation: int) -> str:
+    engine = sa.create_engine(f"sqlite:///{db}")
+    with engine.connect() as conn:
+        rows = conn.execute(
+            sa.text(
+                "SELECT genome FROM individuals WHERE run_id = :r AND generation = :g ORDER BY rank"
+            ),
+            {"r": run_id, "g": generation},
+        ).all()
+    engine.dispose()
+    return hashlib.sha256(b"".join(r[0] for r in rows)).hexdigest()
+
+
+@pytest.mark.slow
+def test_sigkill_mid_run_then_restart_is_bit_identical(tmp_path: Path) -> None:
+    db = tmp_path / "colony.db"
+    port = free_port()
+    with colony_server(db, port) as proc:
+        base = f"http://127.0.0.1:{port}"
+        run_id = httpx.post(f"{base}/api/runs", json=CONFIG, timeout=10).json()["id"]
+        killed_at = wait_for(f"{base}/api/runs/{run_id}", lambda r: r["generation"] >= 2)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    assert killed_at["status"] == "running"
+    port = free_port()
+    with colony_server(db, port):
+        base = f"http://127.0.0.1:{port}"
+        after = httpx.get(f"{base}/api/runs/{run_id}", timeout=5).json()
+        assert after["generation"] < CONFIG["generations"], "the run finished before the kill"
+        run = wait_for(f"{base}/api/runs/{run_id}", lambda r: r["status"] != "running")
+        assert run["status"] == "completed", run["error"]
+        best = httpx.get(f"{base}/api/runs/{run_id}/best", timeout=5).json()
+        history = httpx.get(f"{base}/api/runs/{run_id}/generations", timeout=5).json()
+    local = evolve(RunConfig(**CONFIG))
+    assert [g["generation"] for g in history] == list(range(CONFIG["generations"]))
+    assert [g["best"] for g in history] == [h.best for h in local.history]
+    assert best["sha256"] == local.best.sha256
+    assert local.state.ranked is not None
+    expected = hashlib.sha256(local.state.ranked.tobytes()).hexdigest()
+    assert population_hash(db, run_id, CONFIG["generations"] - 1) == expected
