@@ -209,7 +209,7 @@ def _slab(
     lo: np.ndarray, hi: np.ndarray, p: np.ndarray, u: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Parameter interval where p + t u lies in [lo, hi] on one axis (all t if parallel inside)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         ta = (lo - p) / u
         tb = (hi - p) / u
     flat = np.abs(u) < 1e-12

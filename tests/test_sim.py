@@ -1,0 +1,224 @@
+"""The simulator: whisker geometry, kinematics, blocked moves, stuck rule, kernel vs reference."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from evorobotics.evaluate import start_poses
+from evorobotics.maze import load_maze
+from evorobotics.sim import (
+    DEFAULT_WORLD,
+    Gap,
+    WorldParams,
+    body_hits_wall,
+    simulate,
+    simulate_reference,
+    whisker_bits,
+)
+from schemas.network import PRESETS, NetworkSpec
+
+ARENA = load_maze("arena")  # 2 m room, inner faces at 0.1 and 1.9
+CONST = NetworkSpec(hidden=(), delays=0, output_activation="linear")
+"""Linear outputs, no hidden layer: with only the biases set, wheel commands are constants."""
+FLIP = NetworkSpec(hidden=(), delays=0, recurrence=1, output_activation="linear")
+"""out(k) = 1 - 2 out(k-1): full forward, full reverse, forward, ... (sign alternates)."""
+
+
+def const_weights(left: float, right: float, batch: int = 1) -> np.ndarray:
+    w = np.zeros((batch, CONST.weight_count))
+    w[:, 5], w[:, 11] = left, right
+    return w
+
+
+def flip_weights() -> np.ndarray:
+    w = np.zeros((1, FLIP.weight_count))
+    w[0, 5] = w[0, 11] = 1.0
+    w[0, 12] = w[0, 16] = -2.0
+    return w
+
+
+def sense(pose: tuple[float, float, float], rng: float | None = None) -> tuple[list[int], ...]:
+    """Whisker bits by the reference and by the kernel (first recorded step)."""
+    poses = np.array([pose])
+    ranges = None if rng is None else np.array([rng])
+    ref = whisker_bits(ARENA, poses, ranges=ranges)[0].tolist()
+    gap = None if rng is None else Gap(np.array([rng]), np.ones((1, 2)))
+    res = simulate(CONST, const_weights(0, 0), ARENA, poses, 1, gap=gap, record=True)
+    assert res.whiskers is not None
+    return ref, res.whiskers[0, 0].tolist()
+
+
+@pytest.mark.parametrize("q", range(5))
+@pytest.mark.parametrize(("dist", "bit"), [(0.049, 1), (0.051, 0)])
+def test_each_whisker_triggers_at_exactly_50mm(q: int, dist: float, bit: int) -> None:
+    # turn the robot so whisker q points due east at the east face (x = 1.9)
+    p = DEFAULT_WORLD
+    th = -p.whisker_angle[q]
+    ax = p.whisker_x[q] * math.cos(th) - p.whisker_y[q] * math.sin(th)
+    ay = p.whisker_x[q] * math.sin(th) + p.whisker_y[q] * math.cos(th)
+    pose = (1.9 - dist - ax, 1.0 - ay, th)
+    ref, kern = sense(pose)
+    assert ref[q] == kern[q] == bit
+    assert ref == kern
+
+
+def test_straight_ahead_only_the_middle_whisker() -> None:
+    x = 1.9 - 0.0825 - 0.049
+    assert sense((x, 1.0, 0.0)) == ([0, 0, 1, 0, 0],) * 2
+    assert sense((x - 0.002, 1.0, 0.0)) == ([0, 0, 0, 0, 0],) * 2
+    # whisker order is left to right: facing east near the north wall only the left ones see it
+    assert sense((1.0, 1.9 - 0.095, 0.0))[0][:2] == [1, 0]
+    assert sense((1.0, 1.9 - 0.095, 0.0))[0][3:] == [0, 0]
+
+
+def test_reality_gap_whisker_range() -> None:
+    x = 1.9 - 0.0825
+    assert sense((x - 0.099, 1.0, 0.0), rng=0.1) == ([0, 0, 1, 0, 0],) * 2
+    assert sense((x - 0.101, 1.0, 0.0), rng=0.1) == ([0, 0, 0, 0, 0],) * 2
+    assert sense((x - 0.024, 1.0, 0.0), rng=0.025) == ([0, 0, 1, 0, 0],) * 2
+    assert sense((x - 0.026, 1.0, 0.0), rng=0.025)[0][2] == 0
+
+
+def test_straight_line_and_spin_kinematics() -> None:
+    p = DEFAULT_WORLD
+    start = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    w = np.concatenate([const_weights(1, 1), const_weights(-1, 1)])
+    res = simulate(CONST, w, ARENA, start, 10, record=True)
+    step = p.max_speed * p.dt
+    assert res.poses_final[0] == pytest.approx([1.0 + 10 * step, 1.0, 0.0])
+    assert res.curve_length[0] == pytest.approx(10 * step)
+    assert res.net_offset[0] == pytest.approx(10 * step)
+    assert res.max_offset[0] == pytest.approx(10 * step)
+    spin = 2 * p.max_speed / p.wheel_base * p.dt
+    assert res.poses_final[1, :2] == pytest.approx([1.0, 1.0])
+    wrapped = (10 * spin + math.pi) % (2 * math.pi) - math.pi
+    assert res.poses_final[1, 2] == pytest.approx(wrapped)
+    assert res.curve_length[1] == pytest.approx(0.0, abs=1e-12)
+    assert not res.stuck.any()
+
+
+def test_motor_gain_scales_each_wheel() -> None:
+    start = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    gap = Gap(np.full(2, 0.05), np.array([[1.1, 1.1], [0.9, 1.1]]))
+    res = simulate(CONST, const_weights(1, 1, 2), ARENA, start, 5, gap=gap)
+    assert res.curve_length[0] == pytest.approx(5 * 1.1 * 0.03)
+    assert res.poses_final[1, 2] > 0.0  # faster right wheel turns left
+
+
+def test_driving_into_a_wall_blocks_then_sticks() -> None:
+    # facing east, front edge 0.5 m from the east face: 16 free steps of 30 mm, then blocked
+    start = np.array([[1.9 - 0.0825 - 0.5, 1.0, 0.0]])
+    res = simulate(CONST, const_weights(1, 1), ARENA, start, 40, record=True)
+    assert res.poses is not None
+    assert bool(res.stuck[0])
+    assert res.curve_length[0] == pytest.approx(16 * 0.03)
+    assert (res.poses[0, 17:] == res.poses[0, 16]).all()
+    patient = WorldParams(stuck_after=100)
+    res2 = simulate(CONST, const_weights(1, 1), ARENA, start, 40, params=patient)
+    assert not res2.stuck[0]
+    assert res2.poses_final[0] == pytest.approx(res.poses_final[0])
+
+
+def test_stuck_robot_stays_immobile_but_blocked_one_can_back_off() -> None:
+    # front 15 mm from the wall; the controller alternates full forward / full reverse
+    start = np.array([[1.9 - 0.0825 - 0.015, 1.0, 0.0]])
+    res = simulate(FLIP, flip_weights(), ARENA, start, 20, record=True)
+    assert res.poses is not None and res.motors is not None
+    assert res.motors[0, 1, 0] == -1.0  # reverse was commanded after the block ...
+    assert bool(res.stuck[0]) and res.curve_length[0] == 0.0  # ... but stuck never moves
+    assert (res.poses[0] == res.poses[0, 0]).all()
+    res2 = simulate(FLIP, flip_weights(), ARENA, start, 20, params=WorldParams(stuck_after=2))
+    assert not res2.stuck[0]
+    assert res2.curve_length[0] == pytest.approx(0.03 * 19)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    x=st.floats(0.1, 2.3),
+    y=st.floats(0.1, 2.3),
+    th=st.floats(-math.pi, math.pi),
+    left=st.floats(-1, 1),
+    right=st.floats(-1, 1),
+    stuck_after=st.integers(1, 5),
+)
+def test_blocked_moves_never_enter_walls(
+    x: float, y: float, th: float, left: float, right: float, stuck_after: int
+) -> None:
+    maze = load_maze("paper")
+    start = np.array([[x, y, th]])
+    assume(not body_hits_wall(maze, start)[0])
+    params = WorldParams(stuck_after=stuck_after)
+    res = simulate(CONST, const_weights(left, right), maze, start, 30, params, record=True)
+    assert res.poses is not None
+    assert not body_hits_wall(maze, res.poses[0]).any()
+    ref = simulate_reference(CONST, const_weights(left, right), maze, start, 30, params)
+    assert ref.poses_final == pytest.approx(res.poses_final, abs=1e-9)
+    assert ref.stuck[0] == res.stuck[0]
+
+
+def test_body_collision_is_the_rectangle() -> None:
+    # east face at x = 1.9: the front edge may touch it, not cross it
+    p = DEFAULT_WORLD
+    near = np.array([[1.9 - p.body_length / 2 - 1e-9, 1.0, 0.0]])
+    over = np.array([[1.9 - p.body_length / 2 + 1e-6, 1.0, 0.0]])
+    side = np.array([[1.9 - p.body_width / 2 - 1e-9, 1.0, math.pi / 2]])
+    assert not body_hits_wall(ARENA, near)[0]
+    assert body_hits_wall(ARENA, over)[0]
+    assert not body_hits_wall(ARENA, side)[0]
+    assert body_hits_wall(ARENA, np.array([[-1.0, 1.0, 0.0]]))[0]  # outside is wall
+
+
+@pytest.mark.parametrize(
+    ("preset", "batch", "steps"),
+    [("paper-best", 96, 40), ("recurrent-small", 48, 40), ("paper-largest", 8, 15)],
+)
+@pytest.mark.parametrize("with_gap", [False, True])
+def test_kernel_agrees_with_reference(preset: str, batch: int, steps: int, with_gap: bool) -> None:
+    spec = PRESETS[preset]
+    maze = load_maze("paper")
+    g = np.random.default_rng(7)
+    weights = g.normal(0.0, 1.0, (batch, spec.weight_count))
+    starts = np.tile(start_poses(maze, 3, 0, 8), (batch // 8, 1))
+    gap = None
+    if with_gap:
+        gap = Gap(g.uniform(0.025, 0.1, batch), g.uniform(0.85, 1.15, (batch, 2)))
+    fast = simulate(spec, weights, maze, starts, steps, gap=gap, record=True)
+    ref = simulate_reference(spec, weights, maze, starts, steps, gap=gap, record=True)
+    assert fast.poses is not None and ref.poses is not None
+    assert fast.whiskers is not None and ref.whiskers is not None
+    assert fast.motors is not None and ref.motors is not None
+    assert np.allclose(fast.poses, ref.poses, atol=1e-9)
+    assert np.array_equal(fast.whiskers, ref.whiskers)
+    assert np.allclose(fast.motors, ref.motors, atol=1e-9)
+    assert np.array_equal(fast.stuck, ref.stuck)
+    assert np.allclose(fast.components, ref.components, atol=1e-9)
+    assert fast.whiskers.any()  # the test does exercise sensing
+
+
+def test_kernel_results_do_not_depend_on_batch() -> None:
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    weights = np.random.default_rng(1).normal(size=(20, spec.weight_count))
+    starts = np.tile(start_poses(maze, 0, 0, 4), (5, 1))
+    whole = simulate(spec, weights, maze, starts, 40)
+    parts = [simulate(spec, weights[a:b], maze, starts[a:b], 40) for a, b in ((0, 3), (3, 20))]
+    assert whole.components.tobytes() == np.concatenate([p.components for p in parts]).tobytes()
+    assert whole.poses_final.tobytes() == np.concatenate([p.poses_final for p in parts]).tobytes()
+
+
+def test_bad_arguments() -> None:
+    spec = PRESETS["paper-best"]
+    w = np.zeros((2, spec.weight_count))
+    with pytest.raises(ValueError, match="start_poses"):
+        simulate(spec, w, ARENA, np.zeros((3, 3)), 5)
+    with pytest.raises(ValueError, match="weights"):
+        simulate(spec, w[:, 1:], ARENA, np.zeros((2, 3)), 5)
+    with pytest.raises(ValueError, match="inputs"):
+        simulate(NetworkSpec(inputs=4), np.zeros((2, 50)), ARENA, np.zeros((2, 3)), 5)
+    with pytest.raises(ValueError, match="gap"):
+        simulate(spec, w, ARENA, np.ones((2, 3)), 5, gap=Gap(np.ones(3), np.ones((2, 2))))
+    with pytest.raises(ValueError, match="stuck_after"):
+        WorldParams(stuck_after=0)
