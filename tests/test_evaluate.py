@@ -1,0 +1,101 @@
+"""Eq 12 fitness, start poses, reality-gap draws, determinism and slicing independence."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evorobotics.errors import MazeError
+from evorobotics.evaluate import draw_gap, evaluate, record_path, start_poses
+from evorobotics.fitness import COMPONENTS, fitness, mean_fitness
+from evorobotics.maze import load_maze, parse_maze
+from evorobotics.sim import body_hits_wall, whisker_bits
+from schemas.run import FitnessWeights, RunConfig
+
+
+def test_eq12_with_paper_weights() -> None:
+    assert COMPONENTS == ("curve_length", "net_offset", "max_offset", "stuck")
+    comps = np.array([[1.0, 0.5, 0.75, 1.0], [2.0, 0.5, 0.75, 0.0]])
+    assert fitness(comps, FitnessWeights()).tolist() == [-25.0, 25.0]
+    assert fitness(comps, FitnessWeights(k1=1.0, k4=0.0)).tolist() == [26.0, 27.0]
+    assert mean_fitness(comps[None], FitnessWeights()).tolist() == [0.0]
+    with pytest.raises(ValueError):
+        fitness(np.zeros((2, 3)), FitnessWeights())
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**40), generation=st.integers(0, 1000))
+def test_start_poses_are_free_and_deterministic(seed: int, generation: int) -> None:
+    maze = load_maze("paper")
+    poses = start_poses(maze, seed, generation, 5)
+    assert poses.shape == (5, 3)
+    assert not body_hits_wall(maze, poses).any()
+    assert not whisker_bits(maze, poses).any()
+    assert np.array_equal(poses, start_poses(maze, seed, generation, 5))
+    assert not np.array_equal(poses, start_poses(maze, seed, generation + 1, 5))
+    assert np.array_equal(poses[:2], start_poses(maze, seed, generation, 2))
+
+
+def test_no_room_for_a_start_pose() -> None:
+    with pytest.raises(MazeError, match="no room"):
+        start_poses(parse_maze("#####\n#...#\n#####\n"), 0, 0, 1)
+
+
+def test_reality_gap_draws_in_range() -> None:
+    gap = draw_gap(5, 3, 200)
+    assert gap.whisker_range.min() >= 0.025 and gap.whisker_range.max() <= 0.1
+    assert gap.motor_gain.min() >= 0.85 and gap.motor_gain.max() <= 1.15
+    assert gap.whisker_range.max() - gap.whisker_range.min() > 0.06  # spans the range
+    again = draw_gap(5, 3, 2)  # trial t's draw depends on t only
+    assert np.array_equal(again.whisker_range, gap.whisker_range[:2])
+    assert not np.array_equal(draw_gap(5, 4, 2).motor_gain, again.motor_gain)
+
+
+def genomes(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).normal(0.0, 1.5, (n, 222))
+
+
+@pytest.mark.parametrize("gap", [False, True])
+def test_evaluate_is_deterministic_and_slice_independent(gap: bool) -> None:
+    config = RunConfig(seed=11, reality_gap=gap)
+    pop = genomes(30)
+    whole = evaluate(config, 4, pop)
+    assert whole.fitness.shape == (30,)
+    assert whole.components.shape == (30, 3, 4)
+    assert np.array_equal(whole.fitness, mean_fitness(whole.components, config.fitness))
+    again = evaluate(config, 4, pop)
+    assert whole.fitness.tobytes() == again.fitness.tobytes()
+    parts = [evaluate(config, 4, pop[a:b]) for a, b in ((0, 1), (1, 13), (13, 30))]
+    assert np.concatenate([p.fitness for p in parts]).tobytes() == whole.fitness.tobytes()
+    assert np.concatenate([p.components for p in parts]).tobytes() == whole.components.tobytes()
+    assert not np.array_equal(evaluate(config, 5, pop).fitness, whole.fitness)
+
+
+def test_reality_gap_changes_fitness_and_stuck_is_penalised() -> None:
+    pop = genomes(40, seed=3)
+    plain = evaluate(RunConfig(seed=2), 0, pop)
+    gapped = evaluate(RunConfig(seed=2, reality_gap=True), 0, pop)
+    assert not np.array_equal(plain.fitness, gapped.fitness)
+    stuck = plain.components[..., 3]
+    assert set(np.unique(stuck)) <= {0.0, 1.0} and stuck.any()
+    per_trial = 20 * plain.components[..., 1] + 20 * plain.components[..., 2] - 50 * stuck
+    assert np.allclose(plain.fitness, per_trial.mean(axis=1))
+
+
+def test_record_path_matches_evaluation() -> None:
+    config = RunConfig(seed=9)
+    pop = genomes(3, seed=5)
+    ev = evaluate(config, 2, pop)
+    pose = start_poses(load_maze("paper"), 9, 2, 3)[1]
+    rec = record_path(config, pop[2], pose, config.steps)
+    assert rec.poses is not None and rec.whiskers is not None and rec.motors is not None
+    assert rec.poses.shape == (1, 41, 3) and rec.whiskers.shape == (1, 40, 5)
+    assert rec.whiskers.dtype == np.uint8 and rec.motors.shape == (1, 40, 2)
+    assert np.array_equal(rec.poses[0, 0], pose)
+    assert np.abs(rec.motors).max() <= 1.0
+    assert rec.components[0].tobytes() == ev.components[2, 1].tobytes()
+
+
+def test_bad_genome_shape() -> None:
+    with pytest.raises(ValueError, match="genomes"):
+        evaluate(RunConfig(), 0, np.zeros((2, 10)))
