@@ -9,9 +9,11 @@ precision and recall and the reasoning behind the defaults). Three signs, each c
 - pattern recurs: the same whisker pattern has started `recur_count` times within the last
   `recur_window` steps: the robot bumps the same wall over and over (the paper's "bump up
   against the same wall over and over again").
-- spinning: for `spin_steps` steps in a row the wheels have turned the robot in place (their
-  mean is small next to their difference) with no whisker touching: the paper's "spinning
-  perpetually in one spot".
+- going nowhere: dead reckoning of the commanded wheel speeds with the simulator's nominal
+  kinematics (`WorldParams`) keeps the robot within `odometry_radius` of where it was
+  `odometry_window` steps ago: spinning or circling in place (the paper's "spinning
+  perpetually in one spot"), rocking, or idling. Commands are not motion (+/-15 % motors,
+  slipping), but over a few seconds the estimate tells a tight loop from a journey.
 
 The detector is fed one step at a time by the agent loop (the same dt as the simulator) and
 returns the sign it sees, or None; the agent asks for a new controller when it is not None.
@@ -19,6 +21,7 @@ returns the sign it sees, or None; the agent asks for a new controller when it i
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,6 +29,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from evorobotics.sim import WorldParams
 from robot_agent.serial_protocol import WHISKERS
 
 
@@ -34,7 +38,7 @@ class StuckReason(StrEnum):
 
     CONTACT_HELD = "contact-held"
     PATTERN_RECURS = "pattern-recurs"
-    SPINNING = "spinning"
+    GOING_NOWHERE = "going-nowhere"
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,19 +51,19 @@ class StuckConfig:
     """Steps over which contact onsets are counted (8 s)."""
     recur_count: int = 5
     """Onsets of one same pattern within the window."""
-    spin_steps: int = 60
-    """Steps of turning in place without contact (6 s: a full turn at moderate speed)."""
-    spin_ratio: float = 0.25
-    """In place: |left + right| / 2 <= spin_ratio * |left - right| / 2."""
+    odometry_window: int = 50
+    """Steps of dead reckoning looked back over (5 s)."""
+    odometry_radius: float = 0.08
+    """Metres: estimated path never left this disc around its start (half a body length)."""
     drive_min: float = 0.1
-    """Wheels count as driving when the larger command magnitude reaches this."""
+    """Wheels count as driving (for contact held) when the larger command reaches this."""
 
     def __post_init__(self) -> None:
-        for name in ("contact_steps", "recur_window", "recur_count", "spin_steps"):
+        for name in ("contact_steps", "recur_window", "recur_count", "odometry_window"):
             if getattr(self, name) < 1:
                 raise ValueError(f"StuckConfig.{name} must be >= 1, got {getattr(self, name)}")
-        if not 0 <= self.spin_ratio < 1:
-            raise ValueError(f"spin_ratio must be in [0, 1), got {self.spin_ratio}")
+        if not self.odometry_radius > 0:
+            raise ValueError(f"odometry_radius must be > 0, got {self.odometry_radius}")
         if not 0 <= self.drive_min <= 1:
             raise ValueError(f"drive_min must be in [0, 1], got {self.drive_min}")
 
@@ -67,18 +71,22 @@ class StuckConfig:
 class StuckDetector:
     """Streaming detector: `update` once per control step, `reset` after a new controller."""
 
-    def __init__(self, config: StuckConfig | None = None) -> None:
+    def __init__(self, config: StuckConfig | None = None, world: WorldParams | None = None) -> None:
         self.config = config or StuckConfig()
+        self.world = world or WorldParams()
         self._onsets: deque[tuple[int, int]] = deque()
+        self._track: deque[tuple[float, float]] = deque(maxlen=self.config.odometry_window + 1)
         self.reset()
 
     def reset(self) -> None:
         """Forget the history (a new controller deserves a fresh start)."""
         self._step = 0
         self._contact_run = 0
-        self._spin_run = 0
         self._previous = 0
         self._onsets.clear()
+        self._pose = (0.0, 0.0, 0.0)
+        self._track.clear()
+        self._track.append((0.0, 0.0))
 
     def update(self, whiskers: Sequence[bool], motors: Sequence[float]) -> StuckReason | None:
         """Feed the step's sensed whiskers and commanded wheels; the sign seen, if any."""
@@ -96,16 +104,30 @@ class StuckDetector:
         while self._onsets and self._onsets[0][0] <= self._step - cfg.recur_window:
             self._onsets.popleft()
         self._previous = pattern
-        in_place = abs(left + right) <= cfg.spin_ratio * abs(left - right)
-        self._spin_run = self._spin_run + 1 if driving and in_place and not pattern else 0
+        self._dead_reckon(left, right)
 
         if self._contact_run >= cfg.contact_steps:
             return StuckReason.CONTACT_HELD
         if pattern and sum(1 for _, p in self._onsets if p == pattern) >= cfg.recur_count:
             return StuckReason.PATTERN_RECURS
-        if self._spin_run >= cfg.spin_steps:
-            return StuckReason.SPINNING
+        if len(self._track) == self._track.maxlen:
+            x0, y0 = self._track[0]
+            r2 = cfg.odometry_radius**2
+            if all((x - x0) ** 2 + (y - y0) ** 2 < r2 for x, y in self._track):
+                return StuckReason.GOING_NOWHERE
         return None
+
+    def _dead_reckon(self, left: float, right: float) -> None:
+        """The commanded move under nominal kinematics (as `evorobotics.sim.move`)."""
+        p = self.world
+        left, right = max(-1.0, min(1.0, left)), max(-1.0, min(1.0, right))
+        v = (left + right) * 0.5 * p.max_speed
+        w = (right - left) * p.max_speed / p.wheel_base
+        x, y, th = self._pose
+        mid = th + w * p.dt * 0.5
+        x, y = x + v * p.dt * math.cos(mid), y + v * p.dt * math.sin(mid)
+        self._pose = (x, y, th + w * p.dt)
+        self._track.append((x, y))
 
 
 def detect(

@@ -1,0 +1,143 @@
+"""Precision and recall of robot_agent.stuck against simulated traces whose truth is known.
+
+Robots run in lockstep with the simulator's sensing, motion and collision (`evorobotics.sim`,
+blocked moves refused, as robot_agent.sim_body does), reality gap on, under two kinds of
+controller: random networks (paper-best preset, weights uniform in [-1, 1]) and evolved-like
+ones (drive forward; on contact back up, then turn away for a random time; some never back up).
+Truth at step t (from positions the robot itself cannot see): in the last `--window` steps
+the robot stayed within `--radius` m of where it was at the window's start, i.e. it is pinned,
+spinning or rocking in place. Steps before the first full window are not scored.
+
+    .venv/bin/python bench/stuck.py [--robots 200] [--steps 600] [--maze paper] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from evorobotics import network
+from evorobotics.evaluate import draw_gap, start_poses
+from evorobotics.maze import load_maze
+from evorobotics.seeds import Purpose, rng
+from evorobotics.sim import WorldParams, body_hits_wall, move, whisker_bits
+from robot_agent.stuck import StuckConfig, detect
+from schemas.network import PRESETS
+
+
+def evolved_like(whiskers: np.ndarray, memory: np.ndarray, traits: np.ndarray) -> np.ndarray:
+    """Reactive controllers with a short memory; memory (B, 2): back-up and turn counters."""
+    batch = whiskers.shape[0]
+    motors = np.tile(traits[:, 0:1], (1, 2))  # cruise speed
+    touch = whiskers.any(axis=1)
+    left_side = whiskers[:, :2].any(axis=1)
+    start = touch & (memory[:, 0] == 0) & (memory[:, 1] == 0)
+    memory[start, 0] = traits[start, 1]  # back-up steps (0: a controller that never backs up)
+    memory[start, 1] = traits[start, 1] + traits[start, 2]  # then turn steps
+    direction = np.where(left_side, -1.0, 1.0)
+    backing = memory[:, 0] > 0
+    turning = ~backing & (memory[:, 1] > 0)
+    motors[backing] = -0.6
+    turn = direction[turning]
+    motors[turning, 0] = -0.5 * turn
+    motors[turning, 1] = 0.5 * turn
+    memory[:, 0] = np.maximum(memory[:, 0] - 1, 0)
+    memory[:, 1] = np.maximum(memory[:, 1] - 1, 0)
+    del batch
+    return motors
+
+
+def traces(
+    maze_name: str, robots: int, steps: int, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whiskers (B, T, 5), motors (B, T, 2), positions (B, T + 1, 2); half random, half evolved-like."""
+    maze = load_maze(maze_name)
+    params = WorldParams()
+    poses = start_poses(maze, seed, 0, robots, params)
+    gap = draw_gap(seed, 0, robots)
+    spec = PRESETS["paper-best"]
+    n_random = robots // 2
+    gen = rng(seed, 0, Purpose.EVALUATION, 0)
+    weights = gen.uniform(-1.0, 1.0, (n_random, spec.weight_count))
+    state = network.reset(spec, n_random)
+    traits = np.column_stack(
+        [
+            gen.uniform(0.3, 1.0, robots - n_random),
+            gen.integers(0, 6, robots - n_random),
+            gen.integers(2, 15, robots - n_random),
+        ]
+    )
+    memory = np.zeros((robots - n_random, 2))
+    w_all = np.zeros((robots, steps, 5), dtype=np.uint8)
+    m_all = np.zeros((robots, steps, 2))
+    xy = np.zeros((robots, steps + 1, 2))
+    xy[:, 0] = poses[:, :2]
+    for t in range(steps):
+        bits = whisker_bits(maze, poses, params, gap.whisker_range)
+        out, state = network.step(spec, weights, bits[:n_random].astype(np.float64), state)
+        motors = np.empty((robots, 2))
+        motors[:n_random] = network.motor_commands(spec, out)
+        motors[n_random:] = evolved_like(bits[n_random:], memory, traits)
+        moved = move(poses, motors, gap.motor_gain, params)
+        ok = ~body_hits_wall(maze, moved, params)
+        poses[ok] = moved[ok]
+        w_all[:, t], m_all[:, t], xy[:, t + 1] = bits, motors, poses[:, :2]
+    return w_all, m_all, xy
+
+
+def truth(xy: np.ndarray, window: int, radius: float) -> np.ndarray:
+    """(B, T) bool: stayed within `radius` of the window-start position for `window` steps."""
+    robots, n = xy.shape[0], xy.shape[1] - 1
+    out = np.zeros((robots, n), dtype=bool)
+    for t in range(window, n):
+        span = xy[:, t + 1 - window : t + 2]
+        out[:, t] = (np.linalg.norm(span - span[:, :1], axis=-1) < radius).all(axis=1)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--robots", type=int, default=200)
+    parser.add_argument("--steps", type=int, default=600)
+    parser.add_argument("--maze", default="paper")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--window", type=int, default=40, help="truth window, steps (4 s)")
+    parser.add_argument("--radius", type=float, default=0.1, help="truth radius, m")
+    args = parser.parse_args()
+    w, m, xy = traces(args.maze, args.robots, args.steps, args.seed)
+    real = truth(xy, args.window, args.radius)
+    cfg = StuckConfig()
+    flags = np.array([[r is not None for r in detect(w[b], m[b], cfg)] for b in range(args.robots)])
+    reasons: dict[str, int] = {}
+    for b in range(args.robots):
+        for r in detect(w[b], m[b], cfg):
+            if r is not None:
+                reasons[r.value] = reasons.get(r.value, 0) + 1
+    scored = np.zeros_like(real)
+    scored[:, args.window :] = True
+    half = args.robots // 2
+    print(f"maze={args.maze} robots={args.robots} steps={args.steps} seed={args.seed} {cfg}")
+    print(f"truth: within {args.radius} m for {args.window} steps; fired by reason {reasons}")
+    for name, rows in (
+        ("all", slice(None)),
+        ("random", slice(0, half)),
+        ("evolved-like", slice(half, None)),
+    ):
+        f, r, s = flags[rows] & scored[rows], real[rows] & scored[rows], scored[rows]
+        tp = int((f & r).sum())
+        precision = tp / max(int(f.sum()), 1)
+        recall = tp / max(int(r.sum()), 1)
+        # per robot: ever truly stuck vs ever flagged
+        ever_f, ever_r = f.any(axis=1), r.any(axis=1)
+        rp = int((ever_f & ever_r).sum()) / max(int(ever_f.sum()), 1)
+        rr = int((ever_f & ever_r).sum()) / max(int(ever_r.sum()), 1)
+        print(
+            f"{name:13s} steps: precision {precision:.3f} recall {recall:.3f} "
+            f"(stuck {int(r.sum())}/{int(s.sum())})  robots: precision {rp:.3f} recall {rr:.3f} "
+            f"(stuck {int(ever_r.sum())}, flagged {int(ever_f.sum())})"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,84 @@
+"""Stuck detection from whisker and motor history (docs/stuck-detection.md)."""
+
+from collections.abc import Sequence
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from robot_agent.stuck import StuckConfig, StuckDetector, StuckReason, detect
+
+NONE = (False,) * 5
+LEFT = (True, True, False, False, False)
+CENTRE = (False, False, True, False, False)
+
+
+def _run(
+    detector: StuckDetector, steps: Sequence[tuple[tuple[bool, ...], tuple[float, float]]]
+) -> list[StuckReason | None]:
+    return [detector.update(w, m) for w, m in steps]
+
+
+def test_driving_straight_in_open_space_is_not_stuck() -> None:
+    assert set(_run(StuckDetector(), [(NONE, (0.8, 0.8))] * 500)) == {None}
+
+
+def test_contact_held_while_driving() -> None:
+    cfg = StuckConfig()
+    out = _run(StuckDetector(cfg), [(CENTRE, (0.8, 0.8))] * cfg.contact_steps)
+    assert out[-2] is None and out[-1] is StuckReason.CONTACT_HELD
+
+
+def test_contact_without_driving_is_not_contact_held() -> None:
+    cfg = StuckConfig(odometry_window=1000)
+    assert set(_run(StuckDetector(cfg), [(CENTRE, (0.0, 0.0))] * 100)) == {None}
+
+
+def test_same_wall_bumped_over_and_over() -> None:
+    cfg = StuckConfig(odometry_window=1000)
+    bump = [(LEFT, (-0.6, -0.6))] * 2 + [(NONE, (0.6, 0.6))] * 8
+    out = _run(StuckDetector(cfg), bump * cfg.recur_count)
+    assert StuckReason.PATTERN_RECURS in out
+    assert out.index(StuckReason.PATTERN_RECURS) == 10 * (cfg.recur_count - 1)
+
+
+def test_spinning_in_place_goes_nowhere_but_a_wide_arc_does_not_fire() -> None:
+    cfg = StuckConfig()
+    spin = _run(StuckDetector(cfg), [(NONE, (-0.5, 0.5))] * 200)
+    assert spin[cfg.odometry_window - 2] is None
+    assert spin[cfg.odometry_window - 1] is StuckReason.GOING_NOWHERE
+    arc = _run(StuckDetector(cfg), [(NONE, (0.8, 0.7))] * 200)  # radius ~ 0.8 m
+    assert set(arc) == {None}
+
+
+def test_reset_forgets_history() -> None:
+    cfg = StuckConfig()
+    detector = StuckDetector(cfg)
+    _run(detector, [(CENTRE, (0.8, 0.8))] * (cfg.contact_steps - 1))
+    detector.reset()
+    assert detector.update(CENTRE, (0.8, 0.8)) is None
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_detect_matches_streaming_and_never_fires_on_a_clear_straight_run(seed: int) -> None:
+    gen = np.random.default_rng(seed)
+    whiskers = gen.random((120, 5)) < 0.2
+    motors = gen.uniform(-1, 1, (120, 2))
+    detector = StuckDetector()
+    assert detect(whiskers, motors) == [
+        detector.update(tuple(bool(b) for b in w), m) for w, m in zip(whiskers, motors, strict=True)
+    ]
+    speed = gen.uniform(0.3, 1.0)
+    clear = detect(np.zeros((120, 5), bool), np.full((120, 2), speed))
+    assert set(clear) == {None}
+
+
+def test_arguments_are_checked() -> None:
+    for kwargs in ({"contact_steps": 0}, {"odometry_radius": 0.0}, {"drive_min": 2.0}):
+        with pytest.raises(ValueError):
+            StuckConfig(**kwargs)
+    with pytest.raises(ValueError):
+        StuckDetector().update((True,) * 4, (0.0, 0.0))
+    with pytest.raises(ValueError):
+        detect(np.zeros((3, 5)), np.zeros((2, 2)))
