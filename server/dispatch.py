@@ -21,7 +21,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
+import numpy as np
 import zenoh
+from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.wire import (
     KEY_JOB_NEXT,
@@ -41,6 +43,8 @@ from schemas.wire import (
     encode_job,
     encode_message,
 )
+from server.jobs import JobKey as QueueKey
+from server.jobs import JobQueue, JobResult
 
 log = logging.getLogger(__name__)
 
@@ -420,3 +424,68 @@ def _payload(query: zenoh.Query) -> bytes:
 def start_dispatcher(settings: DispatchSettings, source: JobSource) -> Dispatcher:
     """Open the router session and start serving `source`; call `.close()` on shutdown."""
     return Dispatcher(settings, source)
+
+
+class QueueSource:
+    """The JobSource over the server's database queue (`server.jobs.JobQueue`).
+
+    `release` updates the one job row directly (under the queue's lock) because the queue has
+    no per-job release yet; it belongs in JobQueue.release once that exists.
+    """
+
+    def __init__(
+        self,
+        queue: JobQueue,
+        sessions: sessionmaker[Session],
+        lock: threading.RLock,
+        *,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self._queue = queue
+        self._sessions = sessions
+        self._lock = lock
+        self._clock = clock
+
+    def lease(self, worker: str) -> Job | None:
+        job = self._queue.lease(worker, self._clock())
+        if job is None:
+            return None
+        key = JobKey(run_id=job.key.run_id, generation=job.key.generation, index=job.key.index)
+        genomes = np.ascontiguousarray(job.genomes, dtype=np.float64)
+        return Job(key, job.start, job.stop, job.config, genomes)
+
+    def complete(self, result: Result) -> bool:
+        key = _queue_key(result.key)
+        if result.fitness is None or result.components is None:
+            self._queue.fail(key, f"{result.worker}: result without fitness or components")
+            return False
+        try:
+            return self._queue.complete(key, JobResult(result.fitness, result.components))
+        except ValueError as exc:  # wrong shapes: the worker is broken, count it as a failure
+            self._queue.fail(key, f"{result.worker}: {exc}")
+            return False
+
+    def fail(self, key: JobKey, error: str) -> None:
+        self._queue.fail(_queue_key(key), error)
+
+    def release(self, key: JobKey) -> None:
+        from sqlalchemy import update
+
+        from server.models import Job as JobRow
+
+        with self._lock, self._sessions.begin() as session:
+            session.execute(
+                update(JobRow)
+                .where(
+                    JobRow.run_id == key.run_id,
+                    JobRow.generation == key.generation,
+                    JobRow.index == key.index,
+                    JobRow.status == "leased",
+                )
+                .values(status="pending", worker=None, deadline=None)
+            )
+        self._queue.work_available.set()
+
+
+def _queue_key(key: JobKey) -> QueueKey:
+    return QueueKey(key.run_id, key.generation, key.index)

@@ -7,6 +7,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,7 +29,7 @@ from schemas.wire import (
     encode_result,
     worker_key,
 )
-from server.dispatch import Dispatcher, DispatchSettings
+from server.dispatch import Dispatcher, DispatchSettings, QueueSource
 from worker.main import Evaluator, WorkerSettings, WorkerStats, run_worker
 
 CONFIG = RunConfig(population=12, job_size=3, generations=1, trials=2, steps=5)
@@ -321,3 +322,41 @@ def test_settings_reject_bad_values() -> None:
 def _ok(reply: zenoh.Reply) -> bytes:
     assert reply.ok is not None, reply.err
     return reply.ok.payload.to_bytes()
+
+
+def test_queue_source_two_workers_give_the_same_best_as_local_evolve(tmp_path: Path) -> None:
+    """Through the database queue and two real workers: bit-identical to `evolve`."""
+    from evorobotics.evolution import evolve
+    from server.db import make_engine, upgrade
+    from server.manager import RunManager
+    from server.models import Run
+    from server.settings import Settings
+    from worker.main import evaluate_slice
+
+    config = RunConfig(population=8, generations=3, trials=1, steps=10, job_size=3, seed=4)
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
+    manager.start()
+    port = free_port()
+    source = QueueSource(manager.queue, manager.sessions, manager._lock)
+    try:
+        run_id = manager.create_run(config)
+
+        def status() -> str:
+            with manager.sessions.begin() as session:
+                run = session.get(Run, run_id)
+                assert run is not None
+                return run.status
+
+        with (
+            Dispatcher(dispatch_settings(port), source),
+            worker_thread(port, "one", evaluate_slice),
+            worker_thread(port, "two", evaluate_slice),
+        ):
+            assert eventually(lambda: status() == "completed", timeout=60.0), status()
+        sha = manager.best(run_id)
+    finally:
+        manager.stop()
+        engine.dispose()
+    assert sha == evolve(config).best.sha256
