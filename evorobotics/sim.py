@@ -499,18 +499,22 @@ def _episodes(
         c = math.cos(th)
         s = math.sin(th)
         for k in range(steps):
-            # early out: no wall within reach of the centre, so no whisker can trigger
-            if _clearance(clear, cell, x, y) > reach + rng_r:
-                for q in range(wx.shape[0]):
-                    inputs[q] = 0.0
-            else:
-                for q in range(wx.shape[0]):
-                    px = x + c * wx[q] - s * wy[q]
-                    py = y + s * wx[q] + c * wy[q]
-                    ux = c * ca[q] - s * sa[q]
-                    uy = s * ca[q] + c * sa[q]
-                    hit = _whisker(solid, cell, px, py, ux, uy, rng_r)
-                    inputs[q] = 1.0 if hit else 0.0
+            if stuck and not record:
+                break  # frozen for good: its fitness terms are final
+            # early outs: no wall within reach of the centre / of an attachment point
+            far = _clearance(clear, cell, x, y) > reach + rng_r
+            for q in range(wx.shape[0]):
+                inputs[q] = 0.0
+                if far:
+                    continue
+                px = x + c * wx[q] - s * wy[q]
+                py = y + s * wx[q] + c * wy[q]
+                if _clearance(clear, cell, px, py) > rng_r:
+                    continue
+                ux = c * ca[q] - s * sa[q]
+                uy = s * ca[q] + c * sa[q]
+                if _whisker(solid, cell, px, py, ux, uy, rng_r):
+                    inputs[q] = 1.0
             step_one(
                 w,
                 sizes,

@@ -1,0 +1,74 @@
+"""Simulator speed: robot-steps per second of the fused kernel, the numpy reference and evaluate().
+
+Run: .venv/bin/python bench/sim.py. Best of several repeats (the machine may be shared); one
+core (the kernel is single-threaded). Random genomes, 40-step trials in the "paper" maze from
+the evaluation's own start poses.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from evorobotics.evaluate import evaluate, start_poses
+from evorobotics.maze import load_maze
+from evorobotics.sim import simulate, simulate_reference
+from schemas.network import PRESETS
+from schemas.run import RunConfig
+
+STEPS = 40
+
+
+def best_of(fn: Callable[[], object], repeats: int) -> float:
+    """Shortest wall time of `repeats` calls, after one warm-up call (compilation)."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def rate(preset: str, batch: int, reference: bool = False) -> tuple[float, float]:
+    """(robot-steps per second, fraction of robots that ended stuck)."""
+    spec = PRESETS[preset]
+    maze = load_maze("paper")
+    weights = np.random.default_rng(0).normal(0.0, 1.5, (batch, spec.weight_count))
+    starts = np.resize(start_poses(maze, 0, 0, 64), (batch, 3))
+    run = simulate_reference if reference else simulate
+    repeats = 3 if reference else max(3, 20_000 // batch)
+    seconds = best_of(lambda: run(spec, weights, maze, starts, STEPS), repeats)
+    stuck = float(run(spec, weights, maze, starts, STEPS).stuck.mean())
+    return batch * STEPS / seconds, stuck
+
+
+def main() -> None:
+    print(f"robot-steps/s, {STEPS}-step trials in the 'paper' maze (best of repeats, one core)")
+    for preset, batch in [
+        ("paper-best", 1),
+        ("paper-best", 256),
+        ("paper-best", 1024),
+        ("paper-best", 4096),
+        ("paper-largest", 1024),
+    ]:
+        r, stuck = rate(preset, batch)
+        print(f"  kernel     {preset:14s} batch {batch:5d}: {r / 1e6:7.3f} M/s  stuck {stuck:.2f}")
+    r, stuck = rate("paper-best", 1024, True)
+    print(f"  reference  paper-best     batch  1024: {r / 1e6:7.3f} M/s  stuck {stuck:.2f}")
+    print("  (a stuck robot's remaining steps are skipped: its fitness terms are final)")
+    config = RunConfig()
+    pop = np.random.default_rng(1).normal(0.0, 1.5, (config.population, 222))
+    seconds = best_of(lambda: evaluate(config, 0, pop), 20)
+    robots = config.population * config.trials
+    print(
+        f"evaluate() of one default generation ({robots} robots x {config.steps} steps): "
+        f"{seconds * 1e3:.2f} ms; x {config.generations} generations = "
+        f"{seconds * config.generations:.2f} s"
+    )
+
+
+if __name__ == "__main__":
+    main()
