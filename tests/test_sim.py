@@ -222,3 +222,36 @@ def test_bad_arguments() -> None:
         simulate(spec, w, ARENA, np.ones((2, 3)), 5, gap=Gap(np.ones(3), np.ones((2, 2))))
     with pytest.raises(ValueError, match="stuck_after"):
         WorldParams(stuck_after=0)
+
+
+def test_recording_does_not_change_results() -> None:
+    # without recording the kernel stops a stuck robot early; the terms must be the same
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    weights = np.random.default_rng(2).normal(size=(64, spec.weight_count))
+    starts = np.tile(start_poses(maze, 1, 0, 8), (8, 1))
+    quiet = simulate(spec, weights, maze, starts, 40)
+    loud = simulate(spec, weights, maze, starts, 40, record=True)
+    assert quiet.stuck.any()
+    assert quiet.components.tobytes() == loud.components.tobytes()
+    assert quiet.poses_final.tobytes() == loud.poses_final.tobytes()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    x=st.floats(-0.1, 2.5),
+    y=st.floats(-0.1, 2.5),
+    th=st.floats(-math.pi, math.pi),
+    rng=st.floats(0.0, 0.1),
+)
+def test_kernel_whiskers_match_reference_anywhere(
+    x: float, y: float, th: float, rng: float
+) -> None:
+    # the kernel's clearance-map early outs must never change a bit
+    maze = load_maze("paper")
+    poses = np.array([[x, y, th]])
+    ref = whisker_bits(maze, poses, ranges=np.array([rng]))
+    gap = Gap(np.array([rng]), np.ones((1, 2)))
+    res = simulate(CONST, const_weights(0, 0), maze, poses, 1, gap=gap, record=True)
+    assert res.whiskers is not None
+    assert np.array_equal(res.whiskers[:, 0], ref)
