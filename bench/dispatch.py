@@ -1,0 +1,171 @@
+"""Dispatch throughput and distributed wall time (prints figures; no assertions).
+
+1. jobs/s through a real Dispatcher with empty jobs (an endless in-memory source, workers in
+   spawned processes whose evaluator returns zeros): the transport's ceiling.
+2. The paper's experiment through the database queue with 2 spawned worker processes, against
+   `evolve` in this process, with the best controllers compared.
+
+    .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from schemas.run import RunConfig
+from schemas.wire import Job, JobKey, Result
+from server.dispatch import Dispatcher, DispatchSettings, QueueSource
+from worker.main import WorkerSettings, run_worker
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def zeros(config: RunConfig, generation: int, genomes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n = genomes.shape[0]
+    return np.zeros(n), np.zeros((n, config.trials, 4))
+
+
+def worker_process(port: int, name: str, empty: bool, stop: threading.Event) -> None:
+    settings = WorkerSettings(connect=(f"tcp/127.0.0.1:{port}",), name=name, backoff_max_s=0.2)
+    if empty:
+        run_worker(settings, stop, evaluator=zeros)
+    else:
+        run_worker(settings, stop)
+
+
+class EndlessSource:
+    """Tiny jobs forever; counts completions."""
+
+    def __init__(self) -> None:
+        self.config = RunConfig(population=4, job_size=4, trials=1, steps=1)
+        self.genomes = np.zeros((4, self.config.network_spec.weight_count))
+        self.next_index = 0
+        self.completed = 0
+
+    def lease(self, worker: str) -> Job:
+        self.next_index += 1
+        return Job(
+            JobKey(run_id=1, generation=0, index=self.next_index), 0, 4, self.config, self.genomes
+        )
+
+    def complete(self, result: Result) -> bool:
+        self.completed += 1
+        return True
+
+    def fail(self, key: JobKey, error: str) -> None:
+        raise RuntimeError(error)
+
+    def release(self, key: JobKey) -> None:
+        return None
+
+
+def start_workers(
+    ctx: mp.context.SpawnContext, port: int, n: int, empty: bool
+) -> tuple[list[mp.process.BaseProcess], threading.Event]:
+    stop = ctx.Event()
+    procs = [
+        ctx.Process(target=worker_process, args=(port, f"bench-{i}", empty, stop)) for i in range(n)
+    ]
+    for p in procs:
+        p.start()
+    return procs, stop  # type: ignore[return-value]
+
+
+def stop_workers(procs: list[mp.process.BaseProcess], stop: threading.Event) -> None:
+    stop.set()
+    for p in procs:
+        p.join(timeout=30)
+
+
+def bench_throughput(seconds: float, workers: int) -> None:
+    ctx = mp.get_context("spawn")
+    port = free_port()
+    source = EndlessSource()
+    with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), source):
+        procs, stop = start_workers(ctx, port, workers, empty=True)
+        warm = threading.Event()
+        while source.completed < 50:
+            warm.wait(0.05)
+        before, began = source.completed, time.perf_counter()
+        warm.wait(seconds)
+        done, elapsed = source.completed - before, time.perf_counter() - began
+        stop_workers(procs, stop)
+    print(
+        f"empty jobs: {done / elapsed:8.0f} jobs/s ({done} jobs in {elapsed:.2f} s, {workers} worker processes)"
+    )
+
+
+def bench_paper(workers: int, generations: int) -> None:
+    from evorobotics.evolution import evolve
+    from server.db import make_engine, upgrade
+    from server.manager import RunManager
+    from server.models import Run
+    from server.settings import Settings
+
+    config = RunConfig(generations=generations)
+    evolve(config.model_copy(update={"generations": 1, "seed": 99}))  # compile the kernels
+    began = time.perf_counter()
+    local = evolve(config)
+    local_s = time.perf_counter() - began
+
+    ctx = mp.get_context("spawn")
+    port = free_port()
+    with tempfile.TemporaryDirectory() as tmp:
+        engine = make_engine(f"sqlite:///{Path(tmp) / 'bench.db'}")
+        upgrade(engine)
+        manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.2))
+        manager.start()
+        source = QueueSource(manager.queue, manager.sessions, manager._lock)
+        with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), source):
+            procs, stop = start_workers(ctx, port, workers, empty=False)
+            # Warm the workers' numba kernels on a throwaway run, as a long-lived worker is.
+            warm_id = manager.create_run(config.model_copy(update={"generations": 1, "seed": 99}))
+            tick = threading.Event()
+
+            def status(run_id: int) -> str:
+                with manager.sessions.begin() as session:
+                    run = session.get(Run, run_id)
+                    return run.status if run else "missing"
+
+            while status(warm_id) != "completed":
+                tick.wait(0.05)
+            began = time.perf_counter()
+            run_id = manager.create_run(config)
+            while status(run_id) not in ("completed", "failed"):
+                tick.wait(0.01)
+            dist_s = time.perf_counter() - began
+            sha = manager.best(run_id)
+            stop_workers(procs, stop)
+        manager.stop()
+        engine.dispose()
+    same = "identical" if sha == local.best.sha256 else "DIFFERENT"
+    print(
+        f"paper experiment ({generations} generations): evolve {local_s:.2f} s, "
+        f"server + {workers} workers {dist_s:.2f} s; best controllers {same}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--generations", type=int, default=350)
+    args = parser.parse_args()
+    bench_throughput(args.seconds, args.workers)
+    bench_paper(args.workers, args.generations)
+
+
+if __name__ == "__main__":
+    main()
