@@ -23,9 +23,22 @@ def worker_command(
         typer.Option(help="worker name shown in GET /api/workers (default: hostname-pid)"),
     ] = None,
     log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR")] = "INFO",
+    exit_with_parent: Annotated[
+        bool,
+        typer.Option(
+            "--exit-with-parent",
+            help="stop when the parent process dies (set for `colony server --workers N`)",
+        ),
+    ] = False,
 ) -> None:
     """Pull evaluation jobs over zenoh and evaluate them; Ctrl-C finishes the current job."""
-    from worker.main import WorkerSettings, default_name, install_signal_handlers, run_worker
+    from worker.main import (
+        WorkerSettings,
+        default_name,
+        install_signal_handlers,
+        run_worker,
+        watch_parent,
+    )
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(message)s")
     try:
@@ -34,5 +47,7 @@ def worker_command(
         raise typer.BadParameter(str(exc)) from exc
     stop = threading.Event()
     install_signal_handlers(stop)
+    if exit_with_parent:
+        watch_parent(stop)
     stats = run_worker(settings, stop)
     typer.echo(f"worker {settings.name}: {stats.jobs_done} jobs done, {stats.errors} errors")

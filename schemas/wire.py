@@ -31,8 +31,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 1
-"""Wire protocol version, sent in every job request; the server idles other versions."""
+PROTOCOL = 2
+"""Wire protocol version, sent in every job request; the server idles other versions.
+
+2: a result may ask for the next job (`want_next`); the server then answers with that job,
+carrying the acknowledgement, instead of a bare Ack (one round trip per job instead of two).
+"""
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
 """Queryable (server): a worker's `get` asks for its next job; reply is a job or idle."""
@@ -62,6 +66,8 @@ class InvalidJobError(WireError):
         super().__init__(f"job {key.label()}: {reason}")
         self.key = key
         self.reason = reason
+        self.ack: Ack | None = None
+        """Set when the job came as the reply to a result: that result's acknowledgement."""
 
 
 def worker_key(name: str) -> str:
@@ -196,6 +202,8 @@ class JobHeader(_Model):
     stop: int = Field(ge=1)
     lease_s: float = Field(gt=0.0, allow_inf_nan=False)
     config: RunConfig
+    ack: Ack | None = None
+    """Set when the job answers a result that asked for the next job: that result's Ack."""
 
 
 @dataclass(frozen=True)
@@ -231,16 +239,56 @@ def check_job(key: JobKey, start: int, stop: int, config: RunConfig, genomes: np
         raise InvalidJobError(key, "genomes contain NaN or infinity")
 
 
-def encode_job(job: Job) -> bytes:
-    header = JobHeader(
-        key=job.key, start=job.start, stop=job.stop, lease_s=job.lease_s, config=job.config
-    )
-    return encode_frame(header.model_dump(mode="json"), {"genomes": job.genomes})
+def encode_job(job: Job, ack: Ack | None = None) -> bytes:
+    """A job frame; `ack` acknowledges the result whose reply this job is (protocol 2)."""
+    header = {
+        "kind": "job",
+        "key": job.key.model_dump(mode="json"),
+        "start": job.start,
+        "stop": job.stop,
+        "lease_s": job.lease_s,
+        "config": _config_json(job.config),
+    }
+    if ack is not None:
+        header["ack"] = ack.model_dump(mode="json")
+    return encode_frame(header, {"genomes": job.genomes})
+
+
+_CONFIG_JSON: dict[int, tuple[RunConfig, dict[str, Any]]] = {}
+_CONFIGS: dict[str, RunConfig] = {}
+_CACHE_SIZE = 64
+"""Configs repeat job after job: serialise and parse each one once (bounded caches)."""
+
+
+def _config_json(config: RunConfig) -> dict[str, Any]:
+    cached = _CONFIG_JSON.get(id(config))
+    if cached is not None and cached[0] is config:
+        return cached[1]
+    if len(_CONFIG_JSON) >= _CACHE_SIZE:
+        _CONFIG_JSON.clear()
+    data: dict[str, Any] = config.model_dump(mode="json")
+    _CONFIG_JSON[id(config)] = (config, data)
+    return data
+
+
+def _parse_config(data: object) -> RunConfig:
+    """A RunConfig from its JSON object, parsed once per distinct config."""
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"))
+    config = _CONFIGS.get(text)
+    if config is None:
+        config = RunConfig.model_validate(data)
+        if len(_CONFIGS) >= _CACHE_SIZE:
+            _CONFIGS.clear()
+        _CONFIGS[text] = config
+    return config
 
 
 def decode_job(payload: bytes) -> Job:
     """A validated job; InvalidJobError (carrying the key) if only its content is bad."""
-    header, arrays = decode_frame(payload)
+    return _job_from(*decode_frame(payload))
+
+
+def _job_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Job:
     if header.get("kind") != "job":
         raise WireError(f"expected a job, got kind {header.get('kind')!r}")
     try:
@@ -248,7 +296,8 @@ def decode_job(payload: bytes) -> Job:
     except ValidationError as exc:
         raise WireError(f"job key: {exc}") from exc
     try:
-        parsed = JobHeader.model_validate(header)
+        config = _parse_config(header.get("config"))
+        parsed = JobHeader.model_validate({**header, "config": config})
     except ValidationError as exc:
         raise InvalidJobError(key, str(exc)) from exc
     if set(arrays) != {"genomes"}:
@@ -272,6 +321,8 @@ class ResultHeader(_Model):
     robot_steps_per_s: float = Field(0.0, ge=0.0, allow_inf_nan=False)
     seconds: float = Field(0.0, ge=0.0, allow_inf_nan=False)
     error: str | None = Field(None, max_length=65536)
+    want_next: bool = False
+    """Answer with the worker's next job (carrying the Ack) if one is ready now."""
 
     @field_validator("worker")
     @classmethod
@@ -290,6 +341,7 @@ class Result:
     robot_steps_per_s: float = 0.0
     seconds: float = 0.0
     error: str | None = None
+    want_next: bool = False
 
     def __post_init__(self) -> None:
         check_worker_name(self.worker)
@@ -311,6 +363,7 @@ def encode_result(result: Result) -> bytes:
         robot_steps_per_s=result.robot_steps_per_s,
         seconds=result.seconds,
         error=result.error,
+        want_next=result.want_next,
     )
     arrays: dict[str, np.ndarray] = {}
     if result.fitness is not None:
@@ -336,6 +389,7 @@ def decode_result(payload: bytes) -> Result:
         robot_steps_per_s=parsed.robot_steps_per_s,
         seconds=parsed.seconds,
         error=parsed.error,
+        want_next=parsed.want_next,
     )
 
 
@@ -358,6 +412,32 @@ def decode_next_reply(payload: bytes) -> Job | Idle:
     if header.get("kind") == "idle":
         return _decode_model(payload, Idle)
     return decode_job(payload)
+
+
+def decode_result_reply(payload: bytes) -> tuple[Ack, Job | None]:
+    """The server's answer on KEY_JOB_RESULT: the Ack, and the next job if it sent one.
+
+    A next job whose content is invalid raises InvalidJobError after the Ack parsed; the
+    caller gets the Ack from `exc.ack` (the result was settled either way).
+    """
+    header, arrays = decode_frame(payload)
+    if header.get("kind") != "job":
+        if arrays:
+            raise WireError(f"Ack carries no arrays, got {sorted(arrays)}")
+        return _validate(header, Ack), None
+    ack = _validate(header.pop("ack", None), Ack)
+    try:
+        return ack, _job_from(header, arrays)
+    except InvalidJobError as exc:
+        exc.ack = ack
+        raise
+
+
+def _validate(data: object, model: type[_M]) -> _M:
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise WireError(f"{model.__name__}: {exc}") from exc
 
 
 def _decode_model(payload: bytes, model: type[_M]) -> _M:

@@ -164,8 +164,10 @@ class Dispatcher:
         settings: DispatchSettings,
         source: JobSource,
         *,
+        session: zenoh.Session | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """Serve `source`; on `session` if given (the caller closes it), else on its own."""
         self.settings = settings
         self._source = source
         self._clock = clock
@@ -179,7 +181,8 @@ class Dispatcher:
         self.results_accepted = 0
         self.results_dropped = 0
         self.malformed = 0
-        self._session = zenoh.open(settings.zenoh_config())
+        self._owns_session = session is None
+        self._session = zenoh.open(settings.zenoh_config()) if session is None else session
         try:
             self._next = self._session.declare_queryable(
                 KEY_JOB_NEXT, lambda q: self._inbox.put(("next", q))
@@ -191,7 +194,8 @@ class Dispatcher:
                 KEY_WORKERS, lambda s: self._inbox.put(("alive", s)), history=True
             )
         except BaseException:
-            self._session.close()  # type: ignore[no-untyped-call]
+            if self._owns_session:
+                self._session.close()  # type: ignore[no-untyped-call]
             raise
         self._thread = threading.Thread(target=self._run, name="dispatcher", daemon=True)
         self._thread.start()
@@ -206,7 +210,7 @@ class Dispatcher:
             return [w.status() for w in sorted(self._workers.values(), key=lambda w: w.name)]
 
     def close(self) -> None:
-        """Stop the thread, answer held requests idle, undeclare everything, close the session."""
+        """Stop the thread, answer held requests idle, undeclare; close the session if owned."""
         if self._stopping.is_set():
             return
         self._stopping.set()
@@ -218,7 +222,8 @@ class Dispatcher:
         for entity in (self._next, self._result, self._alive):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()  # type: ignore[no-untyped-call]
-        self._session.close()  # type: ignore[no-untyped-call]
+        if self._owns_session:
+            self._session.close()  # type: ignore[no-untyped-call]
 
     def __enter__(self) -> Dispatcher:
         return self
@@ -279,36 +284,42 @@ class Dispatcher:
         record = self._touch(request.worker, request.host)
         if request.robot_steps_per_s:
             record.speed = request.robot_steps_per_s
-        for key in [k for k, lease in self._leases.items() if lease.worker == request.worker]:
-            # The worker asks again while holding a lease: its reply got lost; put it back.
-            log.warning("%s asked for work while leasing %s; releasing it", request.worker, key)
-            del self._leases[key]
-            self._source.release(key)
+        self._release_held_by(request.worker)
         held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s)
         if request.protocol != PROTOCOL:
             self._answer_idle(held, f"server speaks protocol {PROTOCOL}")
         elif not self._try_serve(held):
             self._held.append(held)
 
+    def _release_held_by(self, worker: str) -> None:
+        """The worker asks for work while holding a lease: its reply got lost; put it back."""
+        for key in [k for k, lease in self._leases.items() if lease.worker == worker]:
+            log.warning("%s asked for work while leasing %s; releasing it", worker, key.label())
+            del self._leases[key]
+            self._source.release(key)
+
     def _try_serve(self, held: _Held) -> bool:
         job = self._source.lease(held.worker)
         if job is None:
             return False
-        record = self._workers[held.worker]
+        with held.query as query:
+            self._send(query, KEY_JOB_NEXT, job, held.worker, None)
+        return True
+
+    def _send(self, query: zenoh.Query, key: str, job: Job, worker: str, ack: Ack | None) -> None:
+        """Reply `job` (with `ack` if it answers a result) and record its lease."""
+        record = self._workers[worker]
         lease_s = self.settings.lease_seconds(job.robot_steps, record.speed)
-        lease = _Lease(job.key, held.worker, self._clock() + lease_s, job.robot_steps)
         try:
-            with held.query as query:
-                query.reply(KEY_JOB_NEXT, encode_job(replace(job, lease_s=lease_s)))
+            query.reply(key, encode_job(replace(job, lease_s=lease_s), ack))
         except zenoh.ZError:
-            log.warning("could not send %s to %s; releasing it", job.key.label(), held.worker)
+            log.warning("could not send %s to %s; releasing it", job.key.label(), worker)
             self._source.release(job.key)
-            return True
-        self._leases[job.key] = lease
+            return
+        self._leases[job.key] = _Lease(job.key, worker, self._clock() + lease_s, job.robot_steps)
         with self._lock:
             record.state = "busy"
         self.jobs_served += 1
-        return True
 
     def _serve_held(self) -> None:
         """Lease to held requests in arrival order; answer idle those past their long-poll."""
@@ -347,6 +358,14 @@ class Dispatcher:
                 record.state = "idle"
                 if result.robot_steps_per_s:
                     record.speed = result.robot_steps_per_s
+        if result.want_next and not self._held:
+            # Pipelined request (protocol 2): the next job rides on the acknowledgement. With
+            # requests already waiting, this worker queues behind them on jobs/next instead.
+            self._release_held_by(result.worker)
+            job = self._source.lease(result.worker)
+            if job is not None:
+                self._send(query, KEY_JOB_RESULT, job, result.worker, ack)
+                return
         query.reply(KEY_JOB_RESULT, encode_message(ack))
 
     def _settle(self, result: Result, lease: _Lease) -> Ack:

@@ -17,7 +17,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import FrameType
 
 import numpy as np
@@ -34,8 +34,8 @@ from schemas.wire import (
     Result,
     WireError,
     check_worker_name,
-    decode_ack,
     decode_next_reply,
+    decode_result_reply,
     encode_message,
     encode_result,
     worker_key,
@@ -155,30 +155,55 @@ def _serve(
     stats: WorkerStats,
     backoff: _Backoff,
 ) -> None:
+    job: Job | None = None
     while not stop.is_set():
-        request = JobRequest(
-            worker=settings.name, host=host[:255], robot_steps_per_s=stats.robot_steps_per_s
-        )
-        reply = _ask(session, KEY_JOB_NEXT, encode_message(request), settings.request_timeout_s)
-        if reply is None:
-            stop.wait(backoff.next())
-            continue
-        backoff.reset()
-        try:
-            job = decode_next_reply(reply)
-        except InvalidJobError as exc:
-            log.warning("rejecting invalid job: %s", exc)
-            stats.errors += 1
-            _deliver(session, settings, stop, Result(exc.key, settings.name, error=exc.reason))
-            continue
-        except WireError as exc:
-            log.warning("dropping malformed reply: %s", exc)
-            stop.wait(backoff.next())
-            continue
-        if isinstance(job, Idle):
-            continue
+        if job is None:
+            job = _next_job(session, settings, host, stop, stats, backoff)
+            if job is None:
+                continue
         result = _evaluate(job, settings.name, evaluator, stats)
-        _deliver(session, settings, stop, result)
+        job = _deliver(session, settings, stop, result, stats)
+
+
+def _next_job(
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    host: str,
+    stop: threading.Event,
+    stats: WorkerStats,
+    backoff: _Backoff,
+) -> Job | None:
+    """One `get` on jobs/next: a job, or None (idle, no server, or a job it reported invalid)."""
+    request = JobRequest(
+        worker=settings.name, host=host[:255], robot_steps_per_s=stats.robot_steps_per_s
+    )
+    reply = _ask(session, KEY_JOB_NEXT, encode_message(request), settings.request_timeout_s)
+    if reply is None:
+        stop.wait(backoff.next())
+        return None
+    backoff.reset()
+    try:
+        job = decode_next_reply(reply)
+    except InvalidJobError as exc:
+        _reject_job(session, settings, stop, stats, exc)
+        return None
+    except WireError as exc:
+        log.warning("dropping malformed reply: %s", exc)
+        stop.wait(backoff.next())
+        return None
+    return None if isinstance(job, Idle) else job
+
+
+def _reject_job(
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    stop: threading.Event,
+    stats: WorkerStats,
+    exc: InvalidJobError,
+) -> None:
+    log.warning("rejecting invalid job: %s", exc)
+    stats.errors += 1
+    _deliver(session, settings, stop, Result(exc.key, settings.name, error=exc.reason), stats)
 
 
 def _evaluate(job: Job, name: str, evaluator: Evaluator, stats: WorkerStats) -> Result:
@@ -204,28 +229,43 @@ def _evaluate(job: Job, name: str, evaluator: Evaluator, stats: WorkerStats) -> 
 
 
 def _deliver(
-    session: zenoh.Session, settings: WorkerSettings, stop: threading.Event, result: Result
-) -> None:
-    """Send `result` until acknowledged; once stopping, one more try, then the lease lapses."""
-    payload = encode_result(result)
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    stop: threading.Event,
+    result: Result,
+    stats: WorkerStats,
+) -> Job | None:
+    """Send `result` until acknowledged; the next job if the server sent one with the Ack.
+
+    Unless stopping, the result asks for the next job (protocol 2), saving a round trip.
+    Once stopping, two more tries, then the lease lapses on the server.
+    """
     backoff = _Backoff(settings)
     tries_after_stop = 0
     while tries_after_stop < 2:
+        payload = encode_result(replace(result, want_next=not stop.is_set()))
         reply = _ask(session, KEY_JOB_RESULT, payload, settings.request_timeout_s)
         if reply is not None:
             try:
-                ack = decode_ack(reply)
+                ack, job = decode_result_reply(reply)
+            except InvalidJobError as exc:
+                if exc.ack is None or exc.ack.key != result.key:
+                    log.warning("malformed acknowledgement for %s: %s", result.key.label(), exc)
+                else:
+                    _reject_job(session, settings, stop, stats, exc)
+                    return None
             except WireError as exc:
                 log.warning("malformed acknowledgement for %s: %s", result.key.label(), exc)
             else:
                 if ack.key == result.key:
                     if not ack.accepted:
                         log.info("%s dropped by the server: %s", result.key.label(), ack.reason)
-                    return
+                    return job
         if stop.is_set():
             tries_after_stop += 1
         stop.wait(backoff.next())
     log.warning("gave up delivering %s while stopping", result.key.label())
+    return None
 
 
 def _ask(session: zenoh.Session, key: str, payload: bytes, timeout: float) -> bytes | None:
@@ -247,3 +287,21 @@ def install_signal_handlers(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+
+
+def watch_parent(stop: threading.Event, interval_s: float = 0.5) -> threading.Thread:
+    """Set `stop` when the parent process dies (we get re-parented), so a SIGKILLed server's
+    local workers finish their job and exit instead of running forever."""
+    if interval_s <= 0:
+        raise ValueError(f"interval_s must be > 0, got {interval_s}")
+    parent = os.getppid()
+
+    def watch() -> None:
+        while not stop.wait(interval_s):
+            if os.getppid() != parent:
+                log.warning("parent process %d is gone; stopping", parent)
+                stop.set()
+
+    thread = threading.Thread(target=watch, name="parent-watch", daemon=True)
+    thread.start()
+    return thread
