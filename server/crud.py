@@ -1,6 +1,6 @@
 """Reads and small writes of the store, keyword-only so call sites name what they pass.
 
-The run loop's writes (jobs, generation commits) live in `server.jobs` and `server.manager`.
+The run loop's writes (generation commits) live in `server.manager`; jobs in `server.jobs`.
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from collections.abc import Sequence
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.models import Controller, Generation, Individual, Job, Robot, Run, Worker
+from server.jobs import JobQueue
+from server.models import Controller, Generation, Individual, Robot, Run, Worker
 
 
 def get_run(session: Session, *, run_id: int) -> Run | None:
@@ -94,10 +95,16 @@ def put_controller(
 
 
 def job_counts(session: Session) -> dict[str, int]:
-    rows = session.execute(select(Job.status, func.count()).group_by(Job.status))
-    counts = {"pending": 0, "leased": 0, "done": 0}
-    counts.update({status: int(count) for status, count in rows})
-    return counts
+    """Jobs of the generations in flight by status (pending, leased, done).
+
+    Jobs live in the run manager's memory (`server.jobs.JobQueue`), not in a table; the
+    manager's sessions carry its queue as `session.info["job_queue"]`. A session without one
+    (e.g. a read-only tool on the database file) sees no jobs.
+    """
+    queue = session.info.get("job_queue")
+    if isinstance(queue, JobQueue):
+        return queue.counts()
+    return {"pending": 0, "leased": 0, "done": 0}
 
 
 def list_workers(session: Session) -> list[Worker]:

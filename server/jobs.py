@@ -1,27 +1,31 @@
-"""The job queue: the seam between the run loop and whoever evaluates (threads now, zenoh next).
+"""The job queue: the seam between the run loop and whoever evaluates (threads or zenoh workers).
 
-A job is a fixed slice of one generation (evorobotics.evolution.job_slices) stored with its
-genomes. `lease` hands the next pending job of the run served least recently to a worker with
-a deadline; `complete` stores its result once (duplicates and late results are acknowledged
-and dropped); `expire` returns lapsed leases. When the last job of a generation completes, the
-generation is committed in the same transaction (see `server.manager`), so the database only
-ever holds whole generations plus the job results that precede them.
+A job is a fixed slice of one generation (evorobotics.evolution.job_slices). Jobs, leases and
+job results live in memory, one generation per run; the database holds only committed
+generations. `lease` hands the next pending job of the running run served least recently to a
+worker with a deadline; `complete` stores its result once (duplicates and late results are
+acknowledged and dropped); `expire` and `release` return leases. When the last job of a
+generation completes, the generation is committed in one transaction (see `server.manager`)
+and only then does the next generation's jobs replace it here.
+
+Why memory: a generation of the paper's population costs the server one transaction instead of
+one per lease and per result. A crash loses leases and the results of the generation in flight,
+never a committed generation; `ask` is a pure function of the committed GA state and the seed,
+so a restarted server re-asks that generation and resumes bit-identically.
 """
 
 from __future__ import annotations
 
+import heapq
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from sqlalchemy import CursorResult, func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics.evolution import job_slices
 from schemas.run import RunConfig
-from server.models import Job as JobRow
-from server.models import Run, pack, unpack
 
 
 @dataclass(frozen=True, order=True)
@@ -58,14 +62,60 @@ class JobResult:
     """(stop - start, trials, 4)"""
 
 
-GenerationDone = Callable[[Session, Run, int], None]
-"""Called inside the completing transaction when every job of (run, generation) is done."""
-RunFailed = Callable[[Session, Run, str], None]
-"""Called inside a transaction when a job exhausted its attempts."""
+@dataclass(frozen=True)
+class GenerationResults:
+    """A fully evaluated generation, in the order it was asked."""
+
+    run_id: int
+    generation: int
+    config: RunConfig
+    genomes: np.ndarray
+    """(population, n_weights) as asked."""
+    fitness: np.ndarray
+    """(population,)"""
+    components: np.ndarray
+    """(population, trials, 4)"""
+
+
+GenerationDone = Callable[[Session, GenerationResults], np.ndarray | None]
+"""Commits a generation inside the given transaction; returns the next generation's genomes,
+or None when the run is over. The queue installs them once the transaction has committed."""
+RunFailed = Callable[[Session, int, str], None]
+"""Fails a run (by id) inside the given transaction, after a job exhausted its attempts."""
+
+
+@dataclass
+class _Slot:
+    """Mutable state of one job of the generation in flight."""
+
+    start: int
+    stop: int
+    status: str = "pending"
+    """pending, leased or done."""
+    worker: str | None = None
+    deadline: float | None = None
+    attempts: int = 0
+
+
+@dataclass
+class _RunJobs:
+    """The generation in flight of one run."""
+
+    run_id: int
+    generation: int
+    config: RunConfig
+    genomes: np.ndarray
+    slots: list[_Slot]
+    running: bool
+    pending: list[int] = field(default_factory=list)
+    """Heap of pending slot indices: the lowest index is leased first."""
+    remaining: int = 0
+    fitness: np.ndarray = field(default_factory=lambda: np.empty(0))
+    components: np.ndarray = field(default_factory=lambda: np.empty(0))
 
 
 class JobQueue:
-    """Jobs in the database; every write under one lock so SQLite never sees two writers."""
+    """In-memory jobs of every live run; every call under one lock shared with the manager."""
 
     def __init__(
         self,
@@ -87,168 +137,210 @@ class JobQueue:
         self._max_attempts = max_attempts
         self._on_generation_done = on_generation_done
         self._on_run_failed = on_run_failed
-        self._configs: dict[int, RunConfig] = {}
-        self._served: int | None = None
+        self._runs: dict[int, _RunJobs] = {}
+        self._served: dict[int, int] = {}
+        """run id -> lease sequence number of its last lease: fair sharing picks the smallest."""
+        self._sequence = 0
         self.work_available = threading.Event()
         """Set whenever jobs may have become leasable; executors wait on it."""
 
-    def _config(self, run: Run) -> RunConfig:
-        config = self._configs.get(run.id)
-        if config is None:
-            config = self._configs[run.id] = RunConfig.model_validate_json(run.config)
-        return config
+    def add(
+        self, *, run_id: int, config: RunConfig, generation: int, genomes: np.ndarray, running: bool
+    ) -> None:
+        """Cut a committed run's generation into its fixed jobs (replacing any older generation).
 
-    def _next_served(self, session: Session) -> int:
-        if self._served is None:
-            self._served = int(session.scalar(select(func.coalesce(func.max(Run.served), 0))) or 0)
-        self._served += 1
-        return self._served
-
-    def add(self, session: Session, *, run: Run, generation: int, genomes: np.ndarray) -> None:
-        """Cut a generation's genomes into its fixed jobs (inside the caller's transaction)."""
-        config = self._config(run)
-        if genomes.shape[0] != config.population:
-            raise ValueError(f"{genomes.shape[0]} genomes for population {config.population}")
-        rows = []
-        for index, (a, b) in enumerate(job_slices(config.population, config.job_size)):
-            data, dtype, shape = pack(genomes[a:b])
-            rows.append(
-                JobRow(
-                    run_id=run.id,
-                    generation=generation,
-                    index=index,
-                    start=a,
-                    stop=b,
-                    status="pending",
-                    attempts=0,
-                    genomes=data,
-                    dtype=dtype,
-                    shape=shape,
-                )
+        Call it after the transaction that made the generation askable has committed.
+        """
+        if genomes.ndim != 2 or genomes.shape[0] != config.population:
+            raise ValueError(f"genomes of shape {genomes.shape} for population {config.population}")
+        frozen = np.array(genomes, dtype=np.float64, order="C")
+        frozen.flags.writeable = False
+        slots = [_Slot(a, b) for a, b in job_slices(config.population, config.job_size)]
+        with self._lock:
+            self._runs[run_id] = _RunJobs(
+                run_id=run_id,
+                generation=generation,
+                config=config,
+                genomes=frozen,
+                slots=slots,
+                running=running,
+                pending=list(range(len(slots))),
+                remaining=len(slots),
+                fitness=np.full(config.population, np.nan),
+                components=np.full((config.population, config.trials, 4), np.nan),
             )
-        session.add_all(rows)
-        self.work_available.set()
+            self._served.setdefault(run_id, 0)
+        if running:
+            self.work_available.set()
+
+    def set_running(self, run_id: int, running: bool) -> None:
+        """Pause (no new leases; leased jobs may still complete) or resume a run's jobs."""
+        with self._lock:
+            jobs = self._runs.get(run_id)
+            if jobs is None:
+                return
+            jobs.running = running
+        if running:
+            self.work_available.set()
+
+    def forget(self, run_id: int) -> None:
+        """Drop a run's jobs (its results, if any arrive, are acknowledged and dropped)."""
+        with self._lock:
+            self._runs.pop(run_id, None)
+            self._served.pop(run_id, None)
 
     def lease(self, worker: str, now: float) -> Job | None:
         """The next pending job of the running run served least recently, or None."""
-        with self._lock, self._sessions.begin() as session:
-            row = session.execute(
-                select(JobRow, Run)
-                .join(Run, Run.id == JobRow.run_id)
-                .where(JobRow.status == "pending", Run.status == "running")
-                .order_by(Run.served, Run.id, JobRow.generation, JobRow.index)
-                .limit(1)
-            ).first()
-            if row is None:
+        with self._lock:
+            chosen: _RunJobs | None = None
+            for jobs in self._runs.values():
+                if not (jobs.running and jobs.pending):
+                    continue
+                if chosen is None or (self._served[jobs.run_id], jobs.run_id) < (
+                    self._served[chosen.run_id],
+                    chosen.run_id,
+                ):
+                    chosen = jobs
+            if chosen is None:
                 return None
-            job, run = row
-            job.status, job.worker = "leased", worker
-            job.deadline = now + self._lease_seconds
-            job.attempts += 1
-            run.served = self._next_served(session)
+            index = heapq.heappop(chosen.pending)
+            slot = chosen.slots[index]
+            slot.status, slot.worker = "leased", worker
+            slot.deadline = now + self._lease_seconds
+            slot.attempts += 1
+            self._sequence += 1
+            self._served[chosen.run_id] = self._sequence
             return Job(
-                key=JobKey(job.run_id, job.generation, job.index),
-                config=self._config(run),
-                start=job.start,
-                stop=job.stop,
-                genomes=unpack(job.genomes, job.dtype, job.shape),
+                key=JobKey(chosen.run_id, chosen.generation, index),
+                config=chosen.config,
+                start=slot.start,
+                stop=slot.stop,
+                genomes=chosen.genomes[slot.start : slot.stop],
                 worker=worker,
-                deadline=job.deadline,
-                attempt=job.attempts,
+                deadline=slot.deadline,
+                attempt=slot.attempts,
             )
+
+    def _slot(self, key: JobKey) -> tuple[_RunJobs, _Slot] | None:
+        jobs = self._runs.get(key.run_id)
+        if jobs is None or jobs.generation != key.generation:
+            return None
+        if not 0 <= key.index < len(jobs.slots):
+            return None
+        return jobs, jobs.slots[key.index]
 
     def complete(self, key: JobKey, result: JobResult) -> bool:
         """Store a job's result; False when it was already stored or its run is over (dropped).
 
         The result of any lease (even an expired one) is accepted: evaluation is a pure
-        function of the job, so every copy is the same. The last job commits the generation.
+        function of the job, so every copy is the same. The last job commits the generation;
+        if that commit raises, the job stays unfinished and the same result may be retried.
         """
-        with self._lock, self._sessions.begin() as session:
-            job = session.get(JobRow, (key.run_id, key.generation, key.index))
-            if job is None or job.status == "done":
+        with self._lock:
+            found = self._slot(key)
+            if found is None or found[1].status == "done":
                 return False
-            run = session.get(Run, key.run_id)
-            if run is None or run.status in ("completed", "failed", "cancelled"):
-                return False
-            config = self._config(run)
-            k = job.stop - job.start
-            fitness = np.ascontiguousarray(result.fitness, dtype=np.float64)
-            components = np.ascontiguousarray(result.components, dtype=np.float64)
-            if fitness.shape != (k,) or components.shape != (k, config.trials, 4):
+            jobs, slot = found
+            k, trials = slot.stop - slot.start, jobs.config.trials
+            fitness = np.asarray(result.fitness, dtype=np.float64)
+            components = np.asarray(result.components, dtype=np.float64)
+            if fitness.shape != (k,) or components.shape != (k, trials, 4):
                 raise ValueError(
                     f"result of job {key} has shapes {fitness.shape} and {components.shape}; "
-                    f"expected ({k},) and ({k}, {config.trials}, 4)"
+                    f"expected ({k},) and ({k}, {trials}, 4)"
                 )
-            job.status, job.deadline, job.error = "done", None, None
-            job.fitness, job.components = fitness.tobytes(), components.tobytes()
-            run.evaluations += k
-            session.flush()
-            remaining = session.scalar(
-                select(func.count())
-                .select_from(JobRow)
-                .where(
-                    JobRow.run_id == key.run_id,
-                    JobRow.generation == key.generation,
-                    JobRow.status != "done",
-                )
-            )
-            if remaining == 0:
-                self._on_generation_done(session, run, key.generation)
+            jobs.fitness[slot.start : slot.stop] = fitness
+            jobs.components[slot.start : slot.stop] = components
+            if jobs.remaining == 1:
+                self._commit(jobs)
+            else:
+                jobs.remaining -= 1
+                slot.status, slot.worker, slot.deadline = "done", None, None
             return True
+
+    def _commit(self, jobs: _RunJobs) -> None:
+        results = GenerationResults(
+            run_id=jobs.run_id,
+            generation=jobs.generation,
+            config=jobs.config,
+            genomes=jobs.genomes,
+            fitness=jobs.fitness,
+            components=jobs.components,
+        )
+        with self._sessions.begin() as session:
+            following = self._on_generation_done(session, results)
+        if following is None:
+            self.forget(jobs.run_id)
+        else:
+            self.add(
+                run_id=jobs.run_id,
+                config=jobs.config,
+                generation=jobs.generation + 1,
+                genomes=following,
+                running=jobs.running,
+            )
 
     def fail(self, key: JobKey, message: str) -> bool:
         """An evaluation raised: retry the job, or fail its run after `max_attempts` leases."""
-        with self._lock, self._sessions.begin() as session:
-            job = session.get(JobRow, (key.run_id, key.generation, key.index))
-            if job is None or job.status == "done":
+        with self._lock:
+            found = self._slot(key)
+            if found is None or found[1].status == "done":
                 return False
-            run = session.get(Run, key.run_id)
-            if run is None:
+            jobs, slot = found
+            if slot.attempts >= self._max_attempts:
+                with self._sessions.begin() as session:
+                    self._on_run_failed(
+                        session, key.run_id, f"job {key.generation}/{key.index} failed: {message}"
+                    )
+                self.forget(key.run_id)
+                return True
+            self._make_pending(jobs, key.index)
+        self.work_available.set()
+        return True
+
+    def release(self, key: JobKey) -> bool:
+        """A lease ended without a result (its worker left): the job is pending again at once."""
+        with self._lock:
+            found = self._slot(key)
+            if found is None or found[1].status != "leased":
                 return False
-            job.error = message
-            if job.attempts >= self._max_attempts:
-                self._on_run_failed(
-                    session, run, f"job {key.generation}/{key.index} failed: {message}"
-                )
-            else:
-                job.status, job.worker, job.deadline = "pending", None, None
-                self.work_available.set()
-            return True
+            self._make_pending(found[0], key.index)
+        self.work_available.set()
+        return True
+
+    @staticmethod
+    def _make_pending(jobs: _RunJobs, index: int) -> None:
+        slot = jobs.slots[index]
+        if slot.status != "pending":
+            slot.status, slot.worker, slot.deadline = "pending", None, None
+            heapq.heappush(jobs.pending, index)
 
     def expire(self, now: float) -> int:
         """Return every lease whose deadline has passed; the number returned."""
-        with self._lock, self._sessions.begin() as session:
-            result = session.execute(
-                update(JobRow)
-                .where(JobRow.status == "leased", JobRow.deadline < now)
-                .values(status="pending", worker=None, deadline=None)
-            )
-            count = result.rowcount if isinstance(result, CursorResult) else 0
+        count = 0
+        with self._lock:
+            for jobs in self._runs.values():
+                for index, slot in enumerate(jobs.slots):
+                    if (
+                        slot.status == "leased"
+                        and slot.deadline is not None
+                        and slot.deadline < now
+                    ):
+                        self._make_pending(jobs, index)
+                        count += 1
         if count:
             self.work_available.set()
-        return int(count)
+        return count
 
     def release_all(self) -> int:
-        """At start: every lease belongs to a previous server life; put them back."""
+        """Put every lease back (e.g. when evaluators are replaced); the number returned."""
         return self.expire(float("inf"))
 
-    def results(
-        self, session: Session, *, run_id: int, generation: int
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Genomes, fitness and components of a fully done generation, in slice order."""
-        rows = list(
-            session.scalars(
-                select(JobRow)
-                .where(JobRow.run_id == run_id, JobRow.generation == generation)
-                .order_by(JobRow.index)
-            )
-        )
-        genomes = np.concatenate([unpack(r.genomes, r.dtype, r.shape) for r in rows])
-        fitness = np.concatenate([np.frombuffer(r.fitness or b"", np.float64) for r in rows])
-        components = np.concatenate(
-            [np.frombuffer(r.components or b"", np.float64) for r in rows]
-        ).reshape(fitness.shape[0], -1, 4)
-        return genomes, fitness, components
-
-    def forget(self, run_id: int) -> None:
-        self._configs.pop(run_id, None)
+    def counts(self) -> dict[str, int]:
+        """Jobs of the generations in flight by status: pending, leased, done."""
+        counts = {"pending": 0, "leased": 0, "done": 0}
+        with self._lock:
+            for jobs in self._runs.values():
+                for slot in jobs.slots:
+                    counts[slot.status] += 1
+        return counts

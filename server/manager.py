@@ -6,6 +6,9 @@ run and `colony evolve` give the same populations bit for bit. The GA state afte
 is committed with its generation; `ask` is a pure function of that state and the seed, so a
 restarted server re-asks whatever generation was in flight and resumes exactly.
 
+The hot path (one commit per generation) uses SQLAlchemy Core statements and per-run caches of
+the parsed config, GA params, layout and latest GA state; lifecycle changes use the ORM.
+
 Lifecycle: queued -> running <-> paused; queued/running/paused -> cancelled;
 running -> completed | failed. Terminal: completed, failed, cancelled.
 """
@@ -15,21 +18,22 @@ from __future__ import annotations
 import io
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
-from sqlalchemy import Engine, delete, func, insert, select
+from sqlalchemy import CursorResult, Engine, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import best_document
 from evorobotics.ga import GAParams, GAState, ask, ga_rng, init, lineage, tell
-from evorobotics.layout import layout
+from evorobotics.layout import Layout, layout
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from server import crud
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
-from server.jobs import JobQueue
-from server.models import Generation, Individual, Job, Run, pack, utcnow
+from server.jobs import GenerationResults, JobQueue
+from server.models import Generation, Individual, Job, Run, utcnow
 from server.settings import Settings
 
 
@@ -45,8 +49,28 @@ def decode_state(data: bytes) -> GAState:
         return GAState.from_arrays({name: arrays[name] for name in arrays.files})
 
 
+@dataclass(frozen=True)
+class _Plan:
+    """What a run's config determines, parsed once per run instead of once per generation."""
+
+    config: RunConfig
+    params: GAParams
+    layout: Layout
+
+
+@dataclass(frozen=True)
+class _Asked:
+    """A generation asked inside a transaction, to hand to the queue once it has committed."""
+
+    run_id: int
+    config: RunConfig
+    generation: int
+    genomes: np.ndarray
+    running: bool
+
+
 class RunManager:
-    """Owns the store's writes: runs, generations, individuals and the job queue."""
+    """Owns the store's writes: runs, generations and individuals; drives the job queue."""
 
     def __init__(self, engine: Engine, settings: Settings) -> None:
         self.settings = settings
@@ -58,8 +82,10 @@ class RunManager:
             lease_seconds=settings.lease_seconds,
             max_attempts=settings.max_attempts,
             on_generation_done=self._commit_generation,
-            on_run_failed=self._fail,
+            on_run_failed=self._fail_id,
         )
+        self.sessions.configure(info={"job_queue": self.queue})  # read by crud.job_counts
+        self._plans: dict[int, _Plan] = {}
         self._states: dict[int, tuple[int, GAState]] = {}
         """run id -> (generation g, GA state after tell of g - 1): saves a decode per generation."""
         self._stop = threading.Event()
@@ -88,25 +114,29 @@ class RunManager:
             self.promote()
 
     def recover(self) -> None:
-        """Release old leases and make sure every live run has the jobs of its next generation."""
-        self.queue.release_all()
+        """Re-ask the generation in flight of every live run (its results died with the process)."""
+        asked: list[_Asked] = []
         with self._lock, self.sessions.begin() as session:
+            session.execute(delete(Job))  # rows kept by server versions before jobs moved to memory
             runs = session.scalars(select(Run).where(Run.status.in_(("running", "paused"))))
             for run in runs:
-                config = RunConfig.model_validate_json(run.config)
-                if run.generation >= config.generations:
-                    self._finish(session, run, config)
-                    continue
-                jobs = session.execute(
-                    select(func.count(), func.coalesce(func.sum(Job.status != "done"), 0)).where(
-                        Job.run_id == run.id, Job.generation == run.generation
-                    )
-                ).one()
-                if jobs[0] == 0:
-                    self._ask(session, run, config)
-                elif jobs[1] == 0:
-                    self._commit_generation(session, run, run.generation)
+                plan = self._plan(run)
+                if run.generation >= plan.config.generations:
+                    self._finish(session, run, plan.config)
+                else:
+                    asked.append(self._ask(session, run))
+        self._hand_over(asked)
         self.promote()
+
+    def _hand_over(self, asked: list[_Asked]) -> None:
+        for a in asked:
+            self.queue.add(
+                run_id=a.run_id,
+                config=a.config,
+                generation=a.generation,
+                genomes=a.genomes,
+                running=a.running,
+            )
 
     # run lifecycle ---------------------------------------------------------------------------
 
@@ -129,46 +159,55 @@ class RunManager:
 
     def promote(self) -> None:
         """Start queued runs, oldest first, up to `max_active_runs` running at once."""
-        with self._lock, self.sessions.begin() as session:
-            running = session.scalar(
-                select(func.count()).select_from(Run).where(Run.status == "running")
-            )
-            free = self.settings.max_active_runs - int(running or 0)
-            if free <= 0:
-                return
-            queued = session.scalars(
-                select(Run).where(Run.status == "queued").order_by(Run.id).limit(free)
-            )
-            for run in queued:
-                try:
-                    with session.begin_nested():
-                        config = RunConfig.model_validate_json(run.config)
-                        run.status = "running"
-                        run.started_at = run.started_at or utcnow()
-                        self._ask(session, run, config)
-                except Exception as exc:  # a config the GA rejects fails its run, not the server
-                    self._fail(session, run, f"cannot start: {exc}")
+        asked: list[_Asked] = []
+        with self._lock:
+            with self.sessions.begin() as session:
+                running = session.scalar(
+                    select(func.count()).select_from(Run).where(Run.status == "running")
+                )
+                free = self.settings.max_active_runs - int(running or 0)
+                if free <= 0:
+                    return
+                queued = session.scalars(
+                    select(Run).where(Run.status == "queued").order_by(Run.id).limit(free)
+                )
+                for run in queued:
+                    try:
+                        with session.begin_nested():
+                            run.status = "running"
+                            run.started_at = run.started_at or utcnow()
+                            asked.append(self._ask(session, run))
+                    except (
+                        Exception
+                    ) as exc:  # a config the GA rejects fails its run, not the server
+                        self._fail(session, run, f"cannot start: {exc}")
+            self._hand_over(asked)
 
     def pause(self, run_id: int) -> None:
-        self._transition(run_id, {"queued", "running"}, "paused")
+        with self._lock:
+            self._transition(run_id, {"queued", "running"}, "paused")
+            self.queue.set_running(run_id, False)
 
     def resume(self, run_id: int) -> None:
-        with self._lock, self.sessions.begin() as session:
-            run = self._get(session, run_id)
-            if run.status != "paused":
-                raise TransitionError(f"run {run_id} is {run.status}; only a paused run resumes")
-            run.status = "running" if run.started_at is not None else "queued"
-        self.queue.work_available.set()
+        with self._lock:
+            with self.sessions.begin() as session:
+                run = self._get(session, run_id)
+                if run.status != "paused":
+                    raise TransitionError(
+                        f"run {run_id} is {run.status}; only a paused run resumes"
+                    )
+                run.status = "running" if run.started_at is not None else "queued"
+            self.queue.set_running(run_id, run.status == "running")
         self.promote()
 
     def cancel(self, run_id: int) -> None:
-        with self._lock, self.sessions.begin() as session:
-            run = self._get(session, run_id)
-            if run.status in TERMINAL:
-                raise TransitionError(f"run {run_id} is already {run.status}")
-            run.status, run.finished_at = "cancelled", utcnow()
-            session.execute(delete(Job).where(Job.run_id == run_id))
-        self._forget(run_id)
+        with self._lock:
+            with self.sessions.begin() as session:
+                run = self._get(session, run_id)
+                if run.status in TERMINAL:
+                    raise TransitionError(f"run {run_id} is already {run.status}")
+                run.status, run.finished_at = "cancelled", utcnow()
+            self._forget(run_id)
         self.promote()
 
     def fail_run(self, run_id: int, message: str) -> None:
@@ -196,42 +235,70 @@ class RunManager:
         return run
 
     def _forget(self, run_id: int) -> None:
-        self._states.pop(run_id, None)
+        """Drop a run's jobs and caches (it is over)."""
         self.queue.forget(run_id)
+        self._states.pop(run_id, None)
+        self._plans.pop(run_id, None)
 
     # the generation loop ---------------------------------------------------------------------
 
-    def _state_before(self, session: Session, run: Run, config: RunConfig, g: int) -> GAState:
+    def _plan(self, run: Run) -> _Plan:
+        plan = self._plans.get(run.id)
+        if plan is None:
+            config = RunConfig.model_validate_json(run.config)
+            plan = _Plan(config, GAParams.from_config(config), layout(config.network_spec))
+            self._plans[run.id] = plan
+        return plan
+
+    def _state_before(self, session: Session, run_id: int, plan: _Plan, g: int) -> GAState:
         """The GA state `ask`/`tell` of generation g start from."""
-        cached = self._states.get(run.id)
+        cached = self._states.get(run_id)
         if cached is not None and cached[0] == g:
             return cached[1]
         if g == 0:
-            return init(layout(config.network_spec), GAParams.from_config(config))
-        previous = crud.get_generation(session, run_id=run.id, generation=g - 1)
+            return init(plan.layout, plan.params)
+        previous = crud.get_generation(session, run_id=run_id, generation=g - 1)
         if previous is None:
-            raise NotFoundError(f"run {run.id} has no committed generation {g - 1} to resume")
-        return decode_state(previous.state)
+            raise NotFoundError(f"run {run_id} has no committed generation {g - 1} to resume")
+        state = decode_state(previous.state)
+        self._states[run_id] = (g, state)
+        return state
 
-    def _ask(self, session: Session, run: Run, config: RunConfig) -> None:
-        """Create the jobs of generation `run.generation`."""
-        g = run.generation
-        state = self._state_before(session, run, config, g)
-        lay = layout(config.network_spec)
-        genomes, _ = ask(ga_rng(config.seed, g), state, GAParams.from_config(config), lay)
-        self.queue.add(session, run=run, generation=g, genomes=genomes)
+    def _ask(self, session: Session, run: Run) -> _Asked:
+        """The genomes of generation `run.generation`, for the queue once the caller commits."""
+        plan, g = self._plan(run), run.generation
+        state = self._state_before(session, run.id, plan, g)
+        genomes, _ = ask(ga_rng(plan.config.seed, g), state, plan.params, plan.layout)
+        return _Asked(run.id, plan.config, g, genomes, run.status == "running")
 
-    def _commit_generation(self, session: Session, run: Run, g: int) -> None:
-        """Tell the GA, store the generation whole, then ask the next (one transaction)."""
-        config = RunConfig.model_validate_json(run.config)
-        params = GAParams.from_config(config)
-        genomes, fitness, components = self.queue.results(session, run_id=run.id, generation=g)
-        state, metrics = tell(genomes, fitness, self._state_before(session, run, config, g), params)
+    def _commit_generation(self, session: Session, results: GenerationResults) -> np.ndarray | None:
+        """Tell the GA and store the generation whole (the caller's one transaction).
+
+        Returns the next generation's genomes, or None when the run is over.
+        """
+        run_id, g = results.run_id, results.generation
+        plan = self._plans.get(run_id) or self._plan(self._get(session, run_id))
+        genomes, fitness, components = results.genomes, results.fitness, results.components
+        state, metrics = tell(
+            genomes, fitness, self._state_before(session, run_id, plan, g), plan.params
+        )
         order = metrics.order
-        parents = lineage(params, g)
-        session.add(
-            Generation(
-                run_id=run.id,
+        top = float(fitness[order[0]])
+        moved = session.execute(
+            update(Run)
+            .where(Run.id == run_id, Run.generation == g, Run.status.in_(("running", "paused")))
+            .values(
+                generation=g + 1,
+                best_fitness=top if np.isfinite(top) else None,
+                evaluations=Run.evaluations + plan.config.population,
+            )
+            .execution_options(synchronize_session=False)
+        )
+        if not isinstance(moved, CursorResult) or moved.rowcount != 1:
+            raise NotFoundError(f"run {run_id} is not live at generation {g}; nothing committed")
+        session.execute(
+            insert(Generation).values(
+                run_id=run_id,
                 generation=g,
                 best=metrics.best,
                 mean=metrics.mean,
@@ -241,34 +308,33 @@ class RunManager:
                 committed_at=utcnow(),
             )
         )
-        _, dtype, shape = pack(genomes[0])
+        parents = [p if p >= 0 else None for _, p in lineage(plan.params, g)]
+        dtype, shape = genomes.dtype.str, str(genomes.shape[1])
         session.execute(
             insert(Individual),
             [
                 {
-                    "run_id": run.id,
+                    "run_id": run_id,
                     "generation": g,
                     "rank": r,
-                    "index": int(i),
-                    "parent": parents[i][1] if parents[i][1] >= 0 else None,
+                    "index": i,
+                    "parent": parents[i],
                     "fitness": float(fitness[i]),
                     "components": components[i].tobytes(),
                     "genome": genomes[i].tobytes(),
                     "dtype": dtype,
                     "shape": shape,
                 }
-                for r, i in enumerate(order)
+                for r, i in enumerate(order.tolist())
             ],
         )
-        session.execute(delete(Job).where(Job.run_id == run.id, Job.generation == g))
-        top = float(fitness[order[0]])
-        run.best_fitness = top if np.isfinite(top) else None
-        run.generation = g + 1
-        self._states[run.id] = (g + 1, state)
-        if run.generation >= config.generations:
-            self._finish(session, run, config)
-        else:
-            self._ask(session, run, config)
+        self._states[run_id] = (g + 1, state)
+        if g + 1 >= plan.config.generations:
+            run = self._get(session, run_id)
+            self._finish(session, run, plan.config)
+            return None
+        genomes_next, _ = ask(ga_rng(plan.config.seed, g + 1), state, plan.params, plan.layout)
+        return genomes_next
 
     def _finish(self, session: Session, run: Run, config: RunConfig) -> None:
         run.status, run.finished_at = "completed", utcnow()
@@ -277,8 +343,12 @@ class RunManager:
 
     def _fail(self, session: Session, run: Run, message: str) -> None:
         run.status, run.error, run.finished_at = "failed", message, utcnow()
-        session.execute(delete(Job).where(Job.run_id == run.id))
         self._forget(run.id)
+
+    def _fail_id(self, session: Session, run_id: int, message: str) -> None:
+        run = session.get(Run, run_id)
+        if run is not None and run.status not in TERMINAL:
+            self._fail(session, run, message)
 
     # results -----------------------------------------------------------------------------------
 
