@@ -1,0 +1,674 @@
+"""The robot agent daemon: a fixed-rate control loop over the BasicX link and a zenoh link thread.
+
+Two threads per robot, so the network can never stall the wheels:
+
+- control (real time, period = the simulator's dt): apply a pending controller at the step
+  boundary, read the whiskers, `evorobotics.network.step` (batch 1, the simulator's own code),
+  send the motor commands, record the sample, feed the stuck detector. Deadline-based: step k
+  is due at start + k * period on the monotonic clock, so lateness never accumulates.
+- link: opens the zenoh client session (retrying with backoff), declares the robot's liveliness
+  token, takes pushes from the command subscriber, acknowledges them once applied, asks the
+  server for a replacement when stuck, and delivers buffered trace batches until acknowledged.
+
+The robot keeps running its controller without the network. Traces wait in a bounded buffer
+(oldest dropped first, counted) and go out after reconnection. The last accepted controller is
+written to the state directory so a restarted agent resumes with it. A stuck robot backs up and
+turns (scripted escape) at once, while it asks the server; if a replacement arrives it takes
+over after the escape, otherwise the current controller resumes from fresh state.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import logging
+import os
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import zenoh
+
+from evorobotics import network
+from evorobotics.document import ControllerDocument
+from evorobotics.errors import ControllerDocumentError
+from evorobotics.sim import WorldParams
+from robot_agent.errors import SerialLinkError
+from robot_agent.stuck import StuckConfig, StuckDetector
+from schemas.robots import (
+    ESCAPE,
+    KEY_REPLACE,
+    KEY_TRACES,
+    WHISKERS,
+    AgentState,
+    ControllerPush,
+    PushAck,
+    Replacement,
+    RobotStatus,
+    StopCommand,
+    StuckRequest,
+    TraceAck,
+    TraceBatch,
+    ack_key,
+    alive_key,
+    check_robot_id,
+    command_key,
+    decode_message,
+    encode_message,
+    encode_trace,
+)
+from schemas.wire import WireError
+
+log = logging.getLogger(__name__)
+
+
+class RobotIO(Protocol):
+    """What the control loop needs from the robot: `BasicXDriver` is the real one."""
+
+    def whiskers(self) -> tuple[bool, ...]: ...
+
+    def set_motors(self, left: float, right: float) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def set_watchdog(self, seconds: float) -> None: ...
+
+
+def default_state_dir(robot_id: str) -> Path:
+    return Path.home() / ".evocolony" / f"agent-{check_robot_id(robot_id)}"
+
+
+@dataclass(frozen=True)
+class AgentSettings:
+    """Identity, server endpoints and timing of one agent; defaults suit a lab EvBot."""
+
+    robot_id: str
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    state_dir: Path | None = None
+    """Where the last accepted controller is kept (default ~/.evocolony/agent-ID)."""
+    period: float = WorldParams().dt
+    """Control period: the simulator's step, so the controller sees the same time base."""
+    batch_steps: int = 10
+    """Samples per trace batch in normal operation (one batch a second)."""
+    max_batch: int = 600
+    """Samples per batch while a backlog drains after a reconnection."""
+    buffer_samples: int = 36_000
+    """Trace samples kept while the server is unreachable (one hour at 10 Hz)."""
+    request_timeout: float = 2.0
+    """Timeout of each `get` (traces, replacement request)."""
+    backoff_initial: float = 0.1
+    backoff_max: float = 2.0
+    watchdog: float = 0.5
+    """Firmware watchdog set at start: a dead agent's motors stop within this time."""
+    escape_back_steps: int = 8
+    escape_turn_steps: int = 6
+    escape_speed: float = 0.6
+    stuck: StuckConfig = field(default_factory=StuckConfig)
+    multicast_scouting: bool = False
+
+    def __post_init__(self) -> None:
+        check_robot_id(self.robot_id)
+        if not self.connect:
+            raise ValueError("an agent needs at least one connect endpoint")
+        for name in ("period", "request_timeout", "backoff_initial", "backoff_max", "watchdog"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("batch_steps", "max_batch", "buffer_samples"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.escape_back_steps < 0 or self.escape_turn_steps < 0:
+            raise ValueError("escape steps must be >= 0")
+        if not 0 < self.escape_speed <= 1:
+            raise ValueError(f"escape_speed must be in (0, 1], got {self.escape_speed}")
+
+    @property
+    def state_path(self) -> Path:
+        return self.state_dir or default_state_dir(self.robot_id)
+
+    def zenoh_config(self) -> zenoh.Config:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        conf.insert_json5(
+            "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
+        )
+        return conf
+
+
+def validate_document(text: str, sha256: str | None = None) -> ControllerDocument:
+    """A document an EvBot can run (5 inputs, 2 outputs, finite, sha256 intact), else ValueError."""
+    try:
+        doc = ControllerDocument.from_json(text)
+    except ControllerDocumentError as exc:
+        raise ValueError(str(exc)) from None
+    if doc.spec.inputs != WHISKERS or doc.spec.outputs != 2:
+        raise ValueError(
+            f"an EvBot needs {WHISKERS} inputs and 2 outputs, got {doc.spec.inputs} and "
+            f"{doc.spec.outputs}"
+        )
+    if sha256 is not None and doc.sha256 != sha256:
+        raise ValueError(f"push names sha256 {sha256} but the document hashes to {doc.sha256}")
+    return doc
+
+
+@dataclass
+class _Pending:
+    """A change the control loop makes at its next step boundary."""
+
+    document: ControllerDocument | None
+    """None: stop."""
+    push_id: str | None
+    """Acknowledge this push once applied (None: a replacement, nobody waits)."""
+
+
+@dataclass(frozen=True)
+class _Sample:
+    step: int
+    whiskers: tuple[int, ...]
+    motors: tuple[float, float]
+    sha256: str | None
+    fresh: bool
+
+
+class _Backoff:
+    def __init__(self, initial: float, maximum: float) -> None:
+        self._initial, self._max = initial, maximum
+        self._delay = initial
+
+    def next(self) -> float:
+        delay = self._delay
+        self._delay = min(self._delay * 2, self._max)
+        return delay
+
+    def reset(self) -> None:
+        self._delay = self._initial
+
+
+class Agent:
+    """One EvBot's daemon between `start()` and `stop()` (or `with`)."""
+
+    def __init__(
+        self,
+        settings: AgentSettings,
+        robot: RobotIO,
+        *,
+        open_session: Callable[[], zenoh.Session] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.robot = robot
+        self._open_session = open_session or (lambda: zenoh.open(settings.zenoh_config()))
+        self._lock = threading.Lock()
+        self.changed = threading.Condition(self._lock)
+        """Notified after every control step; wait on it with `wait_for`."""
+        self._halt = threading.Event()
+        self._wake = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._outbox: queue.SimpleQueue[PushAck | StuckRequest | ControllerDocument] = (
+            queue.SimpleQueue()
+        )
+        self._buffer: deque[_Sample] = deque()
+        self._pending: _Pending | None = None
+        self._after_escape: ControllerDocument | None = None
+        self._doc: ControllerDocument | None = None
+        self._weights = np.empty((1, 0))
+        self._net_state = np.empty((1, 0))
+        self._fresh = False
+        self._state: AgentState = "idle"
+        self._escape: list[tuple[float, float]] = []
+        self._detector = StuckDetector(settings.stuck, WorldParams(dt=settings.period))
+        self._lateness: deque[float] = deque(maxlen=1000)
+        self.steps = 0
+        self.stuck_events = 0
+        self.serial_errors = 0
+        self.serial_ok = True
+        self.dropped = 0
+        self.connected = threading.Event()
+        """Set while the zenoh session is open."""
+        self.delivered = 0
+        """Trace samples the server acknowledged."""
+        self.last_whiskers: tuple[int, ...] = (0,) * WHISKERS
+        self.boot = self._next_boot()
+        saved = self._load_saved()
+        if saved is not None:
+            self._install(saved)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> Agent:
+        if self._threads:
+            raise RuntimeError("agent already started")
+        with contextlib.suppress(SerialLinkError):
+            self.robot.set_watchdog(self.settings.watchdog)
+        for name, target in (("control", self._control_loop), ("link", self._link_loop)):
+            thread = threading.Thread(
+                target=target, name=f"agent-{name}-{self.settings.robot_id}", daemon=True
+            )
+            thread.start()
+            self._threads.append(thread)
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop both threads, the motors and the session (idempotent)."""
+        self._halt.set()
+        self._wake.set()
+        for thread in self._threads:
+            thread.join(timeout)
+            if thread.is_alive():
+                raise RuntimeError(f"{thread.name} did not stop")
+        with contextlib.suppress(SerialLinkError):
+            self.robot.stop()
+
+    def __enter__(self) -> Agent:
+        return self.start() if not self._threads else self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ observation
+
+    @property
+    def controller(self) -> ControllerDocument | None:
+        with self._lock:
+            return self._doc
+
+    @property
+    def state(self) -> AgentState:
+        with self._lock:
+            return self._state
+
+    def buffered(self) -> int:
+        with self._lock:
+            return len(self._buffer)
+
+    def lateness(self) -> list[float]:
+        """Seconds each recent step started after its deadline (the loop's jitter)."""
+        with self._lock:
+            return list(self._lateness)
+
+    def status(self) -> RobotStatus:
+        with self._lock:
+            return self._status()
+
+    def _status(self) -> RobotStatus:
+        late = sorted(self._lateness)
+        p99 = late[min(len(late) - 1, int(0.99 * len(late)))] * 1000 if late else None
+        return RobotStatus(
+            state=self._state,
+            steps=self.steps,
+            sha256=self._doc.sha256 if self._doc else None,
+            serial_ok=self.serial_ok,
+            serial_errors=self.serial_errors,
+            resends=getattr(getattr(self.robot, "stats", None), "resends", 0),
+            dropped=self.dropped,
+            stuck_events=self.stuck_events,
+            jitter_p99_ms=p99,
+        )
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        """Block until `predicate()` (checked after each step, lock held); False on timeout."""
+        with self.changed:
+            return self.changed.wait_for(predicate, timeout)
+
+    # ------------------------------------------------------------------ control loop
+
+    def _control_loop(self) -> None:
+        period = self.settings.period
+        due = time.monotonic()
+        while not self._halt.is_set():
+            now = time.monotonic()
+            if now < due:
+                self._halt.wait(due - now)
+                if self._halt.is_set():
+                    break
+                now = time.monotonic()
+            late = now - due
+            self._step(late)
+            due += period
+            if time.monotonic() - due > period:  # overran a whole period: resynchronise
+                due = time.monotonic()
+
+    def _step(self, late: float) -> None:
+        with self._lock:
+            self._lateness.append(late)
+            self._apply_pending()
+        try:
+            bits = tuple(int(b) for b in self.robot.whiskers())
+        except SerialLinkError as exc:
+            self._serial_failed(exc)
+            return
+        with self._lock:
+            motors, sha, fresh = self._decide(bits)
+        try:
+            self.robot.set_motors(motors[0], motors[1])
+            ok = True
+        except SerialLinkError as exc:
+            self._serial_failed(exc)
+            ok = False
+        with self._lock:
+            self.serial_ok = ok
+            self.last_whiskers = bits
+            sample = _Sample(self.steps, bits, motors, sha, fresh)
+            if len(self._buffer) >= self.settings.buffer_samples:
+                self._buffer.popleft()
+                self.dropped += 1
+            self._buffer.append(sample)
+            self.steps += 1
+            if sha is not None and self._state == "running":
+                reason = self._detector.update([b == 1 for b in bits], motors)
+                if reason is not None:
+                    self.stuck_events += 1
+                    self._begin_escape()
+                    self._outbox.put(
+                        StuckRequest(
+                            robot=self.settings.robot_id,
+                            sha256=sha,
+                            reason=str(reason),
+                            step=sample.step,
+                        )
+                    )
+                    self._wake.set()
+            self.changed.notify_all()
+        if len(self._buffer) >= self.settings.batch_steps:
+            self._wake.set()
+
+    def _serial_failed(self, exc: SerialLinkError) -> None:
+        log.warning("robot %s: serial link: %s", self.settings.robot_id, exc)
+        with self._lock:
+            self.serial_ok = False
+            self.serial_errors += 1
+            self.changed.notify_all()
+
+    def _decide(self, bits: tuple[int, ...]) -> tuple[tuple[float, float], str | None, bool]:
+        """This step's motor commands, the controller that made them (None) and freshness."""
+        if self._state == "escaping":
+            motors = self._escape.pop(0)
+            if not self._escape:
+                self._end_escape()
+            return motors, None, False
+        if self._state != "running" or self._doc is None:
+            return (0.0, 0.0), None, False
+        inputs = np.array([bits], dtype=np.float64)
+        out, self._net_state = network.step(self._doc.spec, self._weights, inputs, self._net_state)
+        m = network.motor_commands(self._doc.spec, out)[0]
+        fresh, self._fresh = self._fresh, False
+        return (float(m[0]), float(m[1])), self._doc.sha256, fresh
+
+    def _apply_pending(self) -> None:
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        if pending.document is None:
+            self._state = "stopped"
+            self._escape = []
+            self._after_escape = None
+        else:
+            self._install(pending.document)
+            self._outbox.put(pending.document)  # persisted by the link thread
+        if pending.push_id is not None:
+            self._outbox.put(
+                PushAck(
+                    robot=self.settings.robot_id,
+                    push_id=pending.push_id,
+                    accepted=True,
+                    sha256=self._doc.sha256 if self._doc else None,
+                )
+            )
+            self._wake.set()
+
+    def _install(self, doc: ControllerDocument) -> None:
+        """Run `doc` from fresh state (lock held, or before the threads start)."""
+        self._doc = doc
+        self._weights = np.ascontiguousarray(doc.weights[np.newaxis, :])
+        self._net_state = network.reset(doc.spec, 1)
+        self._fresh = True
+        self._state = "running"
+        self._escape = []
+        self._after_escape = None
+        self._detector.reset()
+
+    def _begin_escape(self) -> None:
+        s = self.settings
+        back = [(-s.escape_speed, -s.escape_speed)] * s.escape_back_steps
+        turn = [(s.escape_speed, -s.escape_speed)] * s.escape_turn_steps
+        self._escape = back + turn
+        self._state = "escaping"
+        if not self._escape:
+            self._end_escape()
+
+    def _end_escape(self) -> None:
+        doc, replaced = self._after_escape or self._doc, self._after_escape is not None
+        if doc is not None:
+            self._install(doc)
+            if replaced:
+                self._outbox.put(doc)  # persisted by the link thread
+
+    # ------------------------------------------------------------------ link thread
+
+    def _link_loop(self) -> None:
+        backoff = _Backoff(self.settings.backoff_initial, self.settings.backoff_max)
+        while not self._halt.is_set():
+            try:
+                session = self._open_session()
+            except zenoh.ZError as exc:
+                delay = backoff.next()
+                log.info(
+                    "robot %s: no router (%s); retry in %.1f s", self.settings.robot_id, exc, delay
+                )
+                self._serve_offline(delay)
+                continue
+            backoff.reset()
+            try:
+                self._serve(session)
+            finally:
+                self.connected.clear()
+                session.close()  # type: ignore[no-untyped-call]
+
+    def _serve_offline(self, delay: float) -> None:
+        """Without a session: persist applied controllers; stuck requests go unanswered."""
+        deadline = time.monotonic() + delay
+        while not self._halt.is_set() and time.monotonic() < deadline:
+            self._drain_outbox(None)
+            self._wake.wait(min(0.05, max(0.0, deadline - time.monotonic())))
+            self._wake.clear()
+
+    def _serve(self, session: zenoh.Session) -> None:
+        robot = self.settings.robot_id
+        inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+
+        def on_command(sample: zenoh.Sample) -> None:
+            inbox.put(sample.payload.to_bytes())
+            self._wake.set()
+
+        token = session.liveliness().declare_token(alive_key(robot))
+        subscriber = session.declare_subscriber(command_key(robot), on_command)
+        self.connected.set()
+        backoff = _Backoff(self.settings.backoff_initial, self.settings.backoff_max)
+        retry_at = 0.0
+        try:
+            while not self._halt.is_set():
+                while True:
+                    try:
+                        self._command(session, inbox.get_nowait())
+                    except queue.Empty:
+                        break
+                self._drain_outbox(session)
+                if time.monotonic() >= retry_at:
+                    if self._deliver(session):
+                        backoff.reset()
+                        retry_at = 0.0
+                    else:
+                        retry_at = time.monotonic() + backoff.next()
+                self._wake.wait(self.settings.period)
+                self._wake.clear()
+        finally:
+            subscriber.undeclare()  # type: ignore[no-untyped-call]
+            token.undeclare()  # type: ignore[no-untyped-call]
+
+    def _command(self, session: zenoh.Session, payload: bytes) -> None:
+        robot = self.settings.robot_id
+        try:
+            message = decode_message(payload)
+        except WireError as exc:
+            log.warning("robot %s: dropping malformed command: %s", robot, exc)
+            return
+        if isinstance(message, StopCommand):
+            with self._lock:
+                self._pending = _Pending(None, message.push_id)
+            return
+        if not isinstance(message, ControllerPush):
+            log.warning("robot %s: unexpected %s on the command key", robot, message.kind)
+            return
+        try:
+            doc = validate_document(message.document, message.sha256)
+        except ValueError as exc:
+            log.warning("robot %s: rejecting push %s: %s", robot, message.push_id, exc)
+            current = self.controller
+            self._publish_ack(
+                session,
+                PushAck(
+                    robot=robot,
+                    push_id=message.push_id,
+                    accepted=False,
+                    sha256=current.sha256 if current else None,
+                    reason=str(exc)[:500],
+                ),
+            )
+            return
+        with self._lock:
+            self._pending = _Pending(doc, message.push_id)
+
+    def _drain_outbox(self, session: zenoh.Session | None) -> None:
+        while True:
+            try:
+                item = self._outbox.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(item, ControllerDocument):
+                self._save(item)
+            elif session is None:
+                continue  # offline: acks have nobody waiting, stuck requests nobody to answer
+            elif isinstance(item, PushAck):
+                self._publish_ack(session, item)
+            else:
+                self._ask_replacement(session, item)
+
+    def _publish_ack(self, session: zenoh.Session, ack: PushAck) -> None:
+        session.put(
+            ack_key(self.settings.robot_id),
+            encode_message(ack),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+
+    def _ask_replacement(self, session: zenoh.Session, request: StuckRequest) -> None:
+        reply = _ask(session, KEY_REPLACE, encode_message(request), self.settings.request_timeout)
+        if reply is None:
+            log.info("robot %s: no server for a replacement; escaping", request.robot)
+            return
+        try:
+            message = decode_message(reply)
+            if not isinstance(message, Replacement):
+                raise WireError(f"expected a replacement, got {message.kind}")
+            if message.document is None:
+                log.info("robot %s: no replacement: %s", request.robot, message.reason)
+                return
+            doc = validate_document(message.document)
+        except ValueError as exc:
+            log.warning("robot %s: bad replacement: %s", request.robot, exc)
+            return
+        with self._lock:
+            if self._state == "escaping":
+                self._after_escape = doc
+            else:
+                self._pending = _Pending(doc, None)
+
+    def _deliver(self, session: zenoh.Session) -> bool:
+        """Send the oldest buffered samples; False if the server did not acknowledge."""
+        with self._lock:
+            if not self._buffer:
+                return True
+            limit = self.settings.max_batch
+            samples = list(itertools.islice(self._buffer, limit))
+            status = self._status()
+        batch = _batch(self.settings.robot_id, self.boot, samples, status)
+        reply = _ask(session, KEY_TRACES, encode_trace(batch), self.settings.request_timeout)
+        if reply is None:
+            return False
+        try:
+            ack = decode_message(reply)
+        except WireError as exc:
+            log.warning("robot %s: malformed trace ack: %s", self.settings.robot_id, exc)
+            return False
+        if not isinstance(ack, TraceAck) or ack.last < batch.last:
+            return False
+        with self._lock:
+            while self._buffer and self._buffer[0].step <= ack.last:
+                self._buffer.popleft()
+                self.delivered += 1
+        return True
+
+    # ------------------------------------------------------------------ state directory
+
+    def _next_boot(self) -> int:
+        """Count agent starts in the state dir: (boot, step) identifies a sample for ever."""
+        path = self.settings.state_path / "boot"
+        try:
+            boot = int(path.read_text()) + 1
+        except (OSError, ValueError):
+            boot = 0
+        _write_atomic(path, str(boot))
+        return boot
+
+    def _load_saved(self) -> ControllerDocument | None:
+        path = self.settings.state_path / "controller.json"
+        try:
+            return validate_document(path.read_text())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError) as exc:
+            log.warning("robot %s: ignoring saved controller: %s", self.settings.robot_id, exc)
+            return None
+
+    def _save(self, doc: ControllerDocument) -> None:
+        _write_atomic(self.settings.state_path / "controller.json", doc.to_json())
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _batch(robot: str, boot: int, samples: list[_Sample], status: RobotStatus) -> TraceBatch:
+    shas = list(dict.fromkeys(s.sha256 for s in samples if s.sha256 is not None))
+    index = {sha: i for i, sha in enumerate(shas)}
+    return TraceBatch(
+        robot=robot,
+        boot=boot,
+        controllers=tuple(shas),
+        status=status,
+        steps=np.array([s.step for s in samples], dtype=np.int64),
+        whiskers=np.array([s.whiskers for s in samples], dtype=np.uint8).reshape(-1, WHISKERS),
+        motors=np.array([s.motors for s in samples], dtype=np.float64).reshape(-1, 2),
+        controller=np.array(
+            [ESCAPE if s.sha256 is None else index[s.sha256] for s in samples], dtype=np.int32
+        ),
+        fresh=np.array([s.fresh for s in samples], dtype=np.bool_),
+    )
+
+
+def _ask(session: zenoh.Session, key: str, payload: bytes, timeout: float) -> bytes | None:
+    """The first successful reply's payload, or None (no server, timeout or error reply)."""
+    for reply in session.get(key, payload=payload, timeout=timeout):
+        if reply.ok is not None:
+            return reply.ok.payload.to_bytes()
+        if reply.err is not None:
+            log.warning("server error on %s: %s", key, reply.err.payload.to_bytes()[:200])
+    return None

@@ -1,0 +1,359 @@
+"""The zenoh wire between the server and robot agents: key expressions, messages, codecs.
+
+Defined once here and documented in docs/robots.md (and docs/protocol.md's key table). Frames
+are those of `schemas.wire` (`EVC1` prefix, JSON header, raw arrays), so one decoder checks every
+length, dtype and shape. Motor commands travel as float64 raw bytes: the server's replay check
+compares them bit for bit with what the same controller computes from the same whiskers.
+
+| key | kind | declared by |
+| --- | --- | --- |
+| `evocolony/robots/alive/{id}` | liveliness token | agent |
+| `evocolony/robots/{id}/command` | subscriber (pushes, stop) | agent |
+| `evocolony/robots/{id}/ack` | publication (push acknowledgements) | agent |
+| `evocolony/robots/traces` | queryable (trace batches, acknowledged) | server |
+| `evocolony/robots/replace` | queryable (a stuck robot asks for a controller) | server |
+
+Traces go by `get` rather than `put` so the agent knows what arrived: a `put` while the router is
+down is lost silently, an unacknowledged batch stays in the agent's bounded buffer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from schemas.wire import NAME_PATTERN, WireError, decode_frame, encode_frame
+
+KEY_ROBOTS_ALIVE = "evocolony/robots/alive/*"
+"""Liveliness key expression matching every robot's token."""
+KEY_TRACES = "evocolony/robots/traces"
+"""Queryable (server): a `get` carries one TraceBatch; the reply is a TraceAck."""
+KEY_REPLACE = "evocolony/robots/replace"
+"""Queryable (server): a stuck robot's `get` carries a StuckRequest; the reply a Replacement."""
+KEY_ACKS = "evocolony/robots/*/ack"
+"""Key expression the server subscribes to for every robot's push acknowledgements."""
+
+WHISKERS = 5
+ESCAPE = -1
+"""Controller index of a sample driven by the scripted escape or a stop, not by a controller."""
+
+
+def check_robot_id(robot_id: str) -> str:
+    """`robot_id` if it is a valid id (one key chunk), else ValueError."""
+    if not NAME_PATTERN.match(robot_id):
+        raise ValueError(f"robot id {robot_id!r} must match {NAME_PATTERN.pattern}")
+    return robot_id
+
+
+def alive_key(robot_id: str) -> str:
+    return f"evocolony/robots/alive/{check_robot_id(robot_id)}"
+
+
+def command_key(robot_id: str) -> str:
+    return f"evocolony/robots/{check_robot_id(robot_id)}/command"
+
+
+def ack_key(robot_id: str) -> str:
+    return f"evocolony/robots/{check_robot_id(robot_id)}/ack"
+
+
+def robot_from_key(key: str) -> str:
+    """The robot id of a liveliness or ack key; ValueError for any other key."""
+    parts = key.split("/")
+    if len(parts) == 4 and parts[:3] == ["evocolony", "robots", "alive"]:
+        return check_robot_id(parts[3])
+    if len(parts) == 4 and parts[:2] == ["evocolony", "robots"] and parts[3] == "ack":
+        return check_robot_id(parts[2])
+    raise ValueError(f"{key!r} is not a robot key")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class _RobotMessage(_Model):
+    robot: str
+
+    @field_validator("robot")
+    @classmethod
+    def _check_robot(cls, value: str) -> str:
+        return check_robot_id(value)
+
+
+class ControllerPush(_Model):
+    """Server -> agent on command_key: run this controller document (validated by the agent)."""
+
+    kind: Literal["push"] = "push"
+    push_id: str = Field(min_length=1, max_length=64)
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    document: str = Field(description="controller document JSON (evorobotics.document)")
+
+
+class StopCommand(_Model):
+    """Server -> agent on command_key: stop the motors and idle until the next push."""
+
+    kind: Literal["stop"] = "stop"
+    push_id: str = Field(min_length=1, max_length=64)
+
+
+class PushAck(_RobotMessage):
+    """Agent -> server on ack_key: a push or stop applied (accepted) or refused (reason)."""
+
+    kind: Literal["ack"] = "ack"
+    push_id: str
+    accepted: bool
+    sha256: str | None = Field(description="the controller the robot runs after this message")
+    reason: str = ""
+
+
+AgentState = Literal["running", "escaping", "stopped", "idle"]
+"""idle: no controller yet; stopped: by the operator until the next push."""
+
+
+class RobotStatus(_Model):
+    """The agent's state, sent with every trace batch."""
+
+    state: AgentState
+    steps: int = Field(ge=0, description="control steps run since the agent started")
+    sha256: str | None = Field(description="controller in force")
+    serial_ok: bool = Field(description="the BasicX answered the last step's requests")
+    serial_errors: int = Field(0, ge=0)
+    resends: int = Field(0, ge=0)
+    dropped: int = Field(0, ge=0, description="trace samples dropped from a full buffer")
+    stuck_events: int = Field(0, ge=0)
+    jitter_p99_ms: float | None = Field(None, ge=0.0, allow_inf_nan=False)
+
+
+class TraceHeader(_RobotMessage):
+    kind: Literal["trace"] = "trace"
+    boot: int = Field(ge=0, description="agent start count: (boot, step) names a sample")
+    controllers: list[str] = Field(description="sha256 of each controller index in the batch")
+    status: RobotStatus
+
+
+@dataclass(frozen=True)
+class TraceBatch:
+    """Consecutive control samples of one robot during one agent start (`boot`).
+
+    steps (n,) int64 (one more per sample: a gap means lost samples), whiskers (n, 5) uint8, motors (n, 2) float64 exactly as the controller
+    computed them (before the wire's 1/1000 quantisation), controller (n,) int32 index into
+    `controllers` or ESCAPE, fresh (n,) bool: the controller's state was reset before this step.
+    """
+
+    robot: str
+    boot: int
+    controllers: tuple[str, ...]
+    status: RobotStatus
+    steps: np.ndarray
+    whiskers: np.ndarray
+    motors: np.ndarray
+    controller: np.ndarray
+    fresh: np.ndarray
+
+    def __post_init__(self) -> None:
+        check_robot_id(self.robot)
+        n = self.steps.shape[0] if self.steps.ndim == 1 else -1
+        expected = {
+            "steps": ((n,), np.int64),
+            "whiskers": ((n, WHISKERS), np.uint8),
+            "motors": ((n, 2), np.float64),
+            "controller": ((n,), np.int32),
+            "fresh": ((n,), np.bool_),
+        }
+        for name, (shape, dtype) in expected.items():
+            value: np.ndarray = getattr(self, name)
+            if value.shape != shape or value.dtype != dtype:
+                raise WireError(
+                    f"trace {name} must be {np.dtype(dtype)} {shape}, got {value.dtype} "
+                    f"{value.shape}"
+                )
+        if n < 1:
+            raise WireError("a trace batch holds at least one sample")
+        if np.any(np.diff(self.steps) <= 0):
+            raise WireError("trace steps must increase")
+        if np.any(self.whiskers > 1):
+            raise WireError("whisker bits must be 0 or 1")
+        if not np.isfinite(self.motors).all():
+            raise WireError("motor commands must be finite")
+        bad = (self.controller < ESCAPE) | (self.controller >= len(self.controllers))
+        if np.any(bad):
+            raise WireError("controller index out of range")
+
+    @property
+    def first(self) -> int:
+        return int(self.steps[0])
+
+    @property
+    def last(self) -> int:
+        return int(self.steps[-1])
+
+
+def encode_trace(batch: TraceBatch) -> bytes:
+    header = TraceHeader(
+        robot=batch.robot,
+        boot=batch.boot,
+        controllers=list(batch.controllers),
+        status=batch.status,
+    )
+    arrays = {
+        "steps": batch.steps,
+        "whiskers": batch.whiskers,
+        "motors": batch.motors,
+        "controller": batch.controller,
+        "fresh": batch.fresh,
+    }
+    return encode_frame(header.model_dump(mode="json"), arrays)
+
+
+def decode_trace(payload: bytes) -> TraceBatch:
+    header, arrays = decode_frame(payload)
+    try:
+        parsed = TraceHeader.model_validate(header)
+    except ValidationError as exc:
+        raise WireError(f"trace header: {exc}") from exc
+    names = {"steps", "whiskers", "motors", "controller", "fresh"}
+    if set(arrays) != names:
+        raise WireError(f"trace arrays must be {sorted(names)}, got {sorted(arrays)}")
+    return TraceBatch(
+        robot=parsed.robot,
+        boot=parsed.boot,
+        controllers=tuple(parsed.controllers),
+        status=parsed.status,
+        **{name: arrays[name] for name in names},
+    )
+
+
+class TraceAck(_RobotMessage):
+    """Server -> agent, reply on KEY_TRACES: samples through step `last` are stored."""
+
+    kind: Literal["trace-ack"] = "trace-ack"
+    last: int
+
+
+class StuckRequest(_RobotMessage):
+    """Agent -> server on KEY_REPLACE: the robot is stuck with `sha256`; send another."""
+
+    kind: Literal["stuck"] = "stuck"
+    sha256: str | None
+    reason: str = Field(max_length=64)
+    step: int = Field(ge=0)
+
+
+class Replacement(_RobotMessage):
+    """Server -> agent, reply on KEY_REPLACE: a new document, or None with the reason."""
+
+    kind: Literal["replacement"] = "replacement"
+    document: str | None
+    reason: str = ""
+
+
+RobotMessage = ControllerPush | StopCommand | PushAck | TraceAck | StuckRequest | Replacement
+_KINDS: dict[str, type[_Model]] = {
+    "push": ControllerPush,
+    "stop": StopCommand,
+    "ack": PushAck,
+    "trace-ack": TraceAck,
+    "stuck": StuckRequest,
+    "replacement": Replacement,
+}
+
+
+def encode_message(message: RobotMessage) -> bytes:
+    """A control message as an array-less frame."""
+    return encode_frame(message.model_dump(mode="json"))
+
+
+def decode_message(payload: bytes) -> RobotMessage:
+    """Any control message, by its `kind`; WireError when malformed."""
+    header, arrays = decode_frame(payload)
+    if arrays:
+        raise WireError(f"control messages carry no arrays, got {sorted(arrays)}")
+    model = _KINDS.get(str(header.get("kind")))
+    if model is None:
+        raise WireError(f"unknown robot message kind {header.get('kind')!r}")
+    try:
+        message = model.model_validate(header)
+    except ValidationError as exc:
+        raise WireError(f"{model.__name__}: {exc}") from exc
+    return message  # type: ignore[return-value]
+
+
+# ---------------------------------------------------------------------------- REST bodies
+
+
+class RobotOut(_Model):
+    """One robot in GET /api/robots."""
+
+    id: str
+    online: bool
+    state: str
+    controller_sha256: str | None
+    steps: int
+    last_seen: float | None = Field(description="Unix time of the last trace batch")
+
+
+class RobotDetail(RobotOut):
+    """GET /api/robots/{id}: the summary plus the controller's origin, whiskers and link."""
+
+    controller_run: int | None
+    controller_rank: int | None
+    controller_generation: int | None
+    whiskers: str = Field(description="last whisker bits, left to right")
+    stuck_events: int = Field(description="stuck requests the server received")
+    boot: int
+    link: dict[str, object] = Field(description="zenoh link and the agent's last RobotStatus")
+
+
+class PushBody(_Model):
+    """POST /api/robots/{id}/controller: a stored controller, or a run's ranked individual."""
+
+    sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
+    run_id: int | None = Field(None, ge=0)
+    rank: int = Field(0, ge=0)
+
+
+class PushOut(_Model):
+    robot: str
+    push_id: str
+    sha256: str | None
+    acknowledged: bool = Field(description="the robot answered within the timeout")
+    accepted: bool = Field(description="the robot runs the pushed controller (or stopped)")
+    reason: str = ""
+
+
+class TraceSample(_Model):
+    boot: int
+    step: int
+    whiskers: str
+    motors: tuple[float, float]
+    controller_sha256: str | None
+    fresh: bool
+
+
+class TracesOut(_Model):
+    robot: str
+    samples: list[TraceSample] = Field(description="newest last")
+
+
+class ReplayOut(_Model):
+    """The sim-to-real check: same whiskers into the same controller, same motor commands."""
+
+    robot: str
+    identical: bool = Field(description="samples were checked and every one matched bit for bit")
+    checked: int
+    segments: int = Field(description="controller runs replayed from their fresh start")
+    skipped: int = Field(description="samples not checkable: escape, stop, or start not retained")
+    mismatches: int
+    first_mismatch: dict[str, object] | None
+
+
+class FieldStats(_Model):
+    """Field performance of a controller over every robot that ran it."""
+
+    sha256: str
+    robot_hours: float
+    stuck_events: int
+    stuck_per_hour: float | None

@@ -1,0 +1,85 @@
+"""Tables of the robot side: trace batches, each robot's last report, stuck events, field stats.
+
+Defined on `server.models.Base` so one metadata (and alembic revision 0002) covers them. Arrays
+are raw little-endian bytes as everywhere in the store; a trace batch keeps its samples together
+because they arrive, are replayed and expire together.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from sqlalchemy import BigInteger, Boolean, DateTime, Index, Integer, LargeBinary, String, Text
+from sqlalchemy.orm import Mapped, mapped_column
+
+from server.models import Base, utcnow
+
+
+class TraceRow(Base):
+    """Consecutive samples of one robot within one agent start (`boot`)."""
+
+    __tablename__ = "robot_traces"
+
+    robot_id: Mapped[str] = mapped_column(String(128), primary_key=True)
+    boot: Mapped[int] = mapped_column(Integer, primary_key=True)
+    first: Mapped[int] = mapped_column(BigInteger, primary_key=True)
+    last: Mapped[int] = mapped_column(BigInteger)
+    count: Mapped[int] = mapped_column(Integer)
+    controllers: Mapped[str] = mapped_column(Text)
+    """JSON list of sha256; `controller` indexes it (-1: escape or stopped)."""
+    steps: Mapped[bytes] = mapped_column(LargeBinary)
+    """(count,) <i8."""
+    whiskers: Mapped[bytes] = mapped_column(LargeBinary)
+    """(count, 5) |u1."""
+    motors: Mapped[bytes] = mapped_column(LargeBinary)
+    """(count, 2) <f8, exactly as the controller computed them."""
+    controller: Mapped[bytes] = mapped_column(LargeBinary)
+    """(count,) <i4."""
+    fresh: Mapped[bytes] = mapped_column(LargeBinary)
+    """(count,) |b1: the controller started from fresh state at this sample."""
+    received_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class RobotStateRow(Base):
+    """The last report of a robot (from its newest trace batch) and who pushed what."""
+
+    __tablename__ = "robot_state"
+
+    robot_id: Mapped[str] = mapped_column(String(128), primary_key=True)
+    state: Mapped[str] = mapped_column(String(16))
+    steps: Mapped[int] = mapped_column(BigInteger, default=0)
+    boot: Mapped[int] = mapped_column(Integer, default=0)
+    whiskers: Mapped[str] = mapped_column(String(8), default="00000")
+    controller_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    serial_ok: Mapped[bool] = mapped_column(Boolean, default=True)
+    status: Mapped[str] = mapped_column(Text, default="{}")
+    """The agent's RobotStatus as JSON."""
+    stuck_events: Mapped[int] = mapped_column(Integer, default=0)
+    """Stuck requests the server received from this robot."""
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class StuckEventRow(Base):
+    """One stuck robot's request for a controller, and what the server sent back."""
+
+    __tablename__ = "robot_stuck_events"
+    __table_args__ = (Index("ix_stuck_robot", "robot_id", "id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    robot_id: Mapped[str] = mapped_column(String(128))
+    controller_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True, index=True)
+    reason: Mapped[str] = mapped_column(String(64))
+    step: Mapped[int] = mapped_column(BigInteger)
+    replacement_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class FieldStatsRow(Base):
+    """Field performance of one controller over every robot: steps run and stuck events."""
+
+    __tablename__ = "controller_field_stats"
+
+    sha256: Mapped[str] = mapped_column(String(64), primary_key=True)
+    steps: Mapped[int] = mapped_column(BigInteger, default=0)
+    """Control steps driven by this controller (escape steps excluded)."""
+    stuck_events: Mapped[int] = mapped_column(Integer, default=0)

@@ -1,0 +1,694 @@
+"""The robot side of the server: registry, traces, pushes, replacements and the replay check.
+
+`RobotService` lives on the server's one zenoh session (router mode). Zenoh callbacks only
+enqueue; one service thread stores traces, answers replacement requests, tracks liveliness and
+resolves push acknowledgements, so the database sees one writer from here.
+
+Replacement policy (a stuck robot asks on KEY_REPLACE): the failure is recorded against the
+controller; the reply is the fittest individual of the latest generation of the same run whose
+controller this robot has not failed with in its last `recent_failures` stuck events (its
+current one included). A controller that came from no run, or a run whose every individual
+failed recently on this robot, gets no replacement: the agent's scripted escape carries on.
+
+Retention: the newest `retention_samples` trace samples per robot are kept (whole batches are
+deleted oldest first). Field statistics (steps run, stuck events per controller) are counters
+updated as traces arrive, so they outlive the traces.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import uuid
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+from sqlalchemy import Engine, delete, func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from evorobotics import network
+from evorobotics.document import ControllerDocument
+from evorobotics.errors import ControllerDocumentError
+from evorobotics.sim import WorldParams
+from schemas.robots import (
+    ESCAPE,
+    KEY_ACKS,
+    KEY_REPLACE,
+    KEY_ROBOTS_ALIVE,
+    KEY_TRACES,
+    ControllerPush,
+    FieldStats,
+    PushAck,
+    PushOut,
+    Replacement,
+    ReplayOut,
+    RobotDetail,
+    RobotOut,
+    StopCommand,
+    StuckRequest,
+    TraceAck,
+    TraceBatch,
+    TraceSample,
+    TracesOut,
+    command_key,
+    decode_message,
+    decode_trace,
+    encode_message,
+    robot_from_key,
+)
+from schemas.run import RunConfig
+from schemas.wire import WireError
+from server import crud
+from server.errors import NotFoundError, ServerError
+from server.models import Controller, Robot, Run, utcnow
+from server.robot_store import FieldStatsRow, RobotStateRow, StuckEventRow, TraceRow
+
+log = logging.getLogger(__name__)
+
+
+class RobotOfflineError(ServerError):
+    """The robot has no liveliness token: nothing can be pushed to it (HTTP 409)."""
+
+
+@dataclass(frozen=True)
+class RobotSettings:
+    """Retention and timing of the robot side."""
+
+    retention_samples: int = 36_000
+    """Trace samples kept per robot (one hour at 10 Hz)."""
+    push_timeout: float = 3.0
+    """Seconds a push waits for the robot's acknowledgement (it applies at a step boundary)."""
+    recent_failures: int = 5
+    """A stuck robot gets no controller it failed with in its last this-many stuck events."""
+    dt: float = WorldParams().dt
+    """Seconds of one control step, for robot-hours."""
+
+    def __post_init__(self) -> None:
+        if self.retention_samples < 1 or self.recent_failures < 1:
+            raise ValueError("retention_samples and recent_failures must be >= 1")
+        if not self.push_timeout > 0 or not self.dt > 0:
+            raise ValueError("push_timeout and dt must be > 0")
+
+
+class _Waiter:
+    def __init__(self) -> None:
+        self.done = threading.Event()
+        self.ack: PushAck | None = None
+
+
+class RobotService:
+    """Zenoh endpoints and store of the robot side, between `start()` and `close()`."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        engine_or_sessionmaker: Engine | sessionmaker[Session],
+        settings: RobotSettings | None = None,
+    ) -> None:
+        self.settings = settings or RobotSettings()
+        self._zenoh = session
+        self.sessions = (
+            engine_or_sessionmaker
+            if isinstance(engine_or_sessionmaker, sessionmaker)
+            else sessionmaker(engine_or_sessionmaker, expire_on_commit=False)
+        )
+        self._inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._online: set[str] = set()
+        self._waiters: dict[str, _Waiter] = {}
+        self._stored: dict[str, int] = {}
+        self._last: dict[tuple[str, int], int] = {}
+        self._entities: list[Any] = []
+        self._thread: threading.Thread | None = None
+        self.traces_received = 0
+        """Trace samples stored (duplicates excluded); for benchmarks."""
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> RobotService:
+        if self._thread is not None:
+            raise RuntimeError("robot service already started")
+        with self.sessions.begin() as db:
+            for robot in db.scalars(select(Robot)):
+                robot.status = "offline"
+        z = self._zenoh
+        self._entities = [
+            z.declare_queryable(KEY_TRACES, lambda q: self._inbox.put(("trace", q))),
+            z.declare_queryable(KEY_REPLACE, lambda q: self._inbox.put(("replace", q))),
+            z.declare_subscriber(KEY_ACKS, lambda s: self._inbox.put(("ack", s))),
+            z.liveliness().declare_subscriber(
+                KEY_ROBOTS_ALIVE, lambda s: self._inbox.put(("alive", s)), history=True
+            ),
+        ]
+        self._thread = threading.Thread(target=self._run, name="robot-service", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Undeclare every endpoint and stop the service thread (the session stays open)."""
+        for entity in self._entities:
+            entity.undeclare()
+        self._entities = []
+        if self._thread is not None:
+            self._inbox.put(("halt", None))
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                raise RuntimeError("robot service thread did not stop")
+            self._thread = None
+
+    # ------------------------------------------------------------------ service thread
+
+    def _run(self) -> None:
+        while True:
+            kind, item = self._inbox.get()
+            if kind == "halt":
+                return
+            try:
+                if kind == "trace":
+                    self._on_trace(item)
+                elif kind == "replace":
+                    self._on_replace(item)
+                elif kind == "ack":
+                    self._on_ack(item)
+                else:
+                    self._on_alive(item)
+            except Exception:  # one bad message must not stop the robot side
+                log.exception("robot service: handling %s failed", kind)
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        try:
+            robot = robot_from_key(str(sample.key_expr))
+        except ValueError:
+            log.warning("ignoring robot liveliness key %s", sample.key_expr)
+            return
+        online = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            (self._online.add if online else self._online.discard)(robot)
+        with self.sessions.begin() as db:
+            row = db.get(Robot, robot)
+            if row is None:
+                row = Robot(id=robot, status="online")
+                db.add(row)
+            row.status = "online" if online else "offline"
+            row.last_seen = utcnow()
+
+    def _on_ack(self, sample: zenoh.Sample) -> None:
+        try:
+            ack = decode_message(sample.payload.to_bytes())
+        except WireError as exc:
+            log.warning("dropping malformed ack: %s", exc)
+            return
+        if not isinstance(ack, PushAck):
+            return
+        with self._lock:
+            waiter = self._waiters.get(ack.push_id)
+        if ack.accepted:
+            with self.sessions.begin() as db:
+                row = db.get(Robot, ack.robot)
+                if row is not None:
+                    row.controller_sha256 = ack.sha256
+        if waiter is not None:
+            waiter.ack = ack
+            waiter.done.set()
+
+    def _on_trace(self, query: zenoh.Query) -> None:
+        with query:
+            try:
+                batch = decode_trace(_payload(query))
+            except WireError as exc:
+                query.reply_err(f"malformed: {exc}".encode())
+                return
+            last = self._store(batch)
+            ack = TraceAck(robot=batch.robot, last=last)
+            query.reply(KEY_TRACES, encode_message(ack))
+
+    def _on_replace(self, query: zenoh.Query) -> None:
+        with query:
+            try:
+                request = decode_message(_payload(query))
+                if not isinstance(request, StuckRequest):
+                    raise WireError(f"expected a stuck request, got {request.kind}")
+            except WireError as exc:
+                query.reply_err(f"malformed: {exc}".encode())
+                return
+            doc, reason = self._replace(request)
+            reply = Replacement(
+                robot=request.robot, document=doc.to_json() if doc else None, reason=reason
+            )
+            query.reply(KEY_REPLACE, encode_message(reply))
+
+    # ------------------------------------------------------------------ traces
+
+    def _store(self, batch: TraceBatch) -> int:
+        """Store the samples not seen before; the last step stored for (robot, boot)."""
+        robot, key = batch.robot, (batch.robot, batch.boot)
+        with self.sessions.begin() as db:
+            if key not in self._last:
+                found = db.scalar(
+                    select(func.max(TraceRow.last)).where(
+                        TraceRow.robot_id == robot, TraceRow.boot == batch.boot
+                    )
+                )
+                self._last[key] = -1 if found is None else int(found)
+            new = batch.steps > self._last[key]
+            self._report(db, batch)
+            if not new.any():
+                return self._last[key]
+            steps, controller = batch.steps[new], batch.controller[new]
+            db.add(
+                TraceRow(
+                    robot_id=robot,
+                    boot=batch.boot,
+                    first=int(steps[0]),
+                    last=int(steps[-1]),
+                    count=int(steps.shape[0]),
+                    controllers=json.dumps(list(batch.controllers)),
+                    steps=steps.astype("<i8").tobytes(),
+                    whiskers=batch.whiskers[new].tobytes(),
+                    motors=batch.motors[new].astype("<f8").tobytes(),
+                    controller=controller.astype("<i4").tobytes(),
+                    fresh=batch.fresh[new].tobytes(),
+                )
+            )
+            for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
+                if index != ESCAPE:
+                    stats = _field_row(db, batch.controllers[int(index)])
+                    stats.steps += int(count)
+            self._retain(db, robot, int(steps.shape[0]))
+            self._last[key] = int(steps[-1])
+            self.traces_received += int(steps.shape[0])
+            return self._last[key]
+
+    def _report(self, db: Session, batch: TraceBatch) -> None:
+        state = db.get(RobotStateRow, batch.robot)
+        if state is None:
+            state = RobotStateRow(robot_id=batch.robot, stuck_events=0)
+            db.add(state)
+        status = batch.status
+        state.state, state.steps, state.boot = status.state, status.steps, batch.boot
+        state.whiskers = "".join(str(int(b)) for b in batch.whiskers[-1])
+        state.controller_sha256, state.serial_ok = status.sha256, status.serial_ok
+        state.status, state.updated_at = status.model_dump_json(), utcnow()
+        robot = db.get(Robot, batch.robot)
+        if robot is None:
+            robot = Robot(id=batch.robot, status="online")
+            db.add(robot)
+        robot.controller_sha256, robot.last_seen = status.sha256, utcnow()
+
+    def _retain(self, db: Session, robot: str, added: int) -> None:
+        """Delete the robot's oldest batches beyond `retention_samples` (newest batch kept)."""
+        if robot in self._stored:
+            self._stored[robot] += added
+        else:  # autoflush puts the new batch in the sum
+            total = db.scalar(select(func.sum(TraceRow.count)).where(TraceRow.robot_id == robot))
+            self._stored[robot] = int(total or 0)
+        while self._stored[robot] > self.settings.retention_samples:
+            oldest = db.execute(
+                select(TraceRow.boot, TraceRow.first, TraceRow.count)
+                .where(TraceRow.robot_id == robot)
+                .order_by(TraceRow.boot, TraceRow.first)
+                .limit(1)
+            ).first()
+            if oldest is None or self._stored[robot] - int(oldest[2]) < 1:
+                break
+            db.execute(
+                delete(TraceRow).where(
+                    TraceRow.robot_id == robot,
+                    TraceRow.boot == oldest[0],
+                    TraceRow.first == oldest[1],
+                )
+            )
+            self._stored[robot] -= int(oldest[2])
+
+    # ------------------------------------------------------------------ replacement
+
+    def _replace(self, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
+        with self.sessions.begin() as db:
+            event = StuckEventRow(
+                robot_id=request.robot,
+                controller_sha256=request.sha256,
+                reason=request.reason,
+                step=request.step,
+            )
+            db.add(event)
+            state = db.get(RobotStateRow, request.robot)
+            if state is None:
+                state = RobotStateRow(robot_id=request.robot, state="escaping", stuck_events=0)
+                db.add(state)
+            state.stuck_events += 1
+            if request.sha256 is not None:
+                _field_row(db, request.sha256).stuck_events += 1
+            db.flush()
+            doc, reason = self._pick(db, request)
+            event.replacement_sha256 = doc.sha256 if doc else None
+            return doc, reason
+
+    def _pick(self, db: Session, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
+        failed = db.get(Controller, request.sha256) if request.sha256 else None
+        if failed is None or failed.run_id is None:
+            return None, "the failed controller comes from no stored run"
+        recent = set(
+            db.scalars(
+                select(StuckEventRow.controller_sha256)
+                .where(StuckEventRow.robot_id == request.robot)
+                .order_by(StuckEventRow.id.desc())
+                .limit(self.settings.recent_failures)
+            )
+        )
+        for rank in range(_population(db, failed.run_id)):
+            doc = ranked_document(db, failed.run_id, rank)
+            if doc.sha256 not in recent:
+                return doc, f"rank {rank} of run {failed.run_id}"
+        return None, f"every individual of run {failed.run_id} failed recently on this robot"
+
+    # ------------------------------------------------------------------ API operations
+
+    def is_online(self, robot_id: str) -> bool:
+        with self._lock:
+            return robot_id in self._online
+
+    def robots(self) -> list[RobotOut]:
+        with self.sessions() as db:
+            rows = list(db.scalars(select(Robot).order_by(Robot.id)))
+            states = {s.robot_id: s for s in db.scalars(select(RobotStateRow))}
+            return [self._summary(r, states.get(r.id)) for r in rows]
+
+    def robot(self, robot_id: str) -> RobotDetail:
+        with self.sessions() as db:
+            row = db.get(Robot, robot_id)
+            if row is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            state = db.get(RobotStateRow, robot_id)
+            summary = self._summary(row, state)
+            origin: dict[str, Any] = {}
+            if summary.controller_sha256:
+                ctrl = db.get(Controller, summary.controller_sha256)
+                if ctrl is not None:
+                    origin = json.loads(ctrl.document).get("provenance", {})
+                    origin["run"] = ctrl.run_id
+                    origin["generation"] = ctrl.generation
+            status = json.loads(state.status) if state else {}
+            return RobotDetail(
+                **summary.model_dump(),
+                controller_run=_int_or_none(origin.get("run")),
+                controller_rank=_int_or_none(origin.get("rank")),
+                controller_generation=_int_or_none(origin.get("generation")),
+                whiskers=state.whiskers if state else "00000",
+                stuck_events=state.stuck_events if state else 0,
+                boot=state.boot if state else 0,
+                link={"zenoh": "online" if summary.online else "offline", **status},
+            )
+
+    def _summary(self, row: Robot, state: RobotStateRow | None) -> RobotOut:
+        online = self.is_online(row.id)
+        last = state.updated_at if state else row.last_seen
+        return RobotOut(
+            id=row.id,
+            online=online,
+            state=(state.state if state else "idle") if online else "offline",
+            controller_sha256=row.controller_sha256,
+            steps=state.steps if state else 0,
+            last_seen=last.timestamp() if last else None,
+        )
+
+    def push(
+        self,
+        robot_id: str,
+        *,
+        sha256: str | None = None,
+        run_id: int | None = None,
+        rank: int = 0,
+        timeout: float | None = None,
+    ) -> PushOut:
+        """Push a stored controller (sha256) or a run's ranked individual; wait for the ack."""
+        if sha256 is not None and run_id is not None:
+            raise ValueError("give exactly one of sha256 or run_id")
+        with self.sessions.begin() as db:
+            if db.get(Robot, robot_id) is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            if sha256 is not None:
+                row = crud.get_controller(db, sha256=sha256)
+                if row is None:
+                    raise NotFoundError(f"no controller with sha256 {sha256}")
+                text, sha = row.document, row.sha256
+            elif run_id is None:
+                raise ValueError("give exactly one of sha256 or run_id")
+            else:
+                if db.get(Run, run_id) is None:
+                    raise NotFoundError(f"no run with id {run_id}")
+                if rank >= _population(db, run_id):
+                    raise NotFoundError(f"run {run_id} has no individual of rank {rank}")
+                doc = ranked_document(db, run_id, rank)
+                text, sha = doc.to_json(), doc.sha256
+        push_id = uuid.uuid4().hex
+        message = ControllerPush(push_id=push_id, sha256=sha, document=text)
+        return self._send(robot_id, push_id, encode_message(message), sha, timeout)
+
+    def stop_robot(self, robot_id: str, timeout: float | None = None) -> PushOut:
+        """Stop the robot's motors until the next push."""
+        with self.sessions() as db:
+            if db.get(Robot, robot_id) is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+        push_id = uuid.uuid4().hex
+        payload = encode_message(StopCommand(push_id=push_id))
+        return self._send(robot_id, push_id, payload, None, timeout)
+
+    def _send(
+        self, robot: str, push_id: str, payload: bytes, sha: str | None, timeout: float | None
+    ) -> PushOut:
+        if not self.is_online(robot):
+            raise RobotOfflineError(f"robot {robot} is offline")
+        waiter = _Waiter()
+        with self._lock:
+            self._waiters[push_id] = waiter
+        try:
+            self._zenoh.put(
+                command_key(robot), payload, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            waiter.done.wait(self.settings.push_timeout if timeout is None else timeout)
+        finally:
+            with self._lock:
+                self._waiters.pop(push_id, None)
+        ack = waiter.ack
+        if ack is None:
+            return PushOut(
+                robot=robot,
+                push_id=push_id,
+                sha256=sha,
+                acknowledged=False,
+                accepted=False,
+                reason="no acknowledgement within the timeout",
+            )
+        return PushOut(
+            robot=robot,
+            push_id=push_id,
+            sha256=ack.sha256,
+            acknowledged=True,
+            accepted=ack.accepted,
+            reason=ack.reason,
+        )
+
+    def traces(self, robot_id: str, limit: int = 1000) -> TracesOut:
+        """The newest `limit` stored samples, oldest first."""
+        if limit < 1:
+            raise ValueError(f"limit must be >= 1, got {limit}")
+        with self.sessions() as db:
+            if db.get(Robot, robot_id) is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            rows = list(
+                db.scalars(
+                    select(TraceRow)
+                    .where(TraceRow.robot_id == robot_id)
+                    .order_by(TraceRow.boot.desc(), TraceRow.first.desc())
+                )
+            )
+        samples: list[TraceSample] = []
+        for row in rows:
+            samples = _samples(row) + samples
+            if len(samples) >= limit:
+                break
+        return TracesOut(robot=robot_id, samples=samples[-limit:])
+
+    def replay(self, robot_id: str) -> ReplayOut:
+        """Feed the stored whiskers into the same controllers; compare motor commands bitwise."""
+        with self.sessions() as db:
+            if db.get(Robot, robot_id) is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            rows = list(
+                db.scalars(
+                    select(TraceRow)
+                    .where(TraceRow.robot_id == robot_id)
+                    .order_by(TraceRow.boot, TraceRow.first)
+                )
+            )
+            docs: dict[str, ControllerDocument | None] = {}
+            for row in rows:
+                for sha in json.loads(row.controllers):
+                    if sha not in docs:
+                        stored = crud.get_controller(db, sha256=sha)
+                        docs[sha] = _document(stored.document) if stored else None
+        return _replay(robot_id, rows, docs)
+
+    def field_stats(self, sha256: str) -> FieldStats | None:
+        """Robot-hours and stuck events of a controller over the colony; None if never run."""
+        with self.sessions() as db:
+            row = db.get(FieldStatsRow, sha256.lower())
+            if row is None:
+                return None
+            hours = row.steps * self.settings.dt / 3600.0
+            return FieldStats(
+                sha256=row.sha256,
+                robot_hours=hours,
+                stuck_events=row.stuck_events,
+                stuck_per_hour=row.stuck_events / hours if hours > 0 else None,
+            )
+
+
+def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
+    """The controller of rank `rank` in the run's latest generation, stored in `controllers`."""
+    run = db.get(Run, run_id)
+    latest = crud.latest_generation(db, run_id=run_id)
+    if run is None or latest is None:
+        raise NotFoundError(f"run {run_id} has no completed generation yet")
+    ind = crud.get_individual(db, run_id=run_id, generation=latest.generation, rank=rank)
+    if ind is None:
+        raise NotFoundError(f"run {run_id} has no individual of rank {rank}")
+    config = RunConfig.model_validate_json(run.config)
+    fitness = float(ind.fitness)
+    doc = ControllerDocument(
+        spec=config.network_spec,
+        weights=np.frombuffer(ind.genome, dtype=np.dtype(ind.dtype)),
+        fitness=fitness if np.isfinite(fitness) else None,
+        provenance={
+            "seed": config.seed,
+            "generation": latest.generation,
+            "rank": rank,
+            "run": run_id,
+        },
+    )
+    crud.put_controller(
+        db,
+        sha256=doc.sha256,
+        document=doc.to_json(),
+        run_id=run_id,
+        generation=latest.generation,
+        fitness=doc.fitness,
+    )
+    return doc
+
+
+def _population(db: Session, run_id: int) -> int:
+    latest = crud.latest_generation(db, run_id=run_id)
+    if latest is None:
+        return 0
+    return len(crud.list_individuals(db, run_id=run_id, generation=latest.generation))
+
+
+def _field_row(db: Session, sha256: str) -> FieldStatsRow:
+    row = db.get(FieldStatsRow, sha256)
+    if row is None:
+        row = FieldStatsRow(sha256=sha256, steps=0, stuck_events=0)
+        db.add(row)
+    return row
+
+
+def _payload(query: zenoh.Query) -> bytes:
+    return query.payload.to_bytes() if query.payload is not None else b""
+
+
+def _int_or_none(value: object) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _document(text: str) -> ControllerDocument | None:
+    try:
+        return ControllerDocument.from_json(text)
+    except ControllerDocumentError:
+        return None
+
+
+def _arrays(row: TraceRow) -> tuple[np.ndarray, ...]:
+    n = row.count
+    return (
+        np.frombuffer(row.steps, "<i8"),
+        np.frombuffer(row.whiskers, "|u1").reshape(n, 5),
+        np.frombuffer(row.motors, "<f8").reshape(n, 2),
+        np.frombuffer(row.controller, "<i4"),
+        np.frombuffer(row.fresh, "|b1"),
+    )
+
+
+def _samples(row: TraceRow) -> list[TraceSample]:
+    shas = json.loads(row.controllers)
+    steps, whiskers, motors, controller, fresh = _arrays(row)
+    return [
+        TraceSample(
+            boot=row.boot,
+            step=int(steps[i]),
+            whiskers="".join(str(int(b)) for b in whiskers[i]),
+            motors=(float(motors[i, 0]), float(motors[i, 1])),
+            controller_sha256=None if controller[i] == ESCAPE else shas[int(controller[i])],
+            fresh=bool(fresh[i]),
+        )
+        for i in range(row.count)
+    ]
+
+
+def _replay(
+    robot: str, rows: list[TraceRow], docs: dict[str, ControllerDocument | None]
+) -> ReplayOut:
+    """Walk the samples in order; a controller's run is replayed from its fresh sample on."""
+    checked = segments = skipped = mismatches = 0
+    first: dict[str, object] | None = None
+    doc: ControllerDocument | None = None
+    state = np.empty(0)
+    prev: tuple[int, int] | None = None
+    for row in rows:
+        shas = json.loads(row.controllers)
+        steps, whiskers, motors, controller, fresh = _arrays(row)
+        for i in range(row.count):
+            here = (row.boot, int(steps[i]))
+            contiguous = prev is not None and here == (prev[0], prev[1] + 1)
+            prev = here
+            if controller[i] == ESCAPE:
+                doc = None
+                skipped += 1
+                continue
+            sha = shas[int(controller[i])]
+            if fresh[i]:
+                doc = docs.get(sha)
+                if doc is not None:
+                    state = network.reset(doc.spec, 1)
+                    segments += 1
+            elif doc is None or doc.sha256 != sha or not contiguous:
+                doc = None  # its fresh start was not retained, or samples were lost
+            if doc is None:
+                skipped += 1
+                continue
+            weights = doc.weights[np.newaxis, :]
+            out, state = network.step(doc.spec, weights, whiskers[i : i + 1].astype(float), state)
+            expected = network.motor_commands(doc.spec, out)[0]
+            checked += 1
+            if expected.tobytes() != motors[i].tobytes():
+                mismatches += 1
+                if first is None:
+                    first = {
+                        "boot": row.boot,
+                        "step": here[1],
+                        "sent": motors[i].tolist(),
+                        "replayed": expected.tolist(),
+                        "controller_sha256": sha,
+                    }
+    return ReplayOut(
+        robot=robot,
+        identical=checked > 0 and mismatches == 0,
+        checked=checked,
+        segments=segments,
+        skipped=skipped,
+        mismatches=mismatches,
+        first_mismatch=first,
+    )

@@ -1,0 +1,86 @@
+"""/api/robots: the colony's EvBots, controller pushes, stop, traces and the replay check.
+
+Reads the `RobotService` the app's lifespan puts in `app.state.robots`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
+
+from schemas.robots import PushBody, PushOut, ReplayOut, RobotDetail, RobotOut, TracesOut
+from server.errors import ServerError
+from server.robots import RobotOfflineError, RobotService
+
+router = APIRouter(prefix="/api/robots", tags=["robots"])
+
+
+def get_robots(request: Request) -> RobotService:
+    service: RobotService | None = getattr(request.app.state, "robots", None)
+    if service is None:
+        raise HTTPException(503, detail="the robot service is not running (no zenoh session)")
+    return service
+
+
+RobotsDep = Annotated[RobotService, Depends(get_robots)]
+
+
+def _http(exc: ServerError) -> HTTPException:
+    code = status.HTTP_409_CONFLICT if isinstance(exc, RobotOfflineError) else 404
+    return HTTPException(status_code=code, detail=str(exc))
+
+
+@router.get("", response_model=list[RobotOut])
+def list_robots(robots: RobotsDep) -> list[RobotOut]:
+    """Every robot ever seen, online or not."""
+    return robots.robots()
+
+
+@router.get("/{robot_id}", response_model=RobotDetail)
+def get_robot(robots: RobotsDep, robot_id: str) -> RobotDetail:
+    try:
+        return robots.robot(robot_id)
+    except ServerError as exc:
+        raise _http(exc) from exc
+
+
+@router.post("/{robot_id}/controller", response_model=PushOut)
+def push_controller(robots: RobotsDep, robot_id: str, body: PushBody) -> PushOut:
+    """Push a stored controller (`sha256`) or a run's ranked individual (`run_id`, `rank`)."""
+    if (body.sha256 is None) == (body.run_id is None):
+        raise HTTPException(422, detail="body: give exactly one of sha256 or run_id")
+    try:
+        return robots.push(robot_id, sha256=body.sha256, run_id=body.run_id, rank=body.rank)
+    except ServerError as exc:
+        raise _http(exc) from exc
+
+
+@router.post("/{robot_id}/stop", response_model=PushOut)
+def stop_robot(robots: RobotsDep, robot_id: str) -> PushOut:
+    """Motors to zero until the next push."""
+    try:
+        return robots.stop_robot(robot_id)
+    except ServerError as exc:
+        raise _http(exc) from exc
+
+
+@router.get("/{robot_id}/traces", response_model=TracesOut)
+def get_traces(
+    robots: RobotsDep,
+    robot_id: str,
+    limit: Annotated[int, Query(ge=1, le=100_000, description="newest samples")] = 1000,
+) -> TracesOut:
+    try:
+        return robots.traces(robot_id, limit)
+    except ServerError as exc:
+        raise _http(exc) from exc
+
+
+@router.get("/{robot_id}/replay", response_model=ReplayOut)
+def replay(robots: RobotsDep, robot_id: str) -> ReplayOut:
+    """Same whiskers into the same controller: are the motor commands bit-identical?"""
+    try:
+        return robots.replay(robot_id)
+    except ServerError as exc:
+        raise _http(exc) from exc
