@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import typer
 
+from colony.agent_cli import register as register_agent_commands
 from colony.evolve import evolve_command
 from colony.server_cli import register as register_server_commands
 from colony.worker_cli import worker_command
@@ -37,6 +38,7 @@ def presets() -> None:
 app.command(name="evolve")(evolve_command)
 register_server_commands(app)
 app.command(name="worker")(worker_command)
+register_agent_commands(app)
 
 
 def main() -> None:

@@ -1,0 +1,132 @@
+"""`colony agent` (the EvBot daemon, or a virtual EvBot with --emulate) and `colony replay`."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import signal
+import threading
+from pathlib import Path
+from types import FrameType
+from typing import Annotated
+
+import httpx
+import typer
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+
+
+def agent_command(
+    robot_id: Annotated[
+        str, typer.Option("--robot-id", help="this robot's id (a zenoh key chunk)")
+    ],
+    serial: Annotated[
+        str | None,
+        typer.Option(help="BasicX serial port or pyserial URL, e.g. /dev/ttyS0"),
+    ] = None,
+    connect: Annotated[
+        list[str],
+        typer.Option(
+            "--connect",
+            envvar="COLONY_CONNECT",
+            help="zenoh endpoint of the server (or a lab zenohd), e.g. tcp/SERVER:7447",
+        ),
+    ] = ["tcp/127.0.0.1:7447"],  # noqa: B006 - typer reads the default, never mutates it
+    state_dir: Annotated[
+        Path | None,
+        typer.Option(help="where the last accepted controller is kept [~/.evocolony/agent-ID]"),
+    ] = None,
+    emulate: Annotated[
+        bool, typer.Option("--emulate", help="run a virtual EvBot (BasicX emulator on a pty)")
+    ] = False,
+    maze: Annotated[str, typer.Option(help="--emulate: maze name, gen:SIZE:SEED or path")] = (
+        "paper"
+    ),
+    seed: Annotated[int, typer.Option(help="--emulate: seed of the start pose and gap")] = 0,
+    index: Annotated[int, typer.Option(help="--emulate: robot index within the seed")] = 0,
+    baud: Annotated[int, typer.Option(help="serial baud rate")] = 115_200,
+    log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR")] = "INFO",
+) -> None:
+    """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck."""
+    from robot_agent.agent import Agent, AgentSettings
+    from robot_agent.driver import BasicXDriver
+    from robot_agent.emulator import BasicXEmulator
+    from robot_agent.errors import AgentError
+    from robot_agent.sim_body import SimBody
+
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(message)s")
+    if (serial is None) == (not emulate):
+        raise typer.BadParameter("give exactly one of --serial PORT or --emulate")
+    try:
+        settings = AgentSettings(robot_id=robot_id, connect=tuple(connect), state_dir=state_dir)
+        emulator = (
+            BasicXEmulator(SimBody.create(maze, seed=seed, index=index)).start()
+            if emulate
+            else None
+        )
+    except (ValueError, OSError) as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    port = emulator.port_path if emulator else str(serial)
+    try:
+        with BasicXDriver.open(port, baud) as driver, Agent(settings, driver) as agent:
+            typer.echo(f"agent {robot_id} on {port}, server {' '.join(connect)}")
+            while not stop.wait(1.0):
+                pass
+            status = agent.status()
+        typer.echo(
+            f"agent {robot_id}: {status.steps} steps, {agent.delivered} samples delivered, "
+            f"{status.stuck_events} stuck events"
+        )
+    except (AgentError, OSError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    finally:
+        if emulator is not None:
+            with contextlib.suppress(RuntimeError):
+                emulator.stop()
+
+
+def replay_command(
+    robot: Annotated[str, typer.Argument(help="robot id")],
+    server: Annotated[str, typer.Option("--server", help="server base URL")] = DEFAULT_SERVER,
+) -> None:
+    """Sim-to-real check: replay the robot's stored whiskers through its controllers.
+
+    Exit status 0 when every checked motor command is bit-identical, 1 otherwise.
+    """
+    try:
+        response = httpx.get(f"{server.rstrip('/')}/api/robots/{robot}/replay", timeout=60.0)
+    except httpx.HTTPError as exc:
+        typer.echo(f"error: cannot reach {server}: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    if response.is_error:
+        try:
+            detail = response.json().get("detail", response.text)
+        except ValueError:
+            detail = response.text
+        typer.echo(f"error {response.status_code}: {detail}", err=True)
+        raise typer.Exit(1)
+    report = response.json()
+    verdict = "identical" if report["identical"] else "NOT identical"
+    typer.echo(
+        f"robot {robot}: {verdict}: {report['checked']} samples checked in "
+        f"{report['segments']} segments, {report['mismatches']} mismatches, "
+        f"{report['skipped']} skipped"
+    )
+    if report["first_mismatch"]:
+        typer.echo(f"first mismatch: {report['first_mismatch']}")
+    if not report["identical"]:
+        raise typer.Exit(1)
+
+
+def register(app: typer.Typer) -> None:
+    """Add `agent` and `replay` to the root CLI."""
+    app.command(name="agent")(agent_command)
+    app.command(name="replay")(replay_command)
