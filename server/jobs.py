@@ -253,9 +253,12 @@ class JobQueue:
             jobs.components[slot.start : slot.stop] = components
             if jobs.remaining == 1:
                 self._commit(jobs)
-            else:
-                jobs.remaining -= 1
-                slot.status, slot.worker, slot.deadline = "done", None, None
+                return True
+            if slot.status == "pending":  # a result of a lease already returned
+                jobs.pending.remove(key.index)
+                heapq.heapify(jobs.pending)
+            jobs.remaining -= 1
+            slot.status, slot.worker, slot.deadline = "done", None, None
             return True
 
     def _commit(self, jobs: _RunJobs) -> None:

@@ -18,10 +18,12 @@ from __future__ import annotations
 import io
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
-from sqlalchemy import CursorResult, Engine, delete, func, insert, select, update
+from sqlalchemy import Engine, Table, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import best_document
@@ -36,17 +38,46 @@ from server.jobs import GenerationResults, JobQueue
 from server.models import Generation, Individual, Job, Run, utcnow
 from server.settings import Settings
 
+_RUNS = cast(Table, Run.__table__)
+_GENERATIONS = cast(Table, Generation.__table__)
+_INDIVIDUALS = cast(Table, Individual.__table__)
+"""The tables behind the hot path's Core statements."""
 
-def encode_state(state: GAState) -> bytes:
-    """GAState as an uncompressed .npz (self-describing dtype and shape, no pickle)."""
+
+def encode_state(state: GAState, *, with_ranked: bool = True) -> bytes:
+    """GAState as an uncompressed .npz (self-describing dtype and shape, no pickle).
+
+    The store passes `with_ranked=False`: `ranked` is the generation's individuals in rank
+    order, already stored bit for bit in `individuals`, so keeping it twice would double the
+    bytes each commit writes.
+    """
+    arrays = state.to_arrays()
+    if not with_ranked:
+        arrays.pop("ranked", None)
     buffer = io.BytesIO()
-    np.savez(buffer, allow_pickle=False, **state.to_arrays())
+    np.savez(buffer, allow_pickle=False, **arrays)
     return buffer.getvalue()
 
 
-def decode_state(data: bytes) -> GAState:
-    with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
-        return GAState.from_arrays({name: arrays[name] for name in arrays.files})
+def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None) -> GAState:
+    """Inverse of `encode_state`; `ranked` loads the population a compact encoding left out."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    if "ranked" not in arrays and "ranked_fitness" in arrays and ranked is not None:
+        arrays["ranked"] = ranked()
+    return GAState.from_arrays(arrays)
+
+
+def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarray:
+    """The committed generation's genomes in rank order (the GA state's `ranked`)."""
+    rows = session.execute(
+        select(Individual.genome, Individual.dtype)
+        .where(Individual.run_id == run_id, Individual.generation == generation)
+        .order_by(Individual.rank)
+    ).all()
+    if not rows:
+        raise NotFoundError(f"run {run_id} generation {generation} has no individuals")
+    return np.stack([np.frombuffer(genome, dtype=np.dtype(dtype)) for genome, dtype in rows])
 
 
 @dataclass(frozen=True)
@@ -260,7 +291,10 @@ class RunManager:
         previous = crud.get_generation(session, run_id=run_id, generation=g - 1)
         if previous is None:
             raise NotFoundError(f"run {run_id} has no committed generation {g - 1} to resume")
-        state = decode_state(previous.state)
+        state = decode_state(
+            previous.state,
+            ranked=lambda: stored_ranked(session, run_id=run_id, generation=g - 1),
+        )
         self._states[run_id] = (g, state)
         return state
 
@@ -284,34 +318,35 @@ class RunManager:
         )
         order = metrics.order
         top = float(fitness[order[0]])
-        moved = session.execute(
-            update(Run)
-            .where(Run.id == run_id, Run.generation == g, Run.status.in_(("running", "paused")))
+        conn = session.connection()  # Core on the session's transaction: no ORM unit of work
+        runs = _RUNS.c
+        moved = conn.execute(
+            update(_RUNS)
+            .where(runs.id == run_id, runs.generation == g, runs.status.in_(("running", "paused")))
             .values(
                 generation=g + 1,
                 best_fitness=top if np.isfinite(top) else None,
-                evaluations=Run.evaluations + plan.config.population,
+                evaluations=runs.evaluations + plan.config.population,
             )
-            .execution_options(synchronize_session=False)
         )
-        if not isinstance(moved, CursorResult) or moved.rowcount != 1:
+        if moved.rowcount != 1:
             raise NotFoundError(f"run {run_id} is not live at generation {g}; nothing committed")
-        session.execute(
-            insert(Generation).values(
+        conn.execute(
+            insert(_GENERATIONS).values(
                 run_id=run_id,
                 generation=g,
                 best=metrics.best,
                 mean=metrics.mean,
                 worst=metrics.worst,
                 nan_count=metrics.nan_count,
-                state=encode_state(state),
+                state=encode_state(state, with_ranked=False),
                 committed_at=utcnow(),
             )
         )
         parents = [p if p >= 0 else None for _, p in lineage(plan.params, g)]
         dtype, shape = genomes.dtype.str, str(genomes.shape[1])
-        session.execute(
-            insert(Individual),
+        conn.execute(
+            insert(_INDIVIDUALS),
             [
                 {
                     "run_id": run_id,

@@ -66,7 +66,8 @@ class Generation(Base):
     worst: Mapped[float] = mapped_column(Float)
     nan_count: Mapped[int] = mapped_column(Integer, default=0)
     state: Mapped[bytes] = mapped_column(LargeBinary)
-    """GAState.to_arrays() as an uncompressed .npz (loaded with allow_pickle=False)."""
+    """GAState.to_arrays() as an uncompressed .npz (loaded with allow_pickle=False), without
+    `ranked` (this generation's individuals in rank order) since it is read back from there."""
     committed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -9,18 +10,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sqlalchemy as sa
+from alembic.script import ScriptDirectory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from evorobotics.evaluate import evaluate
+from evorobotics.evolution import evolve
 from evorobotics.ga import GAParams, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from schemas.run import RunConfig
 from server import crud
-from server.db import make_engine, upgrade
+from server.db import alembic_config, make_engine, upgrade
 from server.jobs import JobKey, JobResult
-from server.manager import RunManager, decode_state, encode_state
+from server.manager import RunManager, decode_state, encode_state, stored_ranked
 from server.models import pack, unpack
 from server.settings import Settings
 
@@ -47,7 +50,8 @@ def test_fresh_database_gets_every_table_and_upgrade_is_idempotent(tmp_path: Pat
         assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
         assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() == 10_000
         versions = conn.exec_driver_sql("SELECT version_num FROM alembic_version").all()
-    assert versions == [("0001",)]
+    head = ScriptDirectory.from_config(alembic_config(engine)).get_current_head()
+    assert versions == [(head,)]
     engine.dispose()
 
 
@@ -193,3 +197,125 @@ def test_generations_commit_whole_under_concurrent_completion(manager: RunManage
         assert run is not None and run.status == "completed"
         for g in range(SMALL.generations):
             assert len(crud.list_individuals(session, run_id=run_id, generation=g)) == 12
+
+
+def test_release_returns_a_lease_at_once_and_counts_follow_the_jobs(manager: RunManager) -> None:
+    manager.create_run(SMALL)
+    first = manager.queue.lease("gone", 0.0)
+    second = _evaluate(manager, "w", 0.0)
+    assert first is not None and second is not None
+    with manager.sessions() as session:
+        assert crud.job_counts(session) == {"pending": 1, "leased": 2, "done": 0}
+    assert manager.queue.complete(*second) is True
+    assert manager.queue.release(second[0]) is False  # done: nothing to release
+    assert manager.queue.release(first.key) is True
+    assert manager.queue.release(first.key) is False  # already pending
+    with manager.sessions() as session:
+        assert crud.job_counts(session) == {"pending": 2, "leased": 0, "done": 1}
+    again = manager.queue.lease("w", 0.0)
+    assert again is not None and again.key == first.key and again.attempt == 2
+
+
+def test_a_paused_run_commits_what_is_in_hand_but_leases_nothing_new(manager: RunManager) -> None:
+    run_id = manager.create_run(SMALL.model_copy(update={"job_size": 12}))
+    item = _evaluate(manager, "w", 0.0)
+    assert item is not None
+    manager.pause(run_id)
+    assert manager.queue.complete(*item) is True
+    assert manager.queue.lease("w", 0.0) is None
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.generation) == ("paused", 1)
+    manager.resume(run_id)
+    job = manager.queue.lease("w", 0.0)
+    assert job is not None and job.key.generation == 1
+
+
+def test_results_after_cancel_are_dropped(manager: RunManager) -> None:
+    run_id = manager.create_run(SMALL)
+    item = _evaluate(manager, "w", 0.0)
+    assert item is not None
+    manager.cancel(run_id)
+    assert manager.queue.complete(*item) is False
+    assert manager.queue.lease("w", 0.0) is None
+    with manager.sessions() as session:
+        assert crud.job_counts(session) == {"pending": 0, "leased": 0, "done": 0}
+
+
+def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(
+    manager: RunManager,
+) -> None:
+    run_id = manager.create_run(SMALL)
+    for _ in range(3):
+        item = _evaluate(manager, "w", 0.0)
+        assert item is not None
+        manager.queue.complete(*item)
+    with manager.sessions() as session:
+        stored = crud.get_generation(session, run_id=run_id, generation=0)
+        assert stored is not None
+        with np.load(io.BytesIO(stored.state), allow_pickle=False) as npz:
+            assert "ranked" not in npz.files and "ranked_fitness" in npz.files
+        ranked = stored_ranked(session, run_id=run_id, generation=0)
+    params = GAParams.from_config(SMALL)
+    lay = layout(SMALL.network_spec)
+    genomes, _ = ask(ga_rng(SMALL.seed, 0), init(lay, params), params, lay)
+    fitness = np.concatenate(
+        [evaluate(SMALL, 0, genomes[a:b]).fitness for a, b in ((0, 5), (5, 10), (10, 12))]
+    )
+    expected, _ = tell(genomes, fitness, init(lay, params), params)
+    assert expected.ranked is not None and ranked.tobytes() == expected.ranked.tobytes()
+
+
+TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
+EVENTS = st.lists(
+    st.tuples(
+        st.sampled_from(["lease", "complete", "release", "expire", "restart"]), st.integers()
+    ),
+    max_size=25,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_best() -> str:
+    return evolve(TINY).best.sha256
+
+
+@settings(max_examples=15, deadline=None)
+@given(events=EVENTS)
+def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
+    tmp_path_factory: pytest.TempPathFactory,
+    tiny_best: str,
+    events: list[tuple[str, int]],
+) -> None:
+    """Leases, results (also from before a restart), releases, expiries, server restarts: the
+    run ends with `evolve`'s best controller, and no generation is ever committed twice."""
+    engine = make_engine(f"sqlite:///{tmp_path_factory.mktemp('q') / 'colony.db'}")
+    upgrade(engine)
+    settings_ = Settings(db_url="unused", lease_seconds=10.0, max_attempts=2)
+    manager = RunManager(engine, settings_)
+    run_id = manager.create_run(TINY)
+    held: list[tuple[JobKey, JobResult]] = []
+    now = 0.0
+    for kind, n in events:
+        now += 1.0
+        if kind == "lease" and (item := _evaluate(manager, f"w{n % 3}", now)) is not None:
+            held.append(item)
+        elif kind == "complete" and held:
+            manager.queue.complete(*held.pop(n % len(held)))
+        elif kind == "release" and held:
+            manager.queue.release(held[n % len(held)][0])
+        elif kind == "expire":
+            manager.queue.expire(now + 10.0 * (n % 2))
+        elif kind == "restart":  # the old process dies; its workers' results may still arrive
+            manager = RunManager(engine, settings_)
+            manager.recover()
+    for item in held:
+        manager.queue.complete(*item)
+    while (item := _evaluate(manager, "drain", now)) is not None:
+        assert manager.queue.complete(*item) is True
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.generation) == ("completed", 3)
+        assert [g.generation for g in crud.list_generations(session, run_id=run_id)] == [0, 1, 2]
+    assert manager.best(run_id) == tiny_best
+    engine.dispose()
