@@ -204,7 +204,7 @@ class Agent:
         self.settings = settings
         self.robot = robot
         self._open_session = open_session or (lambda: zenoh.open(settings.zenoh_config()))
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # predicates of `wait_for` may read the properties
         self.changed = threading.Condition(self._lock)
         """Notified after every control step; wait on it with `wait_for`."""
         self._halt = threading.Event()
