@@ -39,16 +39,25 @@ It allocates nothing. From Python, `step_one(w, *plan, state_row, inputs_row, ou
 scratch)` is the same call. `motor_one(out_row, linear_output, motor_row)` is the compiled
 twin of `motor_commands` for one robot.
 
-`step` is a compiled loop over rows calling `step_one`: the only compiled path, so a
-controller's outputs are bit-identical whatever the batch size and wherever it runs.
+Specialised kernels. `spec_kernel(spec)` is `step_one` with the plan baked in: Python source
+generated per spec (constant loop bounds, block offsets and state offsets, blocks summed in the
+same order), compiled with numba and cached per spec in-process (numba cannot disk-cache
+exec'd code, so each process pays the compile once per spec: ~0.7 s for paper-best). Its call
+is `kernel(w, state_row, inputs_row, out_row, scratch)`, and it is bit-identical to `step_one`
+(same operations in the same order, no fastmath; tested) and about 2.5 times faster.
+
+`step` is a compiled loop over rows calling `spec_kernel(spec)`, and the simulator's fused
+episode kernel calls the same function: one compiled path, so a controller's outputs are
+bit-identical whatever the batch size and wherever it runs (robot or simulation).
 `step_reference` is an independent vectorised numpy version used by the tests.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import cache
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 from numba import njit
@@ -193,34 +202,86 @@ def step_one(
         out_row[i] = scratch[act_off[top] + i]
 
 
-@njit(cache=True)
-def _step_batch(
-    weights: np.ndarray,
-    sizes: np.ndarray,
-    hist_off: np.ndarray,
-    act_off: np.ndarray,
-    blocks: np.ndarray,
-    delays: int,
-    linear_output: int,
-    state: np.ndarray,
-    inputs: np.ndarray,
-    out: np.ndarray,
-    scratch: np.ndarray,
-) -> None:
-    for r in range(weights.shape[0]):
-        step_one(
-            weights[r],
-            sizes,
-            hist_off,
-            act_off,
-            blocks,
-            delays,
-            linear_output,
-            state[r],
-            inputs[r],
-            out[r],
-            scratch,
-        )
+Kernel = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]
+"""A specialised step: kernel(w, state_row, inputs_row, out_row, scratch), see `spec_kernel`."""
+
+
+def _kernel_source(spec: NetworkSpec) -> str:
+    """Source of `kernel` (one step, `step_one` unrolled over blocks) and `batch` for `spec`.
+
+    Per neuron the sums are those of `step_one` in the same order (u = 0, then per block in
+    chromosome order acc = 0, += w x input by input, += bias, u += acc), so the results are
+    bit-identical; only the loop nest changes (neuron outer, blocks inner, u in a register).
+    """
+    plan = kernel_plan(spec)
+    sizes = [int(v) for v in plan.sizes]
+    hist = [int(v) for v in plan.hist_off]
+    act = [int(v) for v in plan.act_off]
+    top = len(sizes) - 1
+    lines = [
+        "def kernel(w, state, x, out, scratch):",
+        f"    for i in range({sizes[0]}):",
+        "        scratch[i] = x[i]",
+    ]
+    for m in range(1, top + 1):
+        lines += [f"    for n in range({sizes[m]}):", "        u = 0.0"]
+        for m_b, t, s, src, offset in plan.blocks.tolist():
+            if m_b != m:
+                continue
+            n_src = sizes[src]
+            if s == 0 and t == 0:
+                x = f"scratch[{act[src]} + i]"
+            elif s == 0:
+                x = f"state[{hist[src] + (t - 1) * n_src} + i]"
+            else:
+                x = f"state[{hist[src] + t * n_src} + i]"
+            lines += [
+                f"        row = {offset} + n * {n_src + 1}",
+                "        acc = 0.0",
+                f"        for i in range({n_src}):",
+                f"            acc += w[row + i] * {x}",
+                f"        acc += w[row + {n_src}]",
+                "        u += acc",
+            ]
+        linear = m == top and plan.linear_output == 1
+        lines.append(f"        scratch[{act[m]} + n] = {'u' if linear else '_sigmoid(u)'}")
+    for j in range(top + 1):
+        n_j, h = sizes[j], hist[j]
+        for r in range(spec.delays, 0, -1):
+            lines += [
+                f"    for i in range({n_j}):",
+                f"        state[{h + r * n_j} + i] = state[{h + (r - 1) * n_j} + i]",
+            ]
+        lines += [f"    for i in range({n_j}):", f"        state[{h} + i] = scratch[{act[j]} + i]"]
+    lines += [
+        f"    for i in range({sizes[top]}):",
+        f"        out[i] = scratch[{act[top]} + i]",
+        "",
+        "def batch(weights, state, inputs, out, scratch):",
+        "    for r in range(weights.shape[0]):",
+        "        kernel(weights[r], state[r], inputs[r], out[r], scratch)",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+@cache
+def _compiled(spec: NetworkSpec) -> tuple[Kernel, Kernel]:
+    """(kernel, batch) of `spec`, compiled lazily by numba on first call, kept per process."""
+    namespace: dict[str, object] = {"_sigmoid": _sigmoid}
+    exec(compile(_kernel_source(spec), f"<network kernel {spec!r}>", "exec"), namespace)
+    kernel = cast(Kernel, njit(namespace["kernel"]))
+    namespace["kernel"] = kernel
+    return kernel, cast(Kernel, njit(namespace["batch"]))
+
+
+def spec_kernel(spec: NetworkSpec) -> Kernel:
+    """`step_one` specialised to `spec`: kernel(w, state_row, inputs_row, out_row, scratch).
+
+    Bit-identical to `step_one` with `kernel_plan(spec)` and about 2.5 times faster. A numba
+    dispatcher: call it from Python or from inside another `@njit` function (as a global or
+    closure constant). Cached per spec; compiled on first call (~0.7 s for paper-best).
+    """
+    return _compiled(spec)[0]
 
 
 def _checked(
@@ -247,13 +308,14 @@ def step(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One step of a batch: (outputs (B, outputs), new state); the arguments are not modified.
 
-    The canonical path (compiled, one row at a time), bit-identical for any batch size.
+    The canonical path (`spec_kernel(spec)`, one row at a time), bit-identical for any batch
+    size and to the simulator's episodes.
     """
     w, x, st = _checked(spec, weights, inputs, state)
     new_state = st.copy()
     out = np.empty((w.shape[0], spec.outputs), dtype=np.float64)
     scratch = np.empty(scratch_size(spec), dtype=np.float64)
-    _step_batch(w, *kernel_plan(spec), new_state, x, out, scratch)
+    _compiled(spec)[1](w, new_state, x, out, scratch)
     return out, new_state
 
 

@@ -7,6 +7,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from evorobotics import network
 from evorobotics.evaluate import start_poses
 from evorobotics.maze import load_maze
 from evorobotics.sim import (
@@ -207,6 +208,29 @@ def test_kernel_results_do_not_depend_on_batch() -> None:
     parts = [simulate(spec, weights[a:b], maze, starts[a:b], 40) for a, b in ((0, 3), (3, 20))]
     assert whole.components.tobytes() == np.concatenate([p.components for p in parts]).tobytes()
     assert whole.poses_final.tobytes() == np.concatenate([p.poses_final for p in parts]).tobytes()
+
+
+@pytest.mark.parametrize("preset", ["paper-best", "recurrent-small"])
+def test_replaying_recorded_whiskers_through_network_step_gives_the_same_motors(
+    preset: str,
+) -> None:
+    # the robot runs network.step once per step; the simulation ran the fused kernel
+    spec = PRESETS[preset]
+    maze = load_maze("paper")
+    g = np.random.default_rng(5)
+    weights = g.normal(0.0, 1.5, (12, spec.weight_count))
+    starts = np.tile(start_poses(maze, 2, 0, 4), (3, 1))
+    gap = Gap(g.uniform(0.025, 0.1, 12), g.uniform(0.85, 1.15, (12, 2)))
+    res = simulate(spec, weights, maze, starts, 40, gap=gap, record=True)
+    assert res.whiskers is not None and res.motors is not None
+    assert res.whiskers.any() and res.stuck.any()
+    for rows in (slice(0, 12), slice(4, 5)):  # the whole batch, and one robot alone
+        state = network.reset(spec, weights[rows].shape[0])
+        for k in range(40):
+            bits = res.whiskers[rows, k].astype(np.float64)
+            out, state = network.step(spec, weights[rows], bits, state)
+            motors = network.motor_commands(spec, out)
+            assert motors.tobytes() == res.motors[rows, k].tobytes()
 
 
 def test_bad_arguments() -> None:
