@@ -48,7 +48,7 @@ class Run(Base):
     best_fitness: Mapped[float | None] = mapped_column(Float, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     served: Mapped[int] = mapped_column(BigInteger, default=0)
-    """Lease sequence number of the last job handed out: fair sharing picks the smallest."""
+    """Unused since fair sharing moved to the in-memory job queue (server.jobs); always 0."""
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
@@ -92,7 +92,8 @@ class Individual(Base):
 
 
 class Job(Base):
-    """A fixed slice of a generation to evaluate; holds its result until the generation commits."""
+    """Unused: jobs live in memory (server.jobs). Kept until nothing refers to it; the server
+    empties it at start (rows of versions that kept jobs here)."""
 
     __tablename__ = "jobs"
     __table_args__ = (Index("ix_jobs_status_run", "status", "run_id"),)
