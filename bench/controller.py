@@ -1,7 +1,9 @@
-"""Controller steps per second: compiled `step` vs the numpy reference, two presets, three batches.
+"""Controller steps per second: `step` (specialised kernel), generic `step_one`, numpy reference.
 
-Run: .venv/bin/python bench/controller.py   (about 20 s on 2 cores; prints a table, asserts nothing)
+Run: .venv/bin/python bench/controller.py   (about 30 s on 2 cores; prints a table, asserts nothing)
 A "controller step" is one individual advanced by one time step, so a batch of B counts B.
+Also prints the one-off cost of generating and compiling each preset's specialised kernel (the
+first `step` of a process; numba cannot disk-cache it).
 """
 
 from __future__ import annotations
@@ -10,14 +12,56 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from numba import njit
 
-from evorobotics.network import reset, step, step_reference
+from evorobotics.network import kernel_plan, reset, scratch_size, step, step_one, step_reference
 from schemas.network import PRESETS, NetworkSpec
 
 StepFn = Callable[[NetworkSpec, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 BUDGET_S = 1.0
 """Wall time spent timing each (preset, batch, path) cell after warm-up."""
+
+
+@njit(cache=True)
+def _generic_batch(
+    weights: np.ndarray,
+    sizes: np.ndarray,
+    hist_off: np.ndarray,
+    act_off: np.ndarray,
+    blocks: np.ndarray,
+    delays: int,
+    linear_output: int,
+    state: np.ndarray,
+    inputs: np.ndarray,
+    out: np.ndarray,
+    scratch: np.ndarray,
+) -> None:
+    for r in range(weights.shape[0]):
+        step_one(
+            weights[r],
+            sizes,
+            hist_off,
+            act_off,
+            blocks,
+            delays,
+            linear_output,
+            state[r],
+            inputs[r],
+            out[r],
+            scratch,
+        )
+
+
+def generic_step(
+    spec: NetworkSpec, weights: np.ndarray, inputs: np.ndarray, state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """`step` through the generic `step_one` (the kernel before specialisation), same results."""
+    new_state = state.copy()
+    out = np.empty((weights.shape[0], spec.outputs))
+    scratch = np.empty(scratch_size(spec))
+    _generic_batch(weights, *kernel_plan(spec), new_state, inputs, out, scratch)
+    return out, new_state
 
 
 def _rate(fn: StepFn, preset: str, batch: int) -> float:
@@ -37,14 +81,26 @@ def _rate(fn: StepFn, preset: str, batch: int) -> float:
 
 
 def main() -> None:
-    print(f"{'preset':14s} {'weights':>7s} {'batch':>6s} {'compiled/s':>12s} {'numpy/s':>12s}")
+    for preset in ("paper-best", "paper-largest"):
+        spec = PRESETS[preset]
+        t0 = time.perf_counter()
+        step(spec, np.zeros((1, spec.weight_count)), np.zeros((1, spec.inputs)), reset(spec, 1))
+        print(
+            f"{preset}: first step() generates and compiles its kernel: "
+            f"{time.perf_counter() - t0:.2f} s"
+        )
+    print(
+        f"{'preset':14s} {'weights':>7s} {'batch':>6s} {'step/s':>12s} "
+        f"{'step_one/s':>12s} {'numpy/s':>12s}"
+    )
     for preset in ("paper-best", "paper-largest"):
         for batch in (1, 256, 4096):
             compiled = _rate(step, preset, batch)
+            generic = _rate(generic_step, preset, batch)
             reference = _rate(step_reference, preset, batch)
             print(
                 f"{preset:14s} {PRESETS[preset].weight_count:7d} {batch:6d} "
-                f"{compiled:12,.0f} {reference:12,.0f}"
+                f"{compiled:12,.0f} {generic:12,.0f} {reference:12,.0f}"
             )
 
 

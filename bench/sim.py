@@ -63,6 +63,13 @@ def main() -> None:
         ("paper-best", 4096),
         ("paper-largest", 1024),
     ]
+    for preset in ("paper-best", "paper-largest"):
+        spec, maze = PRESETS[preset], load_maze("paper")
+        t0 = time.perf_counter()
+        simulate(spec, np.zeros((1, spec.weight_count)), maze, start_poses(maze, 0, 0, 1), 1)
+        print(
+            f" first simulate() of {preset} (compiles its kernels): {time.perf_counter() - t0:.2f} s"
+        )
     for label, params in (("default world", DEFAULT_WORLD), ("never stuck", NEVER_STUCK)):
         print(f" {label} (stuck_after={params.stuck_after}):")
         for preset, batch in rows:
