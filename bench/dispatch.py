@@ -127,7 +127,7 @@ def bench_paper(workers: int, generations: int) -> None:
         upgrade(engine)
         manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.2))
         manager.start()
-        source = QueueSource(manager.queue, manager.sessions, manager._lock)
+        source = QueueSource(manager.queue)
         with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), source):
             procs, stop = start_workers(ctx, port, workers, empty=False)
             # Warm the workers' numba kernels on a throwaway run, as a long-lived worker is.

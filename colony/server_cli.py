@@ -31,19 +31,65 @@ def serve(
     db: Annotated[str | None, typer.Option("--db", help="SQLAlchemy URL [COLONY_DB_URL]")] = None,
     host: Annotated[str | None, typer.Option(help="bind address [COLONY_HOST]")] = None,
     port: Annotated[int | None, typer.Option(help="HTTP port [COLONY_PORT]")] = None,
+    zenoh_listen: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--zenoh-listen",
+            help="zenoh endpoint to listen on, repeatable (default tcp/0.0.0.0:7447) "
+            "[COLONY_ZENOH_LISTEN, a JSON list]",
+        ),
+    ] = None,
+    zenoh_connect: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--zenoh-connect",
+            help="a lab zenohd to join, e.g. tcp/HOST:7447; repeatable [COLONY_ZENOH_CONNECT]",
+        ),
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            help="local worker processes; 0 waits for remote ones (default: one per spare "
+            "core) [COLONY_WORKERS]"
+        ),
+    ] = None,
+    no_zenoh: Annotated[
+        bool,
+        typer.Option(
+            "--no-zenoh", help="no zenoh at all: evaluate in-process threads (--executors)"
+        ),
+    ] = False,
     executors: Annotated[
-        int | None, typer.Option(help="in-process evaluation threads [COLONY_EXECUTORS]")
+        int | None,
+        typer.Option(
+            help="in-process evaluation threads (default: 0 with zenoh, 1 with --no-zenoh) "
+            "[COLONY_EXECUTORS]"
+        ),
     ] = None,
 ) -> None:
-    """Run the colony server: REST API (OpenAPI at /docs), store and run manager."""
+    """Run the colony server: REST API (OpenAPI at /docs), store, run manager, zenoh router
+    for workers (docs/protocol.md) and N local workers."""
     import uvicorn
 
     from server.app import create_app
     from server.settings import Settings
 
-    overrides = {"db_url": db, "host": host, "port": port, "executors": executors}
-    settings = Settings.model_validate({k: v for k, v in overrides.items() if v is not None})
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    overrides = {
+        "db_url": db,
+        "host": host,
+        "port": port,
+        "zenoh_listen": zenoh_listen or None,
+        "zenoh_connect": zenoh_connect or None,
+        "workers": workers,
+        "executors": executors,
+        "zenoh": False if no_zenoh else None,
+    }
+    try:
+        settings = Settings.model_validate({k: v for k, v in overrides.items() if v is not None})
+        app = create_app(settings)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
 
 
 def _client(ctx: typer.Context, server: str) -> httpx.Client:

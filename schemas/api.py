@@ -72,11 +72,15 @@ class IndividualsOut(BaseModel):
 
 
 class WorkerOut(BaseModel):
+    """A simulation worker as the server's dispatcher sees it (GET /api/workers)."""
+
     model_config = ConfigDict(frozen=True)
 
-    id: str
-    status: str
-    jobs_done: int
+    name: str
+    host: str
+    state: Literal["idle", "busy", "gone"] = Field(description="gone: its liveliness vanished")
+    jobs_done: int = Field(description="results accepted from it since the server started")
+    robot_steps_per_s: float | None = Field(description="its last measured speed")
     last_seen: datetime
 
 

@@ -1,19 +1,33 @@
-"""The FastAPI application factory: engine, migrations, run manager and executors in a lifespan."""
+"""The FastAPI application factory: store, run manager, zenoh router and workers in a lifespan.
+
+Start order: database, run manager, the zenoh session (router mode, one per server), the
+dispatcher on it, extra zenoh services (e.g. robots), the wake-up relay, local workers,
+in-process executors. Shutdown runs it backwards with the zenoh part in the promised order:
+local workers (each delivers its job), dispatcher, other zenoh users, then the session.
+"""
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+import threading
+from collections.abc import AsyncIterator, Callable, Sequence
+from contextlib import AsyncExitStack, asynccontextmanager
 
+import zenoh
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from server.db import make_engine, upgrade
+from server.dispatch import Dispatcher, QueueSource
 from server.executor import InProcessExecutor
 from server.manager import RunManager
-from server.routes import colony, controllers, runs
+from server.routes import colony, controllers, runs, workers
 from server.settings import Settings
+from worker.local import LocalWorkers, local_endpoint
+
+ZenohService = Callable[[FastAPI, zenoh.Session], Callable[[], None]]
+"""Started on the server's zenoh session after the dispatcher; returns its close function,
+called after the dispatcher closes and before the session does."""
 
 
 def validation_message(exc: RequestValidationError) -> str:
@@ -26,25 +40,69 @@ def validation_message(exc: RequestValidationError) -> str:
     return "; ".join(parts)
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """The server; nothing touches the database until the lifespan starts."""
+class _Waker:
+    """Relays the queue's `work_available` to `Dispatcher.notify`, so held job requests are
+    answered the moment a generation's jobs exist instead of at the next poll."""
+
+    def __init__(self, event: threading.Event, dispatcher: Dispatcher) -> None:
+        self._event = event
+        self._dispatcher = dispatcher
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="dispatch-waker", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if self._event.wait(0.5):
+                self._event.clear()
+                self._dispatcher.notify()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._event.set()
+        self._thread.join(timeout=5.0)
+
+
+def create_app(settings: Settings | None = None, services: Sequence[ZenohService] = ()) -> FastAPI:
+    """The server; nothing touches the database or the network until the lifespan starts."""
     settings = settings or Settings()
+    dispatch = settings.dispatch_settings() if settings.zenoh else None
+    endpoint = (
+        local_endpoint(dispatch.listen, dispatch.connect)
+        if dispatch is not None and settings.local_workers()
+        else None
+    )
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        engine = make_engine(settings.db_url)
-        upgrade(engine)
-        manager = RunManager(engine, settings)
-        manager.start()
-        executor = InProcessExecutor(manager, threads=settings.executors)
-        executor.start()
-        app.state.manager = manager
-        try:
+        async with AsyncExitStack() as stack:
+            engine = make_engine(settings.db_url)
+            stack.callback(engine.dispose)
+            upgrade(engine)
+            manager = RunManager(engine, settings)
+            manager.start()
+            stack.callback(manager.stop)
+            app.state.manager = manager
+            app.state.zenoh = None
+            app.state.dispatcher = None
+            if dispatch is not None:
+                session = zenoh.open(dispatch.zenoh_config())
+                stack.callback(session.close)
+                source = QueueSource(manager.queue)
+                dispatcher = Dispatcher(dispatch, source, session=session)
+                closers = [service(app, session) for service in services]
+                for close in closers:
+                    stack.callback(close)
+                stack.callback(dispatcher.close)
+                stack.callback(_Waker(manager.queue.work_available, dispatcher).close)
+                app.state.zenoh = session
+                app.state.dispatcher = dispatcher
+                if endpoint is not None:
+                    stack.callback(LocalWorkers(settings.local_workers(), endpoint).stop)
+            executor = InProcessExecutor(manager, threads=settings.executor_threads())
+            executor.start()
+            stack.callback(executor.stop)
             yield
-        finally:
-            executor.stop()
-            manager.stop()
-            engine.dispose()
 
     app = FastAPI(
         title="EvoColony",
@@ -59,4 +117,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(runs.router)
     app.include_router(controllers.router)
     app.include_router(colony.router)
+    app.include_router(workers.router)
     return app

@@ -1,13 +1,16 @@
-"""Annotated dependencies of the routes: the manager and a read session per request."""
+"""Annotated dependencies of the routes: the manager, a read session, the worker table."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 
+from schemas.api import WorkerOut
+from server.dispatch import Dispatcher
 from server.manager import RunManager
 
 
@@ -24,3 +27,24 @@ def get_session(request: Request) -> Iterator[Session]:
 
 ManagerDep = Annotated[RunManager, Depends(get_manager)]
 SessionDep = Annotated[Session, Depends(get_session)]
+
+
+def get_workers(request: Request) -> list[WorkerOut]:
+    """The dispatcher's worker table (empty without zenoh), oldest name first."""
+    dispatcher: Dispatcher | None = getattr(request.app.state, "dispatcher", None)
+    if dispatcher is None:
+        return []
+    return [
+        WorkerOut(
+            name=w.name,
+            host=w.host,
+            state=w.state,
+            jobs_done=w.jobs_done,
+            robot_steps_per_s=w.robot_steps_per_s,
+            last_seen=datetime.fromtimestamp(w.last_seen, UTC),
+        )
+        for w in dispatcher.workers()
+    ]
+
+
+WorkersDep = Annotated[list[WorkerOut], Depends(get_workers)]

@@ -23,7 +23,6 @@ from typing import Any, Protocol
 
 import numpy as np
 import zenoh
-from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.wire import (
     KEY_JOB_NEXT,
@@ -446,23 +445,10 @@ def start_dispatcher(settings: DispatchSettings, source: JobSource) -> Dispatche
 
 
 class QueueSource:
-    """The JobSource over the server's database queue (`server.jobs.JobQueue`).
+    """The JobSource over the server's job queue (`server.jobs.JobQueue`)."""
 
-    `release` updates the one job row directly (under the queue's lock) because the queue has
-    no per-job release yet; it belongs in JobQueue.release once that exists.
-    """
-
-    def __init__(
-        self,
-        queue: JobQueue,
-        sessions: sessionmaker[Session],
-        lock: threading.RLock,
-        *,
-        clock: Callable[[], float] = time.time,
-    ) -> None:
+    def __init__(self, queue: JobQueue, *, clock: Callable[[], float] = time.time) -> None:
         self._queue = queue
-        self._sessions = sessions
-        self._lock = lock
         self._clock = clock
 
     def lease(self, worker: str) -> Job | None:
@@ -488,22 +474,7 @@ class QueueSource:
         self._queue.fail(_queue_key(key), error)
 
     def release(self, key: JobKey) -> None:
-        from sqlalchemy import update
-
-        from server.models import Job as JobRow
-
-        with self._lock, self._sessions.begin() as session:
-            session.execute(
-                update(JobRow)
-                .where(
-                    JobRow.run_id == key.run_id,
-                    JobRow.generation == key.generation,
-                    JobRow.index == key.index,
-                    JobRow.status == "leased",
-                )
-                .values(status="pending", worker=None, deadline=None)
-            )
-        self._queue.work_available.set()
+        self._queue.release(_queue_key(key))
 
 
 def _queue_key(key: JobKey) -> QueueKey:

@@ -339,7 +339,7 @@ def test_queue_source_two_workers_give_the_same_best_as_local_evolve(tmp_path: P
     manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
     manager.start()
     port = free_port()
-    source = QueueSource(manager.queue, manager.sessions, manager._lock)
+    source = QueueSource(manager.queue)
     try:
         run_id = manager.create_run(config)
 

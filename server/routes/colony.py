@@ -6,9 +6,9 @@ from importlib.metadata import PackageNotFoundError, version
 
 from fastapi import APIRouter
 
-from schemas.api import ColonyOut, HealthOut, JobCounts, RobotOut, WorkerOut
+from schemas.api import ColonyOut, HealthOut, JobCounts, RobotOut
 from server import crud
-from server.deps import SessionDep
+from server.deps import SessionDep, WorkersDep
 from server.routes.runs import aware, run_out
 
 router = APIRouter(tags=["colony"])
@@ -27,22 +27,14 @@ def healthz() -> HealthOut:
 
 
 @router.get("/api/colony", response_model=ColonyOut)
-def colony(session: SessionDep) -> ColonyOut:
+def colony(session: SessionDep, workers: WorkersDep) -> ColonyOut:
     """Runs by status, the active runs, job counts, workers and robots."""
     active = crud.list_runs(session, statuses=("queued", "running", "paused"), limit=1000)
     return ColonyOut(
         runs=crud.count_runs_by_status(session),
         active=[run_out(r) for r in active],
         jobs=JobCounts(**crud.job_counts(session)),
-        workers=[
-            WorkerOut(
-                id=w.id,
-                status=w.status,
-                jobs_done=w.jobs_done,
-                last_seen=aware(w.last_seen) or w.last_seen,
-            )
-            for w in crud.list_workers(session)
-        ],
+        workers=workers,
         robots=[
             RobotOut(
                 id=r.id,

@@ -1,0 +1,20 @@
+"""/api/workers: the simulation workers the dispatcher knows, departed ones for a while.
+
+Served from the dispatcher's memory, not the `workers` table: that table has no host or speed
+column, and a worker's state only means something while this server runs.
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from schemas.api import WorkerOut
+from server.deps import WorkersDep
+
+router = APIRouter(tags=["workers"])
+
+
+@router.get("/api/workers", response_model=list[WorkerOut])
+def list_workers(workers: WorkersDep) -> list[WorkerOut]:
+    """Every worker seen: idle, busy, or gone (listed until `gone_keep_s` after it left)."""
+    return workers

@@ -1,0 +1,259 @@
+"""Real processes on loopback: `colony server` on a temp SQLite file, `colony worker`s over zenoh.
+
+Every run must end with the same best controller as `evolve` for the same config and seed,
+and with exactly population x generations evaluations (a duplicate result never counts), no
+matter which worker is killed, stopped, added, or whether the server itself is SIGKILLed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from evorobotics.evolution import evolve
+from schemas.run import RunConfig
+
+CONFIG = {"population": 16, "job_size": 4, "generations": 6, "steps": 2000, "seed": 11}
+"""Jobs of tens of milliseconds, so a worker is caught holding one."""
+EVALUATIONS = 16 * 6
+TIMEOUT_S = 45.0
+COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@pytest.fixture(scope="module")
+def expected_sha() -> str:
+    return evolve(RunConfig(**CONFIG)).best.sha256
+
+
+class Colony:
+    """A server and workers as subprocesses; every one is killed and reaped at the end."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.db = tmp / "colony.db"
+        self.http = free_port()
+        self.zenoh = free_port()
+        self.url = f"http://127.0.0.1:{self.http}"
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.server: subprocess.Popen[bytes] | None = None
+
+    def start_server(self, workers: int = 0, **env: str) -> subprocess.Popen[bytes]:
+        argv = [
+            *COLONY,
+            "server",
+            "--db",
+            f"sqlite:///{self.db}",
+            "--port",
+            str(self.http),
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{self.zenoh}",
+            "--workers",
+            str(workers),
+        ]
+        env = {"COLONY_HOUSEKEEPING_SECONDS": "0.2", **env}
+        self.server = self._spawn(argv, env, "server")
+        wait_until(lambda: self._healthy(), "server health")
+        return self.server
+
+    def start_worker(self, name: str) -> subprocess.Popen[bytes]:
+        connect = f"tcp/127.0.0.1:{self.zenoh}"
+        return self._spawn([*COLONY, "worker", "--connect", connect, "--name", name], {}, name)
+
+    def _spawn(self, argv: list[str], env: dict[str, str], log: str) -> subprocess.Popen[bytes]:
+        """Output goes to `log`.log in the test's tmp dir, kept for a failure's post-mortem."""
+        with (self.tmp / f"{log}.log").open("ab") as out:
+            proc = subprocess.Popen(
+                argv,
+                env={**os.environ, **env},
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
+        self.procs.append(proc)
+        return proc
+
+    def _healthy(self) -> bool:
+        if self.server is not None and self.server.poll() is not None:
+            raise RuntimeError(f"colony server exited with {self.server.returncode}")
+        try:
+            return httpx.get(f"{self.url}/healthz", timeout=1).is_success
+        except httpx.TransportError:
+            return False
+
+    def get(self, path: str) -> Any:
+        return httpx.get(self.url + path, timeout=10).json()
+
+    def post(self, path: str, body: Any = None) -> Any:
+        response = httpx.post(self.url + path, json=body, timeout=10)
+        assert response.is_success, response.text
+        return response.json()
+
+    def workers(self) -> dict[str, dict[str, Any]]:
+        return {w["name"]: w for w in self.get("/api/workers")}
+
+    def run(self, run_id: int) -> dict[str, Any]:
+        run: dict[str, Any] = self.get(f"/api/runs/{run_id}")
+        return run
+
+    def finish(self, run_id: int, expected_sha: str) -> dict[str, Any]:
+        """Wait for the run's end; check it matches evolve and counted every job once."""
+        wait_until(lambda: self.run(run_id)["status"] in ("completed", "failed"), "run end")
+        run = self.run(run_id)
+        assert run["status"] == "completed", run["error"]
+        assert run["evaluations"] == EVALUATIONS
+        assert self.get(f"/api/runs/{run_id}/best")["sha256"] == expected_sha
+        return run
+
+    def close(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
+                proc.kill()
+        for proc in self.procs:
+            proc.wait(timeout=30)
+
+
+@pytest.fixture
+def colony(tmp_path: Path) -> Iterator[Colony]:
+    c = Colony(tmp_path)
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def wait_until(predicate: Callable[[], bool], what: str, timeout: float = TIMEOUT_S) -> None:
+    """Poll API state (no event announces it) until a deadline."""
+    deadline = time.monotonic() + timeout
+    tick = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out waiting for {what}")
+        tick.wait(0.02)
+
+
+def exited(pid: int) -> bool:
+    """True once `pid` is gone or a zombie (a reparented orphan may wait to be reaped)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return True
+    return "\nState:\tZ" in status
+
+
+def local_pids(colony: Colony, count: int) -> list[int]:
+    """Pids of the server's local workers: their default names end in -pid."""
+    wait_until(lambda: len(colony.workers()) == count, f"{count} local workers")
+    return [int(name.rsplit("-", 1)[1]) for name in colony.workers()]
+
+
+def test_two_local_workers_finish_a_run_and_stop_with_the_server(
+    colony: Colony, expected_sha: str
+) -> None:
+    server = colony.start_server(workers=2)
+    pids = local_pids(colony, 2)
+    run_id = colony.post("/api/runs", CONFIG)["id"]
+    colony.finish(run_id, expected_sha)
+    workers = colony.workers()
+    assert sum(w["jobs_done"] for w in workers.values()) == 6 * 4
+    assert all(w["robot_steps_per_s"] and w["state"] == "idle" for w in workers.values())
+    assert len(colony.get("/api/colony")["workers"]) == 2
+    server.send_signal(signal.SIGTERM)
+    # uvicorn shuts the app down, then re-raises the signal it caught.
+    assert server.wait(timeout=30) in (0, -signal.SIGTERM)
+    assert all(exited(pid) for pid in pids)
+
+
+def test_sigkilled_server_leaves_no_orphan_workers(colony: Colony) -> None:
+    server = colony.start_server(workers=1)
+    [pid] = local_pids(colony, 1)
+    server.kill()
+    server.wait(timeout=10)
+    wait_until(lambda: exited(pid), "the orphaned worker to exit", timeout=15)
+
+
+def test_sigkilled_worker_loses_no_job_and_a_late_joiner_takes_jobs(
+    colony: Colony, expected_sha: str
+) -> None:
+    colony.start_server()
+    doomed = colony.start_worker("doomed")
+    colony.start_worker("steady")
+    wait_until(lambda: len(colony.workers()) == 2, "two workers")
+    run_id = colony.post("/api/runs", CONFIG)["id"]
+    wait_until(lambda: colony.workers()["doomed"]["state"] == "busy", "doomed busy")
+    doomed.kill()
+    wait_until(lambda: colony.run(run_id)["generation"] >= 2, "generation 2")
+    colony.post(f"/api/runs/{run_id}/pause")
+    colony.start_worker("late")
+    wait_until(lambda: "late" in colony.workers(), "the late worker")
+    colony.post(f"/api/runs/{run_id}/resume")
+    colony.finish(run_id, expected_sha)
+    workers = colony.workers()
+    assert workers["doomed"]["state"] == "gone"
+    assert workers["late"]["jobs_done"] > 0
+
+
+def test_stopped_worker_past_its_lease_is_replaced_and_its_late_result_dropped(
+    colony: Colony, expected_sha: str
+) -> None:
+    colony.start_server(COLONY_LEASE_MIN_SECONDS="0.5", COLONY_LEASE_UNKNOWN_SECONDS="20")
+    hung = colony.start_worker("hung")
+    run_id = colony.post("/api/runs", CONFIG)["id"]
+    wait_until(
+        lambda: (
+            (w := colony.workers().get("hung")) is not None
+            and w["jobs_done"] >= 1
+            and w["state"] == "busy"
+        ),
+        "hung busy with a measured speed",
+    )
+    hung.send_signal(signal.SIGSTOP)
+    done_before = colony.workers()["hung"]["jobs_done"]
+    colony.start_worker("rescuer")
+    try:
+        colony.finish(run_id, expected_sha)
+    finally:
+        hung.send_signal(signal.SIGCONT)
+    woke = datetime.now(UTC)
+    assert colony.workers()["rescuer"]["jobs_done"] > 0
+    # The woken worker delivers its late result: acknowledged, dropped, never counted.
+    wait_until(
+        lambda: datetime.fromisoformat(colony.workers()["hung"]["last_seen"]) >= woke,
+        "the late result",
+    )
+    assert colony.workers()["hung"]["jobs_done"] == done_before
+    assert colony.run(run_id)["evaluations"] == EVALUATIONS
+
+
+def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(
+    colony: Colony, expected_sha: str
+) -> None:
+    server = colony.start_server()
+    colony.start_worker("one")
+    colony.start_worker("two")
+    run_id = colony.post("/api/runs", CONFIG)["id"]
+    wait_until(lambda: colony.run(run_id)["generation"] >= 2, "generation 2")
+    server.kill()
+    server.wait(timeout=10)
+    colony.start_server()
+    colony.finish(run_id, expected_sha)
+    assert {"one", "two"} <= set(colony.workers())
