@@ -262,6 +262,7 @@ class Agent:
             thread.join(timeout)
             if thread.is_alive():
                 raise RuntimeError(f"{thread.name} did not stop")
+        self._drain_outbox(None)  # persist a controller applied in the last steps
         with contextlib.suppress(SerialLinkError):
             self.robot.stop()
 

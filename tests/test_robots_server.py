@@ -1,0 +1,340 @@
+"""The server's robot side: real uvicorn, real SQLite, real zenoh on 127.0.0.1, agents as threads
+over BasicX emulator ptys. Pushes, rejections, stuck replacement, server restart, replay."""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+import zenoh
+from sqlalchemy import select
+from typer.testing import CliRunner
+
+from colony.cli import app as cli
+from evorobotics.document import ControllerDocument
+from robot_agent.agent import Agent, AgentSettings
+from robot_agent.driver import BasicXDriver
+from robot_agent.emulator import BasicXEmulator
+from robot_agent.sim_body import SimBody
+from robot_agent.stuck import StuckConfig
+from schemas.network import NetworkSpec
+from schemas.robots import ControllerPush, PushAck, ack_key, command_key, decode_message
+from schemas.robots import encode_message as encode_robot_message
+from server import crud
+from server.app import create_app
+from server.db import make_engine
+from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
+from server.robots import RobotService, RobotSettings, ranked_document
+from server.routes import robots as robot_routes
+from server.settings import Settings
+from tests.test_agent import constant_drive, free_port, random_controller, save
+
+WAIT = 30.0
+SMALL = {"population": 8, "generations": 2, "steps": 10, "job_size": 4}
+
+
+def eventually(predicate: Callable[[], bool], timeout: float = WAIT) -> bool:
+    """Poll a condition that no event announces (the REST view) until a deadline."""
+    deadline = time.monotonic() + timeout
+    tick = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        tick.wait(0.05)
+    return True
+
+
+def router_config(port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("connect/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+@dataclass
+class Colony:
+    url: str
+    db_url: str
+    run_id: int
+    app: Any
+    tmp: Path
+
+
+@pytest.fixture(scope="module")
+def colony(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Colony]:
+    tmp = tmp_path_factory.mktemp("robots")
+    db_url = f"sqlite:///{tmp / 'colony.db'}"
+    port = free_port()
+    # zenoh off: each test opens its own router (to kill and restart it) with a RobotService
+    app = create_app(Settings(db_url=db_url, port=port, executors=1, zenoh=False))
+    app.include_router(robot_routes.router)  # the lead wires this into create_app
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{port}"
+    try:
+        assert eventually(lambda: server.started or not thread.is_alive())
+        assert server.started, "uvicorn did not start"
+        with httpx.Client(base_url=url, timeout=30) as client:
+            run_id = client.post("/api/runs", json=SMALL).json()["id"]
+            assert eventually(
+                lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed", 120
+            )
+        yield Colony(url, db_url, run_id, app, tmp)
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30)
+
+
+@dataclass
+class Link:
+    router: zenoh.Session
+    service: RobotService
+    endpoint: str
+    port: int
+
+
+@contextmanager
+def robot_link(colony: Colony, port: int | None = None) -> Iterator[Link]:
+    """A router session and a RobotService on the app's database, installed in the app."""
+    port = port or free_port()
+    engine = make_engine(colony.db_url)
+    router = zenoh.open(router_config(port))
+    try:
+        service = RobotService(router, engine, RobotSettings(push_timeout=5.0)).start()
+        colony.app.state.robots = service
+        try:
+            yield Link(router, service, f"tcp/127.0.0.1:{port}", port)
+        finally:
+            service.close()
+            colony.app.state.robots = None
+    finally:
+        router.close()  # type: ignore[no-untyped-call]
+        engine.dispose()
+
+
+@contextmanager
+def virtual_robot(
+    robot: str, link: Link, state_dir: Path, seed: int = 0, **kwargs: Any
+) -> Iterator[tuple[Agent, BasicXEmulator]]:
+    with BasicXEmulator(SimBody.create("paper", seed=seed)) as emulator:
+        settings = AgentSettings(
+            robot_id=robot,
+            connect=(link.endpoint,),
+            state_dir=state_dir,
+            backoff_max=0.5,
+            request_timeout=1.0,
+            **kwargs,
+        )
+        with BasicXDriver.open(emulator.port_path) as driver, Agent(settings, driver) as agent:
+            yield agent, emulator
+
+
+def online(client: httpx.Client, robot: str) -> bool:
+    response = client.get(f"/api/robots/{robot}")
+    return response.status_code == 200 and bool(response.json()["online"])
+
+
+def test_push_ack_run_replay_and_tamper(colony: Colony, tmp_path: Path) -> None:
+    with (
+        robot_link(colony) as link,
+        virtual_robot("r-push", link, tmp_path) as (agent, _),
+        httpx.Client(base_url=colony.url, timeout=30) as client,
+    ):
+        assert eventually(lambda: online(client, "r-push"))
+        assert "r-push" in [r["id"] for r in client.get("/api/robots").json()]
+        pushed = client.post(
+            "/api/robots/r-push/controller", json={"run_id": colony.run_id, "rank": 1}
+        )
+        assert pushed.status_code == 200, pushed.text
+        body = pushed.json()
+        assert body["acknowledged"] and body["accepted"]
+        assert agent.controller is not None and body["sha256"] == agent.controller.sha256
+        assert agent.controller.provenance["rank"] == 1
+        assert agent.wait_for(lambda: agent.delivered >= 40, WAIT)
+
+        detail = client.get("/api/robots/r-push").json()
+        assert detail["controller_sha256"] == body["sha256"]
+        assert (detail["controller_run"], detail["controller_rank"]) == (colony.run_id, 1)
+        assert detail["steps"] > 0 and len(detail["whiskers"]) == 5
+        assert detail["link"]["zenoh"] == "online" and detail["link"]["serial_ok"]
+        traces = client.get("/api/robots/r-push/traces", params={"limit": 20}).json()
+        assert len(traces["samples"]) == 20
+        assert traces["samples"][-1]["controller_sha256"] == body["sha256"]
+        stats = link.service.field_stats(body["sha256"])
+        assert stats is not None and stats.robot_hours > 0 and stats.stuck_events == 0
+
+        replay = client.get("/api/robots/r-push/replay").json()
+        assert replay["identical"] and replay["checked"] >= 30 and replay["segments"] >= 1
+        run = CliRunner().invoke(cli, ["replay", "r-push", "--server", colony.url])
+        assert run.exit_code == 0 and "identical" in run.output
+
+        with link.service.sessions.begin() as db:  # flip the last bit of one sent command
+            row = db.scalars(
+                select(TraceRow).where(TraceRow.robot_id == "r-push").order_by(TraceRow.first)
+            ).all()[-1]
+            motors = np.frombuffer(row.motors, "<f8").copy()
+            motors[-1] = np.nextafter(motors[-1], 2.0)
+            row.motors = motors.tobytes()
+        tampered = client.get("/api/robots/r-push/replay").json()
+        assert not tampered["identical"] and tampered["mismatches"] == 1
+        assert tampered["first_mismatch"]["step"] == row.last
+        run = CliRunner().invoke(cli, ["replay", "r-push", "--server", colony.url])
+        assert run.exit_code == 1 and "NOT identical" in run.output
+
+
+def test_bad_push_is_rejected_and_the_old_controller_kept(colony: Colony, tmp_path: Path) -> None:
+    good = random_controller(11)
+    save(tmp_path, good)
+    with robot_link(colony) as link, virtual_robot("r-bad", link, tmp_path) as (agent, _):
+        assert agent.connected.wait(WAIT)
+        acks: queue.SimpleQueue[PushAck] = queue.SimpleQueue()
+
+        def on_ack(sample: zenoh.Sample) -> None:
+            message = decode_message(sample.payload.to_bytes())
+            if isinstance(message, PushAck):
+                acks.put(message)
+
+        subscriber = link.router.declare_subscriber(ack_key("r-bad"), on_ack)
+        try:
+            assert eventually(lambda: link.service.is_online("r-bad"))
+            other = random_controller(12)
+            forged = other.to_dict()
+            forged["sha256"] = good.sha256  # claims another id: tampered in transit
+            spec4 = NetworkSpec(inputs=4, hidden=(3,), delays=0, recurrence=0)
+            wrong = ControllerDocument(spec4, np.zeros(spec4.weight_count))
+            for document, sha, reason in (
+                (json.dumps(forged), good.sha256, "sha256 mismatch"),
+                (wrong.to_json(), wrong.sha256, "5 inputs and 2 outputs"),
+                ("{not json", good.sha256, "invalid JSON"),
+            ):
+                push_id = uuid.uuid4().hex
+                push = ControllerPush(push_id=push_id, sha256=sha, document=document)
+                link.router.put(command_key("r-bad"), encode_robot_message(push))
+                ack = acks.get(timeout=WAIT)
+                assert ack.push_id == push_id and not ack.accepted
+                assert reason in ack.reason and ack.sha256 == good.sha256
+            steps = agent.steps
+            assert agent.wait_for(lambda: agent.steps >= steps + 5, WAIT)
+            assert agent.controller == good and agent.state == "running"
+        finally:
+            subscriber.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_stuck_robot_gets_a_replacement_from_the_run(colony: Colony, tmp_path: Path) -> None:
+    wall = constant_drive(0.9, 0.9, NetworkSpec())  # paper-best shape, drives straight on
+    save(tmp_path, wall)
+    with robot_link(colony) as link:
+        with link.service.sessions.begin() as db:
+            crud.put_controller(
+                db,
+                sha256=wall.sha256,
+                document=wall.to_json(),
+                run_id=colony.run_id,
+                generation=None,
+                fitness=None,
+            )
+            best = ranked_document(db, colony.run_id, 0)
+        stuck = StuckConfig(contact_steps=5)
+        with virtual_robot("r-stuck", link, tmp_path, stuck=stuck) as (agent, _):
+            assert agent.wait_for(
+                lambda: agent.controller is not None and agent.controller.sha256 != wall.sha256,
+                WAIT,
+            )
+            assert agent.controller == best
+            assert agent.stuck_events >= 1
+        with link.service.sessions() as db:
+            event = db.scalars(
+                select(StuckEventRow).where(StuckEventRow.robot_id == "r-stuck")
+            ).first()
+            assert event is not None and event.controller_sha256 == wall.sha256
+            assert event.replacement_sha256 == best.sha256
+            stats = db.get(FieldStatsRow, wall.sha256)
+            assert stats is not None and stats.stuck_events >= 1
+        detail = link.service.robot("r-stuck")
+        assert detail.stuck_events >= 1
+        assert (tmp_path / "controller.json").read_text() == best.to_json()  # resumes with it
+
+
+def test_server_restart_buffered_traces_arrive(colony: Colony, tmp_path: Path) -> None:
+    doc = random_controller(13, NetworkSpec())
+    save(tmp_path, doc)
+    port = free_port()
+    with robot_link(colony, port) as link, virtual_robot("r-restart", link, tmp_path) as pair:
+        with link.service.sessions.begin() as db:  # known to the server: replayable
+            crud.put_controller(
+                db,
+                sha256=doc.sha256,
+                document=doc.to_json(),
+                run_id=None,
+                generation=None,
+                fitness=None,
+            )
+        agent, _ = pair
+        assert agent.wait_for(lambda: agent.delivered >= 20, WAIT)
+        # the server goes away; the robot keeps running and buffering
+        link.service.close()
+        link.router.close()  # type: ignore[no-untyped-call]
+        offline_from = agent.steps
+        assert agent.wait_for(lambda: agent.steps >= offline_from + 30, WAIT)
+        assert agent.buffered() >= 20
+        with robot_link(colony, port) as again:
+            assert eventually(lambda: again.service.is_online("r-restart"))
+            assert agent.wait_for(lambda: agent.buffered() < 15 and agent.steps > 0, WAIT)
+            last = agent.steps - agent.buffered() - 1
+            with again.service.sessions() as db:
+                rows = db.scalars(
+                    select(TraceRow)
+                    .where(TraceRow.robot_id == "r-restart", TraceRow.boot == agent.boot)
+                    .order_by(TraceRow.first)
+                ).all()
+            steps = np.concatenate([np.frombuffer(r.steps, "<i8") for r in rows])
+            assert steps[0] == 0 and steps[-1] >= last
+            assert np.array_equal(steps, np.arange(steps[-1] + 1))  # no sample lost
+            assert agent.dropped == 0
+            assert again.service.replay("r-restart").identical
+
+
+def test_stop_and_http_errors(colony: Colony, tmp_path: Path) -> None:
+    save(tmp_path, constant_drive(0.3, 0.3))
+    with (
+        robot_link(colony) as link,
+        httpx.Client(base_url=colony.url, timeout=30) as client,
+    ):
+        with virtual_robot("r-stop", link, tmp_path) as (agent, emulator):
+            assert eventually(lambda: online(client, "r-stop"))
+            stopped = client.post("/api/robots/r-stop/stop").json()
+            assert stopped["acknowledged"] and stopped["accepted"]
+            assert agent.state == "stopped"
+            assert emulator.wait_steps(emulator.steps + 2, WAIT)
+            assert emulator.motors == (0.0, 0.0)
+            both = {"sha256": "a" * 64, "run_id": colony.run_id}
+            for body in ({}, both, {"run_id": -1}, {"sha256": "xyz"}):
+                response = client.post("/api/robots/r-stop/controller", json=body)
+                assert response.status_code == 422, body
+                assert response.json()["detail"]
+            missing = client.post("/api/robots/r-stop/controller", json={"sha256": "b" * 64})
+            assert missing.status_code == 404 and "b" * 64 in missing.json()["detail"]
+            no_rank = {"run_id": colony.run_id, "rank": 99}
+            assert client.post("/api/robots/r-stop/controller", json=no_rank).status_code == 404
+        assert eventually(lambda: not online(client, "r-stop"), 10)
+        offline = client.post("/api/robots/r-stop/controller", json={"run_id": colony.run_id})
+        assert offline.status_code == 409 and "offline" in offline.json()["detail"]
+        for path in ("", "/traces", "/replay"):
+            response = client.get(f"/api/robots/nobody{path}")
+            assert response.status_code == 404 and "nobody" in response.json()["detail"]
+        assert client.post("/api/robots/nobody/stop").status_code == 404
