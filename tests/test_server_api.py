@@ -7,12 +7,15 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 import uvicorn
+from fastapi import FastAPI
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
@@ -20,6 +23,7 @@ from evorobotics.evolution import evolve
 from schemas.run import RunConfig
 from server.app import create_app
 from server.settings import Settings
+from worker.main import WorkerSettings, run_worker
 
 SMALL = {"population": 12, "generations": 5, "steps": 20, "job_size": 5}
 TIMEOUT_S = 60.0
@@ -32,27 +36,34 @@ def free_port() -> int:
         return port
 
 
-@pytest.fixture(scope="module")
-def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    db = tmp_path_factory.mktemp("api") / "colony.db"
-    port = free_port()
-    settings = Settings(db_url=f"sqlite:///{db}", port=port, executors=1)
+@contextmanager
+def serving(settings: Settings) -> Iterator[tuple[str, FastAPI]]:
+    """The app under a real uvicorn on `settings.port`; its base URL and the app."""
+    app = create_app(settings)
     server = uvicorn.Server(
-        uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
+        uvicorn.Config(app, host="127.0.0.1", port=settings.port, log_level="warning")
     )
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
-    url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + TIMEOUT_S
         while not server.started:
             if time.monotonic() > deadline or not thread.is_alive():
                 raise RuntimeError("uvicorn did not start")
             thread.join(0.05)
-        yield url
+        yield f"http://127.0.0.1:{settings.port}", app
     finally:
         server.should_exit = True
         thread.join(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """The zenoh-less mode: one in-process executor evaluates."""
+    db = tmp_path_factory.mktemp("api") / "colony.db"
+    settings = Settings(db_url=f"sqlite:///{db}", port=free_port(), zenoh=False)
+    with serving(settings) as (url, _):
+        yield url
 
 
 def wait_status(client: httpx.Client, run_id: int, done: set[str]) -> dict[str, Any]:
@@ -141,3 +152,42 @@ def test_cli_drives_a_run(base_url: str, tmp_path: Path) -> None:
     assert refused.exit_code == 1 and "completed" in refused.output
     invalid = runner.invoke(cli, ["run", "start", "--population", "2", "--server", base_url])
     assert invalid.exit_code == 1 and "population" in invalid.output
+
+
+def broken(
+    config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    raise RuntimeError("simulated evaluator crash")
+
+
+def test_zenoh_worker_errors_are_retried_then_fail_the_run(tmp_path: Path) -> None:
+    zport = free_port()
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{zport}"],
+        workers=0,
+        max_attempts=2,
+    )
+    with serving(settings) as (url, app), httpx.Client(base_url=url, timeout=30) as client:
+        assert app.state.zenoh is not None and app.state.dispatcher is not None
+        assert client.get("/api/workers").json() == []
+        stop = threading.Event()
+        worker = WorkerSettings(connect=(f"tcp/127.0.0.1:{zport}",), name="crashy")
+        thread = threading.Thread(
+            target=run_worker, args=(worker, stop), kwargs={"evaluator": broken}
+        )
+        thread.start()
+        try:
+            run_id = client.post("/api/runs", json=SMALL).json()["id"]
+            run = wait_status(client, run_id, {"completed", "failed"})
+            [listed] = client.get("/api/workers").json()
+            colony = client.get("/api/colony").json()
+        finally:
+            stop.set()
+            thread.join(timeout=30)
+    assert run["status"] == "failed"
+    assert "crashy: RuntimeError: simulated evaluator crash" in run["error"]
+    assert listed["name"] == "crashy" and listed["jobs_done"] == 0
+    assert listed["state"] in ("idle", "busy")
+    assert [w["name"] for w in colony["workers"]] == ["crashy"]
