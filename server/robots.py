@@ -22,11 +22,13 @@ import logging
 import queue
 import threading
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import zenoh
+from fastapi import FastAPI
 from sqlalchemy import Engine, delete, func, select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -692,3 +694,24 @@ def _replay(
         mismatches=mismatches,
         first_mismatch=first,
     )
+
+
+def robot_service(
+    settings: RobotSettings | None = None,
+) -> Callable[[FastAPI, zenoh.Session], Callable[[], None]]:
+    """A `create_app(..., services=[robot_service()])` hook: the service on the server's session.
+
+    It uses the run manager's sessionmaker and is exposed as `app.state.robots` for the routes.
+    """
+
+    def install(app: FastAPI, session: zenoh.Session) -> Callable[[], None]:
+        service = RobotService(session, app.state.manager.sessions, settings).start()
+        app.state.robots = service
+
+        def close() -> None:
+            app.state.robots = None
+            service.close()
+
+        return close
+
+    return install

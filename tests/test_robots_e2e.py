@@ -1,0 +1,105 @@
+"""End to end: the real server app (its own zenoh router, the robot service hook) and real
+`colony agent --emulate` processes: online, push, traces, replay, SIGTERM, restart from disk."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+
+from server.app import create_app
+from server.robots import robot_service
+from server.routes import robots as robot_routes
+from server.settings import Settings
+from tests.test_agent import free_port
+from tests.test_robots_server import SMALL, WAIT, eventually
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str, int]]:
+    """(base URL, zenoh endpoint, id of a completed run)."""
+    tmp = tmp_path_factory.mktemp("e2e")
+    port, zport = free_port(), free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    settings = Settings(
+        db_url=f"sqlite:///{tmp / 'colony.db'}",
+        port=port,
+        zenoh_listen=[endpoint],
+        workers=0,
+        executors=1,
+    )
+    app = create_app(settings, services=[robot_service()])
+    app.include_router(robot_routes.router)  # the lead wires this into create_app
+    uv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=uv.run, daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{port}"
+    try:
+        assert eventually(lambda: uv.started or not thread.is_alive())
+        assert uv.started, "uvicorn did not start"
+        with httpx.Client(base_url=url, timeout=30) as client:
+            run_id = client.post("/api/runs", json=SMALL).json()["id"]
+            assert eventually(
+                lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed", 120
+            )
+        yield url, endpoint, run_id
+    finally:
+        uv.should_exit = True
+        thread.join(timeout=30)
+
+
+def agent_process(robot: str, endpoint: str, state_dir: Path) -> subprocess.Popen[str]:
+    colony = str(Path(sys.executable).with_name("colony"))
+    args = ["--robot-id", robot, "--emulate", "--maze", "paper", "--seed", "1"]
+    args += ["--connect", endpoint, "--state-dir", str(state_dir), "--log-level", "WARNING"]
+    return subprocess.Popen(
+        [colony, "agent", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def robot(client: httpx.Client, robot_id: str) -> dict[str, Any] | None:
+    response = client.get(f"/api/robots/{robot_id}")
+    return response.json() if response.status_code == 200 else None
+
+
+def test_emulated_agent_process_end_to_end(server: tuple[str, str, int], tmp_path: Path) -> None:
+    url, endpoint, run_id = server
+    proc = agent_process("e2e", endpoint, tmp_path)
+    try:
+        with httpx.Client(base_url=url, timeout=30) as client:
+            assert eventually(lambda: (robot(client, "e2e") or {}).get("online") is True)
+            pushed = client.post("/api/robots/e2e/controller", json={"run_id": run_id}).json()
+            assert pushed["acknowledged"] and pushed["accepted"], pushed
+            assert eventually(lambda: client.get("/api/robots/e2e/replay").json()["checked"] >= 20)
+            replay = client.get("/api/robots/e2e/replay").json()
+            assert replay["identical"], replay
+            detail = robot(client, "e2e")
+            assert detail is not None and detail["controller_sha256"] == pushed["sha256"]
+            assert detail["controller_rank"] == 0 and detail["boot"] == 0
+
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=WAIT)
+            assert proc.returncode == 0, err
+            assert "samples delivered" in out
+            assert eventually(lambda: (robot(client, "e2e") or {}).get("online") is False, 10)
+
+            proc = agent_process("e2e", endpoint, tmp_path)  # restarts with the saved controller
+            assert eventually(lambda: (robot(client, "e2e") or {}).get("boot") == 1)
+            detail = robot(client, "e2e")
+            assert detail is not None and detail["online"]
+            assert detail["controller_sha256"] == pushed["sha256"]
+            assert detail["state"] == "running"
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=WAIT)
