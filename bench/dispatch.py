@@ -2,8 +2,9 @@
 
 1. jobs/s through a real Dispatcher with empty jobs (an endless in-memory source, workers in
    spawned processes whose evaluator returns zeros): the transport's ceiling.
-2. The paper's experiment through the database queue with 2 spawned worker processes, against
-   `evolve` in this process, with the best controllers compared.
+2. The paper's experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
+   zenoh on loopback, two local worker processes), against `evolve` in this process, with the
+   best controllers compared.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
 """
@@ -22,7 +23,7 @@ import numpy as np
 
 from schemas.run import RunConfig
 from schemas.wire import Job, JobKey, Result
-from server.dispatch import Dispatcher, DispatchSettings, QueueSource
+from server.dispatch import Dispatcher, DispatchSettings
 from worker.main import WorkerSettings, run_worker
 
 
@@ -108,11 +109,14 @@ def bench_throughput(seconds: float, workers: int) -> None:
 
 
 def bench_paper(workers: int, generations: int) -> None:
+    """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve."""
+    import os
+    import subprocess
+    import sys
+
+    import httpx
+
     from evorobotics.evolution import evolve
-    from server.db import make_engine, upgrade
-    from server.manager import RunManager
-    from server.models import Run
-    from server.settings import Settings
 
     config = RunConfig(generations=generations)
     evolve(config.model_copy(update={"generations": 1, "seed": 99}))  # compile the kernels
@@ -120,40 +124,46 @@ def bench_paper(workers: int, generations: int) -> None:
     local = evolve(config)
     local_s = time.perf_counter() - began
 
-    ctx = mp.get_context("spawn")
-    port = free_port()
+    http, zport = free_port(), free_port()
+    url = f"http://127.0.0.1:{http}"
+    tick = threading.Event()
     with tempfile.TemporaryDirectory() as tmp:
-        engine = make_engine(f"sqlite:///{Path(tmp) / 'bench.db'}")
-        upgrade(engine)
-        manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.2))
-        manager.start()
-        source = QueueSource(manager.queue)
-        with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), source):
-            procs, stop = start_workers(ctx, port, workers, empty=False)
+        argv = [sys.executable, "-c", "from colony.cli import main; main()", "server"]
+        argv += ["--db", f"sqlite:///{Path(tmp) / 'bench.db'}", "--port", str(http)]
+        argv += ["--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--workers", str(workers)]
+        env = {**os.environ, "COLONY_HOUSEKEEPING_SECONDS": "0.2"}
+        server = subprocess.Popen(
+            argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        try:
+
+            def finish(body: dict[str, object]) -> dict[str, object]:
+                run_id = httpx.post(f"{url}/api/runs", json=body, timeout=10).json()["id"]
+                while True:
+                    run: dict[str, object] = httpx.get(f"{url}/api/runs/{run_id}").json()
+                    if run["status"] in ("completed", "failed"):
+                        return run
+                    tick.wait(0.01)
+
+            while True:
+                try:
+                    if httpx.get(f"{url}/healthz", timeout=1).is_success:
+                        break
+                except httpx.TransportError:
+                    tick.wait(0.05)
             # Warm the workers' numba kernels on a throwaway run, as a long-lived worker is.
-            warm_id = manager.create_run(config.model_copy(update={"generations": 1, "seed": 99}))
-            tick = threading.Event()
-
-            def status(run_id: int) -> str:
-                with manager.sessions.begin() as session:
-                    run = session.get(Run, run_id)
-                    return run.status if run else "missing"
-
-            while status(warm_id) != "completed":
-                tick.wait(0.05)
+            finish(config.model_copy(update={"generations": 1, "seed": 99}).model_dump(mode="json"))
             began = time.perf_counter()
-            run_id = manager.create_run(config)
-            while status(run_id) not in ("completed", "failed"):
-                tick.wait(0.01)
+            run = finish(config.model_dump(mode="json"))
             dist_s = time.perf_counter() - began
-            sha = manager.best(run_id)
-            stop_workers(procs, stop)
-        manager.stop()
-        engine.dispose()
+            sha = httpx.get(f"{url}/api/runs/{run['id']}/best").json()["sha256"]
+        finally:
+            server.terminate()
+            server.wait(timeout=60)
     same = "identical" if sha == local.best.sha256 else "DIFFERENT"
     print(
-        f"paper experiment ({generations} generations): evolve {local_s:.2f} s, "
-        f"server + {workers} workers {dist_s:.2f} s; best controllers {same}"
+        f"paper experiment ({generations} generations): colony evolve {local_s:.2f} s, "
+        f"colony server --workers {workers} {dist_s:.2f} s; best controllers {same}"
     )
 
 
