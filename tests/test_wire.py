@@ -26,6 +26,7 @@ from schemas.wire import (
     decode_next_reply,
     decode_request,
     decode_result,
+    decode_result_reply,
     encode_frame,
     encode_job,
     encode_message,
@@ -162,3 +163,20 @@ def test_results_must_be_finite_and_consistent() -> None:
         Result(KEY, "w")
     with pytest.raises(WireError, match="components"):
         Result(KEY, "w", np.zeros(2), np.zeros((3, 1, 4)))
+
+
+def test_result_reply_is_an_ack_or_the_next_job_carrying_it() -> None:
+    config = RunConfig(population=4, job_size=2, trials=1, steps=1)
+    genomes = np.ones((2, config.network_spec.weight_count))
+    key = JobKey(run_id=1, generation=0, index=0)
+    ack = Ack(key=key, accepted=True)
+    assert decode_result_reply(encode_message(ack)) == (ack, None)
+    job = Job(JobKey(run_id=1, generation=0, index=1), 2, 4, config, genomes, lease_s=3.0)
+    got_ack, got_job = decode_result_reply(encode_job(job, ack))
+    assert got_ack == ack and got_job is not None
+    assert got_job.key == job.key and got_job.config == config and got_job.lease_s == 3.0
+    assert np.array_equal(got_job.genomes, genomes)
+    bad = encode_job(job, ack).replace(b'"start":2', b'"start":9')
+    with pytest.raises(InvalidJobError) as caught:
+        decode_result_reply(bad)
+    assert caught.value.ack == ack and caught.value.key == job.key
