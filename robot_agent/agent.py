@@ -492,6 +492,8 @@ class Agent:
         self.connected.set()
         backoff = _Backoff(self.settings.backoff_initial, self.settings.backoff_max)
         retry_at = 0.0
+        flush_every = self.settings.batch_steps * self.settings.period
+        flushed = time.monotonic()
         try:
             while not self._halt.is_set():
                 while True:
@@ -500,7 +502,11 @@ class Agent:
                     except queue.Empty:
                         break
                 self._drain_outbox(session)
-                if time.monotonic() >= retry_at:
+                now = time.monotonic()
+                # a full batch, or whatever is there once a batch's time has passed
+                due = self.buffered() >= self.settings.batch_steps or now - flushed >= flush_every
+                if due and now >= retry_at:
+                    flushed = now
                     if self._deliver(session):
                         backoff.reset()
                         retry_at = 0.0
