@@ -5,6 +5,7 @@ from __future__ import annotations
 import typer
 
 from colony.agent_cli import register as register_agent_commands
+from colony.analyze_cli import analyze_command
 from colony.evolve import evolve_command
 from colony.server_cli import register as register_server_commands
 from colony.worker_cli import worker_command
@@ -39,6 +40,7 @@ app.command(name="evolve")(evolve_command)
 register_server_commands(app)
 app.command(name="worker")(worker_command)
 register_agent_commands(app)
+app.command(name="analyze")(analyze_command)
 
 
 def main() -> None:
