@@ -29,6 +29,7 @@ kept as the reference the tests compare against.
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -434,145 +435,165 @@ def _whisker(
     return False
 
 
+@njit(inline="always")
+def _episodes(
+    kernel: network.Kernel,
+    weights: np.ndarray,
+    linear_output: int,
+    n_state: int,
+    n_scratch: int,
+    solid: np.ndarray,
+    cell: float,
+    starts: np.ndarray,
+    steps: int,
+    world: np.ndarray,
+    wx: np.ndarray,
+    wy: np.ndarray,
+    ca: np.ndarray,
+    sa: np.ndarray,
+    clear: np.ndarray,
+    reach: float,
+    stuck_after: int,
+    ranges: np.ndarray,
+    gains: np.ndarray,
+    record: bool,
+    final: np.ndarray,
+    metrics: np.ndarray,
+    stuck_out: np.ndarray,
+    rec_poses: np.ndarray,
+    rec_whiskers: np.ndarray,
+    rec_motors: np.ndarray,
+) -> None:
+    """Every robot's whole trial: sense, think, act, collide, score (see the module docstring).
+
+    `kernel` is the controller (`network.spec_kernel`). Inlined (numba IR) into the generated
+    per-spec wrapper (`_episode_kernel`), where `kernel` is a module global: a dispatcher passed
+    as a value would make the wrapper uncacheable. Not disk-cached itself; the wrapper's cache
+    key covers this file, so an edit here is never served stale from disk.
+    """
+    dt = world[0]
+    vmax = world[1]
+    base = world[2]
+    a = world[3]
+    b = world[4]
+    hd = world[5]
+    state = np.empty(n_state)
+    scratch = np.empty(n_scratch)
+    inputs = np.empty(wx.shape[0])
+    out = np.empty(2)
+    motor = np.empty(2)
+    for r in range(weights.shape[0]):
+        w = weights[r]
+        state[:] = 0.0
+        x0 = starts[r, 0]
+        y0 = starts[r, 1]
+        x = x0
+        y = y0
+        th = starts[r, 2]
+        rng_r = ranges[r]
+        gl = gains[r, 0]
+        gr = gains[r, 1]
+        blocked = 0
+        stuck = False
+        curve = 0.0
+        max_off = 0.0
+        if record:
+            rec_poses[r, 0, 0] = x
+            rec_poses[r, 0, 1] = y
+            rec_poses[r, 0, 2] = th
+        c = math.cos(th)
+        s = math.sin(th)
+        for k in range(steps):
+            if stuck and not record:
+                break  # frozen for good: its fitness terms are final
+            # early outs: no wall within reach of the centre / of an attachment point
+            far = _clearance(clear, cell, x, y) > reach + rng_r
+            for q in range(wx.shape[0]):
+                inputs[q] = 0.0
+                if far:
+                    continue
+                px = x + c * wx[q] - s * wy[q]
+                py = y + s * wx[q] + c * wy[q]
+                if _clearance(clear, cell, px, py) > rng_r:
+                    continue
+                ux = c * ca[q] - s * sa[q]
+                uy = s * ca[q] + c * sa[q]
+                if _whisker(solid, cell, px, py, ux, uy, rng_r):
+                    inputs[q] = 1.0
+            kernel(w, state, inputs, out, scratch)
+            motor_one(out, linear_output, motor)
+            if not stuck:
+                vl = motor[0] * gl * vmax
+                vr = motor[1] * gr * vmax
+                v = (vl + vr) * 0.5
+                om = (vr - vl) / base
+                mid = th + om * (dt * 0.5)
+                nx = x + v * dt * math.cos(mid)
+                ny = y + v * dt * math.sin(mid)
+                nth = th + om * dt
+                nth = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
+                nc = math.cos(nth)
+                ns = math.sin(nth)
+                if _clearance(clear, cell, nx, ny) <= hd and _blocked(
+                    solid, cell, nx, ny, nc, ns, a, b, hd
+                ):
+                    blocked += 1
+                    if blocked >= stuck_after:
+                        stuck = True
+                else:
+                    blocked = 0
+                    ddx = nx - x
+                    ddy = ny - y
+                    curve += math.sqrt(ddx * ddx + ddy * ddy)
+                    x = nx
+                    y = ny
+                    th = nth
+                    c = nc
+                    s = ns
+                    ox = x - x0
+                    oy = y - y0
+                    max_off = max(max_off, math.sqrt(ox * ox + oy * oy))
+            if record:
+                rec_poses[r, k + 1, 0] = x
+                rec_poses[r, k + 1, 1] = y
+                rec_poses[r, k + 1, 2] = th
+                for q in range(wx.shape[0]):
+                    rec_whiskers[r, k, q] = np.uint8(inputs[q])
+                rec_motors[r, k, 0] = motor[0]
+                rec_motors[r, k, 1] = motor[1]
+        final[r, 0] = x
+        final[r, 1] = y
+        final[r, 2] = th
+        ox = x - x0
+        oy = y - y0
+        metrics[r, 0] = curve
+        metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
+        metrics[r, 2] = max_off
+        stuck_out[r] = stuck
+
+
+_EPISODE_ARGS = ", ".join(list(inspect.signature(_episodes.py_func).parameters)[1:])
+
+
 @lru_cache(maxsize=16)
 def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
-    """The fused episode kernel of `spec`, calling `network.spec_kernel(spec)` (cached per spec).
+    """`_episodes` bound to `network.spec_kernel(spec)`, disk-cached per spec.
 
-    Compiled on first use in each process (numba cannot disk-cache it, the controller being
-    generated code): about 1 s for paper-best. Its physics helpers are disk-cached.
+    A closure over the controller's dispatcher cannot be cached by numba, so a tiny module is
+    generated per spec that imports the controller's generated module and calls `_episodes`
+    from `@njit(cache=True)` code (`network.cached_module`): compiled once per machine.
     """
-    kernel = network.spec_kernel(spec)
-
-    @njit
-    def _episodes(
-        weights: np.ndarray,
-        linear_output: int,
-        n_state: int,
-        n_scratch: int,
-        solid: np.ndarray,
-        cell: float,
-        starts: np.ndarray,
-        steps: int,
-        world: np.ndarray,
-        wx: np.ndarray,
-        wy: np.ndarray,
-        ca: np.ndarray,
-        sa: np.ndarray,
-        clear: np.ndarray,
-        reach: float,
-        stuck_after: int,
-        ranges: np.ndarray,
-        gains: np.ndarray,
-        record: bool,
-        final: np.ndarray,
-        metrics: np.ndarray,
-        stuck_out: np.ndarray,
-        rec_poses: np.ndarray,
-        rec_whiskers: np.ndarray,
-        rec_motors: np.ndarray,
-    ) -> None:
-        """Every robot's whole trial: sense, think, act, collide, score (see the module docstring)."""
-        dt = world[0]
-        vmax = world[1]
-        base = world[2]
-        a = world[3]
-        b = world[4]
-        hd = world[5]
-        state = np.empty(n_state)
-        scratch = np.empty(n_scratch)
-        inputs = np.empty(wx.shape[0])
-        out = np.empty(2)
-        motor = np.empty(2)
-        for r in range(weights.shape[0]):
-            w = weights[r]
-            state[:] = 0.0
-            x0 = starts[r, 0]
-            y0 = starts[r, 1]
-            x = x0
-            y = y0
-            th = starts[r, 2]
-            rng_r = ranges[r]
-            gl = gains[r, 0]
-            gr = gains[r, 1]
-            blocked = 0
-            stuck = False
-            curve = 0.0
-            max_off = 0.0
-            if record:
-                rec_poses[r, 0, 0] = x
-                rec_poses[r, 0, 1] = y
-                rec_poses[r, 0, 2] = th
-            c = math.cos(th)
-            s = math.sin(th)
-            for k in range(steps):
-                if stuck and not record:
-                    break  # frozen for good: its fitness terms are final
-                # early outs: no wall within reach of the centre / of an attachment point
-                far = _clearance(clear, cell, x, y) > reach + rng_r
-                for q in range(wx.shape[0]):
-                    inputs[q] = 0.0
-                    if far:
-                        continue
-                    px = x + c * wx[q] - s * wy[q]
-                    py = y + s * wx[q] + c * wy[q]
-                    if _clearance(clear, cell, px, py) > rng_r:
-                        continue
-                    ux = c * ca[q] - s * sa[q]
-                    uy = s * ca[q] + c * sa[q]
-                    if _whisker(solid, cell, px, py, ux, uy, rng_r):
-                        inputs[q] = 1.0
-                kernel(w, state, inputs, out, scratch)
-                motor_one(out, linear_output, motor)
-                if not stuck:
-                    vl = motor[0] * gl * vmax
-                    vr = motor[1] * gr * vmax
-                    v = (vl + vr) * 0.5
-                    om = (vr - vl) / base
-                    mid = th + om * (dt * 0.5)
-                    nx = x + v * dt * math.cos(mid)
-                    ny = y + v * dt * math.sin(mid)
-                    nth = th + om * dt
-                    nth = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
-                    nc = math.cos(nth)
-                    ns = math.sin(nth)
-                    if _clearance(clear, cell, nx, ny) <= hd and _blocked(
-                        solid, cell, nx, ny, nc, ns, a, b, hd
-                    ):
-                        blocked += 1
-                        if blocked >= stuck_after:
-                            stuck = True
-                    else:
-                        blocked = 0
-                        ddx = nx - x
-                        ddy = ny - y
-                        curve += math.sqrt(ddx * ddx + ddy * ddy)
-                        x = nx
-                        y = ny
-                        th = nth
-                        c = nc
-                        s = ns
-                        ox = x - x0
-                        oy = y - y0
-                        max_off = max(max_off, math.sqrt(ox * ox + oy * oy))
-                if record:
-                    rec_poses[r, k + 1, 0] = x
-                    rec_poses[r, k + 1, 1] = y
-                    rec_poses[r, k + 1, 2] = th
-                    for q in range(wx.shape[0]):
-                        rec_whiskers[r, k, q] = np.uint8(inputs[q])
-                    rec_motors[r, k, 0] = motor[0]
-                    rec_motors[r, k, 1] = motor[1]
-            final[r, 0] = x
-            final[r, 1] = y
-            final[r, 2] = th
-            ox = x - x0
-            oy = y - y0
-            metrics[r, 0] = curve
-            metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
-            metrics[r, 2] = max_off
-            stuck_out[r] = stuck
-
-    return cast(Callable[..., None], _episodes)
+    source = (
+        f'"""Generated by evorobotics.sim for {spec!r}; do not edit."""\n\n'
+        "from numba import njit\n\n"
+        "from evorobotics.sim import _episodes\n"
+        f"from {network.kernel_module(spec)} import kernel\n\n\n"
+        "@njit(cache=True)\n"
+        f"def episodes({_EPISODE_ARGS}):\n"
+        f"    _episodes(kernel, {_EPISODE_ARGS})\n"
+    )
+    module = network.cached_module("episodes", source, (network.__file__, __file__))
+    return cast(Callable[..., None], module.episodes)
 
 
 def simulate(
