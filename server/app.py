@@ -1,14 +1,13 @@
 """The FastAPI application factory: store, run manager, zenoh router and workers in a lifespan.
 
 Start order: database, run manager, the zenoh session (router mode, one per server), the
-dispatcher on it, extra zenoh services (e.g. robots), the wake-up relay, local workers,
+dispatcher on it, extra zenoh services (e.g. robots), the queue's wake-up listener, local workers,
 in-process executors. Shutdown runs it backwards with the zenoh part in the promised order:
 local workers (each delivers its job), dispatcher, other zenoh users, then the session.
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import AsyncExitStack, asynccontextmanager
 
@@ -21,7 +20,7 @@ from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, QueueSource
 from server.executor import InProcessExecutor
 from server.manager import RunManager
-from server.routes import colony, controllers, runs, workers
+from server.routes import colony, controllers, dashboard, images, runs, workers
 from server.settings import Settings
 from worker.local import LocalWorkers, local_endpoint
 
@@ -38,29 +37,6 @@ def validation_message(exc: RequestValidationError) -> str:
         field = ".".join(loc) or "body"
         parts.append(f"{field}: {error.get('msg', 'invalid')}")
     return "; ".join(parts)
-
-
-class _Waker:
-    """Relays the queue's `work_available` to `Dispatcher.notify`, so held job requests are
-    answered the moment a generation's jobs exist instead of at the next poll."""
-
-    def __init__(self, event: threading.Event, dispatcher: Dispatcher) -> None:
-        self._event = event
-        self._dispatcher = dispatcher
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="dispatch-waker", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self._event.wait(0.5):
-                self._event.clear()
-                self._dispatcher.notify()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._event.set()
-        self._thread.join(timeout=5.0)
 
 
 def create_app(settings: Settings | None = None, services: Sequence[ZenohService] = ()) -> FastAPI:
@@ -94,7 +70,9 @@ def create_app(settings: Settings | None = None, services: Sequence[ZenohService
                 for close in closers:
                     stack.callback(close)
                 stack.callback(dispatcher.close)
-                stack.callback(_Waker(manager.queue.work_available, dispatcher).close)
+                # New jobs (a run started or resumed, a lease returned) wake held requests at
+                # once; a generation's successor is installed by the dispatcher thread itself.
+                stack.callback(manager.queue.add_listener(dispatcher.notify))
                 app.state.zenoh = session
                 app.state.dispatcher = dispatcher
                 if endpoint is not None:
@@ -118,4 +96,6 @@ def create_app(settings: Settings | None = None, services: Sequence[ZenohService
     app.include_router(controllers.router)
     app.include_router(colony.router)
     app.include_router(workers.router)
+    app.include_router(images.router)
+    app.include_router(dashboard.router)
     return app

@@ -1,0 +1,421 @@
+// EvoColony dashboard: plain JS over the REST API (docs/api.md, docs/robots.md) and the
+// server-sent events of GET /api/events (docs/dashboard.md). No build step, no framework.
+"use strict";
+
+const state = {
+  runs: new Map(), // id -> RunOut
+  selected: null, // run id
+  gens: [[], [], [], []], // generation, best, mean, worst of the selected run
+  source: null, // EventSource
+  chart: null,
+  cards: new Map(), // robot id -> card elements
+  figuresFor: null, // "run:generation" the figures were last asked for
+};
+
+const $ = (selector, root = document) => root.querySelector(selector);
+
+function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs)) {
+    if (key === "class") node.className = value;
+    else if (key === "text") node.textContent = value;
+    else node.setAttribute(key, value);
+  }
+  node.append(...children);
+  return node;
+}
+
+async function api(method, path, body) {
+  const init = { method, headers: {} };
+  if (body !== undefined) {
+    init.headers["Content-Type"] = "application/json";
+    init.body = JSON.stringify(body);
+  }
+  const response = await fetch(path, init);
+  const data = await response.json().catch(() => ({}));
+  if (!response.ok) throw new Error(data.detail || `${response.status} ${response.statusText}`);
+  return data;
+}
+
+const fmt = (x, digits = 3) => (x === null || x === undefined ? "–" : Number(x).toFixed(digits));
+const short = (sha) => (sha ? sha.slice(0, 12) : "none");
+
+function ago(seconds) {
+  if (seconds === null || seconds === undefined) return "never";
+  const s = Math.max(0, Date.now() / 1000 - seconds);
+  if (s < 90) return `${Math.round(s)} s ago`;
+  if (s < 5400) return `${Math.round(s / 60)} min ago`;
+  return `${Math.round(s / 3600)} h ago`;
+}
+
+// ---- tabs ----------------------------------------------------------------------------------
+
+function showTab() {
+  const tab = (location.hash || "#runs").slice(1);
+  for (const section of document.querySelectorAll(".tab")) {
+    section.hidden = section.id !== `tab-${tab}`;
+  }
+  for (const link of document.querySelectorAll("nav a")) {
+    link.classList.toggle("active", link.dataset.tab === tab);
+  }
+  if (tab === "runs") resizeChart();
+}
+
+// ---- event stream --------------------------------------------------------------------------
+
+function connect() {
+  if (state.source) state.source.close();
+  const query = state.selected === null ? "" : `?run=${state.selected}`;
+  const source = new EventSource(`/api/events${query}`);
+  state.source = source;
+  const link = $("#link");
+  source.onopen = () => {
+    link.textContent = "live";
+    link.classList.add("live");
+  };
+  source.onerror = () => {
+    // Each stream ends after a few seconds and reopens at once; only a longer gap is news.
+    setTimeout(() => {
+      if (source.readyState !== EventSource.OPEN) {
+        link.textContent = "reconnecting";
+        link.classList.remove("live");
+      }
+    }, 2500);
+  };
+  source.addEventListener("run", (e) => onRun(JSON.parse(e.data)));
+  source.addEventListener("generation", (e) => onGeneration(JSON.parse(e.data)));
+  source.addEventListener("workers", (e) => renderWorkers(JSON.parse(e.data)));
+  source.addEventListener("robots", (e) => renderRobots(JSON.parse(e.data)));
+}
+
+// ---- runs ----------------------------------------------------------------------------------
+
+function onRun(run) {
+  state.runs.set(run.id, run);
+  if (state.selected === null && run.status === "running") {
+    selectRun(run.id); // open on a run that is evolving now
+    return;
+  }
+  renderRunsTable();
+  if (run.id === state.selected) renderRunDetail();
+  for (const card of state.cards.values()) fillRunChoices(card.runSelect);
+}
+
+function renderRunsTable() {
+  const body = $("#runs-table tbody");
+  const runs = [...state.runs.values()].sort((a, b) => b.id - a.id);
+  body.replaceChildren(
+    ...runs.map((run) => {
+      const row = el(
+        "tr",
+        { "data-run": run.id },
+        el("td", { text: run.id }),
+        el("td", {}, el("span", { class: `status ${run.status}`, text: run.status })),
+        el("td", { text: `${run.generation} / ${run.generations}` }),
+        el("td", { text: fmt(run.best_fitness) }),
+      );
+      if (run.id === state.selected) row.classList.add("selected");
+      row.addEventListener("click", () => selectRun(run.id));
+      return row;
+    }),
+  );
+}
+
+function selectRun(id) {
+  if (state.selected === id) return;
+  state.selected = id;
+  state.gens = [[], [], [], []];
+  state.figuresFor = null;
+  for (const img of [$("#network-img"), $("#paths-img")]) img.hidden = true;
+  updateChart();
+  renderRunsTable();
+  renderRunDetail();
+  connect(); // a stream of this run's generations, from the first
+}
+
+function renderRunDetail() {
+  const run = state.runs.get(state.selected);
+  $("#run-empty").hidden = Boolean(run);
+  $("#run-body").hidden = !run;
+  if (!run) return;
+  const c = run.config;
+  $("#run-title").textContent = `Run ${run.id}`;
+  const status = $("#run-status");
+  status.textContent = run.status;
+  status.className = `status ${run.status}`;
+  $("#run-meta").textContent =
+    `seed ${run.seed} · population ${c.population} · ${c.trials} trials × ${c.steps} steps · ` +
+    `network ${typeof c.network === "string" ? c.network : "custom"} · ` +
+    `maze ${c.maze.includes("\n") ? "custom" : c.maze} · generation ${run.generation}/` +
+    `${run.generations} · ${run.evaluations} evaluations · best ${fmt(run.best_fitness)}`;
+  const error = $("#run-error");
+  error.hidden = !run.error;
+  error.textContent = run.error || "";
+  const allowed = {
+    pause: ["queued", "running"],
+    resume: ["paused"],
+    cancel: ["queued", "running", "paused"],
+  };
+  for (const button of document.querySelectorAll(".controls button")) {
+    button.disabled = !allowed[button.dataset.action].includes(run.status);
+  }
+  refreshFigures(run);
+}
+
+async function steer(action) {
+  if (state.selected === null) return;
+  try {
+    onRun(await api("POST", `/api/runs/${state.selected}/${action}`));
+  } catch (err) {
+    const error = $("#run-error");
+    error.hidden = false;
+    error.textContent = `${action}: ${err.message}`;
+  }
+}
+
+function refreshFigures(run) {
+  // The server answers 304 until the best controller changes (ETag = its sha256).
+  if (run.generation < 1) return;
+  const key = `${run.id}:${run.generation}`;
+  if (state.figuresFor === key) return;
+  state.figuresFor = key;
+  for (const [id, figure] of [["#network-img", "network"], ["#paths-img", "paths"]]) {
+    const img = $(id);
+    if (img.dataset.loading === "1") continue; // the next generation asks again
+    const next = new Image();
+    img.dataset.loading = "1";
+    next.onload = () => {
+      img.src = next.src;
+      img.hidden = false;
+      img.dataset.loading = "";
+    };
+    next.onerror = () => {
+      img.dataset.loading = "";
+    };
+    next.src = `/api/runs/${run.id}/best/${figure}.png?g=${run.generation}`;
+  }
+}
+
+// ---- fitness curve -------------------------------------------------------------------------
+
+function makeChart() {
+  const target = $("#curve");
+  state.chart = new uPlot(
+    {
+      width: Math.max(300, target.clientWidth || 800),
+      height: 300,
+      scales: { x: { time: false } },
+      axes: [{ label: "generation" }, { label: "fitness" }],
+      series: [
+        { label: "generation" },
+        { label: "best", stroke: "#1f5fbf", width: 2 },
+        { label: "mean", stroke: "#444", width: 1.5, dash: [6, 4] },
+        { label: "worst", stroke: "#b3261e", width: 1, dash: [2, 3] },
+      ],
+    },
+    state.gens,
+    target,
+  );
+}
+
+function onGeneration(g) {
+  if (g.run_id !== state.selected) return;
+  const xs = state.gens[0];
+  if (xs.length && g.generation <= xs[xs.length - 1]) return; // a replay after reconnecting
+  xs.push(g.generation);
+  state.gens[1].push(g.best);
+  state.gens[2].push(g.mean);
+  state.gens[3].push(g.worst);
+  updateChart();
+}
+
+function updateChart() {
+  state.chart.setData(state.gens);
+  $("#curve").dataset.points = String(state.gens[0].length);
+}
+
+function resizeChart() {
+  const width = $("#curve").clientWidth;
+  if (state.chart && width > 0) state.chart.setSize({ width, height: 300 });
+}
+
+// ---- colony --------------------------------------------------------------------------------
+
+function fillRunChoices(select) {
+  const chosen = select.value;
+  const runs = [...state.runs.values()].filter((r) => r.generation > 0).sort((a, b) => b.id - a.id);
+  select.replaceChildren(
+    ...runs.map((r) => el("option", { value: r.id, text: `run ${r.id} (${r.status})` })),
+  );
+  if (runs.some((r) => String(r.id) === chosen)) select.value = chosen;
+}
+
+function makeCard(id) {
+  const field = (name) => el("dd", { "data-field": name });
+  const dl = el("dl");
+  for (const [label, name] of [
+    ["state", "state"],
+    ["controller", "controller"],
+    ["origin", "origin"],
+    ["whiskers", "whiskers"],
+    ["steps", "steps"],
+    ["stuck events", "stuck"],
+    ["field", "field"],
+    ["last seen", "seen"],
+  ]) {
+    dl.append(el("dt", { text: label }), field(name));
+  }
+  const runSelect = el("select", { "data-testid": `push-run-${id}`, "aria-label": "run" });
+  const rank = el("input", {
+    type: "number", min: "0", value: "0", "data-testid": `push-rank-${id}`, "aria-label": "rank",
+  });
+  const button = el("button", { "data-testid": `push-${id}`, text: "Push" });
+  const message = el("span", { class: "message", "data-testid": `push-result-${id}` });
+  button.addEventListener("click", () => push(id, runSelect, rank, button, message));
+  const card = el(
+    "article",
+    { class: "card", "data-robot": id },
+    el("h3", {}, el("span", { class: "dot" }), el("span", { text: id })),
+    dl,
+    el("div", { class: "push" }, el("span", { text: "push" }), runSelect, el("span", { text: "rank" }),
+      rank, button, message),
+  );
+  fillRunChoices(runSelect);
+  return { card, runSelect };
+}
+
+async function push(id, runSelect, rank, button, message) {
+  if (!runSelect.value) {
+    message.textContent = "no run with a completed generation to push from";
+    message.className = "message bad";
+    return;
+  }
+  button.disabled = true;
+  message.textContent = "pushing…";
+  message.className = "message";
+  try {
+    const body = { run_id: Number(runSelect.value), rank: Number(rank.value || 0) };
+    const reply = await api("POST", `/api/robots/${encodeURIComponent(id)}/controller`, body);
+    const ok = reply.acknowledged && reply.accepted;
+    message.textContent = ok
+      ? `acknowledged: running ${short(reply.sha256)}`
+      : reply.acknowledged
+        ? `refused: ${reply.reason}`
+        : `no acknowledgement ${reply.reason ? `(${reply.reason})` : ""}`;
+    message.className = `message ${ok ? "ok" : "bad"}`;
+  } catch (err) {
+    message.textContent = err.message;
+    message.className = "message bad";
+  } finally {
+    button.disabled = false;
+  }
+}
+
+function whiskerBits(bits) {
+  return el("span", { class: "whiskers", title: `whiskers ${bits} (left to right)` },
+    ...[...bits].map((b) => el("span", { class: b === "1" ? "hit" : "" })));
+}
+
+function renderRobots(snapshot) {
+  const empty = $("#robots-empty");
+  const container = $("#robot-cards");
+  if (!snapshot.available) {
+    empty.textContent = "The robot service is not running (the server was started without zenoh).";
+  } else {
+    empty.textContent = "No robot has connected yet.";
+  }
+  empty.hidden = snapshot.robots.length > 0;
+  const seen = new Set();
+  for (const robot of snapshot.robots) {
+    seen.add(robot.id);
+    let entry = state.cards.get(robot.id);
+    if (!entry) {
+      entry = makeCard(robot.id);
+      state.cards.set(robot.id, entry);
+      container.append(entry.card);
+    }
+    const set = (name, ...content) => $(`[data-field="${name}"]`, entry.card).replaceChildren(...content);
+    $(".dot", entry.card).classList.toggle("on", robot.online);
+    set("state", el("span", { class: `status ${robot.state}`, text: robot.state }));
+    set("controller", el("code", { text: short(robot.controller_sha256) }));
+    set("origin", robot.controller_run === null
+      ? "–"
+      : `run ${robot.controller_run}, rank ${robot.controller_rank ?? "?"}, ` +
+        `generation ${robot.controller_generation ?? "?"}`);
+    set("whiskers", whiskerBits(robot.whiskers));
+    set("steps", String(robot.steps));
+    set("stuck", String(robot.stuck_events));
+    const f = robot.field;
+    set("field", f === null
+      ? "not run yet"
+      : `${fmt(f.robot_hours, 2)} robot-h, ${f.stuck_events} stuck` +
+        (f.stuck_per_hour === null ? "" : ` (${fmt(f.stuck_per_hour, 1)}/h)`));
+    set("seen", ago(robot.last_seen));
+  }
+  for (const [id, entry] of state.cards) {
+    if (!seen.has(id)) {
+      entry.card.remove();
+      state.cards.delete(id);
+    }
+  }
+}
+
+// ---- workers -------------------------------------------------------------------------------
+
+function renderWorkers(workers) {
+  $("#workers-empty").hidden = workers.length > 0;
+  $("#workers-table").hidden = workers.length === 0;
+  $("#workers-table tbody").replaceChildren(
+    ...workers.map((w) =>
+      el(
+        "tr",
+        { "data-worker": w.name },
+        el("td", { text: w.name }),
+        el("td", { text: w.host }),
+        el("td", {}, el("span", { class: `status ${w.state}`, text: w.state })),
+        el("td", { text: w.jobs_done }),
+        el("td", { text: w.robot_steps_per_s === null ? "–" : Math.round(w.robot_steps_per_s).toLocaleString() }),
+        el("td", { text: ago(Date.parse(w.last_seen) / 1000) }),
+      ),
+    ),
+  );
+}
+
+// ---- start ---------------------------------------------------------------------------------
+
+async function startRun(event) {
+  event.preventDefault();
+  const form = event.target;
+  const message = $("#new-run-message");
+  const body = {
+    population: Number(form.population.value),
+    generations: Number(form.generations.value),
+    seed: Number(form.seed.value),
+    network: form.network.value,
+  };
+  try {
+    const run = await api("POST", "/api/runs", body);
+    message.textContent = `run ${run.id} queued`;
+    onRun(run);
+    selectRun(run.id);
+  } catch (err) {
+    message.textContent = err.message;
+  }
+}
+
+function main() {
+  makeChart();
+  for (const button of document.querySelectorAll(".controls button")) {
+    button.addEventListener("click", () => steer(button.dataset.action));
+  }
+  $("#new-run").addEventListener("submit", startRun);
+  window.addEventListener("hashchange", showTab);
+  window.addEventListener("resize", resizeChart);
+  showTab();
+  const wanted = Number(new URLSearchParams(location.search).get("run"));
+  if (Number.isInteger(wanted) && wanted > 0) state.selected = wanted;
+  renderRunDetail();
+  connect();
+}
+
+main();
