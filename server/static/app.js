@@ -348,7 +348,7 @@ function renderRobots(snapshot) {
     const f = robot.field;
     set("field", f === null
       ? "not run yet"
-      : `${fmt(f.robot_hours, 2)} robot-h, ${f.stuck_events} stuck` +
+      : `${fmt(f.robot_hours, 3)} robot-h, ${f.stuck_events} stuck` +
         (f.stuck_per_hour === null ? "" : ` (${fmt(f.stuck_per_hour, 1)}/h)`));
     set("seen", ago(robot.last_seen));
   }

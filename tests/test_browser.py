@@ -1,0 +1,147 @@
+"""The dashboard in headless Chromium (Debian's, driven by Playwright): a run's curve grows live,
+pause and resume work from the page, and a click pushes a run's best controller to a virtual
+robot that acknowledges it. Saves the screenshots docs/img/dashboard-runs.png and -colony.png.
+
+Real uvicorn, temporary SQLite, in-process evaluation; the robot side on a real zenoh router
+(127.0.0.1, no multicast) with an agent over a BasicX emulator pty.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from server.app import create_app
+from server.routes import robots as robot_routes
+from server.settings import Settings
+from tests.test_dashboard import QUICK, Served, eventually, serve
+from tests.test_robots_server import Colony, online, robot_link, virtual_robot
+
+CHROMIUM = Path("/usr/bin/chromium")
+IMAGES = Path(__file__).resolve().parent.parent / "docs" / "img"
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+LONG = {"population": 12, "generations": 400, "steps": 60, "job_size": 4}
+"""Runs for tens of seconds: it is paused, resumed and cancelled while the page watches."""
+TIMEOUT_MS = 30_000
+
+pytestmark = pytest.mark.skipif(
+    not CHROMIUM.exists(), reason="needs Debian's chromium at /usr/bin/chromium (apt-get install)"
+)
+
+
+@pytest.fixture(scope="module")
+def db_url(tmp_path_factory: pytest.TempPathFactory) -> str:
+    return f"sqlite:///{tmp_path_factory.mktemp('browser') / 'colony.db'}"
+
+
+@pytest.fixture(scope="module")
+def served(db_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    app = create_app(Settings(db_url=db_url, executors=1, zenoh=False))
+    app.include_router(robot_routes.router)  # until create_app includes it
+    with serve(tmp_path_factory.mktemp("unused"), app) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    context = browser.new_context(viewport={"width": 1280, "height": 900})
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.set_default_timeout(TIMEOUT_MS)
+    try:
+        yield page
+        assert errors == [], f"JavaScript errors: {errors}"
+    finally:
+        context.close()
+
+
+def points(page: Any) -> int:
+    return int(page.get_attribute("#curve", "data-points"))
+
+
+def test_curve_grows_live_and_controls_steer(served: Served, page: Any) -> None:
+    with httpx.Client(base_url=served.url, timeout=30) as client:
+        run_id = client.post("/api/runs", json=LONG).json()["id"]
+        page.goto(f"{served.url}/?run={run_id}")
+        page.wait_for_function("Number(document.querySelector('#curve').dataset.points) >= 2")
+        before = points(page)
+        page.wait_for_function(
+            f"Number(document.querySelector('#curve').dataset.points) > {before}"
+        )
+        assert points(page) > before  # the chart grew from server-sent events alone
+        assert page.locator(f'#runs-table tr[data-run="{run_id}"]').count() == 1
+        page.wait_for_selector("#network-img:not([hidden])")
+        page.wait_for_selector("#paths-img:not([hidden])")
+
+        page.click("[data-testid=pause]")
+        page.wait_for_selector("[data-testid=run-status]:text-is('paused')")
+        assert client.get(f"/api/runs/{run_id}").json()["status"] == "paused"
+        assert page.is_disabled("[data-testid=pause]") and page.is_enabled("[data-testid=resume]")
+        page.click("[data-testid=resume]")
+        page.wait_for_selector("[data-testid=run-status]:text-is('running')")
+        grown = points(page)
+        page.wait_for_function(f"Number(document.querySelector('#curve').dataset.points) > {grown}")
+        IMAGES.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(IMAGES / "dashboard-runs.png"), full_page=True)
+        page.click("[data-testid=cancel]")
+        page.wait_for_selector("[data-testid=run-status]:text-is('cancelled')")
+        assert client.get(f"/api/runs/{run_id}").json()["status"] == "cancelled"
+
+
+def test_push_best_controller_to_a_robot_with_a_click(
+    served: Served, db_url: str, page: Any, tmp_path: Path
+) -> None:
+    with httpx.Client(base_url=served.url, timeout=30) as client:
+        run_id = client.post("/api/runs", json=QUICK).json()["id"]
+        assert eventually(lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed")
+        colony = Colony(served.url, db_url, run_id, served.app, tmp_path)
+        with robot_link(colony) as link, virtual_robot("virt-1", link, tmp_path) as (agent, _):
+            assert eventually(lambda: online(client, "virt-1"))
+            page.goto(f"{served.url}/#colony")
+            card = page.locator('[data-robot="virt-1"]')
+            card.wait_for()
+            page.select_option("[data-testid=push-run-virt-1]", str(run_id))
+            page.fill("[data-testid=push-rank-virt-1]", "0")
+            page.click("[data-testid=push-virt-1]")
+            result = page.locator("[data-testid=push-result-virt-1]")
+            result.filter(has_text="acknowledged").wait_for()
+            best = client.get(f"/api/runs/{run_id}/best").json()["sha256"]
+            assert agent.controller is not None and agent.controller.sha256 == best
+            assert best[:12] in result.inner_text()
+            # the card follows the robot: its controller and origin arrive over the stream
+            card.locator('[data-field="origin"]').filter(
+                has_text=f"run {run_id}, rank 0"
+            ).wait_for()
+            assert best[:12] in card.locator('[data-field="controller"]').inner_text()
+            card.locator('[data-field="state"]').filter(has_text="running").wait_for()
+            page.wait_for_function(
+                """Number(document.querySelector('[data-robot="virt-1"] [data-field="steps"]')
+                    .textContent) > 0"""
+            )
+            page.screenshot(path=str(IMAGES / "dashboard-colony.png"), full_page=True)
