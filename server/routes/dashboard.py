@@ -104,19 +104,22 @@ class Watch:
                     }
                     events.append(sse("generation", data, event_id=g))
                     self._after = g
-            for run in session.scalars(select(Run).order_by(Run.id.desc()).limit(RUNS_LIMIT)):
-                key = (
-                    run.status,
-                    run.generation,
-                    run.best_fitness,
-                    run.evaluations,
-                    run.error,
-                    run.started_at,
-                    run.finished_at,
-                )
-                if self._runs.get(run.id) != key:
-                    self._runs[run.id] = key
-                    events.append(sse("run", run_out(run).model_dump(mode="json")))
+            progress = select(
+                Run.id,
+                Run.status,
+                Run.generation,
+                Run.best_fitness,
+                Run.evaluations,
+                Run.error,
+                Run.started_at,
+                Run.finished_at,
+            )
+            for run_id, *key in session.execute(progress.order_by(Run.id.desc()).limit(RUNS_LIMIT)):
+                if self._runs.get(run_id) != tuple(key):
+                    self._runs[run_id] = tuple(key)
+                    run = session.get(Run, run_id)  # the whole row (config) only when it changed
+                    if run is not None:
+                        events.append(sse("run", run_out(run).model_dump(mode="json")))
         workers = [w.model_dump(mode="json") for w in get_workers(self._request)]
         if workers != self._workers:
             self._workers = workers
