@@ -58,6 +58,7 @@ import hashlib
 import importlib.util
 import math
 import os
+import pickle
 import stat
 import sys
 import tempfile
@@ -348,6 +349,28 @@ def _write_atomically(path: Path, data: bytes) -> None:
         raise
 
 
+def _drop_unreadable_machine_code(pycache: Path, name: str) -> None:
+    """Delete numba's cache index of module `name` if it or a data file it names is unreadable.
+
+    numba raises on a truncated or corrupt cache file instead of recompiling; without the
+    index it recompiles and rewrites both. Run after the module is imported (the data files
+    name it); numba reads them lazily, on the first call.
+    """
+    for index in pycache.glob(f"{name}.*.nbi"):
+        try:
+            with index.open("rb") as f:
+                pickle.load(f)  # numba's format version
+                _, overloads = pickle.loads(f.read())
+            for data_name in overloads.values():
+                data = pycache / data_name
+                if data.exists():
+                    pickle.loads(data.read_bytes())
+        except FileNotFoundError:
+            continue  # another process is replacing it
+        except Exception:
+            index.unlink(missing_ok=True)
+
+
 def cached_module(
     kind: str, source: str, depends: Sequence[str] = (), directory: Path | None = None
 ) -> ModuleType:
@@ -357,7 +380,8 @@ def cached_module(
     the numba version and the bytes of every file in `depends` (the modules whose compiled
     functions the source calls: numba's cache of the generated code would not notice their
     changes, a new name does). An existing file whose bytes differ (partial write, corruption)
-    is rewritten; writes are atomic, so concurrent processes are safe. Imported once per
+    is rewritten, and unreadable numba cache files of it are dropped (recompiled); writes are
+    atomic, so concurrent processes are safe. Imported once per
     process (kept in `sys.modules`, where modules generated later import it from).
     """
     if not kind.isidentifier():
@@ -371,6 +395,7 @@ def cached_module(
     if loaded is not None:
         return loaded
     folder = kernel_cache_dir() if directory is None else directory
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     path = folder / f"{name}.py"
     data = f"# evocolony generated module {name}\n{source}".encode()
     try:
@@ -389,6 +414,7 @@ def cached_module(
     except BaseException:
         del sys.modules[name]
         raise
+    _drop_unreadable_machine_code(folder / "__pycache__", name)  # numba reads it on first call
     return module
 
 

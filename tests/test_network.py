@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +15,9 @@ from hypothesis import strategies as st
 
 from evorobotics.layout import layout
 from evorobotics.network import (
+    CACHE_ENV,
+    cached_module,
+    kernel_cache_dir,
     kernel_plan,
     motor_commands,
     motor_one,
@@ -287,3 +294,124 @@ def test_sizes_of_the_presets() -> None:
     assert plan.blocks.shape == (len(layout(spec).blocks), 5)
     assert plan is kernel_plan(spec)
     assert not plan.blocks.flags.writeable
+
+
+# ---------------------------------------------------------------- disk cache of generated kernels
+
+SMALL = NetworkSpec(inputs=2, hidden=(3,), outputs=1, delays=1, recurrence=1)
+"""A spec that compiles quickly, for the fresh-process cache tests."""
+
+PROBE = """
+import numpy as np
+from evorobotics.network import kernel_module, reset, step
+from schemas.network import NetworkSpec
+spec = NetworkSpec(inputs=2, hidden=(3,), outputs=1, delays=1, recurrence=1)
+w = np.linspace(-2.0, 2.0, spec.weight_count)[None]
+state = reset(spec, 1)
+for k in range(6):
+    out, state = step(spec, w, np.array([[k % 2, k % 3 / 2]], dtype=float), state)
+print("MODULE", kernel_module(spec))
+print("RESULT", out.tobytes().hex(), state.tobytes().hex())
+"""
+
+
+def _expected_probe() -> str:
+    w = np.linspace(-2.0, 2.0, SMALL.weight_count)[None]
+    state = reset(SMALL, 1)
+    for k in range(6):
+        out, state = step(SMALL, w, np.array([[k % 2, k % 3 / 2]], dtype=float), state)
+    return f"RESULT {out.tobytes().hex()} {state.tobytes().hex()}"
+
+
+def _probe(cache: Path) -> subprocess.Popen[str]:
+    """A fresh interpreter running PROBE with `cache` as kernel cache, numba's cache log on."""
+    env = {**os.environ, CACHE_ENV: str(cache), "NUMBA_DEBUG_CACHE": "1"}
+    return subprocess.Popen(
+        [sys.executable, "-W", "error", "-c", PROBE],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _finish(proc: subprocess.Popen[str]) -> tuple[str, str, list[str]]:
+    """(module name, RESULT line, numba cache log lines about that module) of a PROBE run."""
+    stdout, stderr = proc.communicate(timeout=100)
+    assert proc.returncode == 0, stderr
+    lines = stdout.splitlines()
+    module = next(line.split()[1] for line in lines if line.startswith("MODULE"))
+    result = next(line for line in lines if line.startswith("RESULT"))
+    return module, result, [line for line in lines if line.startswith("[cache]") and module in line]
+
+
+def test_warm_cache_gives_the_same_bits_and_corrupt_files_are_regenerated(tmp_path: Path) -> None:
+    expected = _expected_probe()
+    module, cold, log = _finish(_probe(tmp_path))
+    assert cold == expected
+    assert any("data saved" in line for line in log)
+    source = tmp_path / f"{module}.py"
+    pristine = source.read_bytes()
+
+    _, warm, log = _finish(_probe(tmp_path))
+    assert warm == expected
+    assert any("data loaded" in line for line in log)
+    assert not any("saved" in line for line in log)
+
+    # a half-written module and truncated machine code: detected, rebuilt, same bits
+    source.write_bytes(pristine[: len(pristine) // 2])
+    for data in (tmp_path / "__pycache__").glob(f"{module}.*.nbc"):
+        data.write_bytes(data.read_bytes()[:100])
+    _, repaired, log = _finish(_probe(tmp_path))
+    assert repaired == expected
+    assert source.read_bytes() == pristine
+    assert any("data saved" in line for line in log)
+    _, again, log = _finish(_probe(tmp_path))
+    assert again == expected
+    assert not any("saved" in line for line in log)
+
+
+def test_concurrent_first_use_is_safe(tmp_path: Path) -> None:
+    expected = _expected_probe()
+    first, second = _probe(tmp_path), _probe(tmp_path)
+    results = [_finish(first), _finish(second)]
+    assert [r[1] for r in results] == [expected, expected]
+    module = results[0][0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["__pycache__", f"{module}.py"]
+    _, warm, log = _finish(_probe(tmp_path))
+    assert warm == expected
+    assert not any("saved" in line for line in log)
+
+
+def test_cached_module_names_by_content_and_rewrites_damaged_files(tmp_path: Path) -> None:
+    dep = tmp_path / "dep.py"
+    dep.write_text("A = 1\n")
+    one = cached_module("probe", "VALUE = 1\n", (str(dep),), tmp_path / "c")
+    assert one.VALUE == 1
+    assert cached_module("probe", "VALUE = 1\n", (str(dep),), tmp_path / "c") is one
+    other = cached_module("probe", "VALUE = 2\n", (str(dep),), tmp_path / "c")
+    assert other.__name__ != one.__name__ and other.VALUE == 2
+    path = tmp_path / "c" / f"{one.__name__}.py"
+    pristine = path.read_bytes()
+    path.write_bytes(pristine[:-3])  # a torn write
+    del sys.modules[one.__name__]
+    assert cached_module("probe", "VALUE = 1\n", (str(dep),), tmp_path / "c").VALUE == 1
+    assert path.read_bytes() == pristine
+    with pytest.raises(ValueError, match="identifier"):
+        cached_module("not a name", "VALUE = 1\n", (), tmp_path / "c")
+
+
+def test_kernel_cache_dir_honours_the_environment(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "k"))
+    assert kernel_cache_dir() == tmp_path / "k"
+    monkeypatch.delenv(CACHE_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert kernel_cache_dir() == tmp_path / "xdg" / "evocolony" / "kernels"
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)  # writable by others: never imported from
+    monkeypatch.setenv(CACHE_ENV, str(shared))
+    fallback = kernel_cache_dir()
+    assert fallback != shared and fallback.is_dir() and os.access(fallback, os.W_OK)
