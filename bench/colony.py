@@ -104,6 +104,7 @@ def trial(robots: int, seconds: float, procs: int, switch: float) -> None:
         conf.insert_json5("scouting/multicast/enabled", "false")
         with zenoh.open(conf) as session:
             service = RobotService(session, engine).start()
+            cpu0, wall0 = time.process_time(), time.monotonic()
             ctx = mp.get_context("spawn")
             out = ctx.Queue()
             shares = [robots // procs + (1 if k < robots % procs else 0) for k in range(procs)]
@@ -126,6 +127,7 @@ def trial(robots: int, seconds: float, procs: int, switch: float) -> None:
                     break
             for p in workers:
                 p.join(30)
+            server_cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
             service.close()
         with engine.connect() as db:  # per robot: samples stored and the highest step
             rows = db.execute(
@@ -145,7 +147,8 @@ def trial(robots: int, seconds: float, procs: int, switch: float) -> None:
         f"{robots:4d} robots in {procs} procs ({len(rows)} reporting)  {rate:5.2f} steps/s each  "
         f"produced {produced:6d}  stored {stored:6d}  unsent at stop {unsent:3d}  "
         f"gaps {gaps}  dropped {dropped}  lateness ms p50 {np.percentile(late, 50):5.2f}  "
-        f"p99 {np.percentile(late, 99):6.2f}  max {late.max():7.2f}",
+        f"p99 {np.percentile(late, 99):6.2f}  max {late.max():7.2f}  "
+        f"server CPU {server_cpu:.0%} of a core",
         flush=True,
     )
 

@@ -330,7 +330,12 @@ class Agent:
                     break
                 now = time.monotonic()
             late = now - due
-            self._step(late)
+            try:
+                self._step(late)
+            except Exception:  # a bug must not leave the wheels on their last command
+                log.exception("robot %s: control step failed; motors off", self.settings.robot_id)
+                with contextlib.suppress(SerialLinkError):
+                    self.robot.stop()
             due += period
             if time.monotonic() - due > period:  # overran a whole period: resynchronise
                 due = time.monotonic()
