@@ -1,6 +1,10 @@
 """The simulator: whisker geometry, kinematics, blocked moves, stuck rule, kernel vs reference."""
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -279,3 +283,42 @@ def test_kernel_whiskers_match_reference_anywhere(
     res = simulate(CONST, const_weights(0, 0), maze, poses, 1, gap=gap, record=True)
     assert res.whiskers is not None
     assert np.array_equal(res.whiskers[:, 0], ref)
+
+
+SIM_PROBE = """
+import numpy as np
+from evorobotics.evaluate import start_poses
+from evorobotics.maze import load_maze
+from evorobotics.sim import simulate
+from schemas.network import NetworkSpec
+spec = NetworkSpec(hidden=(), delays=1, output_activation="linear")
+maze = load_maze("arena")
+w = np.random.default_rng(7).normal(0.0, 1.5, (6, spec.weight_count))
+res = simulate(spec, w, maze, start_poses(maze, 0, 0, 6), 30, record=True)
+print("RESULT", res.poses.tobytes().hex(), res.components.tobytes().hex())
+"""
+
+
+def test_fresh_process_with_warm_kernel_cache_gives_the_same_bits(tmp_path: Path) -> None:
+    spec = NetworkSpec(hidden=(), delays=1, output_activation="linear")
+    w = np.random.default_rng(7).normal(0.0, 1.5, (6, spec.weight_count))
+    res = simulate(spec, w, ARENA, start_poses(ARENA, 0, 0, 6), 30, record=True)
+    assert res.poses is not None
+    expected = f"RESULT {res.poses.tobytes().hex()} {res.components.tobytes().hex()}"
+    env = {**os.environ, network.CACHE_ENV: str(tmp_path), "NUMBA_DEBUG_CACHE": "1"}
+    logs = []
+    for _ in range(2):  # cold, then warm
+        done = subprocess.run(
+            [sys.executable, "-W", "error", "-c", SIM_PROBE],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=100,
+            check=True,
+        )
+        lines = done.stdout.splitlines()
+        assert [line for line in lines if line.startswith("RESULT")] == [expected]
+        logs.append([line for line in lines if "evocolony_episodes_" in line])
+    assert any("data saved" in line for line in logs[0])
+    assert any("data loaded" in line for line in logs[1])
+    assert not any("saved" in line for line in logs[1])
