@@ -2,12 +2,16 @@
 
 Run: .venv/bin/python bench/controller.py   (about 30 s on 2 cores; prints a table, asserts nothing)
 A "controller step" is one individual advanced by one time step, so a batch of B counts B.
-Also prints the one-off cost of generating and compiling each preset's specialised kernel (the
-first `step` of a process; numba cannot disk-cache it).
+Also prints the first `step` of a fresh process per preset, with a cold kernel cache (a new
+temporary EVOCOLONY_KERNEL_CACHE: generate and compile) and a warm one (load machine code).
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable
 
@@ -80,15 +84,33 @@ def _rate(fn: StepFn, preset: str, batch: int) -> float:
     return calls * batch / elapsed
 
 
+FIRST_STEP = """
+import sys, time
+import numpy as np
+from evorobotics.network import reset, step
+from schemas.network import PRESETS
+spec = PRESETS[sys.argv[1]]
+t0 = time.perf_counter()
+step(spec, np.zeros((1, spec.weight_count)), np.zeros((1, spec.inputs)), reset(spec, 1))
+print(time.perf_counter() - t0)
+"""
+
+
+def first_call_seconds(script: str, preset: str, cache: str) -> float:
+    """Seconds of the timed first call in `script`, run by a fresh interpreter using `cache`."""
+    env = {**os.environ, "EVOCOLONY_KERNEL_CACHE": cache}
+    done = subprocess.run(
+        [sys.executable, "-c", script, preset], env=env, capture_output=True, text=True, check=True
+    )
+    return float(done.stdout.split()[-1])
+
+
 def main() -> None:
     for preset in ("paper-best", "paper-largest"):
-        spec = PRESETS[preset]
-        t0 = time.perf_counter()
-        step(spec, np.zeros((1, spec.weight_count)), np.zeros((1, spec.inputs)), reset(spec, 1))
-        print(
-            f"{preset}: first step() generates and compiles its kernel: "
-            f"{time.perf_counter() - t0:.2f} s"
-        )
+        with tempfile.TemporaryDirectory() as cache:
+            cold = first_call_seconds(FIRST_STEP, preset, cache)
+            warm = first_call_seconds(FIRST_STEP, preset, cache)
+        print(f"{preset}: first step() of a process, cold cache {cold:.2f} s, warm {warm:.2f} s")
     print(
         f"{'preset':14s} {'weights':>7s} {'batch':>6s} {'step/s':>12s} "
         f"{'step_one/s':>12s} {'numpy/s':>12s}"

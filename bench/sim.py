@@ -13,6 +13,10 @@ issue 3's target (2 M robot-steps/s at batch >= 1024 for paper-best) is judged o
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable
 
@@ -54,6 +58,29 @@ def rate(
     return batch * STEPS / seconds, stuck
 
 
+FIRST_SIMULATE = """
+import sys, time
+import numpy as np
+from evorobotics.evaluate import start_poses
+from evorobotics.maze import load_maze
+from evorobotics.sim import simulate
+from schemas.network import PRESETS
+spec, maze = PRESETS[sys.argv[1]], load_maze("paper")
+t0 = time.perf_counter()
+simulate(spec, np.zeros((1, spec.weight_count)), maze, start_poses(maze, 0, 0, 1), 1)
+print(time.perf_counter() - t0)
+"""
+
+
+def first_call_seconds(script: str, preset: str, cache: str) -> float:
+    """Seconds of the timed first call in `script`, run by a fresh interpreter using `cache`."""
+    env = {**os.environ, "EVOCOLONY_KERNEL_CACHE": cache}
+    done = subprocess.run(
+        [sys.executable, "-c", script, preset], env=env, capture_output=True, text=True, check=True
+    )
+    return float(done.stdout.split()[-1])
+
+
 def main() -> None:
     print(f"robot-steps/s, {STEPS}-step trials in the 'paper' maze (best of repeats, one core)")
     rows = [
@@ -64,11 +91,11 @@ def main() -> None:
         ("paper-largest", 1024),
     ]
     for preset in ("paper-best", "paper-largest"):
-        spec, maze = PRESETS[preset], load_maze("paper")
-        t0 = time.perf_counter()
-        simulate(spec, np.zeros((1, spec.weight_count)), maze, start_poses(maze, 0, 0, 1), 1)
+        with tempfile.TemporaryDirectory() as cache:
+            cold = first_call_seconds(FIRST_SIMULATE, preset, cache)
+            warm = first_call_seconds(FIRST_SIMULATE, preset, cache)
         print(
-            f" first simulate() of {preset} (compiles its kernels): {time.perf_counter() - t0:.2f} s"
+            f" first simulate() of {preset} in a process: cold cache {cold:.2f} s, warm {warm:.2f} s"
         )
     for label, params in (("default world", DEFAULT_WORLD), ("never stuck", NEVER_STUCK)):
         print(f" {label} (stuck_after={params.stuck_after}):")
