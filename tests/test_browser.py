@@ -1,6 +1,7 @@
 """The dashboard in headless Chromium (Debian's, driven by Playwright): a run's curve grows live,
 pause and resume work from the page, and a click pushes a run's best controller to a virtual
-robot that acknowledges it. Saves the screenshots docs/img/dashboard-runs.png and -colony.png.
+robot that acknowledges it. Screenshots dashboard-runs.png and dashboard-colony.png go to
+$DASHBOARD_SCREENSHOTS (e.g. docs/img) when set, else to a temporary directory.
 
 Real uvicorn, temporary SQLite, in-process evaluation; the robot side on a real zenoh router
 (127.0.0.1, no multicast) with an agent over a BasicX emulator pty.
@@ -8,6 +9,7 @@ Real uvicorn, temporary SQLite, in-process evaluation; the robot side on a real 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -22,7 +24,6 @@ from tests.test_dashboard import QUICK, Served, eventually, serve
 from tests.test_robots_server import Colony, online, robot_link, virtual_robot
 
 CHROMIUM = Path("/usr/bin/chromium")
-IMAGES = Path(__file__).resolve().parent.parent / "docs" / "img"
 ARGS = [
     "--headless",
     "--no-sandbox",
@@ -33,7 +34,7 @@ ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
-LONG = {"population": 12, "generations": 400, "steps": 60, "job_size": 4}
+LONG = {"population": 12, "generations": 2000, "steps": 60, "job_size": 4}
 """Runs for tens of seconds: it is paused, resumed and cancelled while the page watches."""
 TIMEOUT_MS = 30_000
 
@@ -68,6 +69,13 @@ def browser() -> Iterator[Any]:
 
 
 @pytest.fixture
+def shots(tmp_path: Path) -> Path:
+    folder = Path(os.environ.get("DASHBOARD_SCREENSHOTS") or tmp_path)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+@pytest.fixture
 def page(browser: Any) -> Iterator[Any]:
     context = browser.new_context(viewport={"width": 1280, "height": 900})
     page = context.new_page()
@@ -85,7 +93,7 @@ def points(page: Any) -> int:
     return int(page.get_attribute("#curve", "data-points"))
 
 
-def test_curve_grows_live_and_controls_steer(served: Served, page: Any) -> None:
+def test_curve_grows_live_and_controls_steer(served: Served, page: Any, shots: Path) -> None:
     with httpx.Client(base_url=served.url, timeout=30) as client:
         run_id = client.post("/api/runs", json=LONG).json()["id"]
         page.goto(f"{served.url}/?run={run_id}")
@@ -107,15 +115,15 @@ def test_curve_grows_live_and_controls_steer(served: Served, page: Any) -> None:
         page.wait_for_selector("[data-testid=run-status]:text-is('running')")
         grown = points(page)
         page.wait_for_function(f"Number(document.querySelector('#curve').dataset.points) > {grown}")
-        IMAGES.mkdir(parents=True, exist_ok=True)
-        page.screenshot(path=str(IMAGES / "dashboard-runs.png"), full_page=True)
+        page.screenshot(path=str(shots / "dashboard-runs.png"), full_page=True)
+        assert (shots / "dashboard-runs.png").stat().st_size > 10_000
         page.click("[data-testid=cancel]")
         page.wait_for_selector("[data-testid=run-status]:text-is('cancelled')")
         assert client.get(f"/api/runs/{run_id}").json()["status"] == "cancelled"
 
 
 def test_push_best_controller_to_a_robot_with_a_click(
-    served: Served, db_url: str, page: Any, tmp_path: Path
+    served: Served, db_url: str, page: Any, tmp_path: Path, shots: Path
 ) -> None:
     with httpx.Client(base_url=served.url, timeout=30) as client:
         run_id = client.post("/api/runs", json=QUICK).json()["id"]
@@ -144,4 +152,4 @@ def test_push_best_controller_to_a_robot_with_a_click(
                 """Number(document.querySelector('[data-robot="virt-1"] [data-field="steps"]')
                     .textContent) > 0"""
             )
-            page.screenshot(path=str(IMAGES / "dashboard-colony.png"), full_page=True)
+            page.screenshot(path=str(shots / "dashboard-colony.png"), full_page=True)
