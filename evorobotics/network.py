@@ -41,8 +41,8 @@ twin of `motor_commands` for one robot.
 
 Specialised kernels. `spec_kernel(spec)` is `step_one` with the plan baked in: Python source
 generated per spec (constant loop bounds, block offsets and state offsets, blocks summed in the
-same order), compiled with numba and cached per spec in-process (numba cannot disk-cache
-exec'd code, so each process pays the compile once per spec: ~0.7 s for paper-best). Its call
+same order), written as a real module file in the kernel cache directory (`cached_module`) and
+compiled with `njit(cache=True)`, so the compile is paid once per machine, not per process. Its call
 is `kernel(w, state_row, inputs_row, out_row, scratch)`, and it is bit-identical to `step_one`
 (same operations in the same order, no fastmath; tested) and about 2.5 times faster.
 
