@@ -533,7 +533,7 @@ class RobotService:
                     if sha not in docs:
                         stored = crud.get_controller(db, sha256=sha)
                         docs[sha] = _document(stored.document) if stored else None
-        return _replay(robot_id, rows, docs)
+        return replay_trace(robot_id, rows, docs)
 
     def field_stats(self, sha256: str) -> FieldStats | None:
         """Robot-hours and stuck events of a controller over the colony; None if never run."""
@@ -640,10 +640,13 @@ def _samples(row: TraceRow) -> list[TraceSample]:
     ]
 
 
-def _replay(
+def replay_trace(
     robot: str, rows: list[TraceRow], docs: dict[str, ControllerDocument | None]
 ) -> ReplayOut:
-    """Walk the samples in order; a controller's run is replayed from its fresh sample on."""
+    """The replay check over stored batches in (boot, first) order, with their controllers.
+
+    A controller's run is replayed from its fresh sample on; see docs/robots.md.
+    """
     checked = segments = skipped = mismatches = 0
     first: dict[str, object] | None = None
     doc: ControllerDocument | None = None

@@ -19,10 +19,13 @@ import numpy as np
 import pytest
 import uvicorn
 import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from sqlalchemy import select
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
+from evorobotics import network
 from evorobotics.document import ControllerDocument
 from robot_agent.agent import Agent, AgentSettings
 from robot_agent.driver import BasicXDriver
@@ -30,13 +33,25 @@ from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
 from robot_agent.stuck import StuckConfig
 from schemas.network import NetworkSpec
-from schemas.robots import ControllerPush, PushAck, ack_key, command_key, decode_message
+from schemas.robots import (
+    ESCAPE,
+    ControllerPush,
+    PushAck,
+    RobotStatus,
+    TraceBatch,
+    ack_key,
+    command_key,
+    decode_message,
+    decode_trace,
+    encode_trace,
+)
 from schemas.robots import encode_message as encode_robot_message
+from schemas.wire import WireError
 from server import crud
 from server.app import create_app
 from server.db import make_engine
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
-from server.robots import RobotService, RobotSettings, ranked_document
+from server.robots import RobotService, RobotSettings, ranked_document, replay_trace
 from server.routes import robots as robot_routes
 from server.settings import Settings
 from tests.test_agent import constant_drive, free_port, random_controller, save
@@ -338,3 +353,99 @@ def test_stop_and_http_errors(colony: Colony, tmp_path: Path) -> None:
             response = client.get(f"/api/robots/nobody{path}")
             assert response.status_code == 404 and "nobody" in response.json()["detail"]
         assert client.post("/api/robots/nobody/stop").status_code == 404
+
+
+# ---------------------------------------------------------------------------- properties
+
+
+def _trace(
+    doc: ControllerDocument, whiskers: np.ndarray, escape_at: int | None
+) -> tuple[TraceRow, np.ndarray]:
+    """A stored batch as an agent produces it: the controller from fresh state, optionally an
+    escape sample and a fresh restart at `escape_at`; returns it and its motors."""
+    state = network.reset(doc.spec, 1)
+    motors = np.empty((whiskers.shape[0], 2))
+    controller = np.zeros(whiskers.shape[0], dtype=np.int32)
+    fresh = np.zeros(whiskers.shape[0], dtype=bool)
+    fresh[0] = True
+    for k in range(whiskers.shape[0]):
+        if k == escape_at:
+            motors[k], controller[k] = (-0.6, -0.6), ESCAPE
+            continue
+        if escape_at is not None and k == escape_at + 1:
+            state, fresh[k] = network.reset(doc.spec, 1), True
+        out, state = network.step(doc.spec, doc.weights[None, :], whiskers[k : k + 1] * 1.0, state)
+        motors[k] = network.motor_commands(doc.spec, out)[0]
+    n = whiskers.shape[0]
+    row = TraceRow(
+        robot_id="p",
+        boot=0,
+        first=0,
+        last=n - 1,
+        count=n,
+        controllers=json.dumps([doc.sha256]),
+        steps=np.arange(n, dtype="<i8").tobytes(),
+        whiskers=whiskers.astype("|u1").tobytes(),
+        motors=motors.astype("<f8").tobytes(),
+        controller=controller.astype("<i4").tobytes(),
+        fresh=fresh.tobytes(),
+    )
+    return row, motors
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    n=st.integers(2, 60),
+    escape=st.booleans(),
+    flip=st.integers(0, 10_000),
+)
+def test_replay_is_identical_and_detects_any_single_flipped_bit(
+    seed: int, n: int, escape: bool, flip: int
+) -> None:
+    rng = np.random.default_rng(seed)
+    doc = random_controller(seed % 1000, NetworkSpec())
+    whiskers = (rng.random((n, 5)) < 0.3).astype(np.uint8)
+    escape_at = int(rng.integers(1, n - 1)) if escape and n >= 3 else None
+    row, motors = _trace(doc, whiskers, escape_at)
+    report = replay_trace("p", [row], {doc.sha256: doc})
+    assert report.identical and report.mismatches == 0
+    assert report.checked == n - (escape_at is not None)
+    assert report.segments == 1 + (escape_at is not None)  # fresh again after the escape
+    driven = [k for k in range(n) if k != escape_at]
+    k = driven[flip % len(driven)]
+    tampered = motors.copy()
+    bits = tampered.view("<u8")
+    bits[k, flip % 2] ^= np.uint64(1) << np.uint64(flip % 52)
+    row.motors = tampered.astype("<f8").tobytes()
+    bad = replay_trace("p", [row], {doc.sha256: doc})
+    assert not bad.identical and bad.mismatches == 1
+    assert bad.first_mismatch is not None and bad.first_mismatch["step"] == k
+
+
+@settings(max_examples=50, deadline=None)
+@given(n=st.integers(1, 50), seed=st.integers(0, 2**31), boot=st.integers(0, 1000))
+def test_trace_batches_round_trip_bit_for_bit(n: int, seed: int, boot: int) -> None:
+    rng = np.random.default_rng(seed)
+    batch = TraceBatch(
+        robot="r-1",
+        boot=boot,
+        controllers=("a" * 64, "b" * 64),
+        status=RobotStatus(state="running", steps=n, sha256=None, serial_ok=True),
+        steps=np.cumsum(rng.integers(1, 3, n)).astype(np.int64),
+        whiskers=rng.integers(0, 2, (n, 5)).astype(np.uint8),
+        motors=rng.uniform(-1, 1, (n, 2)),
+        controller=rng.integers(-1, 2, n).astype(np.int32),
+        fresh=rng.random(n) < 0.2,
+    )
+    back = decode_trace(encode_trace(batch))
+    for name in ("steps", "whiskers", "motors", "controller", "fresh"):
+        assert getattr(back, name).tobytes() == getattr(batch, name).tobytes()
+    assert (back.robot, back.boot, back.controllers, back.status) == (
+        batch.robot,
+        batch.boot,
+        batch.controllers,
+        batch.status,
+    )
+    with pytest.raises(WireError):
+        decode_trace(encode_trace(batch)[:-1])
