@@ -71,6 +71,9 @@ class EndlessSource:
     def release(self, key: JobKey) -> None:
         return None
 
+    def flush(self) -> None:
+        return None
+
 
 def start_workers(
     ctx: mp.context.SpawnContext, port: int, n: int, empty: bool

@@ -7,7 +7,11 @@ speed; the lease ends early when the worker's liveliness token vanishes. Only th
 current lease holder counts: a late or duplicate result is acknowledged and dropped.
 
 All zenoh callbacks only put into a queue; one dispatcher thread does every zenoh reply and
-every JobSource call, so the source needs no locking of its own against the dispatcher.
+every JobSource call, so the source needs no locking of its own against the dispatcher. The
+thread blocks on that one queue for everything (requests, results, liveliness, `notify` when
+new jobs exist) with a timeout of the next deadline (a lease, a long-poll, a gone worker's
+expiry): nothing is polled. Once the queue is empty it calls `JobSource.flush`, so slow
+bookkeeping (writing a finished generation) runs after the next generation's jobs are sent.
 """
 
 from __future__ import annotations
@@ -63,6 +67,9 @@ class JobSource(Protocol):
     def release(self, key: JobKey) -> None:
         """The lease is over without a result (worker gone or late): the job is pending again."""
 
+    def flush(self) -> None:
+        """Do deferred work now that every reply is out (called when no message is waiting)."""
+
 
 @dataclass(frozen=True)
 class DispatchSettings:
@@ -79,15 +86,13 @@ class DispatchSettings:
     """lease = max(lease_min_s, lease_factor x robot-steps / worker robot-steps/s)."""
     lease_unknown_s: float = 120.0
     """Lease for a worker with no measured speed yet (its first job compiles the kernels)."""
-    poll_s: float = 0.02
-    """How often held requests retry the source when nobody calls `notify`."""
     gone_keep_s: float = 600.0
     """How long a departed worker stays listed as gone."""
 
     def __post_init__(self) -> None:
         if not self.listen and not self.connect:
             raise ValueError("a dispatcher needs at least one listen or connect endpoint")
-        for name in ("long_poll_s", "lease_min_s", "lease_factor", "lease_unknown_s", "poll_s"):
+        for name in ("long_poll_s", "lease_min_s", "lease_factor", "lease_unknown_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.gone_keep_s < 0:
@@ -238,29 +243,47 @@ class Dispatcher:
                 event = self._inbox.get(timeout=self._wait_time())
             except queue.Empty:
                 event = _WAKE
-            if self._stopping.is_set():
-                self._finish(event)
-                break
+            while True:  # everything already waiting, then the deferred work
+                if self._stopping.is_set():
+                    self._finish(event)
+                    return
+                self._step(event)
+                try:
+                    event = self._inbox.get_nowait()
+                except queue.Empty:
+                    break
             try:
-                self._handle(event)
-                self._serve_held()
-                self._expire()
-            except Exception:  # a failing source must not stop the dispatcher
-                log.exception("dispatcher step failed; continuing")
+                self._source.flush()
+            except Exception:  # e.g. the database is down: retried at the next flush
+                log.exception("deferred job-source work failed; retrying later")
+
+    def _step(self, event: Any) -> None:
+        try:
+            self._handle(event)
+            self._serve_held()
+            self._expire()
+        except Exception:  # a failing source must not stop the dispatcher
+            log.exception("dispatcher step failed; continuing")
 
     def _finish(self, event: Any) -> None:
         if isinstance(event, tuple) and isinstance(event[1], zenoh.Query):
             with event[1] as query:
                 query.reply_err(b"server stopping")
 
-    def _wait_time(self) -> float:
-        now = self._clock()
+    def _wait_time(self) -> float | None:
+        """Until the next deadline: a lease, a held request's long-poll, a gone worker's
+        expiry from the table; None (block until a message) when there is none."""
         deadlines = [lease.deadline for lease in self._leases.values()]
-        if self._held:
-            deadlines.append(now + self.settings.poll_s)
+        deadlines += [held.until for held in self._held]
+        with self._lock:
+            deadlines += [
+                w.gone_at + self.settings.gone_keep_s
+                for w in self._workers.values()
+                if w.gone_at is not None
+            ]
         if not deadlines:
-            return 0.5
-        return min(max(min(deadlines) - now, 0.0), 0.5)
+            return None
+        return max(min(deadlines) - self._clock(), 0.0)
 
     def _handle(self, event: Any) -> None:
         if event is _WAKE:
@@ -357,15 +380,20 @@ class Dispatcher:
                 record.state = "idle"
                 if result.robot_steps_per_s:
                     record.speed = result.robot_steps_per_s
-        if result.want_next and not self._held:
-            # Pipelined request (protocol 2): the next job rides on the acknowledgement. With
-            # requests already waiting, this worker queues behind them on jobs/next instead.
-            self._release_held_by(result.worker)
-            job = self._source.lease(result.worker)
+        if result.want_next:
+            # Pipelined request (protocol 2): the next job rides on the acknowledgement.
+            # Requests already held waited longer: they are served first.
+            self._serve_held()
+            job = None if self._held else self._lease_for(result.worker)
             if job is not None:
                 self._send(query, KEY_JOB_RESULT, job, result.worker, ack)
                 return
         query.reply(KEY_JOB_RESULT, encode_message(ack))
+
+    def _lease_for(self, worker: str) -> Job | None:
+        """A job for a worker that holds no other lease (any other it holds lost its reply)."""
+        self._release_held_by(worker)
+        return self._source.lease(worker)
 
     def _settle(self, result: Result, lease: _Lease) -> Ack:
         if result.error is not None:
@@ -465,7 +493,8 @@ class QueueSource:
             self._queue.fail(key, f"{result.worker}: result without fitness or components")
             return False
         try:
-            return self._queue.complete(key, JobResult(result.fitness, result.components))
+            job_result = JobResult(result.fitness, result.components)
+            return self._queue.complete(key, job_result, defer=True)
         except ValueError as exc:  # wrong shapes: the worker is broken, count it as a failure
             self._queue.fail(key, f"{result.worker}: {exc}")
             return False
@@ -475,6 +504,11 @@ class QueueSource:
 
     def release(self, key: JobKey) -> None:
         self._queue.release(_queue_key(key))
+
+    def flush(self) -> None:
+        """Write the generations completed since the last call (after their successors' jobs
+        went out: workers evaluate g + 1 while g is written)."""
+        self._queue.flush()
 
 
 def _queue_key(key: JobKey) -> QueueKey:

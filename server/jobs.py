@@ -5,18 +5,23 @@ job results live in memory, one generation per run; the database holds only comm
 generations. `lease` hands the next pending job of the running run served least recently to a
 worker with a deadline; `complete` stores its result once (duplicates and late results are
 acknowledged and dropped); `expire` and `release` return leases. When the last job of a
-generation completes, the generation is committed in one transaction (see `server.manager`)
-and only then does the next generation's jobs replace it here.
+generation completes, the GA is told and asked at once and the next generation's jobs replace
+it here; the generation is then written in one transaction (see `server.manager`), either
+inside that `complete` or, with `complete(..., defer=True)`, at the next `flush`: the
+dispatcher flushes after it has sent the new jobs, so workers evaluate generation g + 1 while
+g is written. Generation g is always written before g + 1 (`complete` flushes first).
 
 Why memory: a generation of the paper's population costs the server one transaction instead of
 one per lease and per result. A crash loses leases and the results of the generation in flight,
 never a committed generation; `ask` is a pure function of the committed GA state and the seed,
-so a restarted server re-asks that generation and resumes bit-identically.
+so a restarted server re-asks that generation and resumes bit-identically (results of a
+generation asked before a crash but never written are dropped as late).
 """
 
 from __future__ import annotations
 
 import heapq
+import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,6 +31,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics.evolution import job_slices
 from schemas.run import RunConfig
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, order=True)
@@ -77,9 +84,24 @@ class GenerationResults:
     """(population, trials, 4)"""
 
 
-GenerationDone = Callable[[Session, GenerationResults], np.ndarray | None]
-"""Commits a generation inside the given transaction; returns the next generation's genomes,
-or None when the run is over. The queue installs them once the transaction has committed."""
+class RunOverError(Exception):
+    """A generation's write found its run no longer live (cancelled or failed meanwhile):
+    nothing was written and nothing needs to be."""
+
+
+@dataclass(frozen=True)
+class Advance:
+    """What the run manager makes of a fully evaluated generation."""
+
+    following: np.ndarray | None
+    """The next generation's genomes (asked from the told GA state), None when the run is over."""
+    write: Callable[[Session], None]
+    """Stores the generation inside the given transaction; raises RunOverError if the run is
+    no longer live."""
+
+
+GenerationDone = Callable[[GenerationResults], Advance]
+"""Tells the GA a generation's fitness (in memory, no I/O): the next genomes and the write."""
 RunFailed = Callable[[Session, int, str], None]
 """Fails a run (by id) inside the given transaction, after a job exhausted its attempts."""
 
@@ -141,8 +163,33 @@ class JobQueue:
         self._served: dict[int, int] = {}
         """run id -> lease sequence number of its last lease: fair sharing picks the smallest."""
         self._sequence = 0
+        self._unwritten: list[tuple[GenerationResults, Callable[[Session], None]]] = []
+        """Generations told and asked but not yet written, oldest first."""
+        self._listeners: list[Callable[[], None]] = []
         self.work_available = threading.Event()
         """Set whenever jobs may have become leasable; executors wait on it."""
+
+    def add_listener(self, listener: Callable[[], None]) -> Callable[[], None]:
+        """Call `listener` (it must not block) whenever jobs may have become leasable, like
+        `work_available`; returns the function that removes it."""
+        with self._lock:
+            self._listeners.append(listener)
+
+        def remove() -> None:
+            with self._lock:
+                if listener in self._listeners:
+                    self._listeners.remove(listener)
+
+        return remove
+
+    def _announce(self) -> None:
+        """Jobs may be leasable: wake executors and listeners (call without holding the lock
+        where possible, so a listener never waits on it)."""
+        self.work_available.set()
+        with self._lock:
+            listeners = list(self._listeners)
+        for listener in listeners:
+            listener()
 
     def add(
         self, *, run_id: int, config: RunConfig, generation: int, genomes: np.ndarray, running: bool
@@ -171,7 +218,7 @@ class JobQueue:
             )
             self._served.setdefault(run_id, 0)
         if running:
-            self.work_available.set()
+            self._announce()
 
     def set_running(self, run_id: int, running: bool) -> None:
         """Pause (no new leases; leased jobs may still complete) or resume a run's jobs."""
@@ -181,7 +228,7 @@ class JobQueue:
                 return
             jobs.running = running
         if running:
-            self.work_available.set()
+            self._announce()
 
     def forget(self, run_id: int) -> None:
         """Drop a run's jobs (its results, if any arrive, are acknowledged and dropped)."""
@@ -229,14 +276,17 @@ class JobQueue:
             return None
         return jobs, jobs.slots[key.index]
 
-    def complete(self, key: JobKey, result: JobResult) -> bool:
+    def complete(self, key: JobKey, result: JobResult, *, defer: bool = False) -> bool:
         """Store a job's result; False when it was already stored or its run is over (dropped).
 
         The result of any lease (even an expired one) is accepted: evaluation is a pure
-        function of the job, so every copy is the same. The last job commits the generation;
-        if that commit raises, the job stays unfinished and the same result may be retried.
+        function of the job, so every copy is the same. The last job tells the GA, installs the
+        next generation's jobs and writes the generation, now or (`defer`) at the next `flush`.
+        Earlier unwritten generations are written first; if a write raises, it stays unwritten
+        and is retried by the next `complete` or `flush`, which raise until it succeeds.
         """
         with self._lock:
+            self.flush()
             found = self._slot(key)
             if found is None or found[1].status == "done":
                 return False
@@ -252,7 +302,9 @@ class JobQueue:
             jobs.fitness[slot.start : slot.stop] = fitness
             jobs.components[slot.start : slot.stop] = components
             if jobs.remaining == 1:
-                self._commit(jobs)
+                self._advance(jobs)
+                if not defer:
+                    self.flush()
                 return True
             if slot.status == "pending":  # a result of a lease already returned
                 jobs.pending.remove(key.index)
@@ -261,7 +313,8 @@ class JobQueue:
             slot.status, slot.worker, slot.deadline = "done", None, None
             return True
 
-    def _commit(self, jobs: _RunJobs) -> None:
+    def _advance(self, jobs: _RunJobs) -> None:
+        """Tell the GA, queue the generation's write and install the next generation's jobs."""
         results = GenerationResults(
             run_id=jobs.run_id,
             generation=jobs.generation,
@@ -270,22 +323,49 @@ class JobQueue:
             fitness=jobs.fitness,
             components=jobs.components,
         )
-        with self._sessions.begin() as session:
-            following = self._on_generation_done(session, results)
-        if following is None:
+        advance = self._on_generation_done(results)
+        self._unwritten.append((results, advance.write))
+        if advance.following is None:
             self.forget(jobs.run_id)
         else:
             self.add(
                 run_id=jobs.run_id,
                 config=jobs.config,
                 generation=jobs.generation + 1,
-                genomes=following,
+                genomes=advance.following,
                 running=jobs.running,
             )
+
+    def flush(self) -> None:
+        """Write every told generation not yet written, oldest first, one transaction each.
+
+        A write whose run is over (RunOverError) is dropped; any other error leaves it (and
+        the ones after it) unwritten and propagates: a later flush retries it.
+        """
+        with self._lock:
+            while self._unwritten:
+                results, write = self._unwritten[0]
+                try:
+                    with self._sessions.begin() as session:
+                        write(session)
+                except RunOverError as exc:
+                    log.info(
+                        "run %d generation %d not written: %s",
+                        results.run_id,
+                        results.generation,
+                        exc,
+                    )
+                self._unwritten.pop(0)
+
+    def unwritten(self) -> int:
+        """Generations told but not yet written (0 after a successful `flush`)."""
+        with self._lock:
+            return len(self._unwritten)
 
     def fail(self, key: JobKey, message: str) -> bool:
         """An evaluation raised: retry the job, or fail its run after `max_attempts` leases."""
         with self._lock:
+            self.flush()
             found = self._slot(key)
             if found is None or found[1].status == "done":
                 return False
@@ -298,7 +378,7 @@ class JobQueue:
                 self.forget(key.run_id)
                 return True
             self._make_pending(jobs, key.index)
-        self.work_available.set()
+        self._announce()
         return True
 
     def release(self, key: JobKey) -> bool:
@@ -308,7 +388,7 @@ class JobQueue:
             if found is None or found[1].status != "leased":
                 return False
             self._make_pending(found[0], key.index)
-        self.work_available.set()
+        self._announce()
         return True
 
     @staticmethod
@@ -332,7 +412,7 @@ class JobQueue:
                         self._make_pending(jobs, index)
                         count += 1
         if count:
-            self.work_available.set()
+            self._announce()
         return count
 
     def release_all(self) -> int:

@@ -7,7 +7,10 @@ is committed with its generation; `ask` is a pure function of that state and the
 restarted server re-asks whatever generation was in flight and resumes exactly.
 
 The hot path (one commit per generation) uses SQLAlchemy Core statements and per-run caches of
-the parsed config, GA params, layout and latest GA state; lifecycle changes use the ORM.
+the parsed config, GA params, layout and latest GA state; lifecycle changes use the ORM. A
+finished generation is told and the next asked in memory (`_advance`), and written by the job
+queue afterwards (see `server.jobs`), so the zenoh dispatcher can send generation g + 1 before
+g's transaction; lifecycle changes flush unwritten generations first.
 
 Lifecycle: queued -> running <-> paused; queued/running/paused -> cancelled;
 running -> completed | failed. Terminal: completed, failed, cancelled.
@@ -27,14 +30,14 @@ from sqlalchemy import Engine, Table, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import best_document
-from evorobotics.ga import GAParams, GAState, ask, ga_rng, init, lineage, tell
+from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, lineage, tell
 from evorobotics.layout import Layout, layout
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from server import crud
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
-from server.jobs import GenerationResults, JobQueue
+from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
 from server.models import Generation, Individual, Job, Run, utcnow
 from server.settings import Settings
 
@@ -112,7 +115,7 @@ class RunManager:
             lock=self._lock,
             lease_seconds=settings.lease_seconds,
             max_attempts=settings.max_attempts,
-            on_generation_done=self._commit_generation,
+            on_generation_done=self._advance,
             on_run_failed=self._fail_id,
         )
         self.sessions.configure(info={"job_queue": self.queue})  # read by crud.job_counts
@@ -233,6 +236,7 @@ class RunManager:
 
     def cancel(self, run_id: int) -> None:
         with self._lock:
+            self.queue.flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
                 if run.status in TERMINAL:
@@ -243,6 +247,8 @@ class RunManager:
 
     def fail_run(self, run_id: int, message: str) -> None:
         """Fail a run from outside a transaction (e.g. its generation could not be committed)."""
+        with self._lock:
+            self.queue.flush()
         with self._lock, self.sessions.begin() as session:
             run = session.get(Run, run_id)
             if run is not None and run.status not in TERMINAL:
@@ -250,6 +256,8 @@ class RunManager:
         self.promote()
 
     def _transition(self, run_id: int, allowed: set[str], target: str) -> None:
+        with self._lock:
+            self.queue.flush()
         with self._lock, self.sessions.begin() as session:
             run = self._get(session, run_id)
             if run.status not in allowed:
@@ -305,17 +313,40 @@ class RunManager:
         genomes, _ = ask(ga_rng(plan.config.seed, g), state, plan.params, plan.layout)
         return _Asked(run.id, plan.config, g, genomes, run.status == "running")
 
-    def _commit_generation(self, session: Session, results: GenerationResults) -> np.ndarray | None:
-        """Tell the GA and store the generation whole (the caller's one transaction).
-
-        Returns the next generation's genomes, or None when the run is over.
-        """
+    def _advance(self, results: GenerationResults) -> Advance:
+        """Tell the GA and ask the next generation in memory; the write stores the generation
+        whole (in the queue's one transaction) and finishes the run after its last one."""
         run_id, g = results.run_id, results.generation
-        plan = self._plans.get(run_id) or self._plan(self._get(session, run_id))
+        plan = self._plans.get(run_id)
+        with self.sessions() as session:  # reads only on a cold cache (after a restart)
+            if plan is None:
+                plan = self._plan(self._get(session, run_id))
+            before = self._state_before(session, run_id, plan, g)
+        state, metrics = tell(results.genomes, results.fitness, before, plan.params)
+        self._states[run_id] = (g + 1, state)
+        last = g + 1 >= plan.config.generations
+        following = None
+        if not last:
+            following, _ = ask(ga_rng(plan.config.seed, g + 1), state, plan.params, plan.layout)
+
+        def write(session: Session) -> None:
+            self._write_generation(session, results, plan, state, metrics)
+            if last:
+                self._finish(session, self._get(session, run_id), plan.config)
+
+        return Advance(following, write)
+
+    def _write_generation(
+        self,
+        session: Session,
+        results: GenerationResults,
+        plan: _Plan,
+        state: GAState,
+        metrics: TellMetrics,
+    ) -> None:
+        """Store generation g (statistics, GA state, individuals) and move the run to g + 1."""
+        run_id, g = results.run_id, results.generation
         genomes, fitness, components = results.genomes, results.fitness, results.components
-        state, metrics = tell(
-            genomes, fitness, self._state_before(session, run_id, plan, g), plan.params
-        )
         order = metrics.order
         top = float(fitness[order[0]])
         conn = session.connection()  # Core on the session's transaction: no ORM unit of work
@@ -330,7 +361,7 @@ class RunManager:
             )
         )
         if moved.rowcount != 1:
-            raise NotFoundError(f"run {run_id} is not live at generation {g}; nothing committed")
+            raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
         conn.execute(
             insert(_GENERATIONS).values(
                 run_id=run_id,
@@ -363,13 +394,6 @@ class RunManager:
                 for r, i in enumerate(order.tolist())
             ],
         )
-        self._states[run_id] = (g + 1, state)
-        if g + 1 >= plan.config.generations:
-            run = self._get(session, run_id)
-            self._finish(session, run, plan.config)
-            return None
-        genomes_next, _ = ask(ga_rng(plan.config.seed, g + 1), state, plan.params, plan.layout)
-        return genomes_next
 
     def _finish(self, session: Session, run: Run, config: RunConfig) -> None:
         run.status, run.finished_at = "completed", utcnow()
@@ -416,6 +440,8 @@ class RunManager:
 
     def best(self, run_id: int) -> str:
         """sha256 of the run's best controller so far (stored); NotFoundError before gen 0."""
+        with self._lock:
+            self.queue.flush()
         with self._lock, self.sessions.begin() as session:
             run = self._get(session, run_id)
             sha = self.store_best(session, run, RunConfig.model_validate_json(run.config))

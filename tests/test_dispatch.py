@@ -85,6 +85,7 @@ class MemorySource:
         self.failures: dict[int, list[str]] = {}
         self.failed_run: str | None = None
         self.max_attempts = max_attempts
+        self.flushes = 0
         self.done = threading.Event()
         self.changed = threading.Condition()
 
@@ -118,6 +119,10 @@ class MemorySource:
     def release(self, key: JobKey) -> None:
         self.released.append(key.index)
         self.pending.insert(0, key.index)
+        self._changed()
+
+    def flush(self) -> None:
+        self.flushes += 1
         self._changed()
 
     def _changed(self) -> None:
@@ -201,6 +206,7 @@ def test_two_workers_finish_a_generation_exactly_once() -> None:
     ):
         assert source.done.wait(WAIT)
         assert eventually(lambda: sum(w.jobs_done for w in dispatcher.workers()) == 4)
+        assert source.wait_for(lambda: source.flushes >= 1)  # deferred work once replies are out
         statuses = {w.name: w for w in dispatcher.workers()}
     assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
     assert sorted(i for i, _ in source.leased_by) == [0, 1, 2, 3]
@@ -289,7 +295,7 @@ def test_held_request_is_served_as_soon_as_notified() -> None:
     source = MemorySource()
     jobs = list(source.pending)
     source.pending.clear()
-    settings = dispatch_settings(port, long_poll_s=30.0, poll_s=30.0)
+    settings = dispatch_settings(port, long_poll_s=30.0)
     with Dispatcher(settings, source) as dispatcher, worker_thread(port, "waiter"):
         assert eventually(lambda: bool(dispatcher.workers()))
         source.pending.extend(jobs)

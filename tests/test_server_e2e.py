@@ -28,9 +28,12 @@ TIMEOUT_S = 90.0
 
 @contextmanager
 def colony_server(db: Path, port: int) -> Iterator[subprocess.Popen[bytes]]:
+    """`colony server` with its default local workers, zenoh on a free loopback port."""
     colony = Path(sys.executable).parent / "colony"
+    argv = [str(colony), "server", "--db", f"sqlite:///{db}", "--port", str(port)]
+    argv += ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"]
     proc = subprocess.Popen(
-        [str(colony), "server", "--db", f"sqlite:///{db}", "--port", str(port)],
+        argv,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         env={**os.environ, "COLONY_HOUSEKEEPING_SECONDS": "0.2"},

@@ -266,10 +266,61 @@ def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(
     assert expected.ranked is not None and ranked.tobytes() == expected.ranked.tobytes()
 
 
+def test_deferred_write_installs_the_next_generation_first(manager: RunManager) -> None:
+    """`complete(defer=True)` hands out generation 1 before generation 0 is written; the
+    write happens at `flush` (or before any later completion), exactly once."""
+    run_id = manager.create_run(SMALL)
+    items = [_evaluate(manager, "w", 0.0) for _ in range(3)]
+    for item in items[:-1]:
+        assert item is not None and manager.queue.complete(*item, defer=True) is True
+    assert items[-1] is not None and manager.queue.complete(*items[-1], defer=True) is True
+    assert manager.queue.unwritten() == 1
+    following = manager.queue.lease("w", 0.0)
+    assert following is not None and following.key.generation == 1
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and run.generation == 0
+        assert crud.get_generation(session, run_id=run_id, generation=0) is None
+    manager.queue.flush()
+    manager.queue.flush()
+    assert manager.queue.unwritten() == 0
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.generation, run.evaluations) == (1, SMALL.population)
+        assert len(crud.list_individuals(session, run_id=run_id, generation=0)) == 12
+
+
+def test_cancel_writes_the_told_generation_before_cancelling(manager: RunManager) -> None:
+    run_id = manager.create_run(SMALL.model_copy(update={"job_size": 12}))
+    item = _evaluate(manager, "w", 0.0)
+    assert item is not None and manager.queue.complete(*item, defer=True) is True
+    manager.cancel(run_id)
+    assert manager.queue.unwritten() == 0
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.generation) == ("cancelled", 1)
+    assert manager.queue.lease("w", 0.0) is None
+
+
+def test_listeners_hear_of_new_and_returned_jobs_until_removed(manager: RunManager) -> None:
+    calls: list[int] = []
+    remove = manager.queue.add_listener(lambda: calls.append(1))
+    manager.create_run(SMALL)
+    assert len(calls) == 1  # the run's first generation
+    job = manager.queue.lease("w", 0.0)
+    assert job is not None and len(calls) == 1  # leasing announces nothing
+    assert manager.queue.release(job.key) is True and len(calls) == 2
+    remove()
+    again = manager.queue.lease("w", 0.0)
+    assert again is not None and manager.queue.release(again.key) is True
+    assert len(calls) == 2
+
+
 TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
 EVENTS = st.lists(
     st.tuples(
-        st.sampled_from(["lease", "complete", "release", "expire", "restart"]), st.integers()
+        st.sampled_from(["lease", "complete", "release", "expire", "flush", "restart"]),
+        st.integers(),
     ),
     max_size=25,
 )
@@ -287,8 +338,9 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
     tiny_best: str,
     events: list[tuple[str, int]],
 ) -> None:
-    """Leases, results (also from before a restart), releases, expiries, server restarts: the
-    run ends with `evolve`'s best controller, and no generation is ever committed twice."""
+    """Leases, results (also from before a restart), releases, expiries, deferred writes (a
+    restart loses the unwritten ones, as a crash would), server restarts: the run ends with
+    `evolve`'s best controller, and no generation is ever committed twice."""
     engine = make_engine(f"sqlite:///{tmp_path_factory.mktemp('q') / 'colony.db'}")
     upgrade(engine)
     settings_ = Settings(db_url="unused", lease_seconds=10.0, max_attempts=2)
@@ -301,7 +353,9 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
         if kind == "lease" and (item := _evaluate(manager, f"w{n % 3}", now)) is not None:
             held.append(item)
         elif kind == "complete" and held:
-            manager.queue.complete(*held.pop(n % len(held)))
+            manager.queue.complete(*held.pop(n % len(held)), defer=n % 2 == 0)
+        elif kind == "flush":
+            manager.queue.flush()
         elif kind == "release" and held:
             manager.queue.release(held[n % len(held)][0])
         elif kind == "expire":
