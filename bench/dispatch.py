@@ -7,17 +7,21 @@
    best controllers compared.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
+        [--only throughput|paper]
 """
 
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import os
 import socket
 import tempfile
 import threading
 import time
+from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -107,13 +111,13 @@ def bench_throughput(seconds: float, workers: int) -> None:
         done, elapsed = source.completed - before, time.perf_counter() - began
         stop_workers(procs, stop)
     print(
-        f"empty jobs: {done / elapsed:8.0f} jobs/s ({done} jobs in {elapsed:.2f} s, {workers} worker processes)"
+        f"empty jobs: {done / elapsed:8.0f} jobs/s ({done} jobs in {elapsed:.2f} s, "
+        f"{workers} worker processes, load average {os.getloadavg()[0]:.2f})"
     )
 
 
 def bench_paper(workers: int, generations: int) -> None:
     """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve."""
-    import os
     import subprocess
     import sys
 
@@ -140,13 +144,13 @@ def bench_paper(workers: int, generations: int) -> None:
         )
         try:
 
-            def finish(body: dict[str, object]) -> dict[str, object]:
+            def finish(body: dict[str, object]) -> dict[str, Any]:
                 run_id = httpx.post(f"{url}/api/runs", json=body, timeout=10).json()["id"]
-                while True:
-                    run: dict[str, object] = httpx.get(f"{url}/api/runs/{run_id}").json()
+                while True:  # slow polling: REST calls would compete with the dispatcher
+                    run: dict[str, Any] = httpx.get(f"{url}/api/runs/{run_id}").json()
                     if run["status"] in ("completed", "failed"):
                         return run
-                    tick.wait(0.01)
+                    tick.wait(0.2)
 
             while True:
                 try:
@@ -154,19 +158,22 @@ def bench_paper(workers: int, generations: int) -> None:
                         break
                 except httpx.TransportError:
                     tick.wait(0.05)
-            # Warm the workers' numba kernels on a throwaway run, as a long-lived worker is.
+            # Warm the workers' numba kernels on a throwaway run, as a long-lived worker is:
+            # the timed run excludes compilation on both sides.
             finish(config.model_copy(update={"generations": 1, "seed": 99}).model_dump(mode="json"))
-            began = time.perf_counter()
             run = finish(config.model_dump(mode="json"))
-            dist_s = time.perf_counter() - began
+            started = datetime.fromisoformat(run["started_at"])
+            dist_s = (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
             sha = httpx.get(f"{url}/api/runs/{run['id']}/best").json()["sha256"]
         finally:
             server.terminate()
             server.wait(timeout=60)
     same = "identical" if sha == local.best.sha256 else "DIFFERENT"
     print(
-        f"paper experiment ({generations} generations): colony evolve {local_s:.2f} s, "
-        f"colony server --workers {workers} {dist_s:.2f} s; best controllers {same}"
+        f"paper experiment ({generations} generations, kernels warm): colony evolve "
+        f"{local_s:.2f} s, colony server --workers {workers} {dist_s:.2f} s (run started to "
+        f"finished, server clock); best controllers {same}; load average "
+        f"{os.getloadavg()[0]:.2f}"
     )
 
 
@@ -175,9 +182,12 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--generations", type=int, default=350)
+    parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
-    bench_throughput(args.seconds, args.workers)
-    bench_paper(args.workers, args.generations)
+    if args.only != "paper":
+        bench_throughput(args.seconds, args.workers)
+    if args.only != "throughput":
+        bench_paper(args.workers, args.generations)
 
 
 if __name__ == "__main__":

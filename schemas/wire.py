@@ -31,11 +31,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 2
+PROTOCOL = 3
 """Wire protocol version, sent in every job request; the server idles other versions.
 
 2: a result may ask for the next job (`want_next`); the server then answers with that job,
 carrying the acknowledgement, instead of a bare Ack (one round trip per job instead of two).
+3: requests and results name the jobs the worker still has in hand (`holding`), so a worker
+may hold one prefetched job and deliver a result while it evaluates the next.
 """
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
@@ -170,6 +172,9 @@ class JobRequest(_Model):
     worker: str
     host: str = Field("", max_length=255)
     robot_steps_per_s: float | None = Field(None, ge=0.0, allow_inf_nan=False)
+    holding: tuple[JobKey, ...] = Field((), max_length=16)
+    """Jobs the worker has in hand: non-empty makes this a prefetch (answered at once, never
+    held); any other lease of the worker lost its reply and is released."""
 
     @field_validator("worker")
     @classmethod
@@ -323,6 +328,8 @@ class ResultHeader(_Model):
     error: str | None = Field(None, max_length=65536)
     want_next: bool = False
     """Answer with the worker's next job (carrying the Ack) if one is ready now."""
+    holding: tuple[JobKey, ...] = Field((), max_length=16)
+    """Other jobs the worker has in hand (a prefetched one): their leases are kept."""
 
     @field_validator("worker")
     @classmethod
@@ -342,6 +349,7 @@ class Result:
     seconds: float = 0.0
     error: str | None = None
     want_next: bool = False
+    holding: tuple[JobKey, ...] = ()
 
     def __post_init__(self) -> None:
         check_worker_name(self.worker)
@@ -364,6 +372,7 @@ def encode_result(result: Result) -> bytes:
         seconds=result.seconds,
         error=result.error,
         want_next=result.want_next,
+        holding=result.holding,
     )
     arrays: dict[str, np.ndarray] = {}
     if result.fitness is not None:
@@ -390,6 +399,7 @@ def decode_result(payload: bytes) -> Result:
         seconds=parsed.seconds,
         error=parsed.error,
         want_next=parsed.want_next,
+        holding=parsed.holding,
     )
 
 

@@ -21,7 +21,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -306,19 +306,36 @@ class Dispatcher:
         record = self._touch(request.worker, request.host)
         if request.robot_steps_per_s:
             record.speed = request.robot_steps_per_s
-        self._release_held_by(request.worker)
+        self._release_lost(request.worker, keep=request.holding)
         held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s)
         if request.protocol != PROTOCOL:
             self._answer_idle(held, f"server speaks protocol {PROTOCOL}")
+        elif request.holding:  # a prefetch: a job now or idle now, never held
+            if not (self._may_prefetch(request.worker) and self._try_serve(held)):
+                self._answer_idle(held, "no job to prefetch")
         elif not self._try_serve(held):
             self._held.append(held)
 
-    def _release_held_by(self, worker: str) -> None:
-        """The worker asks for work while holding a lease: its reply got lost; put it back."""
-        for key in [k for k, lease in self._leases.items() if lease.worker == worker]:
+    def _release_lost(self, worker: str, keep: Collection[JobKey] = ()) -> None:
+        """The worker asks for work while leasing jobs it does not hold (not in `keep`): their
+        replies got lost; put them back."""
+        for key in [
+            k for k, lease in self._leases.items() if lease.worker == worker and k not in keep
+        ]:
             log.warning("%s asked for work while leasing %s; releasing it", worker, key.label())
             del self._leases[key]
             self._source.release(key)
+
+    def _may_prefetch(self, worker: str) -> bool:
+        """A second job for a busy worker only while no other live worker is without one: a
+        prefetch must not take the job an idle worker is about to ask for."""
+        busy = {lease.worker for lease in self._leases.values()}
+        with self._lock:
+            return all(
+                w.name in busy or w.name == worker
+                for w in self._workers.values()
+                if w.gone_at is None
+            )
 
     def _try_serve(self, held: _Held) -> bool:
         job = self._source.lease(held.worker)
@@ -376,23 +393,24 @@ class Dispatcher:
         else:
             del self._leases[result.key]
             ack = self._settle(result, lease)
+            still = any(other.worker == result.worker for other in self._leases.values())
             with self._lock:
-                record.state = "idle"
+                record.state = "busy" if still else "idle"
                 if result.robot_steps_per_s:
                     record.speed = result.robot_steps_per_s
         if result.want_next:
             # Pipelined request (protocol 2): the next job rides on the acknowledgement.
             # Requests already held waited longer: they are served first.
             self._serve_held()
-            job = None if self._held else self._lease_for(result.worker)
+            job = None if self._held else self._lease_for(result.worker, result.holding)
             if job is not None:
                 self._send(query, KEY_JOB_RESULT, job, result.worker, ack)
                 return
         query.reply(KEY_JOB_RESULT, encode_message(ack))
 
-    def _lease_for(self, worker: str) -> Job | None:
-        """A job for a worker that holds no other lease (any other it holds lost its reply)."""
-        self._release_held_by(worker)
+    def _lease_for(self, worker: str, holding: Collection[JobKey]) -> Job | None:
+        """A job for a worker that holds `holding` (any other lease of it lost its reply)."""
+        self._release_lost(worker, keep=holding)
         return self._source.lease(worker)
 
     def _settle(self, result: Result, lease: _Lease) -> Ack:

@@ -254,6 +254,29 @@ def test_vanished_worker_releases_its_job_and_its_late_result_is_dropped() -> No
     assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
 
 
+def test_prefetch_is_answered_at_once_and_holding_keeps_the_prefetched_lease() -> None:
+    """Protocol 3: a request naming jobs in hand is never held (idle at once when no job is
+    left) and releases none of them; a result's `holding` keeps the prefetched lease."""
+    port = free_port()
+    source = MemorySource(CONFIG.model_copy(update={"population": 6}))
+    settings = dispatch_settings(port, long_poll_s=30.0)
+    with Dispatcher(settings, source), zenoh.open(client_config(port)) as session:
+        first = lease_raw(session, "pre")
+        prefetch = JobRequest(worker="pre", holding=(first.key,))
+        second = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, encode_message(prefetch))))
+        assert isinstance(second, Job) and second.key != first.key
+        began = time.monotonic()
+        both = JobRequest(worker="pre", holding=(first.key, second.key))
+        idle = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, encode_message(both))))
+        assert isinstance(idle, Idle) and time.monotonic() - began < settings.long_poll_s
+        result = Result(first.key, "pre", fake_fitness(first.genomes), holding=(second.key,))
+        ack = decode_ack(_ok(ask(session, KEY_JOB_RESULT, encode_result(result))))
+        assert ack.accepted and not source.released
+        result = Result(second.key, "pre", fake_fitness(second.genomes))
+        ack = decode_ack(_ok(ask(session, KEY_JOB_RESULT, encode_result(result))))
+        assert ack.accepted and source.done.is_set() and not source.released
+
+
 def test_expired_lease_returns_the_job_and_late_result_is_dropped() -> None:
     port = free_port()
     source = MemorySource()

@@ -83,6 +83,11 @@ def test_result_and_control_round_trips() -> None:
     assert err.error == "boom" and err.fitness is None
     request = JobRequest(worker="w-1", host="h", robot_steps_per_s=10.0)
     assert decode_request(encode_message(request)) == request
+    other = KEY.model_copy(update={"index": KEY.index + 1})
+    prefetch = JobRequest(worker="w-1", holding=(KEY, other))
+    assert decode_request(encode_message(prefetch)).holding == (KEY, other)
+    holding = decode_result(encode_result(Result(KEY, "w-1", fitness, holding=(other,))))
+    assert holding.holding == (other,) and not holding.want_next
     ack = Ack(key=KEY, accepted=False, reason="late")
     assert decode_ack(encode_message(ack)) == ack
     assert decode_next_reply(encode_message(Idle())) == Idle()

@@ -16,6 +16,7 @@ import signal
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from types import FrameType
@@ -30,6 +31,7 @@ from schemas.wire import (
     Idle,
     InvalidJobError,
     Job,
+    JobKey,
     JobRequest,
     Result,
     WireError,
@@ -146,6 +148,15 @@ def run_worker(
     return stats
 
 
+@dataclass
+class _Ahead:
+    """A request in flight while a job is evaluated: a prefetch on jobs/next (`result` None)
+    or a result whose reply may carry the next job."""
+
+    replies: zenoh.Handler[zenoh.Reply]
+    result: Result | None
+
+
 def _serve(
     session: zenoh.Session,
     settings: WorkerSettings,
@@ -155,14 +166,94 @@ def _serve(
     stats: WorkerStats,
     backoff: _Backoff,
 ) -> None:
-    job: Job | None = None
+    """Evaluate jobs with the next one already in hand when possible (protocol 3).
+
+    While a job is evaluated one request is in flight: a prefetch of the next job, or the
+    previous result asking for the next. So in steady state a worker never waits for a round
+    trip between jobs. Once stopping, no prefetch: the job in evaluation is delivered, a
+    prefetched one is left to lapse (released when the liveliness token goes).
+    """
+    in_hand: deque[Job] = deque()
+    ahead: _Ahead | None = None
     while not stop.is_set():
-        if job is None:
+        if not in_hand:
             job = _next_job(session, settings, host, stop, stats, backoff)
             if job is None:
                 continue
+            in_hand.append(job)
+        job = in_hand.popleft()
+        if ahead is None and not in_hand:
+            request = JobRequest(
+                worker=settings.name,
+                host=host[:255],
+                robot_steps_per_s=stats.robot_steps_per_s,
+                holding=(job.key,),
+            )
+            ahead = _Ahead(_send(session, KEY_JOB_NEXT, encode_message(request), settings), None)
         result = _evaluate(job, settings.name, evaluator, stats)
-        job = _deliver(session, settings, stop, result, stats)
+        if ahead is not None:
+            in_hand.extend(_collect(session, settings, stop, stats, ahead, in_hand))
+            ahead = None
+        holding = tuple(j.key for j in in_hand)
+        if in_hand and not stop.is_set():  # deliver in the background, start the next now
+            payload = encode_result(replace(result, want_next=True, holding=holding))
+            ahead = _Ahead(_send(session, KEY_JOB_RESULT, payload, settings), result)
+            continue
+        following = _deliver(session, settings, stop, result, stats, holding)
+        if following is not None:
+            in_hand.append(following)
+    if ahead is not None:
+        _collect(session, settings, stop, stats, ahead, in_hand)
+
+
+def _send(
+    session: zenoh.Session, key: str, payload: bytes, settings: WorkerSettings
+) -> zenoh.Handler[zenoh.Reply]:
+    """Send a query now; its replies are read later."""
+    return session.get(key, payload=payload, timeout=settings.request_timeout_s)
+
+
+def _collect(
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    stop: threading.Event,
+    stats: WorkerStats,
+    ahead: _Ahead,
+    in_hand: deque[Job],
+) -> list[Job]:
+    """The jobs the reply to `ahead` brings; a result not acknowledged is delivered again."""
+    reply = _first_ok(ahead.replies, KEY_JOB_RESULT if ahead.result else KEY_JOB_NEXT)
+    if ahead.result is None:
+        if reply is None:
+            return []
+        try:
+            prefetched = decode_next_reply(reply)
+        except InvalidJobError as exc:
+            _reject_job(session, settings, stop, stats, exc)
+            return []
+        except WireError as exc:
+            log.warning("dropping malformed reply to a prefetch: %s", exc)
+            return []
+        return [] if isinstance(prefetched, Idle) else [prefetched]
+    result = ahead.result
+    if reply is not None:
+        try:
+            ack, job = decode_result_reply(reply)
+        except InvalidJobError as exc:
+            if exc.ack is not None and exc.ack.key == result.key:
+                _reject_job(session, settings, stop, stats, exc)
+                return []
+        except WireError:
+            pass
+        else:
+            if ack.key == result.key:
+                if not ack.accepted:
+                    log.info("%s dropped by the server: %s", result.key.label(), ack.reason)
+                return [] if job is None else [job]
+    log.info("no acknowledgement for %s; delivering it again", result.key.label())
+    holding = tuple(j.key for j in in_hand)
+    following = _deliver(session, settings, stop, result, stats, holding)
+    return [] if following is None else [following]
 
 
 def _next_job(
@@ -234,16 +325,18 @@ def _deliver(
     stop: threading.Event,
     result: Result,
     stats: WorkerStats,
+    holding: tuple[JobKey, ...] = (),
 ) -> Job | None:
     """Send `result` until acknowledged; the next job if the server sent one with the Ack.
 
-    Unless stopping, the result asks for the next job (protocol 2), saving a round trip.
-    Once stopping, two more tries, then the lease lapses on the server.
+    Unless stopping or holding a job, the result asks for the next job (protocol 2), saving a
+    round trip. Once stopping, two more tries, then the lease lapses on the server.
     """
     backoff = _Backoff(settings)
     tries_after_stop = 0
     while tries_after_stop < 2:
-        payload = encode_result(replace(result, want_next=not stop.is_set()))
+        want_next = not stop.is_set() and not holding
+        payload = encode_result(replace(result, want_next=want_next, holding=holding))
         reply = _ask(session, KEY_JOB_RESULT, payload, settings.request_timeout_s)
         if reply is not None:
             try:
@@ -270,7 +363,12 @@ def _deliver(
 
 def _ask(session: zenoh.Session, key: str, payload: bytes, timeout: float) -> bytes | None:
     """The first successful reply's payload, or None (no server, timeout, or error reply)."""
-    for reply in session.get(key, payload=payload, timeout=timeout):
+    return _first_ok(session.get(key, payload=payload, timeout=timeout), key)
+
+
+def _first_ok(replies: zenoh.Handler[zenoh.Reply], key: str) -> bytes | None:
+    """Wait for the first successful reply's payload; None on an error reply or none at all."""
+    for reply in replies:
         if reply.ok is not None:
             return reply.ok.payload.to_bytes()
         if reply.err is not None:
