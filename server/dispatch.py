@@ -68,7 +68,8 @@ class JobSource(Protocol):
         """The lease is over without a result (worker gone or late): the job is pending again."""
 
     def flush(self) -> None:
-        """Do deferred work now that every reply is out (called when no message is waiting)."""
+        """Do deferred work now that every reply is out (called when no message is waiting);
+        if it raises, it is called again within a second."""
 
 
 @dataclass(frozen=True)
@@ -178,6 +179,7 @@ class Dispatcher:
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._leases: dict[JobKey, _Lease] = {}
         self._held: list[_Held] = []
+        self._flush_at: float | None = None
         self._workers: dict[str, _WorkerRecord] = {}
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -252,10 +254,12 @@ class Dispatcher:
                     event = self._inbox.get_nowait()
                 except queue.Empty:
                     break
+            self._flush_at = None
             try:
                 self._source.flush()
-            except Exception:  # e.g. the database is down: retried at the next flush
+            except Exception:  # e.g. the database is down: retried within a second
                 log.exception("deferred job-source work failed; retrying later")
+                self._flush_at = self._clock() + 1.0
 
     def _step(self, event: Any) -> None:
         try:
@@ -275,6 +279,8 @@ class Dispatcher:
         expiry from the table; None (block until a message) when there is none."""
         deadlines = [lease.deadline for lease in self._leases.values()]
         deadlines += [held.until for held in self._held]
+        if self._flush_at is not None:
+            deadlines.append(self._flush_at)
         with self._lock:
             deadlines += [
                 w.gone_at + self.settings.gone_keep_s

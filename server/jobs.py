@@ -6,10 +6,10 @@ generations. `lease` hands the next pending job of the running run served least 
 worker with a deadline; `complete` stores its result once (duplicates and late results are
 acknowledged and dropped); `expire` and `release` return leases. When the last job of a
 generation completes, the GA is told and asked at once and the next generation's jobs replace
-it here; the generation is then written in one transaction (see `server.manager`), either
-inside that `complete` or, with `complete(..., defer=True)`, at the next `flush`: the
-dispatcher flushes after it has sent the new jobs, so workers evaluate generation g + 1 while
-g is written. Generation g is always written before g + 1 (`complete` flushes first).
+it here; the generation is then written (see `server.manager`), either inside that
+`complete` or, with `complete(..., defer=True)`, at a later `flush`: the dispatcher flushes
+after it has sent the new jobs, so workers evaluate generation g + 1 while g is written.
+Writes happen in the order generations were told, in one transaction per flush.
 
 Why memory: a generation of the paper's population costs the server one transaction instead of
 one per lease and per result. A crash loses leases and the results of the generation in flight,
@@ -136,6 +136,14 @@ class _RunJobs:
     components: np.ndarray = field(default_factory=lambda: np.empty(0))
 
 
+@dataclass(frozen=True)
+class _Unwritten:
+    """A generation told and asked but not yet written."""
+
+    results: GenerationResults
+    write: Callable[[Session], None]
+
+
 class JobQueue:
     """In-memory jobs of every live run; every call under one lock shared with the manager."""
 
@@ -163,7 +171,7 @@ class JobQueue:
         self._served: dict[int, int] = {}
         """run id -> lease sequence number of its last lease: fair sharing picks the smallest."""
         self._sequence = 0
-        self._unwritten: list[tuple[GenerationResults, Callable[[Session], None]]] = []
+        self._unwritten: list[_Unwritten] = []
         """Generations told and asked but not yet written, oldest first."""
         self._listeners: list[Callable[[], None]] = []
         self.work_available = threading.Event()
@@ -281,12 +289,11 @@ class JobQueue:
 
         The result of any lease (even an expired one) is accepted: evaluation is a pure
         function of the job, so every copy is the same. The last job tells the GA, installs the
-        next generation's jobs and writes the generation, now or (`defer`) at the next `flush`.
-        Earlier unwritten generations are written first; if a write raises, it stays unwritten
-        and is retried by the next `complete` or `flush`, which raise until it succeeds.
+        next generation's jobs and writes the generation (with any earlier unwritten ones, in
+        order), now or (`defer`) at a later `flush`. If a write raises, the generations stay
+        unwritten and the next flush retries them.
         """
         with self._lock:
-            self.flush()
             found = self._slot(key)
             if found is None or found[1].status == "done":
                 return False
@@ -324,7 +331,7 @@ class JobQueue:
             components=jobs.components,
         )
         advance = self._on_generation_done(results)
-        self._unwritten.append((results, advance.write))
+        self._unwritten.append(_Unwritten(results, advance.write))
         if advance.following is None:
             self.forget(jobs.run_id)
         else:
@@ -337,25 +344,36 @@ class JobQueue:
             )
 
     def flush(self) -> None:
-        """Write every told generation not yet written, oldest first, one transaction each.
+        """Write the told generations not yet written, oldest first, in one transaction.
 
-        A write whose run is over (RunOverError) is dropped; any other error leaves it (and
-        the ones after it) unwritten and propagates: a later flush retries it.
+        A generation whose run is over (RunOverError) is dropped; any other error leaves them
+        unwritten and propagates: a later flush retries.
         """
         with self._lock:
-            while self._unwritten:
-                results, write = self._unwritten[0]
-                try:
-                    with self._sessions.begin() as session:
-                        write(session)
-                except RunOverError as exc:
-                    log.info(
-                        "run %d generation %d not written: %s",
-                        results.run_id,
-                        results.generation,
-                        exc,
-                    )
-                self._unwritten.pop(0)
+            if not self._unwritten:
+                return
+            try:
+                with self._sessions.begin() as session:
+                    for item in self._unwritten:
+                        item.write(session)
+            except RunOverError:  # some run ended meanwhile: one transaction each instead
+                self._flush_one_by_one()
+            self._unwritten.clear()
+
+    def _flush_one_by_one(self) -> None:
+        while self._unwritten:
+            item = self._unwritten[0]
+            try:
+                with self._sessions.begin() as session:
+                    item.write(session)
+            except RunOverError as exc:
+                log.info(
+                    "run %d generation %d not written: %s",
+                    item.results.run_id,
+                    item.results.generation,
+                    exc,
+                )
+            self._unwritten.pop(0)
 
     def unwritten(self) -> int:
         """Generations told but not yet written (0 after a successful `flush`)."""
