@@ -40,6 +40,8 @@ FORMAT = "evocolony.controller/1"
 Provenance = dict[str, str | int | float | None]
 
 _FIELDS = frozenset({"format", "spec", "weights", "sha256", "fitness", "provenance"})
+_ANNOTATIONS = frozenset({"field"})
+"""Members a server may add beside a document (field performance); read past, never hashed."""
 _WEIGHT_FIELDS = frozenset({"dtype", "shape", "data"})
 
 
@@ -129,7 +131,7 @@ class ControllerDocument:
                 f"unknown format {obj.get('format')!r}; this reader understands {FORMAT!r}"
             )
         missing = sorted(_FIELDS - obj.keys())
-        extra = sorted(set(obj) - _FIELDS)
+        extra = sorted(set(obj) - _FIELDS - _ANNOTATIONS)
         if missing or extra:
             raise ControllerDocumentError(f"missing fields {missing}, unknown fields {extra}")
         try:

@@ -56,7 +56,7 @@ class IndividualOut(BaseModel):
     rank: int
     index: int = Field(description="position in the population as evaluated")
     parent: int | None = Field(description="rank in the previous generation it descends from")
-    fitness: float
+    fitness: float | None
     components: list[list[float]] = Field(
         description="per trial: curve length, net offset, max offset, stuck (Eq 12)"
     )

@@ -20,7 +20,8 @@ from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, QueueSource
 from server.executor import InProcessExecutor
 from server.manager import RunManager
-from server.routes import colony, controllers, dashboard, images, runs, workers
+from server.robots import robot_service
+from server.routes import colony, controllers, dashboard, images, robots, runs, workers
 from server.settings import Settings
 from worker.local import LocalWorkers, local_endpoint
 
@@ -39,9 +40,15 @@ def validation_message(exc: RequestValidationError) -> str:
     return "; ".join(parts)
 
 
-def create_app(settings: Settings | None = None, services: Sequence[ZenohService] = ()) -> FastAPI:
-    """The server; nothing touches the database or the network until the lifespan starts."""
+def create_app(
+    settings: Settings | None = None, services: Sequence[ZenohService] | None = None
+) -> FastAPI:
+    """The server; nothing touches the database or the network until the lifespan starts.
+
+    `services` run on the server's zenoh session; by default the robot service (issue 6).
+    """
     settings = settings or Settings()
+    services = (robot_service(),) if services is None else tuple(services)
     dispatch = settings.dispatch_settings() if settings.zenoh else None
     endpoint = (
         local_endpoint(dispatch.listen, dispatch.connect)
@@ -96,6 +103,7 @@ def create_app(settings: Settings | None = None, services: Sequence[ZenohService
     app.include_router(controllers.router)
     app.include_router(colony.router)
     app.include_router(workers.router)
+    app.include_router(robots.router)
     app.include_router(images.router)
     app.include_router(dashboard.router)
     return app

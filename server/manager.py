@@ -385,7 +385,7 @@ class RunManager:
                     "rank": r,
                     "index": i,
                     "parent": parents[i],
-                    "fitness": float(fitness[i]),
+                    "fitness": float(fitness[i]) if np.isfinite(fitness[i]) else None,
                     "components": components[i].tobytes(),
                     "genome": genomes[i].tobytes(),
                     "dtype": dtype,
@@ -423,7 +423,7 @@ class RunManager:
         document = best_document(
             config,
             genome[np.newaxis, :],
-            np.array([top.fitness]),
+            np.array([np.nan if top.fitness is None else top.fitness]),
             np.array([0]),
             generation=latest.generation,
             run=run.id,

@@ -83,7 +83,8 @@ class Individual(Base):
     """Position in the population as asked (the job slices cut this order)."""
     parent: Mapped[int | None] = mapped_column(Integer, nullable=True)
     """Rank in the previous generation of the individual this one descends from."""
-    fitness: Mapped[float] = mapped_column(Float)
+    fitness: Mapped[float | None] = mapped_column(Float, nullable=True)
+    """Eq 12 averaged over trials; NULL for a failed (NaN) evaluation, which ranks last."""
     components: Mapped[bytes] = mapped_column(LargeBinary)
     """(trials, 4) float64: Eq 12's curve length, net offset, max offset, stuck per trial."""
     genome: Mapped[bytes] = mapped_column(LargeBinary)

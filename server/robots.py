@@ -560,7 +560,7 @@ def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
     if ind is None:
         raise NotFoundError(f"run {run_id} has no individual of rank {rank}")
     config = RunConfig.model_validate_json(run.config)
-    fitness = float(ind.fitness)
+    fitness = np.nan if ind.fitness is None else float(ind.fitness)
     doc = ControllerDocument(
         spec=config.network_spec,
         weights=np.frombuffer(ind.genome, dtype=np.dtype(ind.dtype)),

@@ -18,7 +18,6 @@ import httpx
 import pytest
 
 from server.app import create_app
-from server.routes import robots as robot_routes
 from server.settings import Settings
 from tests.test_dashboard import QUICK, Served, eventually, serve
 from tests.test_robots_server import Colony, online, robot_link, virtual_robot
@@ -51,7 +50,6 @@ def db_url(tmp_path_factory: pytest.TempPathFactory) -> str:
 @pytest.fixture(scope="module")
 def served(db_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     app = create_app(Settings(db_url=db_url, executors=1, zenoh=False))
-    app.include_router(robot_routes.router)  # until create_app includes it
     with serve(tmp_path_factory.mktemp("unused"), app) as s:
         yield s
 

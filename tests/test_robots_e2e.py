@@ -16,8 +16,6 @@ import pytest
 import uvicorn
 
 from server.app import create_app
-from server.robots import robot_service
-from server.routes import robots as robot_routes
 from server.settings import Settings
 from tests.test_agent import free_port
 from tests.test_robots_server import SMALL, WAIT, eventually
@@ -36,8 +34,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str,
         workers=0,
         executors=1,
     )
-    app = create_app(settings, services=[robot_service()])
-    app.include_router(robot_routes.router)  # the lead wires this into create_app
+    app = create_app(settings)  # the robot service is on by default
     uv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=uv.run, daemon=True)
     thread.start()
@@ -84,6 +81,12 @@ def test_emulated_agent_process_end_to_end(server: tuple[str, str, int], tmp_pat
             assert eventually(lambda: client.get("/api/robots/e2e/replay").json()["checked"] >= 20)
             replay = client.get("/api/robots/e2e/replay").json()
             assert replay["identical"], replay
+
+            def field() -> dict[str, Any] | None:
+                doc = client.get(f"/api/controllers/{pushed['sha256']}").json()
+                return doc["field"]  # type: ignore[no-any-return]
+
+            assert eventually(lambda: (field() or {}).get("robot_hours", 0) > 0)
             detail = robot(client, "e2e")
             assert detail is not None and detail["controller_sha256"] == pushed["sha256"]
             assert detail["controller_rank"] == 0 and detail["boot"] == 0

@@ -52,7 +52,6 @@ from server.app import create_app
 from server.db import make_engine
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
 from server.robots import RobotService, RobotSettings, ranked_document, replay_trace
-from server.routes import robots as robot_routes
 from server.settings import Settings
 from tests.test_agent import constant_drive, free_port, random_controller, save
 
@@ -96,7 +95,6 @@ def colony(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Colony]:
     port = free_port()
     # zenoh off: each test opens its own router (to kill and restart it) with a RobotService
     app = create_app(Settings(db_url=db_url, port=port, executors=1, zenoh=False))
-    app.include_router(robot_routes.router)  # the lead wires this into create_app
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()

@@ -123,7 +123,8 @@ def test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once(manager: RunMa
         assert (run.generation, run.evaluations) == (1, SMALL.population)
         ranked = crud.list_individuals(session, run_id=run_id, generation=0)
     assert [i.rank for i in ranked] == list(range(SMALL.population))
-    assert [i.fitness for i in ranked] == sorted((i.fitness for i in ranked), reverse=True)
+    values = [i.fitness for i in ranked if i.fitness is not None]
+    assert len(values) == len(ranked) and values == sorted(values, reverse=True)
 
 
 def test_result_of_wrong_shape_is_refused(manager: RunManager) -> None:
@@ -373,3 +374,23 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
         assert [g.generation for g in crud.list_generations(session, run_id=run_id)] == [0, 1, 2]
     assert manager.best(run_id) == tiny_best
     engine.dispose()
+
+
+def test_a_failed_evaluation_is_stored_as_null_ranks_last_and_the_run_goes_on(
+    manager: RunManager,
+) -> None:
+    run_id = manager.create_run(SMALL)
+    for _ in range(3):
+        done = _evaluate(manager, "w", 0.0)
+        assert done is not None
+        key, result = done
+        if key.index == 0:  # one individual's evaluation failed
+            result = JobResult(
+                np.where(np.arange(5) == 2, np.nan, result.fitness), result.components
+            )
+        assert manager.queue.complete(key, result) is True
+    with manager.sessions() as session:
+        ranked = crud.list_individuals(session, run_id=run_id, generation=0)
+    assert [i.index for i in ranked if i.fitness is None] == [2]
+    assert ranked[-1].index == 2  # NaN never wins: it ranks last
+    assert _evaluate(manager, "w", 0.0) is not None  # generation 1 was asked
