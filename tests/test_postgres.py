@@ -1,0 +1,143 @@
+"""The store on PostgreSQL as on SQLite: a lab outgrows SQLite by changing one URL.
+
+Every test takes `db_url` (tests/conftest.py), so it runs once on an SQLite file and once on
+the session's throwaway PostgreSQL server. The queue's contract tests of test_server_store.py
+are re-run here on a manager built from that URL; a small run goes to completion through the
+REST API and must give `evolve`'s best controller bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import httpx
+import numpy as np
+import pytest
+import sqlalchemy as sa
+from alembic import command
+from alembic.script import ScriptDirectory
+from sqlalchemy.orm import Session
+
+from evorobotics.evolution import evolve
+from server.db import alembic_config, make_engine, upgrade
+from server.jobs import JobResult
+from server.manager import RunManager
+from server.robot_store import StuckEventRow, TraceRow
+from server.settings import Settings
+from tests import test_server_api as api
+from tests import test_server_store as store
+
+TABLES = store.TABLES | {
+    "robot_traces",
+    "robot_state",
+    "robot_stuck_events",
+    "controller_field_stats",
+}
+
+
+@pytest.fixture
+def engine(db_url: str) -> Iterator[sa.Engine]:
+    engine = make_engine(db_url)
+    upgrade(engine)
+    yield engine
+    engine.dispose()
+
+
+@pytest.fixture
+def manager(engine: sa.Engine) -> RunManager:
+    return RunManager(engine, Settings(db_url="unused", lease_seconds=10.0, max_attempts=2))
+
+
+def test_migrations_go_up_down_and_up_again(engine: sa.Engine) -> None:
+    """Every revision, the robot tables included, applies and reverts on both back ends."""
+    names = set(sa.inspect(engine).get_table_names())
+    assert names >= TABLES, sorted(TABLES - names)
+    cfg = alembic_config(engine)
+    command.downgrade(cfg, "base")
+    assert set(sa.inspect(engine).get_table_names()) <= {"alembic_version"}
+    upgrade(engine)
+    upgrade(engine)
+    with engine.connect() as conn:
+        versions = conn.execute(sa.text("SELECT version_num FROM alembic_version")).all()
+    assert versions == [(ScriptDirectory.from_config(cfg).get_current_head(),)]
+
+
+def test_robot_tables_keep_64_bit_steps_and_bytes(engine: sa.Engine) -> None:
+    """Robot step counters outgrow 32 bits in a long-lived lab; blobs come back byte-exact."""
+    blob = bytes(range(256))
+    big = 2**40 + 7
+    with Session(engine) as session, session.begin():
+        session.add(
+            TraceRow(
+                robot_id="r1", boot=1, first=big, last=big + 9, count=10, controllers="[]",
+                steps=blob, whiskers=blob, motors=blob, controller=blob, fresh=blob,
+            )
+        )  # fmt: skip
+        session.add(StuckEventRow(robot_id="r1", reason="rotation", step=big))
+    with Session(engine) as session:
+        trace = session.scalars(sa.select(TraceRow)).one()
+        event = session.scalars(sa.select(StuckEventRow)).one()
+    assert (trace.first, trace.steps, trace.fresh) == (big, blob, blob)
+    assert event.step == big and event.id is not None
+
+
+CONTRACT: list[Callable[[RunManager], None]] = [
+    store.test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once,
+    store.test_result_of_wrong_shape_is_refused,
+    store.test_expired_lease_goes_back_and_late_result_is_still_counted_once,
+    store.test_runs_share_the_workers_fairly,
+    store.test_paused_runs_get_no_jobs_and_failures_fail_the_run,
+    store.test_generations_commit_whole_under_concurrent_completion,
+    store.test_release_returns_a_lease_at_once_and_counts_follow_the_jobs,
+    store.test_a_paused_run_commits_what_is_in_hand_but_leases_nothing_new,
+    store.test_results_after_cancel_are_dropped,
+    store.test_stored_state_leaves_out_the_population_and_resume_reads_it_back,
+    store.test_deferred_write_installs_the_next_generation_first,
+    store.test_cancel_writes_the_told_generation_before_cancelling,
+    store.test_a_failed_evaluation_is_stored_as_null_ranks_last_and_the_run_goes_on,
+]
+
+
+@pytest.mark.parametrize("contract", CONTRACT, ids=lambda f: f.__name__.removeprefix("test_"))
+def test_job_queue_contract(manager: RunManager, contract: Callable[[RunManager], None]) -> None:
+    contract(manager)
+
+
+def test_restart_resumes_from_the_store(engine: sa.Engine) -> None:
+    """A second manager on the same database (a restarted server) finishes `evolve`'s run."""
+    settings = Settings(db_url="unused", lease_seconds=10.0, max_attempts=2)
+    first = RunManager(engine, settings)
+    run_id = first.create_run(store.TINY)
+    for _ in range(4):
+        item = store._evaluate(first, "w", 0.0)
+        assert item is not None and first.queue.complete(*item)
+    second = RunManager(engine, settings)
+    second.recover()
+    while (item := store._evaluate(second, "w", 0.0)) is not None:
+        assert second.queue.complete(*item) is True
+    assert second.best(run_id) == evolve(store.TINY).best.sha256
+
+
+@pytest.mark.slow
+def test_small_run_completes_through_the_rest_api(db_url: str) -> None:
+    with api.serving(Settings(db_url=db_url, port=api.free_port(), zenoh=False)) as (url, _):
+        api.test_small_run_completes_and_matches_evolve(url)
+        assert httpx.get(f"{url}/healthz", timeout=5).is_success
+
+
+def test_fitness_nan_round_trips_as_null(engine: sa.Engine) -> None:
+    """PostgreSQL stores NaN in a float column; the store must write NULL, as on SQLite."""
+    manager = RunManager(engine, Settings(db_url="unused"))
+    run_id = manager.create_run(store.SMALL)
+    for _ in range(3):
+        done = store._evaluate(manager, "w", 0.0)
+        assert done is not None
+        key, result = done
+        fitness = np.full_like(result.fitness, np.nan) if key.index == 1 else result.fitness
+        manager.queue.complete(key, JobResult(fitness, result.components))
+    with engine.connect() as conn:
+        nulls = conn.execute(
+            sa.text("SELECT COUNT(*) FROM individuals WHERE run_id = :r AND fitness IS NULL"),
+            {"r": run_id},
+        ).scalar()
+    assert nulls == 5
