@@ -16,6 +16,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
+from server import metrics
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, QueueSource
 from server.executor import InProcessExecutor
@@ -63,6 +64,7 @@ def create_app(
             stack.callback(engine.dispose)
             upgrade(engine)
             manager = RunManager(engine, settings)
+            app.state.job_counts = metrics.count_jobs(manager.queue)
             manager.start()
             stack.callback(manager.stop)
             app.state.manager = manager
@@ -99,6 +101,7 @@ def create_app(
     async def _invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
         return JSONResponse(status_code=422, content={"detail": validation_message(exc)})
 
+    metrics.install(app)
     app.include_router(runs.router)
     app.include_router(controllers.router)
     app.include_router(colony.router)

@@ -1,0 +1,119 @@
+"""GET /metrics: Prometheus text with live colony state; counters move after a run."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import uvicorn
+from fastapi import FastAPI
+from prometheus_client.parser import text_string_to_metric_families
+
+from server.app import create_app
+from server.settings import Settings
+
+SMALL = {"population": 8, "generations": 3, "steps": 10, "job_size": 4}
+
+
+def eventually(predicate: Callable[[], bool], timeout: float = 60.0) -> bool:
+    deadline = time.monotonic() + timeout
+    tick = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        tick.wait(0.05)
+    return True
+
+
+@contextmanager
+def serve(app: FastAPI) -> Iterator[httpx.Client]:
+    """The app on real uvicorn on a free port; a client for it."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        assert eventually(lambda: server.started or not thread.is_alive())
+        assert server.started, "uvicorn did not start"
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as client:
+            yield client
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30)
+
+
+def scrape(client: httpx.Client) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    response = client.get("/metrics")
+    assert response.status_code == 200
+    assert response.headers["content-type"].startswith("text/plain")
+    return {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(response.text)
+        for s in family.samples
+    }
+
+
+def test_metrics_names_and_counters_move_after_a_run(tmp_path: Path) -> None:
+    settings = Settings(db_url=f"sqlite:///{tmp_path / 'c.db'}", zenoh=False, executors=1)
+    with serve(create_app(settings)) as client:
+        before = scrape(client)
+        names = {name for name, _ in before}
+        for expected in (
+            "colony_runs",
+            "colony_active_runs",
+            "colony_generations_total",
+            "colony_evaluations_total",
+            "colony_jobs",
+            "colony_jobs_leased_total",
+            "colony_jobs_done_total",
+            "colony_jobs_requeued_total",
+            "colony_workers",
+            "colony_robots_online",
+            "colony_stuck_events_total",
+            "colony_trace_samples_total",
+        ):
+            assert expected in names, expected
+        assert before[("colony_generations_total", ())] == 0
+        run = client.post("/api/runs", json=SMALL).json()
+        assert eventually(
+            lambda: client.get(f"/api/runs/{run['id']}").json()["status"] == "completed"
+        )
+        after = scrape(client)
+    assert after[("colony_generations_total", ())] == SMALL["generations"]
+    assert after[("colony_evaluations_total", ())] == SMALL["generations"] * SMALL["population"]
+    jobs = SMALL["generations"] * SMALL["population"] // SMALL["job_size"]
+    assert after[("colony_jobs_done_total", ())] == jobs
+    assert after[("colony_jobs_leased_total", ())] >= jobs
+    assert after[("colony_runs", (("status", "completed"),))] == 1
+    # latency by route template, never by raw path
+    routes = {dict(labels).get("route") for name, labels in after if name.endswith("_count")}
+    assert "/api/runs/{run_id}" in routes
+    assert f"/api/runs/{run['id']}" not in routes
+    key = (
+        "colony_http_request_duration_seconds_count",
+        (("method", "POST"), ("route", "/api/runs"), ("status", "201")),
+    )
+    assert after[key] == 1
+
+
+def test_each_app_has_its_own_registry(tmp_path: Path) -> None:
+    """Two apps in one process: no duplicate-timeseries error, separate latency counts."""
+    first = create_app(Settings(db_url=f"sqlite:///{tmp_path / 'a.db'}", zenoh=False))
+    second = create_app(Settings(db_url=f"sqlite:///{tmp_path / 'b.db'}", zenoh=False))
+    with serve(first) as a, serve(second) as b:
+        a.get("/healthz")
+        a.get("/healthz")
+        b.get("/healthz")
+        key = (
+            "colony_http_request_duration_seconds_count",
+            (("method", "GET"), ("route", "/healthz"), ("status", "200")),
+        )
+        assert scrape(a)[key] == 2
+        assert scrape(b)[key] == 1
