@@ -36,8 +36,8 @@ class GAConfig(BaseModel):
         "prose",
         description="fill the rest with the fittest remaining (prose) or ranks 2m+1..n-1 (Eq 11 as printed)",
     )
-    base_rate: float = Field(2.0, gt=0.0, description="Eq 9: expected mutations per sub-matrix")
-    eta: float = Field(0.5, gt=0.0, description="Eq 10: base mutation step")
+    base_rate: float = Field(8.0, gt=0.0, description="Eq 9: expected mutations per sub-matrix")
+    eta: float = Field(1.0, gt=0.0, description="Eq 10: base mutation step")
     init_scale: float = Field(1.0, gt=0.0, description="Eq 7: mu(1), the layer-1 init range")
     layer_slope: float = Field(
         0.25,

@@ -308,7 +308,7 @@ def test_eq10_mutants_differ_only_where_p_is_one_within_the_step() -> None:
 def test_from_config_uses_replacement_count() -> None:
     params = GAParams.from_config(RunConfig())
     assert (params.population, params.replacement, params.selection) == (100, 25, "prose")
-    assert (params.base_rate, params.eta, params.init_scale) == (2.0, 0.5, 1.0)
+    assert (params.base_rate, params.eta, params.init_scale) == (8.0, 1.0, 1.0)
     small = GAParams.from_config(RunConfig(population=10, ga=GAConfig(selection="literal")))
     assert (small.population, small.replacement, small.selection) == (10, 2, "literal")
 
