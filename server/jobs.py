@@ -23,7 +23,7 @@ from __future__ import annotations
 import heapq
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,6 +173,8 @@ class JobQueue:
         self._sequence = 0
         self._unwritten: list[_Unwritten] = []
         """Generations told and asked but not yet written, oldest first."""
+        self._write_failures: dict[int, str] = {}
+        """run id -> why its generation could not be written: the run is stopped (not leased)."""
         self._listeners: list[Callable[[], None]] = []
         self.work_available = threading.Event()
         """Set whenever jobs may have become leasable; executors wait on it."""
@@ -358,7 +360,32 @@ class JobQueue:
                         item.write(session)
             except RunOverError:  # some run ended meanwhile: one transaction each instead
                 self._flush_one_by_one()
+            except Exception as exc:
+                self._stall(exc)
+                raise
             self._unwritten.clear()
+
+    def _stall(self, exc: Exception) -> None:
+        """The store refused a write: stop leasing for the runs it holds, so no run evolves on
+        in memory; what is leased may still complete (at most one more generation each)."""
+        message = f"database write failed: {type(exc).__name__}: {exc}"
+        for item in self._unwritten:
+            run_id = item.results.run_id
+            self._write_failures.setdefault(run_id, message[:500])
+            jobs = self._runs.get(run_id)
+            if jobs is not None:
+                jobs.running = False
+
+    def write_failures(self) -> dict[int, str]:
+        """Runs stopped by a refused write (run id -> why), once every generation is written;
+        empty while a write is still outstanding."""
+        with self._lock:
+            return {} if self._unwritten else dict(self._write_failures)
+
+    def clear_write_failures(self, run_ids: Iterable[int]) -> None:
+        with self._lock:
+            for run_id in run_ids:
+                self._write_failures.pop(run_id, None)
 
     def _flush_one_by_one(self) -> None:
         while self._unwritten:

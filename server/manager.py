@@ -19,6 +19,7 @@ running -> completed | failed. Terminal: completed, failed, cancelled.
 from __future__ import annotations
 
 import io
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +41,8 @@ from server.errors import NotFoundError, TransitionError
 from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
 from server.models import Generation, Individual, Job, Run, utcnow
 from server.settings import Settings
+
+log = logging.getLogger(__name__)
 
 _RUNS = cast(Table, Run.__table__)
 _GENERATIONS = cast(Table, Generation.__table__)
@@ -145,7 +148,32 @@ class RunManager:
     def _housekeep(self) -> None:
         while not self._stop.wait(self.settings.housekeeping_seconds):
             self.queue.expire(time.time())
+            self.settle_write_failures()
             self.promote()
+
+    def settle_write_failures(self) -> None:
+        """Retry the writes the store refused; once they are in, pause the runs they stopped
+        with the reason in `error`, so an operator sees it and resumes (nothing is lost)."""
+        with self._lock:
+            if self.queue.unwritten():
+                try:
+                    self.queue.flush()
+                except Exception as exc:
+                    log.warning("store still refuses writes: %s", exc)
+                    return
+            failures = self.queue.write_failures()
+            if not failures:
+                return
+            try:
+                with self.sessions.begin() as session:
+                    for run_id, message in failures.items():
+                        run = session.get(Run, run_id)
+                        if run is not None and run.status == "running":
+                            run.status, run.error = "paused", message
+            except Exception as exc:
+                log.warning("could not pause the runs a refused write stopped: %s", exc)
+                return
+            self.queue.clear_write_failures(failures)
 
     def recover(self) -> None:
         """Re-ask the generation in flight of every live run (its results died with the process)."""
@@ -231,6 +259,7 @@ class RunManager:
                         f"run {run_id} is {run.status}; only a paused run resumes"
                     )
                 run.status = "running" if run.started_at is not None else "queued"
+                run.error = None  # e.g. a refused write that paused it
             self.queue.set_running(run_id, run.status == "running")
         self.promote()
 

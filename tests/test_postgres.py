@@ -9,6 +9,7 @@ REST API and must give `evolve`'s best controller bit for bit.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import httpx
 import numpy as np
@@ -19,6 +20,7 @@ from alembic.script import ScriptDirectory
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import evolve
+from server import crud
 from server.db import alembic_config, make_engine, upgrade
 from server.jobs import JobResult
 from server.manager import RunManager
@@ -141,3 +143,67 @@ def test_fitness_nan_round_trips_as_null(engine: sa.Engine) -> None:
             {"r": run_id},
         ).scalar()
     assert nulls == 5
+
+
+def _refuse_writes(engine: sa.Engine) -> Callable[[bool], None]:
+    """A switch that makes the database read-only for every connection the pool hands out:
+    SQLite's `query_only` and PostgreSQL's read-only transactions give the real errors."""
+    refusing = [False]
+    sqlite = engine.dialect.name == "sqlite"
+
+    @sa.event.listens_for(engine, "checkout")
+    def _mode(dbapi_connection: Any, _record: Any, _proxy: Any) -> None:
+        cursor = dbapi_connection.cursor()
+        if sqlite:
+            cursor.execute(f"PRAGMA query_only={int(refusing[0])}")
+        else:
+            cursor.execute(f"SET default_transaction_read_only = {'on' if refusing[0] else 'off'}")
+            dbapi_connection.commit()
+        cursor.close()
+
+    def switch(on: bool) -> None:
+        refusing[0] = on
+
+    return switch
+
+
+def test_a_store_that_refuses_writes_stops_the_run_and_resume_is_bit_identical(
+    engine: sa.Engine,
+) -> None:
+    """The deferred write must not let a run evolve on in memory while the store is read-only:
+    it stops leasing, is paused with `error` once writable, and resumes to `evolve`'s result."""
+    refuse = _refuse_writes(engine)
+    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
+    run_id = manager.create_run(store.TINY)
+    while (item := store._evaluate(manager, "w", 0.0)) is not None and item[0].generation == 0:
+        manager.queue.complete(*item, defer=True)
+    manager.queue.flush()
+    assert item is not None  # generation 1's first job, leased before the store went read-only
+    refuse(True)
+    manager.queue.complete(*item, defer=True)
+    while (item := store._evaluate(manager, "w", 0.0)) is not None and item[0].generation == 1:
+        manager.queue.complete(*item, defer=True)  # the rest of generation 1
+    assert item is not None  # as the dispatcher does, generation 2 went out before the write
+    with pytest.raises(sa.exc.DBAPIError):
+        manager.queue.flush()
+    assert manager.queue.lease("w", 0.0) is None  # stopped: no more of generation 2
+    assert manager.queue.complete(*item, defer=True) is True  # what is in hand still counts
+    manager.settle_write_failures()  # still read-only: nothing changes, nothing raises
+    assert manager.queue.unwritten() == 1
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.generation) == ("running", 1)
+    refuse(False)
+    manager.settle_write_failures()
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.generation) == ("paused", 2)
+        assert run.error is not None and "database write failed" in run.error
+    assert manager.queue.lease("w", 0.0) is None
+    manager.resume(run_id)
+    while (item := store._evaluate(manager, "w", 0.0)) is not None:
+        assert manager.queue.complete(*item) is True
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.error) == ("completed", None)
+    assert manager.best(run_id) == evolve(store.TINY).best.sha256
