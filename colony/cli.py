@@ -6,6 +6,7 @@ import typer
 
 from colony.agent_cli import register as register_agent_commands
 from colony.analyze_cli import analyze_command
+from colony.demo import demo_command
 from colony.evolve import evolve_command
 from colony.server_cli import register as register_server_commands
 from colony.worker_cli import worker_command
@@ -16,12 +17,6 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
 )
-
-
-@app.command()
-def demo() -> None:
-    """Evolve, then drive virtual robots, on the embedded defaults (not yet: see issue 7)."""
-    typer.echo("colony demo: not yet. Run `colony evolve` for the paper's experiment.")
 
 
 @app.command()
@@ -36,6 +31,7 @@ def presets() -> None:
         )
 
 
+app.command(name="demo")(demo_command)
 app.command(name="evolve")(evolve_command)
 register_server_commands(app)
 app.command(name="worker")(worker_command)
