@@ -45,6 +45,27 @@ def agent_command(
     seed: Annotated[int, typer.Option(help="--emulate: seed of the start pose and gap")] = 0,
     index: Annotated[int, typer.Option(help="--emulate: robot index within the seed")] = 0,
     baud: Annotated[int, typer.Option(help="serial baud rate")] = 115_200,
+    server_key: Annotated[
+        Path | None,
+        typer.Option(help="the server's public key (PEM, GET /api/server-key); pinned"),
+    ] = None,
+    server: Annotated[
+        str, typer.Option("--server", help="without --server-key or a pinned key: fetch it here")
+    ] = DEFAULT_SERVER,
+    insecure_no_verify: Annotated[
+        bool, typer.Option("--insecure-no-verify", help="accept unsigned pushes (testing only)")
+    ] = False,
+    zenoh_user: Annotated[
+        str | None, typer.Option(envvar="COLONY_ZENOH_USER", help="zenoh usrpwd user")
+    ] = None,
+    zenoh_password: Annotated[
+        str | None,
+        typer.Option(envvar="COLONY_ZENOH_PASSWORD", help="its password (prefer the env var)"),
+    ] = None,
+    zenoh_root_ca: Annotated[
+        Path | None,
+        typer.Option(envvar="COLONY_ZENOH_ROOT_CA", help="CA (PEM) of the router's TLS cert"),
+    ] = None,
     log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR")] = "INFO",
 ) -> None:
     """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck."""
@@ -53,12 +74,23 @@ def agent_command(
     from robot_agent.emulator import BasicXEmulator
     from robot_agent.errors import AgentError
     from robot_agent.sim_body import SimBody
+    from schemas.security import ZenohClientAuth
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(message)s")
     if (serial is None) == (not emulate):
         raise typer.BadParameter("give exactly one of --serial PORT or --emulate")
     try:
-        settings = AgentSettings(robot_id=robot_id, connect=tuple(connect), state_dir=state_dir)
+        auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
+        probe = AgentSettings(robot_id=robot_id, state_dir=state_dir)
+        key = _server_key(server_key, probe.state_path, server, insecure_no_verify)
+        settings = AgentSettings(
+            robot_id=robot_id,
+            connect=tuple(connect),
+            state_dir=state_dir,
+            server_key=key,
+            require_signature=not insecure_no_verify,
+            auth=auth,
+        )
         emulator = (
             BasicXEmulator(SimBody.create(maze, seed=seed, index=index)).start()
             if emulate
@@ -91,6 +123,30 @@ def agent_command(
         if emulator is not None:
             with contextlib.suppress(RuntimeError):
                 emulator.stop()
+
+
+def _server_key(path: Path | None, state_dir: Path, server: str, insecure: bool) -> bytes | None:
+    """The key to pin: --server-key, else the pinned one (None: the agent loads it), else
+    fetched once from the server (trust on first use); None if that fails too."""
+    from robot_agent.verify import load_public_key, pinned_key
+
+    if path is not None:
+        return path.read_bytes()
+    if insecure or pinned_key(state_dir) is not None:
+        return None
+    try:
+        response = httpx.get(f"{server.rstrip('/')}/api/server-key", timeout=10.0)
+        response.raise_for_status()
+    except httpx.HTTPError as exc:
+        typer.echo(
+            f"warning: no server key pinned and none fetched from {server} ({exc}): every "
+            "push is refused until the agent restarts with --server-key FILE",
+            err=True,
+        )
+        return None
+    load_public_key(response.content)
+    typer.echo(f"pinned the server key fetched from {server} in {state_dir}")
+    return response.content
 
 
 def replay_command(

@@ -8,18 +8,27 @@ and exit non-zero.
 from __future__ import annotations
 
 import json
+import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
 import httpx
 import typer
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 TIMEOUT_S = 30.0
+FOLLOW_POLL_S = 0.2
+FINAL = ("completed", "failed", "cancelled")
 
 ServerOpt = Annotated[str, typer.Option("--server", help="server base URL")]
+TokenOpt = Annotated[
+    str | None,
+    typer.Option("--token", envvar="COLONY_API_TOKEN", help="API bearer token [COLONY_API_TOKEN]"),
+]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the server's JSON")]
 
 run_app = typer.Typer(
@@ -56,7 +65,8 @@ def serve(
     no_zenoh: Annotated[
         bool,
         typer.Option(
-            "--no-zenoh", help="no zenoh at all: evaluate in-process threads (--executors)"
+            "--no-zenoh",
+            help="no zenoh at all: evaluate in-process threads (--executors) [COLONY_ZENOH]",
         ),
     ] = False,
     executors: Annotated[
@@ -66,12 +76,39 @@ def serve(
             "[COLONY_EXECUTORS]"
         ),
     ] = None,
+    log_level: Annotated[
+        str | None, typer.Option(help="DEBUG, INFO, WARNING or ERROR [COLONY_LOG_LEVEL]")
+    ] = None,
+    log_format: Annotated[
+        str | None,
+        typer.Option(help="text, or json for one JSON object per line [COLONY_LOG_FORMAT]"),
+    ] = None,
+    token: Annotated[
+        str | None,
+        typer.Option("--token", help="API bearer token, required off loopback [COLONY_API_TOKEN]"),
+    ] = None,
+    read_closed: Annotated[
+        bool, typer.Option("--read-closed", help="reads need the token too [COLONY_READ_OPEN]")
+    ] = False,
+    server_key: Annotated[
+        Path | None,
+        typer.Option(help="Ed25519 key signing robot pushes [COLONY_SERVER_KEY]"),
+    ] = None,
+    zenoh_users: Annotated[
+        Path | None,
+        typer.Option(help="zenoh user:password file clients must match [COLONY_ZENOH_USERS_FILE]"),
+    ] = None,
+    zenoh_tls_cert: Annotated[
+        Path | None, typer.Option(help="PEM certificate for tls/ endpoints")
+    ] = None,
+    zenoh_tls_key: Annotated[Path | None, typer.Option(help="its PEM private key")] = None,
 ) -> None:
     """Run the colony server: REST API (OpenAPI at /docs), store, run manager, zenoh router
     for workers (docs/protocol.md) and N local workers."""
     import uvicorn
 
     from server.app import create_app
+    from server.auth import check_bind
     from server.settings import Settings
 
     overrides = {
@@ -83,25 +120,55 @@ def serve(
         "workers": workers,
         "executors": executors,
         "zenoh": False if no_zenoh else None,
+        "log_level": log_level.upper() if log_level else None,
+        "log_format": log_format,
+        "api_token": token,
+        "read_open": False if read_closed else None,
+        "server_key": server_key,
+        "zenoh_users_file": zenoh_users,
+        "zenoh_tls_certificate": zenoh_tls_cert,
+        "zenoh_tls_private_key": zenoh_tls_key,
     }
     try:
         settings = Settings.model_validate({k: v for k, v in overrides.items() if v is not None})
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    try:
+        check_bind(settings.host, settings.api_token)
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    try:
         app = create_app(settings)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+    typer.echo(f"robot pushes are signed with {settings.server_key_path() or 'an in-memory key'}")
+    from server.logs import configure
+
+    configure(settings.log_level, settings.log_format)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_config=None)
 
 
-def _client(ctx: typer.Context, server: str) -> httpx.Client:
+def _client(ctx: typer.Context, server: str, token: str | None) -> httpx.Client:
     obj = ctx.find_root().obj
     transport = obj.get("transport") if isinstance(obj, dict) else None
-    return httpx.Client(base_url=server.rstrip("/"), transport=transport, timeout=TIMEOUT_S)
+    headers = {"Authorization": f"Bearer {token}"} if token else None
+    return httpx.Client(
+        base_url=server.rstrip("/"), transport=transport, timeout=TIMEOUT_S, headers=headers
+    )
 
 
-def _call(ctx: typer.Context, server: str, method: str, path: str, body: Any = None) -> Any:
+def _call(
+    ctx: typer.Context,
+    server: str,
+    token: str | None,
+    method: str,
+    path: str,
+    body: Any = None,
+) -> Any:
     """One request; the server's error message and exit status 1 on failure."""
     try:
-        with _client(ctx, server) as client:
+        with _client(ctx, server, token) as client:
             response = client.request(method, path, json=body)
     except httpx.HTTPError as exc:
         typer.echo(f"error: cannot reach {server}: {exc}", err=True)
@@ -141,6 +208,39 @@ def _runs_table(runs: list[dict[str, Any]], title: str) -> Table:
     return table
 
 
+def follow_run(
+    client: httpx.Client,
+    run_id: int,
+    console: Console,
+    alive: Callable[[], None] = lambda: None,
+    poll_s: float = FOLLOW_POLL_S,
+) -> dict[str, Any]:
+    """A progress bar of committed generations with the best fitness, until the run ends
+    (completed, failed or cancelled); returns the final RunOut. `alive` may raise to abort."""
+    tick = threading.Event()
+    with Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+    ) as bar:
+        task = bar.add_task(f"run {run_id}", total=None)
+        while True:
+            response = client.get(f"/api/runs/{run_id}")
+            response.raise_for_status()
+            run: dict[str, Any] = response.json()
+            best = run["best_fitness"]
+            text = f"run {run_id}" + ("" if best is None else f" best {best:.3f}")
+            bar.update(
+                task, total=run["generations"], completed=run["generation"], description=text
+            )
+            if run["status"] in FINAL:
+                return run
+            alive()
+            tick.wait(poll_s)
+
+
 def _print_json(data: Any) -> None:
     typer.echo(json.dumps(data, indent=2))
 
@@ -159,10 +259,16 @@ def run_start(
     maze: Annotated[str | None, typer.Option()] = None,
     network: Annotated[str | None, typer.Option(help="preset name")] = None,
     job_size: Annotated[int | None, typer.Option("--job-size")] = None,
+    follow: Annotated[
+        bool, typer.Option("--follow", help="show a progress bar until the run ends")
+    ] = False,
     server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Start a run; unset fields default to the paper's experiment (validated by the server)."""
+    """Start a run; unset fields default to the paper's experiment (validated by the server).
+
+    With --follow, exit status 1 unless the run completes."""
     body: dict[str, Any] = {}
     if config_file is not None:
         try:
@@ -184,19 +290,32 @@ def run_start(
         "job_size": job_size,
     }
     body.update({k: v for k, v in flags.items() if v is not None})
-    run = _call(ctx, server, "POST", "/api/runs", body)
+    run = _call(ctx, server, token, "POST", "/api/runs", body)
+    if follow:
+        with _client(ctx, server, token) as client:
+            try:
+                run = follow_run(client, run["id"], Console(stderr=as_json))
+            except httpx.HTTPError as exc:
+                typer.echo(f"error: lost {server}: {exc}", err=True)
+                raise typer.Exit(1) from exc
     if as_json:
         _print_json(run)
     else:
-        typer.echo(f"run {run['id']} {run['status']}")
+        best = "" if run["best_fitness"] is None else f" best {run['best_fitness']:.4f}"
+        typer.echo(f"run {run['id']} {run['status']}{best}")
+    if follow and run["status"] != "completed":
+        raise typer.Exit(1)
 
 
 @run_app.command("list")
 def run_list(
-    ctx: typer.Context, server: ServerOpt = DEFAULT_SERVER, as_json: JsonOpt = False
+    ctx: typer.Context,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
 ) -> None:
     """Every run, newest first."""
-    runs = _call(ctx, server, "GET", "/api/runs")
+    runs = _call(ctx, server, token, "GET", "/api/runs")
     if as_json:
         _print_json(runs)
     else:
@@ -205,11 +324,15 @@ def run_list(
 
 @run_app.command("show")
 def run_show(
-    ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER, as_json: JsonOpt = False
+    ctx: typer.Context,
+    run_id: int,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
 ) -> None:
     """One run with its fitness per generation."""
-    run = _call(ctx, server, "GET", f"/api/runs/{run_id}")
-    generations = _call(ctx, server, "GET", f"/api/runs/{run_id}/generations")
+    run = _call(ctx, server, token, "GET", f"/api/runs/{run_id}")
+    generations = _call(ctx, server, token, "GET", f"/api/runs/{run_id}/generations")
     if as_json:
         _print_json({**run, "history": generations})
         return
@@ -223,34 +346,76 @@ def run_show(
     console.print(table)
 
 
-def _steer(ctx: typer.Context, server: str, run_id: int, action: str) -> None:
-    run = _call(ctx, server, "POST", f"/api/runs/{run_id}/{action}")
+def _steer(ctx: typer.Context, server: str, token: str | None, run_id: int, action: str) -> None:
+    run = _call(ctx, server, token, "POST", f"/api/runs/{run_id}/{action}")
     typer.echo(f"run {run['id']} {run['status']}")
 
 
 @run_app.command("pause")
-def run_pause(ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER) -> None:
+def run_pause(
+    ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER, token: TokenOpt = None
+) -> None:
     """Stop handing out the run's jobs (jobs in hand finish)."""
-    _steer(ctx, server, run_id, "pause")
+    _steer(ctx, server, token, run_id, "pause")
 
 
 @run_app.command("resume")
-def run_resume(ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER) -> None:
+def run_resume(
+    ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER, token: TokenOpt = None
+) -> None:
     """Continue a paused run."""
-    _steer(ctx, server, run_id, "resume")
+    _steer(ctx, server, token, run_id, "resume")
 
 
 @run_app.command("cancel")
-def run_cancel(ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER) -> None:
+def run_cancel(
+    ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER, token: TokenOpt = None
+) -> None:
     """End a run for good; its committed generations stay."""
-    _steer(ctx, server, run_id, "cancel")
+    _steer(ctx, server, token, run_id, "cancel")
+
+
+def _workers_table(workers: list[dict[str, Any]]) -> Table:
+    table = Table(title="workers")
+    for column in ("name", "host", "state", "jobs done", "robot-steps/s", "last seen"):
+        table.add_column(column)
+    for w in workers:
+        table.add_row(
+            w["name"],
+            w["host"],
+            w["state"],
+            str(w["jobs_done"]),
+            _fmt(w["robot_steps_per_s"]),
+            _fmt(w["last_seen"]),
+        )
+    return table
+
+
+def _robots_table(robots: list[dict[str, Any]]) -> Table:
+    """Rows of GET /api/robots (online, state, steps) or of /api/colony (status only)."""
+    table = Table(title="robots")
+    for column in ("id", "state", "steps", "controller", "last seen"):
+        table.add_column(column)
+    for r in robots:
+        state = r.get("state", r.get("status"))
+        table.add_row(
+            r["id"],
+            _fmt(state),
+            _fmt(r.get("steps")),
+            (r["controller_sha256"] or "-")[:12],
+            _fmt(r["last_seen"]),
+        )
+    return table
 
 
 def status(
-    ctx: typer.Context, server: ServerOpt = DEFAULT_SERVER, as_json: JsonOpt = False
+    ctx: typer.Context,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
 ) -> None:
-    """Colony summary: runs by status, active runs, jobs, workers, robots."""
-    colony = _call(ctx, server, "GET", "/api/colony")
+    """Colony summary: runs by status, jobs, and tables of active runs, workers and robots."""
+    colony = _call(ctx, server, token, "GET", "/api/colony")
     if as_json:
         _print_json(colony)
         return
@@ -260,11 +425,110 @@ def status(
     console.print(f"runs: {counts}")
     console.print(f"jobs: pending {jobs['pending']}, leased {jobs['leased']}, done {jobs['done']}")
     console.print(_runs_table(colony["active"], "active runs"))
-    console.print(f"workers: {len(colony['workers'])}, robots: {len(colony['robots'])}")
+    console.print(_workers_table(colony["workers"]))
+    console.print(_robots_table(colony["robots"]))
+
+
+def workers_command(
+    ctx: typer.Context,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """The simulation workers the server knows (gone ones for a while)."""
+    workers = _call(ctx, server, token, "GET", "/api/workers")
+    if as_json:
+        _print_json(workers)
+    else:
+        Console().print(_workers_table(workers))
+
+
+def robots_command(
+    ctx: typer.Context,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Every robot ever seen: online, state, steps, controller."""
+    robots = _call(ctx, server, token, "GET", "/api/robots")
+    if as_json:
+        _print_json(robots)
+    else:
+        Console().print(_robots_table(robots))
+
+
+robot_app = typer.Typer(help="Inspect and command one robot.", no_args_is_help=True)
+
+
+@robot_app.command("show")
+def robot_show(
+    ctx: typer.Context,
+    robot: str,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """One robot: state, controller origin, whiskers, stuck events, link."""
+    detail = _call(ctx, server, token, "GET", f"/api/robots/{robot}")
+    if as_json:
+        _print_json(detail)
+        return
+    for key in (
+        "id", "online", "state", "steps", "stuck_events", "whiskers", "controller_sha256",
+        "controller_run", "controller_rank", "controller_generation", "boot",
+    ):  # fmt: skip
+        typer.echo(f"{key:22s} {_fmt(detail[key])}")
+
+
+def _pushed(result: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        _print_json(result)
+    elif result["accepted"]:
+        typer.echo(f"robot {result['robot']} runs {_fmt(result['sha256'])}")
+    else:
+        why = result["reason"] or ("no acknowledgement" if not result["acknowledged"] else "")
+        typer.echo(f"robot {result['robot']} refused: {why}", err=True)
+    if not result["accepted"]:
+        raise typer.Exit(1)
+
+
+@robot_app.command("push")
+def robot_push(
+    ctx: typer.Context,
+    robot: str,
+    run: Annotated[int | None, typer.Option("--run", help="push this run's individual")] = None,
+    rank: Annotated[int, typer.Option(help="rank in the run's latest generation")] = 0,
+    sha: Annotated[str | None, typer.Option("--sha", help="push a stored controller")] = None,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Push a run's ranked individual (--run, --rank) or a stored controller (--sha).
+
+    Exit status 1 unless the robot accepted it."""
+    if (run is None) == (sha is None):
+        raise typer.BadParameter("give exactly one of --run or --sha")
+    body: dict[str, Any] = {"run_id": run, "rank": rank} if run is not None else {"sha256": sha}
+    _pushed(_call(ctx, server, token, "POST", f"/api/robots/{robot}/controller", body), as_json)
+
+
+@robot_app.command("stop")
+def robot_stop(
+    ctx: typer.Context,
+    robot: str,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Motors to zero until the next push."""
+    _pushed(_call(ctx, server, token, "POST", f"/api/robots/{robot}/stop"), as_json)
 
 
 def register(app: typer.Typer) -> None:
-    """Add `server`, `run` and `status` to the root CLI."""
+    """Add `server`, `run`, `status`, `workers`, `robots` and `robot` to the root CLI."""
     app.command(name="server")(serve)
     app.add_typer(run_app, name="run")
     app.command(name="status")(status)
+    app.command(name="workers")(workers_command)
+    app.command(name="robots")(robots_command)
+    app.add_typer(robot_app, name="robot")

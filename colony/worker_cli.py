@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -22,6 +23,17 @@ def worker_command(
         str | None,
         typer.Option(help="worker name shown in GET /api/workers (default: hostname-pid)"),
     ] = None,
+    zenoh_user: Annotated[
+        str | None, typer.Option(envvar="COLONY_ZENOH_USER", help="zenoh usrpwd user")
+    ] = None,
+    zenoh_password: Annotated[
+        str | None,
+        typer.Option(envvar="COLONY_ZENOH_PASSWORD", help="its password (prefer the env var)"),
+    ] = None,
+    zenoh_root_ca: Annotated[
+        Path | None,
+        typer.Option(envvar="COLONY_ZENOH_ROOT_CA", help="CA (PEM) of the router's TLS cert"),
+    ] = None,
     log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR")] = "INFO",
     exit_with_parent: Annotated[
         bool,
@@ -32,6 +44,7 @@ def worker_command(
     ] = False,
 ) -> None:
     """Pull evaluation jobs over zenoh and evaluate them; Ctrl-C finishes the current job."""
+    from schemas.security import ZenohClientAuth
     from worker.main import (
         WorkerSettings,
         default_name,
@@ -42,7 +55,8 @@ def worker_command(
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(message)s")
     try:
-        settings = WorkerSettings(connect=tuple(connect), name=name or default_name())
+        auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
+        settings = WorkerSettings(connect=tuple(connect), name=name or default_name(), auth=auth)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     stop = threading.Event()

@@ -42,6 +42,7 @@ from evorobotics.errors import ControllerDocumentError
 from evorobotics.sim import WorldParams
 from robot_agent.errors import SerialLinkError
 from robot_agent.stuck import StuckConfig, StuckDetector
+from robot_agent.verify import Verifier, pin_key, pinned_key
 from schemas.robots import (
     ESCAPE,
     KEY_REPLACE,
@@ -64,6 +65,7 @@ from schemas.robots import (
     encode_message,
     encode_trace,
 )
+from schemas.security import ZenohClientAuth
 from schemas.wire import WireError
 
 log = logging.getLogger(__name__)
@@ -112,6 +114,13 @@ class AgentSettings:
     escape_speed: float = 0.6
     stuck: StuckConfig = field(default_factory=StuckConfig)
     multicast_scouting: bool = False
+    server_key: bytes | None = None
+    """The server's Ed25519 public key (PEM), pinned in the state dir; with a key given or
+    pinned, unsigned, tampered and replayed commands are refused (docs/security.md)."""
+    require_signature: bool = False
+    """Refuse every command while no server key is given or pinned (what `colony agent` sets)."""
+    auth: ZenohClientAuth = field(default_factory=ZenohClientAuth)
+    """zenoh user/password and TLS root CA."""
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
@@ -139,6 +148,8 @@ class AgentSettings:
         conf.insert_json5(
             "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
         )
+        for key, value in self.auth.entries():
+            conf.insert_json5(key, value)
         return conf
 
 
@@ -235,6 +246,17 @@ class Agent:
         """Trace samples the server acknowledged."""
         self.last_whiskers: tuple[int, ...] = (0,) * WHISKERS
         self.boot = self._next_boot()
+        if settings.server_key is not None:
+            pin_key(settings.state_path, settings.server_key)
+        pem = pinned_key(settings.state_path)
+        self.verifier = Verifier(pem, settings.robot_id, settings.state_path) if pem else None
+        """None: no server key given or pinned, commands are taken unsigned (library use)."""
+        if self.verifier is None:
+            log.warning(
+                "robot %s: no server key: commands are %s",
+                settings.robot_id,
+                "all refused" if settings.require_signature else "not verified",
+            )
         saved = self._load_saved()
         if saved is not None:
             self._install(saved)
@@ -530,6 +552,25 @@ class Agent:
         except WireError as exc:
             log.warning("robot %s: dropping malformed command: %s", robot, exc)
             return
+        if isinstance(message, StopCommand | ControllerPush):
+            document = message.document if isinstance(message, ControllerPush) else None
+            refused = self._verify(message.kind, message.push_id, message, document)
+            if refused is not None:
+                log.warning(
+                    "robot %s: refusing %s %s: %s", robot, message.kind, message.push_id, refused
+                )
+                current = self.controller
+                self._publish_ack(
+                    session,
+                    PushAck(
+                        robot=robot,
+                        push_id=message.push_id,
+                        accepted=False,
+                        sha256=current.sha256 if current else None,
+                        reason=refused,
+                    ),
+                )
+                return
         if isinstance(message, StopCommand):
             with self._lock:
                 self._pending = _Pending(None, message.push_id)
@@ -555,6 +596,26 @@ class Agent:
             return
         with self._lock:
             self._pending = _Pending(doc, message.push_id)
+
+    def _verify(
+        self,
+        kind: str,
+        push_id: str,
+        message: ControllerPush | StopCommand | Replacement,
+        document: str | None,
+    ) -> str | None:
+        """Why a command is refused (unsigned, bad signature, replayed), or None to accept it."""
+        if self.verifier is None:
+            if self.settings.require_signature:
+                return "no server key pinned on this robot: restart it with --server-key FILE"
+            return None
+        return self.verifier.check(
+            kind=kind,
+            push_id=push_id,
+            seq=message.seq,
+            signature=message.signature,
+            document=document,
+        )
 
     def _drain_outbox(self, session: zenoh.Session | None) -> None:
         while True:
@@ -590,6 +651,9 @@ class Agent:
             if message.document is None:
                 log.info("robot %s: no replacement: %s", request.robot, message.reason)
                 return
+            refused = self._verify("replacement", "replacement", message, message.document)
+            if refused is not None:
+                raise ValueError(refused)
             doc = validate_document(message.document)
         except ValueError as exc:
             log.warning("robot %s: bad replacement: %s", request.robot, exc)

@@ -25,6 +25,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES, MAX_TRACE_SAMPLES
 from schemas.wire import NAME_PATTERN, WireError, decode_frame, encode_frame
 
 KEY_ROBOTS_ALIVE = "evocolony/robots/alive/*"
@@ -90,6 +91,12 @@ class ControllerPush(_Model):
     push_id: str = Field(min_length=1, max_length=64)
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
     document: str = Field(description="controller document JSON (evorobotics.document)")
+    seq: int = Field(0, ge=0, description="server sequence number; agents refuse seq <= last")
+    signature: str = Field(
+        "",
+        max_length=128,
+        description="Ed25519 hex over schemas.security.signed_bytes; '' unsigned",
+    )
 
 
 class StopCommand(_Model):
@@ -97,6 +104,12 @@ class StopCommand(_Model):
 
     kind: Literal["stop"] = "stop"
     push_id: str = Field(min_length=1, max_length=64)
+    seq: int = Field(0, ge=0, description="server sequence number; agents refuse seq <= last")
+    signature: str = Field(
+        "",
+        max_length=128,
+        description="Ed25519 hex over schemas.security.signed_bytes; '' unsigned",
+    )
 
 
 class PushAck(_RobotMessage):
@@ -209,6 +222,9 @@ def encode_trace(batch: TraceBatch) -> bytes:
 
 
 def decode_trace(payload: bytes) -> TraceBatch:
+    """A trace batch; WireError when malformed or over MAX_TRACE_BYTES / MAX_TRACE_SAMPLES."""
+    if len(payload) > MAX_TRACE_BYTES:
+        raise WireError(f"trace batch of {len(payload)} bytes exceeds {MAX_TRACE_BYTES}")
     header, arrays = decode_frame(payload)
     try:
         parsed = TraceHeader.model_validate(header)
@@ -217,6 +233,10 @@ def decode_trace(payload: bytes) -> TraceBatch:
     names = {"steps", "whiskers", "motors", "controller", "fresh"}
     if set(arrays) != names:
         raise WireError(f"trace arrays must be {sorted(names)}, got {sorted(arrays)}")
+    if len(arrays["steps"]) > MAX_TRACE_SAMPLES:
+        raise WireError(
+            f"trace batch of {len(arrays['steps'])} samples exceeds {MAX_TRACE_SAMPLES}"
+        )
     return TraceBatch(
         robot=parsed.robot,
         boot=parsed.boot,
@@ -248,6 +268,12 @@ class Replacement(_RobotMessage):
     kind: Literal["replacement"] = "replacement"
     document: str | None
     reason: str = ""
+    seq: int = Field(0, ge=0, description="server sequence number; agents refuse seq <= last")
+    signature: str = Field(
+        "",
+        max_length=128,
+        description="Ed25519 hex over schemas.security.signed_bytes; '' unsigned",
+    )
 
 
 RobotMessage = ControllerPush | StopCommand | PushAck | TraceAck | StuckRequest | Replacement
@@ -267,7 +293,9 @@ def encode_message(message: RobotMessage) -> bytes:
 
 
 def decode_message(payload: bytes) -> RobotMessage:
-    """Any control message, by its `kind`; WireError when malformed."""
+    """Any control message, by its `kind`; WireError when malformed or over MAX_ROBOT_MESSAGE."""
+    if len(payload) > MAX_ROBOT_MESSAGE:
+        raise WireError(f"robot message of {len(payload)} bytes exceeds {MAX_ROBOT_MESSAGE}")
     header, arrays = decode_frame(payload)
     if arrays:
         raise WireError(f"control messages carry no arrays, got {sorted(arrays)}")

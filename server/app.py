@@ -8,6 +8,8 @@ local workers (each delivers its job), dispatcher, other zenoh users, then the s
 
 from __future__ import annotations
 
+import logging
+import os
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import AsyncExitStack, asynccontextmanager
 
@@ -16,7 +18,8 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server import metrics
+from server import metrics, signing
+from server.auth import SecurityMiddleware
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, QueueSource
 from server.executor import InProcessExecutor
@@ -24,7 +27,10 @@ from server.manager import RunManager
 from server.robots import robot_service
 from server.routes import colony, controllers, dashboard, images, robots, runs, workers
 from server.settings import Settings
+from server.signing import Signer
 from worker.local import LocalWorkers, local_endpoint
+
+log = logging.getLogger(__name__)
 
 ZenohService = Callable[[FastAPI, zenoh.Session], Callable[[], None]]
 """Started on the server's zenoh session after the dispatcher; returns its close function,
@@ -57,12 +63,20 @@ def create_app(
         else None
     )
 
+    if endpoint is not None and settings.zenoh_user and settings.zenoh_password:
+        # local workers are spawned `colony worker` processes: they read these (security.md)
+        os.environ["COLONY_ZENOH_USER"] = settings.zenoh_user
+        os.environ["COLONY_ZENOH_PASSWORD"] = settings.zenoh_password
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         async with AsyncExitStack() as stack:
             engine = make_engine(settings.db_url)
             stack.callback(engine.dispose)
             upgrade(engine)
+            key_path = settings.server_key_path()
+            app.state.signer = Signer.from_file(key_path)
+            log.info("robot pushes signed with the key in %s", key_path or "memory")
             manager = RunManager(engine, settings)
             app.state.job_counts = metrics.count_jobs(manager.queue)
             manager.start()
@@ -109,4 +123,11 @@ def create_app(
     app.include_router(robots.router)
     app.include_router(images.router)
     app.include_router(dashboard.router)
+    app.include_router(signing.router)
+    app.add_middleware(
+        SecurityMiddleware,
+        token=settings.api_token,
+        read_open=settings.read_open,
+        max_body_bytes=settings.max_body_bytes,
+    )
     return app

@@ -28,6 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
+from schemas.security import ZenohRouterAuth
 from schemas.wire import (
     KEY_JOB_NEXT,
     KEY_JOB_RESULT,
@@ -89,6 +90,8 @@ class DispatchSettings:
     """Lease for a worker with no measured speed yet (its first job compiles the kernels)."""
     gone_keep_s: float = 600.0
     """How long a departed worker stays listed as gone."""
+    auth: ZenohRouterAuth = field(default_factory=ZenohRouterAuth)
+    """usrpwd dictionary, TLS certificate and message-size limit of the router (security.md)."""
 
     def __post_init__(self) -> None:
         if not self.listen and not self.connect:
@@ -113,6 +116,8 @@ class DispatchSettings:
         conf.insert_json5(
             "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
         )
+        for key, value in self.auth.entries():
+            conf.insert_json5(key, value)
         return conf
 
 

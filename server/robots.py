@@ -68,6 +68,7 @@ from server import crud
 from server.errors import NotFoundError, ServerError
 from server.models import Controller, Robot, Run, utcnow
 from server.robot_store import FieldStatsRow, RobotStateRow, StuckEventRow, TraceRow
+from server.signing import Signer
 
 log = logging.getLogger(__name__)
 
@@ -110,8 +111,11 @@ class RobotService:
         session: zenoh.Session,
         engine_or_sessionmaker: Engine | sessionmaker[Session],
         settings: RobotSettings | None = None,
+        signer: Signer | None = None,
     ) -> None:
         self.settings = settings or RobotSettings()
+        self.signer = signer
+        """Signs pushes, stops and replacements (docs/security.md); None sends them unsigned."""
         self._zenoh = session
         self.sessions = (
             engine_or_sessionmaker
@@ -238,8 +242,14 @@ class RobotService:
                 query.reply_err(f"malformed: {exc}".encode())
                 return
             doc, reason = self._replace(request)
+            text = doc.to_json() if doc else None
+            seq, signature = self._sign("replacement", request.robot, "replacement", text)
             reply = Replacement(
-                robot=request.robot, document=doc.to_json() if doc else None, reason=reason
+                robot=request.robot,
+                document=text,
+                reason=reason,
+                seq=seq,
+                signature=signature,
             )
             query.reply(KEY_REPLACE, encode_message(reply))
 
@@ -447,8 +457,17 @@ class RobotService:
                 doc = ranked_document(db, run_id, rank)
                 text, sha = doc.to_json(), doc.sha256
         push_id = uuid.uuid4().hex
-        message = ControllerPush(push_id=push_id, sha256=sha, document=text)
+        seq, signature = self._sign("push", robot_id, push_id, text)
+        message = ControllerPush(
+            push_id=push_id, sha256=sha, document=text, seq=seq, signature=signature
+        )
         return self._send(robot_id, push_id, encode_message(message), sha, timeout)
+
+    def _sign(self, kind: str, robot: str, push_id: str, document: str | None) -> tuple[int, str]:
+        """(seq, signature) of a command, or (0, "") without a signer."""
+        if self.signer is None:
+            return 0, ""
+        return self.signer.sign(kind=kind, robot=robot, push_id=push_id, document=document)
 
     def stop_robot(self, robot_id: str, timeout: float | None = None) -> PushOut:
         """Stop the robot's motors until the next push."""
@@ -456,7 +475,8 @@ class RobotService:
             if db.get(Robot, robot_id) is None:
                 raise NotFoundError(f"no robot with id {robot_id}")
         push_id = uuid.uuid4().hex
-        payload = encode_message(StopCommand(push_id=push_id))
+        seq, signature = self._sign("stop", robot_id, push_id, None)
+        payload = encode_message(StopCommand(push_id=push_id, seq=seq, signature=signature))
         return self._send(robot_id, push_id, payload, None, timeout)
 
     def _send(
@@ -708,7 +728,8 @@ def robot_service(
     """
 
     def install(app: FastAPI, session: zenoh.Session) -> Callable[[], None]:
-        service = RobotService(session, app.state.manager.sessions, settings).start()
+        signer = getattr(app.state, "signer", None)
+        service = RobotService(session, app.state.manager.sessions, settings, signer).start()
         app.state.robots = service
 
         def close() -> None:

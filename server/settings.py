@@ -3,10 +3,19 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
+from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from schemas.security import (
+    MAX_BODY_BYTES,
+    MAX_GENERATION_STEPS,
+    MAX_POPULATION_WEIGHTS,
+    MAX_ZENOH_MESSAGE,
+    ZenohRouterAuth,
+)
 from server.dispatch import DispatchSettings
 
 
@@ -16,8 +25,8 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="COLONY_", extra="ignore")
 
     db_url: str = Field("sqlite:///colony.db", description="any SQLAlchemy URL")
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=0, le=65535)
+    host: str = Field("127.0.0.1", description="HTTP bind address")
+    port: int = Field(8000, ge=0, le=65535, description="HTTP port")
     zenoh: bool = Field(True, description="serve jobs to workers over zenoh (docs/protocol.md)")
     zenoh_listen: list[str] = Field(
         ["tcp/0.0.0.0:7447"], description="endpoints the server's zenoh router listens on"
@@ -43,6 +52,71 @@ class Settings(BaseSettings):
     housekeeping_seconds: float = Field(
         1.0, gt=0.0, description="period of lease expiry and queued-run promotion"
     )
+    log_level: str = Field(
+        "INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$", description="DEBUG, INFO, WARNING or ERROR"
+    )
+    log_format: Literal["text", "json"] = Field(
+        "text", description="text, or json: one JSON object per line with run/job/robot ids"
+    )
+
+    # security (docs/security.md)
+    api_token: str | None = Field(
+        None, repr=False, description="bearer token for mutating requests (and reads if closed)"
+    )
+    read_open: bool = Field(True, description="GET endpoints without the token")
+    max_body_bytes: int = Field(MAX_BODY_BYTES, ge=1, description="larger bodies get 413")
+    max_population_weights: int = Field(
+        MAX_POPULATION_WEIGHTS, ge=1, description="population x weights of a run (memory)"
+    )
+    max_generation_steps: int = Field(
+        MAX_GENERATION_STEPS, ge=1, description="population x trials x steps (CPU per generation)"
+    )
+    server_key: Path | None = Field(
+        None, description="Ed25519 key signing robot pushes (default: beside the SQLite file)"
+    )
+    zenoh_users_file: Path | None = Field(
+        None, description="user:password lines; zenoh clients must present one of them"
+    )
+    zenoh_user: str | None = Field(
+        None, description="credentials for local workers and for --zenoh-connect routers"
+    )
+    zenoh_password: str | None = Field(None, repr=False, description="password of zenoh_user")
+    zenoh_tls_certificate: Path | None = Field(None, description="PEM for tls/ listen endpoints")
+    zenoh_tls_private_key: Path | None = Field(None, description="its private key (PEM)")
+    zenoh_tls_root_ca: Path | None = Field(None, description="CA for tls/ connect endpoints")
+    zenoh_max_message: int = Field(
+        MAX_ZENOH_MESSAGE, ge=1 << 16, description="largest zenoh message the router accepts"
+    )
+
+    @field_validator("api_token", "zenoh_user", "zenoh_password")
+    @classmethod
+    def _blank_is_unset(cls, value: str | None) -> str | None:
+        """An empty COLONY_API_TOKEN= means no token, never the empty token."""
+        return value if value and value.strip() else None
+
+    def server_key_path(self) -> Path | None:
+        """The signing key's file: the setting, else beside a SQLite file, else
+        ~/.evocolony/server-key.pem; None (a key in memory) for an in-memory database."""
+        if self.server_key is not None:
+            return self.server_key
+        if self.db_url.startswith("sqlite:"):
+            path = self.db_url.removeprefix("sqlite:").removeprefix("///")
+            if path in ("", "//", ":memory:") or path.startswith(":memory:"):
+                return None
+            return Path(path).parent / "server-key.pem"
+        return Path.home() / ".evocolony" / "server-key.pem"
+
+    def zenoh_router_auth(self) -> ZenohRouterAuth:
+        """ValueError when a certificate comes without its key, or a user without a password."""
+        return ZenohRouterAuth(
+            dictionary_file=self.zenoh_users_file,
+            certificate=self.zenoh_tls_certificate,
+            private_key=self.zenoh_tls_private_key,
+            root_ca=self.zenoh_tls_root_ca,
+            user=self.zenoh_user,
+            password=self.zenoh_password,
+            max_message_size=self.zenoh_max_message,
+        )
 
     def local_workers(self) -> int:
         """Worker processes to start beside the server: none without zenoh."""
@@ -65,4 +139,5 @@ class Settings(BaseSettings):
             connect=tuple(self.zenoh_connect),
             lease_min_s=self.lease_min_seconds,
             lease_unknown_s=self.lease_unknown_seconds,
+            auth=self.zenoh_router_auth(),
         )

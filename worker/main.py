@@ -25,6 +25,7 @@ import numpy as np
 import zenoh
 
 from schemas.run import RunConfig
+from schemas.security import ZenohClientAuth
 from schemas.wire import (
     KEY_JOB_NEXT,
     KEY_JOB_RESULT,
@@ -76,6 +77,8 @@ class WorkerSettings:
     backoff_initial_s: float = 0.1
     backoff_max_s: float = 5.0
     multicast_scouting: bool = False
+    auth: ZenohClientAuth = field(default_factory=ZenohClientAuth)
+    """zenoh user/password and TLS root CA (docs/security.md)."""
 
     def __post_init__(self) -> None:
         check_worker_name(self.name)
@@ -92,6 +95,8 @@ class WorkerSettings:
         conf.insert_json5(
             "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
         )
+        for key, value in self.auth.entries():
+            conf.insert_json5(key, value)
         return conf
 
 

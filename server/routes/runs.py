@@ -7,14 +7,18 @@ from datetime import UTC, datetime
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Body, HTTPException, Query, Response, status
+from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
 
 from schemas.api import GenerationOut, IndividualOut, IndividualsOut, RunOut, RunStatus
 from schemas.run import RunConfig
 from server import crud
+from server.auth import run_limit_error
 from server.deps import ManagerDep, SessionDep
 from server.errors import ServerError, TransitionError
 from server.models import Run
+
+RunId = Annotated[int, Path(ge=0, le=2**63 - 1, description="a run id (64-bit)")]
+"""Bounded so an id beyond the database's integers is a 422, not an overflow."""
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
@@ -52,7 +56,7 @@ def http_error(exc: ServerError) -> HTTPException:
     return HTTPException(status_code=code, detail=str(exc))
 
 
-def _run(session: SessionDep, run_id: int) -> Run:
+def _run(session: SessionDep, run_id: RunId) -> Run:
     run = crud.get_run(session, run_id=run_id)
     if run is None:
         raise HTTPException(status_code=404, detail=f"no run with id {run_id}")
@@ -66,7 +70,15 @@ def create_run(
     config: Annotated[RunConfig | None, Body()] = None,
 ) -> RunOut:
     """Start a run; every config field is optional and defaults to the paper's experiment."""
-    run_id = manager.create_run(config or RunConfig())
+    config = config or RunConfig()
+    refused = run_limit_error(
+        config,
+        max_population_weights=manager.settings.max_population_weights,
+        max_generation_steps=manager.settings.max_generation_steps,
+    )
+    if refused is not None:
+        raise HTTPException(422, refused)
+    run_id = manager.create_run(config)
     return run_out(_run(session, run_id))
 
 
@@ -75,7 +87,7 @@ def list_runs(
     session: SessionDep,
     status_: Annotated[list[RunStatus] | None, Query(alias="status")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=2**63 - 1)] = 0,
 ) -> list[RunOut]:
     """Newest first; `?status=running&status=paused` filters."""
     runs = crud.list_runs(session, statuses=status_, limit=limit, offset=offset)
@@ -83,12 +95,12 @@ def list_runs(
 
 
 @router.get("/{run_id}", response_model=RunOut)
-def get_run(session: SessionDep, run_id: int) -> RunOut:
+def get_run(session: SessionDep, run_id: RunId) -> RunOut:
     return run_out(_run(session, run_id))
 
 
 @router.get("/{run_id}/generations", response_model=list[GenerationOut])
-def list_generations(session: SessionDep, run_id: int) -> list[GenerationOut]:
+def list_generations(session: SessionDep, run_id: RunId) -> list[GenerationOut]:
     _run(session, run_id)
     return [
         GenerationOut(
@@ -101,8 +113,10 @@ def list_generations(session: SessionDep, run_id: int) -> list[GenerationOut]:
 @router.get("/{run_id}/individuals", response_model=IndividualsOut)
 def list_individuals(
     session: SessionDep,
-    run_id: int,
-    generation: Annotated[int | None, Query(ge=0, description="default: the latest")] = None,
+    run_id: RunId,
+    generation: Annotated[
+        int | None, Query(ge=0, le=2**31 - 1, description="default: the latest")
+    ] = None,
 ) -> IndividualsOut:
     """The individuals of a committed generation, fittest first."""
     run = _run(session, run_id)
@@ -138,7 +152,7 @@ def list_individuals(
     response_class=Response,
     responses={200: {"content": {"application/json": {}}, "description": "controller document"}},
 )
-def best(manager: ManagerDep, session: SessionDep, run_id: int) -> Response:
+def best(manager: ManagerDep, session: SessionDep, run_id: RunId) -> Response:
     """The controller document of the fittest individual so far (rank 0, latest generation)."""
     try:
         sha = manager.best(run_id)
@@ -150,7 +164,7 @@ def best(manager: ManagerDep, session: SessionDep, run_id: int) -> Response:
     return Response(content=document.document, media_type="application/json")
 
 
-def _steer(manager: ManagerDep, session: SessionDep, run_id: int, action: str) -> RunOut:
+def _steer(manager: ManagerDep, session: SessionDep, run_id: RunId, action: str) -> RunOut:
     try:
         getattr(manager, action)(run_id)
     except ServerError as exc:
@@ -160,18 +174,18 @@ def _steer(manager: ManagerDep, session: SessionDep, run_id: int, action: str) -
 
 
 @router.post("/{run_id}/pause", response_model=RunOut)
-def pause(manager: ManagerDep, session: SessionDep, run_id: int) -> RunOut:
+def pause(manager: ManagerDep, session: SessionDep, run_id: RunId) -> RunOut:
     """running or queued -> paused (jobs in hand still finish; none are handed out)."""
     return _steer(manager, session, run_id, "pause")
 
 
 @router.post("/{run_id}/resume", response_model=RunOut)
-def resume(manager: ManagerDep, session: SessionDep, run_id: int) -> RunOut:
+def resume(manager: ManagerDep, session: SessionDep, run_id: RunId) -> RunOut:
     """paused -> running (or queued if it never started)."""
     return _steer(manager, session, run_id, "resume")
 
 
 @router.post("/{run_id}/cancel", response_model=RunOut)
-def cancel(manager: ManagerDep, session: SessionDep, run_id: int) -> RunOut:
+def cancel(manager: ManagerDep, session: SessionDep, run_id: RunId) -> RunOut:
     """queued, running or paused -> cancelled; its pending jobs are dropped."""
     return _steer(manager, session, run_id, "cancel")

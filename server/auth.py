@@ -1,0 +1,207 @@
+"""REST access control and request-body limit, one ASGI middleware in front of every route.
+
+With a token configured (COLONY_API_TOKEN / `colony server --token`) every mutating request
+(POST, PUT, PATCH, DELETE) needs `Authorization: Bearer TOKEN`, compared in constant time;
+reads need it too when COLONY_READ_OPEN=false. Always open: /healthz, /metrics and the
+dashboard shell (/, /static/...), which holds no data and asks the user for the token. The
+EventSource API cannot set headers, so a GET may carry the token as `?access_token=`.
+A middleware rather than per-route dependencies so that a route added later is closed by
+default. Bodies over the limit get 413 before any route reads them (docs/security.md).
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import json
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+from urllib.parse import parse_qs
+
+from evorobotics.maze import maze_names
+from schemas.run import RunConfig
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+OPEN_PATHS = frozenset({"/healthz", "/metrics", "/", "/favicon.ico"})
+OPEN_PREFIXES = ("/static/",)
+
+
+def is_loopback(host: str) -> bool:
+    """True for addresses only this machine reaches (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def check_bind(host: str, token: str | None) -> None:
+    """ValueError (one line, with the fix) for a non-loopback bind without a token."""
+    if token is None and not is_loopback(host):
+        raise ValueError(
+            f"refusing to listen on {host} without an API token: set COLONY_API_TOKEN or "
+            "pass --token (or bind to 127.0.0.1)"
+        )
+
+
+def token_matches(expected: str, given: str | None) -> bool:
+    """Constant-time comparison (hmac.compare_digest) of the configured and the given token."""
+    if given is None:
+        return False
+    return hmac.compare_digest(expected.encode(), given.encode())
+
+
+def _bearer(scope: Scope) -> str | None:
+    for name, value in scope.get("headers", ()):
+        if name == b"authorization":
+            text: str = value.decode("latin-1")
+            scheme, _, credentials = text.partition(" ")
+            if scheme.lower() == "bearer" and credentials.strip():
+                return credentials.strip()
+            return None
+    return None
+
+
+def _query_token(scope: Scope) -> str | None:
+    query: str = scope.get("query_string", b"").decode("latin-1")
+    values: list[str] = parse_qs(query).get("access_token", [])
+    return values[0] if values else None
+
+
+async def _reply(
+    send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] | None = None
+) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                *(headers or []),
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})
+
+
+class SecurityMiddleware:
+    """Bearer-token check and body-size limit (pure ASGI, so event streams pass untouched)."""
+
+    def __init__(
+        self, app: ASGIApp, *, token: str | None, read_open: bool, max_body_bytes: int
+    ) -> None:
+        if token is not None and not token.strip():
+            raise ValueError("the API token must not be empty")
+        if max_body_bytes < 1:
+            raise ValueError(f"max_body_bytes must be >= 1, got {max_body_bytes}")
+        self.app = app
+        self.token = token
+        self.read_open = read_open
+        self.max_body_bytes = max_body_bytes
+
+    def _needs_token(self, method: str, path: str) -> bool:
+        if self.token is None or path in OPEN_PATHS or path.startswith(OPEN_PREFIXES):
+            return False
+        return method in MUTATING or not self.read_open
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        method = scope["method"]
+        if self.token is not None and self._needs_token(method, scope["path"]):
+            given = _bearer(scope)
+            if given is None and method == "GET":
+                given = _query_token(scope)
+            if not token_matches(self.token, given):
+                reason = "missing" if given is None else "invalid"
+                await _reply(
+                    send,
+                    401,
+                    f"{reason} API token: send 'Authorization: Bearer TOKEN' "
+                    "(colony --token / COLONY_API_TOKEN)",
+                    [(b"www-authenticate", b'Bearer realm="colony"')],
+                )
+                return
+        for name, value in scope.get("headers", ()):
+            if name == b"content-length":
+                try:
+                    declared = int(value)
+                except ValueError:
+                    await _reply(send, 400, "invalid Content-Length")
+                    return
+                if declared > self.max_body_bytes:
+                    await self._too_large(send)
+                    return
+        await self._call_limited(scope, receive, send)
+
+    async def _too_large(self, send: Send) -> None:
+        await _reply(
+            send, 413, f"request body larger than the limit of {self.max_body_bytes} bytes"
+        )
+
+    async def _call_limited(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Read the whole body first (at most the limit), then hand it to the app in one piece.
+
+        Chunked bodies have no Content-Length, so they are counted as they arrive; nothing the
+        route does runs before the size is known.
+        """
+        chunks: list[bytes] = []
+        received = 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                return  # the client went away before the body was complete
+            chunk = message.get("body", b"")
+            received += len(chunk)
+            if received > self.max_body_bytes:
+                await self._too_large(send)
+                return
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+
+def run_limit_error(
+    config: RunConfig, *, max_population_weights: int, max_generation_steps: int
+) -> str | None:
+    """Why the server refuses a run from a client (memory, CPU, a server file as maze), or None.
+
+    RunConfig bounds each field; these bound the products, and keep `maze` to a shipped name,
+    `gen:SIZE:SEED` or maze text, since a bare path would read a file on the server.
+    """
+    weights = config.network_spec.weight_count
+    if config.population * weights > max_population_weights:
+        return (
+            f"population x weights = {config.population} x {weights} exceeds the server's "
+            f"limit of {max_population_weights}"
+        )
+    steps = config.population * config.trials * config.steps
+    if steps > max_generation_steps:
+        return (
+            f"population x trials x steps = {steps} exceeds the server's limit of "
+            f"{max_generation_steps} robot steps per generation"
+        )
+    maze = config.maze
+    if "\n" not in maze and not maze.startswith("gen:") and maze not in maze_names():
+        return f"maze {maze!r} is not a shipped maze, gen:SIZE:SEED or maze text"
+    return None

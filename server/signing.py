@@ -1,0 +1,101 @@
+"""The server's Ed25519 key: created on first start (file mode 600), signs robot commands.
+
+Robot agents hold the public key (robot_agent/verify.py) and refuse a push, stop or
+replacement whose signature over schemas.security.signed_bytes does not verify, or whose
+sequence number is not above the last one they accepted. Sequence numbers are the server's
+Unix time in nanoseconds, forced strictly increasing within a process, so they also grow
+across server restarts without any stored counter (docs/security.md).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from fastapi import APIRouter, HTTPException, Request
+from fastapi.responses import PlainTextResponse
+
+from schemas.security import signed_bytes
+
+
+def public_pem(key: Ed25519PrivateKey) -> str:
+    """The public half as PEM text (what GET /api/server-key serves and agents pin)."""
+    return (
+        key.public_key()
+        .public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
+        .decode()
+    )
+
+
+def load_or_create_key(path: Path) -> Ed25519PrivateKey:
+    """The private key at `path` (PEM, PKCS8), generated with mode 600 if the file is absent.
+
+    ValueError when the file exists but is not an Ed25519 private key, or is readable by
+    group or others (an exposed key must be replaced, not used).
+    """
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        key = Ed25519PrivateKey.generate()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pem = key.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption(),
+        )
+        # O_EXCL: two servers starting at once never overwrite each other's key
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as f:
+            f.write(pem)
+        return key
+    if path.stat().st_mode & 0o077:
+        raise ValueError(f"server key {path} is readable by others: chmod 600 it or delete it")
+    loaded = serialization.load_pem_private_key(data, password=None)
+    if not isinstance(loaded, Ed25519PrivateKey):
+        raise ValueError(f"server key {path} is not an Ed25519 private key")
+    return loaded
+
+
+class Signer:
+    """Signs commands to robots with one key; thread-safe."""
+
+    def __init__(self, key: Ed25519PrivateKey, *, clock: Callable[[], int] = time.time_ns) -> None:
+        self._key = key
+        self._clock = clock
+        self._last = 0
+        self._lock = threading.Lock()
+        self.public_pem = public_pem(key)
+
+    @classmethod
+    def from_file(cls, path: Path | None) -> Signer:
+        """The key in `path` (created on first use); a fresh in-memory key for None."""
+        return cls(load_or_create_key(path) if path else Ed25519PrivateKey.generate())
+
+    def next_seq(self) -> int:
+        """Strictly increasing: the clock, or one more than the last if the clock is behind."""
+        with self._lock:
+            self._last = max(self._clock(), self._last + 1)
+            return self._last
+
+    def sign(self, *, kind: str, robot: str, push_id: str, document: str | None) -> tuple[int, str]:
+        """(seq, hex signature) of one command to one robot."""
+        seq = self.next_seq()
+        message = signed_bytes(kind=kind, robot=robot, push_id=push_id, seq=seq, document=document)
+        return seq, self._key.sign(message).hex()
+
+
+router = APIRouter(tags=["robots"])
+
+
+@router.get("/api/server-key", response_class=PlainTextResponse)
+def server_key(request: Request) -> PlainTextResponse:
+    """The server's Ed25519 public key (PEM) that agents pin to verify pushes."""
+    signer: Signer | None = getattr(request.app.state, "signer", None)
+    if signer is None:
+        raise HTTPException(503, "the server has no signing key yet")
+    return PlainTextResponse(signer.public_pem, media_type="application/x-pem-file")
