@@ -27,8 +27,10 @@ from typing import IO, Annotated, Any
 import httpx
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+from rich.progress import BarColumn, Progress, TimeElapsedColumn
 from rich.table import Table
+
+from colony.server_cli import follow_run
 
 STOP_TIMEOUT_S = 30.0
 START_TIMEOUT_S = 120.0
@@ -134,31 +136,6 @@ def _healthy(client: httpx.Client) -> bool:
         return client.get("/healthz").status_code == 200
     except httpx.HTTPError:
         return False
-
-
-def follow_run(
-    client: httpx.Client, run_id: int, console: Console, alive: Callable[[], None]
-) -> Any:
-    """A progress bar per committed generation with the best fitness, until the run ends."""
-    tick = threading.Event()
-    with Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-    ) as bar:
-        run = _get(client, f"/api/runs/{run_id}")
-        task = bar.add_task(f"run {run_id}", total=run["generations"])
-        while True:
-            best = run["best_fitness"]
-            text = f"run {run_id} best {best:.3f}" if best is not None else f"run {run_id}"
-            bar.update(task, completed=run["generation"], description=text)
-            if run["status"] in ("completed", "failed", "cancelled"):
-                return run
-            alive()
-            tick.wait(POLL_S)
-            run = _get(client, f"/api/runs/{run_id}")
 
 
 def write_plots(client: httpx.Client, run: dict[str, Any], out: Path) -> list[Path]:
@@ -348,6 +325,8 @@ def _demo(
                     robot,
                     "--connect",
                     endpoint,
+                    "--server",
+                    url,
                     "--seed",
                     str(run["seed"]),
                     "--index",

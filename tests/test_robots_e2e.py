@@ -53,9 +53,10 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str,
         thread.join(timeout=30)
 
 
-def agent_process(robot: str, endpoint: str, state_dir: Path) -> subprocess.Popen[str]:
+def agent_process(robot: str, endpoint: str, state_dir: Path, url: str) -> subprocess.Popen[str]:
+    """A real agent; it pins the server's signing key from `url` on first start."""
     colony = str(Path(sys.executable).with_name("colony"))
-    args = ["--robot-id", robot, "--emulate", "--maze", "paper", "--seed", "1"]
+    args = ["--robot-id", robot, "--emulate", "--maze", "paper", "--seed", "1", "--server", url]
     args += ["--connect", endpoint, "--state-dir", str(state_dir), "--log-level", "WARNING"]
     return subprocess.Popen(
         [colony, "agent", *args],
@@ -72,7 +73,7 @@ def robot(client: httpx.Client, robot_id: str) -> dict[str, Any] | None:
 
 def test_emulated_agent_process_end_to_end(server: tuple[str, str, int], tmp_path: Path) -> None:
     url, endpoint, run_id = server
-    proc = agent_process("e2e", endpoint, tmp_path)
+    proc = agent_process("e2e", endpoint, tmp_path, url)
     try:
         with httpx.Client(base_url=url, timeout=30) as client:
             assert eventually(lambda: (robot(client, "e2e") or {}).get("online") is True)
@@ -97,7 +98,9 @@ def test_emulated_agent_process_end_to_end(server: tuple[str, str, int], tmp_pat
             assert "samples delivered" in out
             assert eventually(lambda: (robot(client, "e2e") or {}).get("online") is False, 10)
 
-            proc = agent_process("e2e", endpoint, tmp_path)  # restarts with the saved controller
+            proc = agent_process(
+                "e2e", endpoint, tmp_path, url
+            )  # restarts with the saved controller
             assert eventually(lambda: (robot(client, "e2e") or {}).get("boot") == 1)
             detail = robot(client, "e2e")
             assert detail is not None and detail["online"]
