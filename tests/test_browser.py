@@ -151,3 +151,29 @@ def test_push_best_controller_to_a_robot_with_a_click(
                     .textContent) > 0"""
             )
             page.screenshot(path=str(shots / "dashboard-colony.png"), full_page=True)
+
+
+def test_with_a_token_the_page_steers_only_once_the_token_is_entered(
+    tmp_path: Path, page: Any
+) -> None:
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        executors=1,
+        zenoh=False,
+        api_token="s3cret-token",
+        read_open=False,
+    )
+    with serve(tmp_path, create_app(settings)) as served:
+        headers = {"Authorization": "Bearer s3cret-token"}
+        with httpx.Client(base_url=served.url, timeout=30, headers=headers) as client:
+            run_id = client.post("/api/runs", json=LONG).json()["id"]
+            page.goto(f"{served.url}/?run={run_id}")
+            assert page.locator(f'#runs-table tr[data-run="{run_id}"]').count() == 0  # closed
+            page.fill("[data-testid=token]", "s3cret-token")
+            page.dispatch_event("[data-testid=token]", "change")
+            page.wait_for_selector(f'#runs-table tr[data-run="{run_id}"]')  # stream with token
+            page.wait_for_selector("[data-testid=run-status]:text-is('running')")
+            page.click("[data-testid=pause]")
+            page.wait_for_selector("[data-testid=run-status]:text-is('paused')")
+            assert client.get(f"/api/runs/{run_id}").json()["status"] == "paused"
+            client.post(f"/api/runs/{run_id}/cancel")

@@ -25,14 +25,25 @@ function el(tag, attrs = {}, ...children) {
   return node;
 }
 
+// The server's bearer token (docs/security.md), kept in this browser only.
+const TOKEN_KEY = "evocolony.token";
+const token = () => localStorage.getItem(TOKEN_KEY) || "";
+// EventSource and <img> cannot send headers: they pass the token as ?access_token=.
+function withToken(path) {
+  if (!token()) return path;
+  return `${path}${path.includes("?") ? "&" : "?"}access_token=${encodeURIComponent(token())}`;
+}
+
 async function api(method, path, body) {
   const init = { method, headers: {} };
+  if (token()) init.headers.Authorization = `Bearer ${token()}`;
   if (body !== undefined) {
     init.headers["Content-Type"] = "application/json";
     init.body = JSON.stringify(body);
   }
   const response = await fetch(path, init);
   const data = await response.json().catch(() => ({}));
+  if (response.status === 401) $("#token").classList.add("needed");
   if (!response.ok) throw new Error(data.detail || `${response.status} ${response.statusText}`);
   return data;
 }
@@ -66,7 +77,7 @@ function showTab() {
 function connect() {
   if (state.source) state.source.close();
   const query = state.selected === null ? "" : `?run=${state.selected}`;
-  const source = new EventSource(`/api/events${query}`);
+  const source = new EventSource(withToken(`/api/events${query}`));
   state.source = source;
   const link = $("#link");
   source.onopen = () => {
@@ -192,7 +203,7 @@ function refreshFigures(run) {
     next.onerror = () => {
       img.dataset.loading = "";
     };
-    next.src = `/api/runs/${run.id}/best/${figure}.png?g=${run.generation}`;
+    next.src = withToken(`/api/runs/${run.id}/best/${figure}.png?g=${run.generation}`);
   }
 }
 
@@ -415,6 +426,13 @@ function main() {
   const wanted = Number(new URLSearchParams(location.search).get("run"));
   if (Number.isInteger(wanted) && wanted > 0) state.selected = wanted;
   renderRunDetail();
+  const field = $("#token");
+  field.value = token();
+  field.addEventListener("change", () => {
+    localStorage.setItem(TOKEN_KEY, field.value.trim());
+    field.classList.remove("needed");
+    connect();
+  });
   connect();
 }
 
