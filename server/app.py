@@ -78,7 +78,6 @@ def create_app(
             app.state.signer = Signer.from_file(key_path)
             log.info("robot pushes signed with the key in %s", key_path or "memory")
             manager = RunManager(engine, settings)
-            app.state.job_counts = metrics.count_jobs(manager.queue)
             manager.start()
             stack.callback(manager.stop)
             app.state.manager = manager

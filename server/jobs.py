@@ -34,6 +34,9 @@ from schemas.run import RunConfig
 
 log = logging.getLogger(__name__)
 
+TOTALS = ("leased", "done", "requeued", "duplicates_dropped")
+"""Keys of `JobQueue.totals()`."""
+
 
 @dataclass(frozen=True, order=True)
 class JobKey:
@@ -176,6 +179,8 @@ class JobQueue:
         self._write_failures: dict[int, str] = {}
         """run id -> why its generation could not be written: the run is stopped (not leased)."""
         self._listeners: list[Callable[[], None]] = []
+        self._totals = dict.fromkeys(TOTALS, 0)
+        """Running totals since construction (see `totals`)."""
         self.work_available = threading.Event()
         """Set whenever jobs may have become leasable; executors wait on it."""
 
@@ -267,6 +272,7 @@ class JobQueue:
             slot.attempts += 1
             self._sequence += 1
             self._served[chosen.run_id] = self._sequence
+            self._totals["leased"] += 1
             return Job(
                 key=JobKey(chosen.run_id, chosen.generation, index),
                 config=chosen.config,
@@ -298,6 +304,7 @@ class JobQueue:
         with self._lock:
             found = self._slot(key)
             if found is None or found[1].status == "done":
+                self._totals["duplicates_dropped"] += 1
                 return False
             jobs, slot = found
             k, trials = slot.stop - slot.start, jobs.config.trials
@@ -310,6 +317,7 @@ class JobQueue:
                 )
             jobs.fitness[slot.start : slot.stop] = fitness
             jobs.components[slot.start : slot.stop] = components
+            self._totals["done"] += 1
             if jobs.remaining == 1:
                 self._advance(jobs)
                 if not defer:
@@ -423,6 +431,7 @@ class JobQueue:
                 self.forget(key.run_id)
                 return True
             self._make_pending(jobs, key.index)
+            self._totals["requeued"] += 1
         self._announce()
         return True
 
@@ -433,6 +442,7 @@ class JobQueue:
             if found is None or found[1].status != "leased":
                 return False
             self._make_pending(found[0], key.index)
+            self._totals["requeued"] += 1
         self._announce()
         return True
 
@@ -456,6 +466,7 @@ class JobQueue:
                     ):
                         self._make_pending(jobs, index)
                         count += 1
+            self._totals["requeued"] += count
         if count:
             self._announce()
         return count
@@ -463,6 +474,14 @@ class JobQueue:
     def release_all(self) -> int:
         """Put every lease back (e.g. when evaluators are replaced); the number returned."""
         return self.expire(float("inf"))
+
+    def totals(self) -> dict[str, int]:
+        """Running totals since the queue was built: jobs `leased`, results accepted (`done`),
+        leases returned to pending (`requeued`: expired, released, or retried after a failed
+        evaluation) and results dropped because their job was already done or its generation
+        or run is over (`duplicates_dropped`)."""
+        with self._lock:
+            return dict(self._totals)
 
     def counts(self) -> dict[str, int]:
         """Jobs of the generations in flight by status: pending, leased, done."""

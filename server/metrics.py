@@ -3,16 +3,13 @@
 One CollectorRegistry per app (tests build many apps in one process). Most figures are read
 from state the server already keeps, so they cannot drift from the REST API: runs, generations
 and evaluations from the store, workers from the dispatcher, robots and trace samples from the
-robot service. Job leases, completions and requeues have no running total anywhere, so
-`count_jobs` wraps the queue instance's public methods to count them (docs/operations.md).
+robot service, job totals from `JobQueue.totals()` (docs/operations.md).
 """
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Iterator
-from typing import Any
 
 from fastapi import FastAPI, Response
 from prometheus_client import CollectorRegistry, Histogram, generate_latest
@@ -21,68 +18,12 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.jobs import JobQueue
 from server.models import Run
 from server.robot_store import RobotStateRow
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 RUN_STATUSES = ("queued", "running", "paused", "completed", "failed", "cancelled")
-
-
-class JobCounts:
-    """Running totals of job leases, accepted results and leases returned to pending."""
-
-    def __init__(self) -> None:
-        self.leased = 0
-        self.done = 0
-        self.requeued = 0
-
-
-def count_jobs(queue: JobQueue) -> JobCounts:
-    """Count `queue`'s leases, completions and requeues from now on (wrapping its methods).
-
-    `lease` returning a job, `complete` accepting a result, `release` and `expire` returning
-    leases. The GIL makes each `+=` on an int safe enough for a monitoring figure.
-    """
-    counts = JobCounts()
-    lease, complete, release, expire = queue.lease, queue.complete, queue.release, queue.expire
-
-    @functools.wraps(lease)
-    def counted_lease(*args: Any, **kwargs: Any) -> Any:
-        job = lease(*args, **kwargs)
-        if job is not None:
-            counts.leased += 1
-        return job
-
-    @functools.wraps(complete)
-    def counted_complete(*args: Any, **kwargs: Any) -> bool:
-        accepted = complete(*args, **kwargs)
-        if accepted:
-            counts.done += 1
-        return accepted
-
-    @functools.wraps(release)
-    def counted_release(*args: Any, **kwargs: Any) -> bool:
-        returned = release(*args, **kwargs)
-        if returned:
-            counts.requeued += 1
-        return returned
-
-    @functools.wraps(expire)
-    def counted_expire(*args: Any, **kwargs: Any) -> int:
-        returned = expire(*args, **kwargs)
-        counts.requeued += returned
-        return returned
-
-    for name, wrapper in (
-        ("lease", counted_lease),
-        ("complete", counted_complete),
-        ("release", counted_release),
-        ("expire", counted_expire),
-    ):
-        setattr(queue, name, wrapper)
-    return counts
 
 
 class ColonyCollector(Collector):
@@ -130,15 +71,17 @@ class ColonyCollector(Collector):
         for status, count in manager.queue.counts().items():
             pending.add_metric([status], count)
         yield pending
-        counts: JobCounts | None = getattr(state, "job_counts", None)
-        if counts is not None:
-            yield CounterMetricFamily("colony_jobs_leased", "Jobs leased", value=counts.leased)
-            yield CounterMetricFamily("colony_jobs_done", "Job results accepted", value=counts.done)
-            yield CounterMetricFamily(
-                "colony_jobs_requeued",
-                "Leases returned to pending (expired, worker gone, late)",
-                value=counts.requeued,
-            )
+        totals = manager.queue.totals()
+        for name, meaning in (
+            ("leased", "Jobs leased"),
+            ("done", "Job results accepted"),
+            ("requeued", "Leases returned to pending (expired, worker gone, evaluation failed)"),
+            (
+                "duplicates_dropped",
+                "Results dropped: job already done, or its run or generation over",
+            ),
+        ):
+            yield CounterMetricFamily(f"colony_jobs_{name}", meaning, value=totals[name])
         dispatcher = getattr(state, "dispatcher", None)
         workers = dispatcher.workers() if dispatcher is not None else []
         alive = GaugeMetricFamily("colony_workers", "Simulation workers by state", labels=["state"])

@@ -10,11 +10,16 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
+import numpy as np
 import uvicorn
 from fastapi import FastAPI
 from prometheus_client.parser import text_string_to_metric_families
 
+from schemas.run import RunConfig
 from server.app import create_app
+from server.db import make_engine, upgrade
+from server.jobs import JobResult
+from server.manager import RunManager
 from server.settings import Settings
 
 SMALL = {"population": 8, "generations": 3, "steps": 10, "job_size": 4}
@@ -74,6 +79,7 @@ def test_metrics_names_and_counters_move_after_a_run(tmp_path: Path) -> None:
             "colony_jobs_leased_total",
             "colony_jobs_done_total",
             "colony_jobs_requeued_total",
+            "colony_jobs_duplicates_dropped_total",
             "colony_workers",
             "colony_robots_online",
             "colony_stuck_events_total",
@@ -91,6 +97,7 @@ def test_metrics_names_and_counters_move_after_a_run(tmp_path: Path) -> None:
     jobs = SMALL["generations"] * SMALL["population"] // SMALL["job_size"]
     assert after[("colony_jobs_done_total", ())] == jobs
     assert after[("colony_jobs_leased_total", ())] >= jobs
+    assert after[("colony_jobs_duplicates_dropped_total", ())] == 0
     assert after[("colony_runs", (("status", "completed"),))] == 1
     # latency by route template, never by raw path
     routes = {dict(labels).get("route") for name, labels in after if name.endswith("_count")}
@@ -117,3 +124,25 @@ def test_each_app_has_its_own_registry(tmp_path: Path) -> None:
         )
         assert scrape(a)[key] == 2
         assert scrape(b)[key] == 1
+
+
+def test_job_queue_totals_count_leases_results_requeues_and_duplicates(tmp_path: Path) -> None:
+    """The queue keeps its own running totals; /metrics reads them at scrape time."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'q.db'}")
+    upgrade(engine)
+    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
+    config = RunConfig(population=8, generations=2, steps=10, trials=1, job_size=4)
+    try:
+        manager.create_run(config)
+        queue = manager.queue
+        assert queue.totals() == {"leased": 0, "done": 0, "requeued": 0, "duplicates_dropped": 0}
+        first, second = queue.lease("a", 0.0), queue.lease("b", 0.0)
+        assert first is not None and second is not None
+        assert queue.release(first.key) is True
+        assert queue.expire(100.0) == 1  # second's lease (deadline 10 s) has passed
+        result = JobResult(np.zeros(4), np.zeros((4, 1, 4)))
+        assert queue.complete(second.key, result) is True
+        assert queue.complete(second.key, result) is False  # duplicate
+        assert queue.totals() == {"leased": 2, "done": 1, "requeued": 2, "duplicates_dropped": 1}
+    finally:
+        engine.dispose()
