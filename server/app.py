@@ -12,12 +12,14 @@ import logging
 import os
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import AsyncExitStack, asynccontextmanager
+from typing import Any
 
 import zenoh
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
+from schemas.api import ErrorOut
 from server import metrics, signing
 from server.auth import SecurityMiddleware
 from server.db import make_engine, upgrade
@@ -32,6 +34,8 @@ from worker.local import LocalWorkers, local_endpoint
 
 log = logging.getLogger(__name__)
 
+REF_TEMPLATE = "#/components/schemas/{model}"
+
 ZenohService = Callable[[FastAPI, zenoh.Session], Callable[[], None]]
 """Started on the server's zenoh session after the dispatcher; returns its close function,
 called after the dispatcher closes and before the session does."""
@@ -45,6 +49,24 @@ def validation_message(exc: RequestValidationError) -> str:
         field = ".".join(loc) or "body"
         parts.append(f"{field}: {error.get('msg', 'invalid')}")
     return "; ".join(parts)
+
+
+def error_model_for_validation(schema: dict[str, Any]) -> dict[str, Any]:
+    """Make the OpenAPI schema's 422 responses promise what `_invalid` sends: `ErrorOut`
+    (`{"detail": "population: Input should be >= 4"}`), not FastAPI's list of errors."""
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    components.pop("HTTPValidationError", None)
+    components.pop("ValidationError", None)
+    components["ErrorOut"] = ErrorOut.model_json_schema(ref_template=REF_TEMPLATE)
+    for operations in schema.get("paths", {}).values():
+        for operation in operations.values():
+            response = operation.get("responses", {}).get("422")
+            if response is not None:
+                response["description"] = "Invalid request: one `field: problem` per error"
+                response["content"] = {
+                    "application/json": {"schema": {"$ref": REF_TEMPLATE.format(model="ErrorOut")}}
+                }
+    return schema
 
 
 def create_app(
@@ -114,6 +136,12 @@ def create_app(
     async def _invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
         return JSONResponse(status_code=422, content={"detail": validation_message(exc)})
 
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = error_model_for_validation(FastAPI.openapi(app))
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     metrics.install(app)
     app.include_router(runs.router)
     app.include_router(controllers.router)

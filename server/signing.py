@@ -20,6 +20,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import PlainTextResponse
 
+from schemas.api import ErrorOut
 from schemas.security import signed_bytes
 
 
@@ -89,13 +90,29 @@ class Signer:
         return seq, self._key.sign(message).hex()
 
 
+class PemResponse(PlainTextResponse):
+    """PEM text; as the response class it also declares the content type in OpenAPI."""
+
+    media_type = "application/x-pem-file"
+
+
 router = APIRouter(tags=["robots"])
 
 
-@router.get("/api/server-key", response_class=PlainTextResponse)
-def server_key(request: Request) -> PlainTextResponse:
+@router.get(
+    "/api/server-key",
+    response_class=PemResponse,
+    responses={
+        200: {"description": "the public key, PEM (SubjectPublicKeyInfo)"},
+        503: {
+            "description": "the server has no signing key yet",
+            "content": {"application/json": {"schema": ErrorOut.model_json_schema()}},
+        },
+    },
+)
+def server_key(request: Request) -> PemResponse:
     """The server's Ed25519 public key (PEM) that agents pin to verify pushes."""
     signer: Signer | None = getattr(request.app.state, "signer", None)
     if signer is None:
         raise HTTPException(503, "the server has no signing key yet")
-    return PlainTextResponse(signer.public_pem, media_type="application/x-pem-file")
+    return PemResponse(signer.public_pem)

@@ -16,6 +16,7 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
     response_schema_conformance,
 )
 
@@ -62,9 +63,7 @@ def test_no_server_error_and_responses_match_the_schema(api_schema: Any) -> None
             response = case.call()
             if response.status_code == 503 and case.path.startswith("/api/robots"):
                 return  # documented: no robot service without zenoh
-            checks: list[Any] = [not_a_server_error]
-            if response.status_code != 422:  # see the module docstring
-                checks.append(response_schema_conformance)
+            checks = [not_a_server_error, response_schema_conformance, content_type_conformance]
             case.validate_response(response, checks=checks)
 
         try:
