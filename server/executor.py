@@ -8,13 +8,11 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 from evorobotics.evaluate import evaluate
 from server.jobs import JobQueue, JobResult
 from server.manager import RunManager
-
-IDLE_WAIT_S = 0.5
-"""Longest an idle executor sleeps before polling again (it is woken when jobs arrive)."""
 
 
 class InProcessExecutor:
@@ -27,10 +25,20 @@ class InProcessExecutor:
         self._queue: JobQueue = manager.queue
         self._names = [f"{name}-{i}" for i in range(threads)]
         self._stop = threading.Event()
+        self._wakes = {n: threading.Event() for n in self._names}
+        """One per thread, so one thread clearing its event never hides a wake-up from another."""
+        self._remove_listener: Callable[[], None] | None = None
         self._threads: list[threading.Thread] = []
 
+    def _wake_all(self) -> None:
+        for wake in self._wakes.values():
+            wake.set()
+
     def start(self) -> None:
+        """Start the threads; an idle thread sleeps until the queue announces leasable jobs."""
         self._stop.clear()
+        if self._remove_listener is None:
+            self._remove_listener = self._queue.add_listener(self._wake_all)
         self._threads = [
             threading.Thread(target=self._loop, args=(n,), name=f"colony-{n}", daemon=True)
             for n in self._names
@@ -41,18 +49,21 @@ class InProcessExecutor:
     def stop(self, timeout: float = 30.0) -> None:
         """Finish the job in hand, then stop (its result is stored)."""
         self._stop.set()
-        self._queue.work_available.set()
+        self._wake_all()
         for thread in self._threads:
             thread.join(timeout=timeout)
         self._threads = []
+        if self._remove_listener is not None:
+            self._remove_listener()
+            self._remove_listener = None
 
     def _loop(self, worker: str) -> None:
-        queue = self._queue
+        queue, wake = self._queue, self._wakes[worker]
         while not self._stop.is_set():
-            queue.work_available.clear()
+            wake.clear()  # before leasing: an announcement from now on is not lost
             job = queue.lease(worker, time.time())
             if job is None:
-                queue.work_available.wait(IDLE_WAIT_S)
+                wake.wait()
                 continue
             try:
                 evaluation = evaluate(job.config, job.key.generation, job.genomes)

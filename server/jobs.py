@@ -181,12 +181,10 @@ class JobQueue:
         self._listeners: list[Callable[[], None]] = []
         self._totals = dict.fromkeys(TOTALS, 0)
         """Running totals since construction (see `totals`)."""
-        self.work_available = threading.Event()
-        """Set whenever jobs may have become leasable; executors wait on it."""
 
     def add_listener(self, listener: Callable[[], None]) -> Callable[[], None]:
-        """Call `listener` (it must not block) whenever jobs may have become leasable, like
-        `work_available`; returns the function that removes it."""
+        """Call `listener` (it must not block) whenever jobs may have become leasable (executors
+        and the zenoh dispatcher wake on it); returns the function that removes it."""
         with self._lock:
             self._listeners.append(listener)
 
@@ -198,9 +196,8 @@ class JobQueue:
         return remove
 
     def _announce(self) -> None:
-        """Jobs may be leasable: wake executors and listeners (call without holding the lock
-        where possible, so a listener never waits on it)."""
-        self.work_available.set()
+        """Jobs may be leasable: wake the listeners (call without holding the lock where
+        possible, so a listener never waits on it)."""
         with self._lock:
             listeners = list(self._listeners)
         for listener in listeners:
