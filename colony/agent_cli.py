@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import logging
 import signal
 import threading
 from pathlib import Path
@@ -66,7 +65,16 @@ def agent_command(
         Path | None,
         typer.Option(envvar="COLONY_ZENOH_ROOT_CA", help="CA (PEM) of the router's TLS cert"),
     ] = None,
-    log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR")] = "INFO",
+    log_level: Annotated[
+        str, typer.Option(envvar="COLONY_LOG_LEVEL", help="DEBUG, INFO, WARNING or ERROR")
+    ] = "INFO",
+    log_format: Annotated[
+        str,
+        typer.Option(
+            envvar="COLONY_LOG_FORMAT",
+            help="text, or json: one JSON object per line with the robot id",
+        ),
+    ] = "text",
 ) -> None:
     """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck."""
     from robot_agent.agent import Agent, AgentSettings
@@ -75,8 +83,12 @@ def agent_command(
     from robot_agent.errors import AgentError
     from robot_agent.sim_body import SimBody
     from schemas.security import ZenohClientAuth
+    from server.logs import as_format, configure
 
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(message)s")
+    try:
+        configure(log_level, as_format(log_format), ids={"robot": robot_id})
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     if (serial is None) == (not emulate):
         raise typer.BadParameter("give exactly one of --serial PORT or --emulate")
     try:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import threading
 from pathlib import Path
 from typing import Annotated
@@ -34,7 +33,16 @@ def worker_command(
         Path | None,
         typer.Option(envvar="COLONY_ZENOH_ROOT_CA", help="CA (PEM) of the router's TLS cert"),
     ] = None,
-    log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR")] = "INFO",
+    log_level: Annotated[
+        str, typer.Option(envvar="COLONY_LOG_LEVEL", help="DEBUG, INFO, WARNING or ERROR")
+    ] = "INFO",
+    log_format: Annotated[
+        str,
+        typer.Option(
+            envvar="COLONY_LOG_FORMAT",
+            help="text, or json: one JSON object per line with the worker id",
+        ),
+    ] = "text",
     exit_with_parent: Annotated[
         bool,
         typer.Option(
@@ -45,6 +53,7 @@ def worker_command(
 ) -> None:
     """Pull evaluation jobs over zenoh and evaluate them; Ctrl-C finishes the current job."""
     from schemas.security import ZenohClientAuth
+    from server.logs import as_format, configure
     from worker.main import (
         WorkerSettings,
         default_name,
@@ -53,10 +62,10 @@ def worker_command(
         watch_parent,
     )
 
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(message)s")
     try:
         auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
         settings = WorkerSettings(connect=tuple(connect), name=name or default_name(), auth=auth)
+        configure(log_level, as_format(log_format), ids={"worker": settings.name})
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     stop = threading.Event()

@@ -49,8 +49,15 @@ from schemas.wire import (
 )
 from server.jobs import JobKey as QueueKey
 from server.jobs import JobQueue, JobResult
+from server.logs import ContextAdapter, context
 
 log = logging.getLogger(__name__)
+
+
+def _job_log(key: JobKey, worker: str) -> ContextAdapter:
+    """`log` carrying the job's run, job (`run/generation/index`) and worker ids."""
+    job = f"{key.run_id}/{key.generation}/{key.index}"
+    return context(log, run=key.run_id, job=job, worker=worker)
 
 
 class JobSource(Protocol):
@@ -333,7 +340,9 @@ class Dispatcher:
         for key in [
             k for k, lease in self._leases.items() if lease.worker == worker and k not in keep
         ]:
-            log.warning("%s asked for work while leasing %s; releasing it", worker, key.label())
+            _job_log(key, worker).warning(
+                "%s asked for work while leasing %s; releasing it", worker, key.label()
+            )
             del self._leases[key]
             self._source.release(key)
 
@@ -363,10 +372,15 @@ class Dispatcher:
         try:
             query.reply(key, encode_job(replace(job, lease_s=lease_s), ack))
         except zenoh.ZError:
-            log.warning("could not send %s to %s; releasing it", job.key.label(), worker)
+            _job_log(job.key, worker).warning(
+                "could not send %s to %s; releasing it", job.key.label(), worker
+            )
             self._source.release(job.key)
             return
         self._leases[job.key] = _Lease(job.key, worker, self._clock() + lease_s, job.robot_steps)
+        _job_log(job.key, worker).debug(
+            "leased %s to %s for %.0f s", job.key.label(), worker, lease_s
+        )
         with self._lock:
             record.state = "busy"
         self.jobs_served += 1
@@ -401,6 +415,11 @@ class Dispatcher:
         if lease is None or lease.worker != result.worker:
             self.results_dropped += 1
             ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
+            _job_log(result.key, result.worker).debug(
+                "dropped a late or duplicate result of %s from %s",
+                result.key.label(),
+                result.worker,
+            )
         else:
             del self._leases[result.key]
             ack = self._settle(result, lease)
@@ -426,7 +445,9 @@ class Dispatcher:
 
     def _settle(self, result: Result, lease: _Lease) -> Ack:
         if result.error is not None:
-            log.warning("%s failed %s: %s", result.worker, result.key.label(), result.error)
+            _job_log(result.key, result.worker).warning(
+                "%s failed %s: %s", result.worker, result.key.label(), result.error
+            )
             self._source.fail(result.key, f"{result.worker}: {result.error}")
             return Ack(key=result.key, accepted=True, reason="error recorded")
         accepted = self._source.complete(result)
@@ -434,8 +455,14 @@ class Dispatcher:
             self.results_accepted += 1
             with self._lock:
                 self._workers[result.worker].jobs_done += 1
+            _job_log(result.key, result.worker).debug(
+                "%s completed %s", result.worker, result.key.label()
+            )
         else:
             self.results_dropped += 1
+            _job_log(result.key, result.worker).debug(
+                "dropped a duplicate result of %s from %s", result.key.label(), result.worker
+            )
         return Ack(key=result.key, accepted=accepted, reason="" if accepted else "duplicate")
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -452,14 +479,21 @@ class Dispatcher:
         with self._lock:
             record = self._workers.setdefault(name, _WorkerRecord(name))
             record.gone_at = self._clock()
+        context(log, worker=name).info("worker %s gone", name)
         for key in [k for k, lease in self._leases.items() if lease.worker == name]:
-            log.warning("worker %s vanished holding %s; releasing it", name, key.label())
+            _job_log(key, name).warning(
+                "worker %s vanished holding %s; releasing it", name, key.label()
+            )
             del self._leases[key]
             self._source.release(key)
 
     def _touch(self, name: str, host: str | None) -> _WorkerRecord:
         with self._lock:
-            record = self._workers.setdefault(name, _WorkerRecord(name))
+            record = self._workers.get(name)
+            if record is None or record.gone_at is not None:
+                context(log, worker=name).info("worker %s joined (host %s)", name, host or "?")
+            if record is None:
+                record = self._workers[name] = _WorkerRecord(name)
             record.last_seen = time.time()
             record.gone_at = None
             if host:
@@ -470,7 +504,9 @@ class Dispatcher:
         now = self._clock()
         for key, lease in list(self._leases.items()):
             if lease.deadline <= now:
-                log.warning("lease of %s to %s expired; releasing it", key.label(), lease.worker)
+                _job_log(key, lease.worker).warning(
+                    "lease of %s to %s expired; releasing it", key.label(), lease.worker
+                )
                 del self._leases[key]
                 self._source.release(key)
                 with self._lock:

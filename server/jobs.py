@@ -31,6 +31,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics.evolution import job_slices
 from schemas.run import RunConfig
+from server.logs import context
 
 log = logging.getLogger(__name__)
 
@@ -376,6 +377,13 @@ class JobQueue:
         message = f"database write failed: {type(exc).__name__}: {exc}"
         for item in self._unwritten:
             run_id = item.results.run_id
+            if run_id not in self._write_failures:
+                context(log, run=run_id).error(
+                    "run %d stops leasing: generation %d not written: %s",
+                    run_id,
+                    item.results.generation,
+                    message,
+                )
             self._write_failures.setdefault(run_id, message[:500])
             jobs = self._runs.get(run_id)
             if jobs is not None:
@@ -399,7 +407,7 @@ class JobQueue:
                 with self._sessions.begin() as session:
                     item.write(session)
             except RunOverError as exc:
-                log.info(
+                context(log, run=item.results.run_id).info(
                     "run %d generation %d not written: %s",
                     item.results.run_id,
                     item.results.generation,

@@ -10,7 +10,7 @@ import json
 import logging
 from collections.abc import Mapping
 from datetime import UTC, datetime
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 LogFormat = Literal["text", "json"]
 CONTEXT_FIELDS = ("run", "job", "robot", "worker")
@@ -47,15 +47,43 @@ class TextFormatter(logging.Formatter):
         return f"{text} [{' '.join(ids)}]" if ids else text
 
 
-def configure(level: str = "INFO", fmt: LogFormat = "text") -> None:
-    """Root logger to stderr in `fmt` at `level`, replacing earlier handlers (uvicorn's too)."""
-    if fmt not in ("text", "json"):
-        raise ValueError(f"log format must be text or json, got {fmt!r}")
+def as_format(text: str) -> LogFormat:
+    """A `--log-format` value checked: text or json (ValueError otherwise)."""
+    if text in ("text", "json"):
+        return cast(LogFormat, text)
+    raise ValueError(f"log format must be text or json, got {text!r}")
+
+
+class ProcessIds(logging.Filter):
+    """Stamps ids that hold for the whole process (a worker's or a robot's own id) on every
+    record that does not carry its own, so every line of `colony worker` names its worker."""
+
+    def __init__(self, ids: Mapping[str, object]) -> None:
+        super().__init__()
+        self._ids = dict(ids)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        for name, value in self._ids.items():
+            if not hasattr(record, name):
+                setattr(record, name, value)
+        return True
+
+
+def configure(
+    level: str = "INFO", fmt: LogFormat = "text", *, ids: Mapping[str, object] | None = None
+) -> None:
+    """Root logger to stderr in `fmt` at `level`, replacing earlier handlers (uvicorn's too);
+    `ids` (context fields, e.g. `{"worker": "w1"}`) go on every line."""
+    if ids:
+        _check_ids(ids)
+    fmt = as_format(fmt)
     numeric = logging.getLevelName(level.upper())
     if not isinstance(numeric, int):
         raise ValueError(f"unknown log level {level!r}")
     handler = logging.StreamHandler()
     handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
+    if ids:
+        handler.addFilter(ProcessIds(ids))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(numeric)
@@ -75,8 +103,12 @@ class ContextAdapter(logging.LoggerAdapter[logging.Logger]):
 
 def context(logger: logging.Logger, **ids: Any) -> ContextAdapter:
     """`logger` with context ids, e.g. `context(log, run=3, job="3/12/0").info("leased")`."""
+    _check_ids(ids)
+    extra: Mapping[str, object] = ids
+    return ContextAdapter(logger, extra)
+
+
+def _check_ids(ids: Mapping[str, object]) -> None:
     unknown = set(ids) - set(CONTEXT_FIELDS)
     if unknown:
         raise ValueError(f"context ids must be among {CONTEXT_FIELDS}, got {sorted(unknown)}")
-    extra: Mapping[str, object] = ids
-    return ContextAdapter(logger, extra)

@@ -39,6 +39,7 @@ from server import crud
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
 from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
+from server.logs import context
 from server.models import Generation, Individual, Job, Run, utcnow
 from server.settings import Settings
 
@@ -170,6 +171,9 @@ class RunManager:
                         run = session.get(Run, run_id)
                         if run is not None and run.status == "running":
                             run.status, run.error = "paused", message
+                            context(log, run=run_id).warning(
+                                "run %d paused after a refused write; resume it", run_id
+                            )
             except Exception as exc:
                 log.warning("could not pause the runs a refused write stopped: %s", exc)
                 return
@@ -216,6 +220,13 @@ class RunManager:
             session.add(run)
             session.flush()
             run_id = run.id
+        context(log, run=run_id).info(
+            "run %d created: population %d, %d generations, seed %d",
+            run_id,
+            config.population,
+            config.generations,
+            config.seed,
+        )
         self.promote()
         return run_id
 
@@ -239,6 +250,9 @@ class RunManager:
                             run.status = "running"
                             run.started_at = run.started_at or utcnow()
                             asked.append(self._ask(session, run))
+                        context(log, run=run.id).info(
+                            "run %d running from generation %d", run.id, run.generation
+                        )
                     except (
                         Exception
                     ) as exc:  # a config the GA rejects fails its run, not the server
@@ -249,6 +263,7 @@ class RunManager:
         with self._lock:
             self._transition(run_id, {"queued", "running"}, "paused")
             self.queue.set_running(run_id, False)
+        context(log, run=run_id).info("run %d paused", run_id)
 
     def resume(self, run_id: int) -> None:
         with self._lock:
@@ -261,6 +276,7 @@ class RunManager:
                 run.status = "running" if run.started_at is not None else "queued"
                 run.error = None  # e.g. a refused write that paused it
             self.queue.set_running(run_id, run.status == "running")
+        context(log, run=run_id).info("run %d resumed (%s)", run_id, run.status)
         self.promote()
 
     def cancel(self, run_id: int) -> None:
@@ -272,6 +288,7 @@ class RunManager:
                     raise TransitionError(f"run {run_id} is already {run.status}")
                 run.status, run.finished_at = "cancelled", utcnow()
             self._forget(run_id)
+        context(log, run=run_id).info("run %d cancelled", run_id)
         self.promote()
 
     def fail_run(self, run_id: int, message: str) -> None:
@@ -391,6 +408,13 @@ class RunManager:
         )
         if moved.rowcount != 1:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
+        context(log, run=run_id).info(
+            "run %d generation %d written: best %.4g, mean %.4g",
+            run_id,
+            g,
+            metrics.best,
+            metrics.mean,
+        )
         conn.execute(
             insert(_GENERATIONS).values(
                 run_id=run_id,
@@ -426,12 +450,14 @@ class RunManager:
 
     def _finish(self, session: Session, run: Run, config: RunConfig) -> None:
         run.status, run.finished_at = "completed", utcnow()
-        self.store_best(session, run, config)
+        sha = self.store_best(session, run, config)
         self._forget(run.id)
+        context(log, run=run.id).info("run %d completed; best controller %s", run.id, sha)
 
     def _fail(self, session: Session, run: Run, message: str) -> None:
         run.status, run.error, run.finished_at = "failed", message, utcnow()
         self._forget(run.id)
+        context(log, run=run.id).error("run %d failed: %s", run.id, message)
 
     def _fail_id(self, session: Session, run_id: int, message: str) -> None:
         run = session.get(Run, run_id)

@@ -66,6 +66,7 @@ from schemas.run import RunConfig
 from schemas.wire import WireError
 from server import crud
 from server.errors import NotFoundError, ServerError
+from server.logs import context
 from server.models import Controller, Robot, Run, utcnow
 from server.robot_store import FieldStatsRow, RobotStateRow, StuckEventRow, TraceRow
 from server.signing import Signer
@@ -193,7 +194,10 @@ class RobotService:
             return
         online = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
+            was_online = robot in self._online
             (self._online.add if online else self._online.discard)(robot)
+        if online != was_online:
+            context(log, robot=robot).info("robot %s %s", robot, "online" if online else "offline")
         with self.sessions.begin() as db:
             row = db.get(Robot, robot)
             if row is None:
@@ -210,6 +214,11 @@ class RobotService:
             return
         if not isinstance(ack, PushAck):
             return
+        robot_log = context(log, robot=ack.robot)
+        if ack.accepted:
+            robot_log.info("robot %s accepted push %s (%s)", ack.robot, ack.push_id, ack.sha256)
+        else:
+            robot_log.warning("robot %s rejected push %s: %s", ack.robot, ack.push_id, ack.reason)
         with self._lock:
             waiter = self._waiters.get(ack.push_id)
         if ack.accepted:
@@ -357,7 +366,16 @@ class RobotService:
             db.flush()
             doc, reason = self._pick(db, request)
             event.replacement_sha256 = doc.sha256 if doc else None
-            return doc, reason
+        context(log, robot=request.robot).info(
+            "robot %s stuck at step %d (%s) with %s; replacement %s: %s",
+            request.robot,
+            request.step,
+            request.reason,
+            request.sha256,
+            doc.sha256 if doc else None,
+            reason,
+        )
+        return doc, reason
 
     def _pick(self, db: Session, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
         failed = db.get(Controller, request.sha256) if request.sha256 else None
