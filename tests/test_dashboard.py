@@ -132,9 +132,10 @@ def test_stream_yields_generations_of_a_running_run(client: httpx.Client) -> Non
     run_id = client.post("/api/runs", json=SLOW).json()["id"]
 
     def got_generation(events: list[tuple[str, Any]]) -> bool:
-        # one poll may carry a generation before the run's own event: wait for both
+        # one poll carries its events in any order: wait for every kind asserted on below
         seen_run = any(kind == "run" and data["id"] == run_id for kind, data in events)
-        return seen_run and any(kind == "generation" for kind, _ in events)
+        kinds = {kind for kind, _ in events}
+        return seen_run and {"generation", "workers", "robots"} <= kinds
 
     events = read_events(client, f"/api/events?run={run_id}", got_generation)
     runs = [data for kind, data in events if kind == "run" and data["id"] == run_id]
