@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench chaos load lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,12 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	@for f in bench/*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
+
+chaos: $(STAMP)
+	$(BIN)/python chaos/chaos.py
+
+load: $(STAMP)
+	$(BIN)/python chaos/load.py $(if $(SECONDS),--seconds $(SECONDS))
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
