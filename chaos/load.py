@@ -1,0 +1,223 @@
+"""Load test (`make load`): 64 virtual robots, 4 workers evolving, 50 status queries a second.
+
+A real `colony server` (SQLite file, zenoh on loopback) and 4 `colony worker` processes run an
+evolution (a new run whenever one ends); 64 virtual EvBots (BasicX emulator on a pty + driver +
+agent with a random paper-best controller, each) run in `--procs` spawned processes, as in
+bench/colony.py; a thread issues 50 GET/s alternating /api/colony and /api/robots. Reports: trace
+samples stored and gaps (steps missing below each robot's highest stored step: must be 0),
+status latency p50/p99/max, generations evolved, and the RSS of every process at start and end.
+
+    .venv/bin/python chaos/load.py --seconds 300
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import socket
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from evorobotics.document import ControllerDocument
+from robot_agent.agent import Agent, AgentSettings
+from robot_agent.driver import BasicXDriver
+from robot_agent.emulator import BasicXEmulator
+from robot_agent.sim_body import SimBody
+from schemas.network import NetworkSpec
+
+COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
+RUN = {"population": 40, "job_size": 5, "generations": 200, "steps": 400}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def rss_mib(pid: int) -> float:
+    """Resident set size of `pid` in MiB (0 once it is gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except FileNotFoundError:
+        pass
+    return 0.0
+
+
+def robots_process(first: int, count: int, endpoint: str, state: str, halt: Any, out: Any) -> None:
+    """Run `count` virtual robots until `halt`; report produced/unsent/dropped on `out`."""
+    sys.setswitchinterval(0.001)  # many threads share one GIL: hand it over sooner
+    spec = NetworkSpec()
+    rigs = []
+    for i in range(first, first + count):
+        doc = ControllerDocument(spec, np.random.default_rng(i).uniform(-1, 1, spec.weight_count))
+        state_dir = Path(state) / f"r{i}"
+        state_dir.mkdir(parents=True)
+        (state_dir / "controller.json").write_text(doc.to_json())
+        emulator = BasicXEmulator(SimBody.create("paper", seed=0, index=i)).start()
+        driver = BasicXDriver.open(emulator.port_path)
+        settings = AgentSettings(f"load-{i}", connect=(endpoint,), state_dir=state_dir)
+        rigs.append((emulator, driver, Agent(settings, driver).start()))
+    for _, _, agent in rigs:
+        agent.connected.wait(60)
+    halt.wait()
+    deadline = time.monotonic() + 15  # let the last batches go out
+    for _, _, agent in rigs:
+        agent.wait_for(lambda a=agent: a.buffered() < 20, max(0.0, deadline - time.monotonic()))  # type: ignore[misc]
+    for emulator, driver, agent in rigs:
+        agent.stop()
+        driver.close()
+        emulator.stop()
+    out.put(
+        {
+            "produced": sum(agent.steps for _, _, agent in rigs),
+            "unsent": sum(agent.buffered() for _, _, agent in rigs),
+            "dropped": sum(agent.dropped for _, _, agent in rigs),
+        }
+    )
+
+
+def query_loop(url: str, rate: float, halt: threading.Event, latencies: list[float]) -> None:
+    """`rate` GETs a second on a deadline schedule, alternating the two status endpoints."""
+    paths = ("/api/colony", "/api/robots")
+    with httpx.Client(base_url=url, timeout=10) as client:
+        due = time.monotonic()
+        k = 0
+        while not halt.is_set():
+            began = time.perf_counter()
+            client.get(paths[k % 2]).raise_for_status()
+            latencies.append(time.perf_counter() - began)
+            k += 1
+            due += 1.0 / rate
+            halt.wait(max(0.0, due - time.monotonic()))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--seconds", type=float, default=300.0)
+    parser.add_argument("--robots", type=int, default=64)
+    parser.add_argument("--procs", type=int, default=4, help="processes hosting the robots")
+    parser.add_argument("--workers", type=int, default=4)
+    parser.add_argument("--rate", type=float, default=50.0, help="status queries per second")
+    args = parser.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="colony-load-"))
+    db = tmp / "colony.db"
+    http, port = free_port(), free_port()
+    url, endpoint = f"http://127.0.0.1:{http}", f"tcp/127.0.0.1:{port}"
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+
+    def spawn(name: str, argv: list[str]) -> None:
+        with (tmp / f"{name}.log").open("ab") as log:
+            procs[name] = subprocess.Popen(
+                argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+            )
+
+    ctx = mp.get_context("spawn")
+    robot_procs: list[Any] = []
+    try:
+        argv = [*COLONY, "server", "--db", f"sqlite:///{db}", "--port", str(http)]
+        spawn("server", [*argv, "--zenoh-listen", endpoint])
+        client = httpx.Client(base_url=url, timeout=10)
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if client.get("/healthz").is_success:
+                    break
+            except httpx.TransportError:
+                pass
+            if time.monotonic() > deadline:
+                raise TimeoutError("server did not start")
+            threading.Event().wait(0.1)
+        for w in range(args.workers):
+            spawn(f"worker{w}", [*COLONY, "worker", "--connect", endpoint, "--name", f"w{w}"])
+        halt, out = ctx.Event(), ctx.Queue()
+        shares = [
+            args.robots // args.procs + (k < args.robots % args.procs) for k in range(args.procs)
+        ]
+        first = 0
+        for k, count in enumerate(shares):
+            p = ctx.Process(
+                target=robots_process,
+                args=(first, count, endpoint, f"{tmp}/p{k}", halt, out),
+            )
+            p.start()
+            robot_procs.append(p)
+            first += count
+        run_ids = [int(client.post("/api/runs", json=RUN).json()["id"])]
+        wait_online = time.monotonic() + 120
+        while sum(r["online"] for r in client.get("/api/robots").json()) < args.robots:
+            if time.monotonic() > wait_online:
+                raise TimeoutError("robots did not all come online")
+            threading.Event().wait(0.5)
+        pids = {name: p.pid for name, p in procs.items()}
+        pids.update({f"robots{k}": p.pid for k, p in enumerate(robot_procs)})
+        rss_start = {name: rss_mib(pid) for name, pid in pids.items()}
+        print(f"logs in {tmp}; {args.robots} robots online; load for {args.seconds:.0f} s")
+        stop_queries = threading.Event()
+        latencies: list[float] = []
+        querier = threading.Thread(
+            target=query_loop, args=(url, args.rate, stop_queries, latencies)
+        )
+        began = time.monotonic()
+        querier.start()
+        while time.monotonic() - began < args.seconds:
+            if client.get(f"/api/runs/{run_ids[-1]}").json()["status"] != "running":
+                run_ids.append(int(client.post("/api/runs", json=RUN).json()["id"]))
+            stop_queries.wait(2.0)
+        stop_queries.set()
+        querier.join(30)
+        rss_end = {name: rss_mib(pid) for name, pid in pids.items()}
+        generations = sum(int(client.get(f"/api/runs/{r}").json()["generation"]) for r in run_ids)
+        halt.set()
+        reports = [out.get(timeout=120) for _ in robot_procs]
+        for p in robot_procs:
+            p.join(30)
+        threading.Event().wait(2.0)  # the last acknowledged batches are committed
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as conn:
+            rows = conn.execute(
+                "SELECT robot_id, boot, sum(count), max(last), min(first) FROM robot_traces "
+                "GROUP BY robot_id, boot"
+            ).fetchall()
+        client.close()
+    finally:
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+        for proc in procs.values():
+            proc.wait(30)
+        for p in robot_procs:
+            if p.is_alive():
+                p.kill()
+    stored = sum(int(r[2]) for r in rows)
+    gaps = sum(int(r[3]) - int(r[4]) + 1 - int(r[2]) for r in rows)
+    lat = np.array(latencies) * 1000
+    print(f"\nload report ({args.seconds:.0f} s, load average {os.getloadavg()[0]:.1f})")
+    print(f"  robots reporting {len({r[0] for r in rows})}, samples stored {stored}, gaps {gaps}")
+    print(
+        f"  produced {sum(r['produced'] for r in reports)}, unsent at stop "
+        f"{sum(r['unsent'] for r in reports)}, dropped {sum(r['dropped'] for r in reports)}"
+    )
+    print(
+        f"  status queries {len(lat)} ({len(lat) / args.seconds:.1f}/s): p50 "
+        f"{np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms, max {lat.max():.1f} ms"
+    )
+    print(f"  generations evolved {generations} over {len(run_ids)} run(s)")
+    for name in pids:
+        print(f"  RSS {name:9s} {rss_start[name]:7.1f} MiB -> {rss_end[name]:7.1f} MiB")
+    sys.exit(0 if gaps == 0 else 1)
+
+
+if __name__ == "__main__":
+    main()
