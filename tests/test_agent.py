@@ -10,7 +10,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -29,15 +28,10 @@ from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
 from robot_agent.stuck import StuckConfig
 from schemas.network import PRESETS, NetworkSpec
+from tests.helpers import free_port
 
 WAIT = 20.0
 SPEC = PRESETS["reactive"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def constant_drive(left: float, right: float, spec: NetworkSpec = SPEC) -> ControllerDocument:

@@ -19,7 +19,8 @@ import pytest
 
 from server.app import create_app
 from server.settings import Settings
-from tests.test_dashboard import QUICK, Served, eventually, serve
+from tests.helpers import eventually
+from tests.test_dashboard import QUICK, Served, serve
 from tests.test_robots_server import Colony, online, robot_link, virtual_robot
 
 CHROMIUM = Path("/usr/bin/chromium")

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import json
 import re
-import socket
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,24 +16,9 @@ from typer.testing import CliRunner
 from colony.cli import app
 from server.app import create_app
 from server.settings import Settings
+from tests.helpers import eventually, free_port
 
 SMALL = ["--population", "8", "--generations", "3", "--steps", "10", "--job-size", "4"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def eventually(predicate: Callable[[], bool], timeout: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout
-    tick = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        tick.wait(0.05)
-    return True
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from fastapi import FastAPI
 from server.app import create_app
 from server.routes.dashboard import sse
 from server.settings import Settings
-from tests.test_agent import free_port
+from tests.helpers import eventually, free_port
 
 WAIT = 60.0
 QUICK = {"population": 8, "generations": 2, "steps": 10, "job_size": 4}
@@ -34,17 +34,6 @@ SLOW = {"population": 12, "generations": 40, "steps": 60, "job_size": 4}
 class Served:
     url: str
     app: FastAPI
-
-
-def eventually(predicate: Callable[[], bool], timeout: float = WAIT) -> bool:
-    """Poll a REST view (no event announces it) until a deadline."""
-    deadline = time.monotonic() + timeout
-    tick = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        tick.wait(0.05)
-    return True
 
 
 @contextmanager

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -30,28 +29,12 @@ from schemas.wire import (
     worker_key,
 )
 from server.dispatch import Dispatcher, DispatchSettings, QueueSource
+from tests.helpers import eventually, free_port
 from worker.main import Evaluator, WorkerSettings, WorkerStats, run_worker
 
 CONFIG = RunConfig(population=12, job_size=3, generations=1, trials=2, steps=5)
 W = CONFIG.network_spec.weight_count
 WAIT = 20.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def eventually(predicate: Callable[[], bool], timeout: float = WAIT) -> bool:
-    """Poll a condition no event announces (the dispatcher's worker table) until a deadline."""
-    deadline = time.monotonic() + timeout
-    tick = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        tick.wait(0.02)
-    return True
 
 
 def fake_fitness(genomes: np.ndarray) -> np.ndarray:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -24,19 +23,13 @@ import pytest
 
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig
+from tests.helpers import free_port
 
 CONFIG = {"population": 16, "job_size": 4, "generations": 6, "steps": 2000, "seed": 11}
 """Jobs of tens of milliseconds, so a worker is caught holding one."""
 EVALUATIONS = 16 * 6
 TIMEOUT_S = 45.0
 COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +86,8 @@ class Colony:
 
     def _healthy(self) -> bool:
         if self.server is not None and self.server.poll() is not None:
-            raise RuntimeError(f"colony server exited with {self.server.returncode}")
+            tail = (self.tmp / "server.log").read_text(errors="replace")[-2000:]
+            raise RuntimeError(f"colony server exited with {self.server.returncode}:\n{tail}")
         try:
             return httpx.get(f"{self.url}/healthz", timeout=1).is_success
         except httpx.TransportError:

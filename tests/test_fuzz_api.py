@@ -22,12 +22,13 @@ from schemathesis.specs.openapi.checks import (
 
 from server.settings import Settings
 from tests import test_server_api as api
+from tests.helpers import free_port
 
 
 @pytest.fixture(scope="module")
 def api_schema(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     db = tmp_path_factory.mktemp("fuzz") / "colony.db"
-    with api.serving(Settings(db_url=f"sqlite:///{db}", port=api.free_port(), zenoh=False)) as (
+    with api.serving(Settings(db_url=f"sqlite:///{db}", port=free_port(), zenoh=False)) as (
         url,
         _,
     ):

@@ -63,6 +63,7 @@ from schemas.wire import (
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher
 from server.robots import RobotService
+from tests.helpers import eventually, free_port
 from tests.test_agent import random_controller
 from tests.test_dispatch import (
     CONFIG,
@@ -70,9 +71,7 @@ from tests.test_dispatch import (
     MemorySource,
     client_config,
     dispatch_settings,
-    eventually,
     fake_evaluator,
-    free_port,
     worker_thread,
 )
 from tests.test_robots_server import router_config

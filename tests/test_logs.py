@@ -21,7 +21,7 @@ from server.jobs import JobResult
 from server.logs import as_format, configure, context
 from server.manager import RunManager
 from server.settings import Settings
-from tests.test_cli import free_port
+from tests.helpers import free_port
 
 WAIT = 60.0
 COLONY = str(Path(sys.executable).with_name("colony"))

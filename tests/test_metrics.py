@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import socket
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -21,18 +20,9 @@ from server.db import make_engine, upgrade
 from server.jobs import JobResult
 from server.manager import RunManager
 from server.settings import Settings
+from tests.helpers import eventually
 
 SMALL = {"population": 8, "generations": 3, "steps": 10, "job_size": 4}
-
-
-def eventually(predicate: Callable[[], bool], timeout: float = 60.0) -> bool:
-    deadline = time.monotonic() + timeout
-    tick = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        tick.wait(0.05)
-    return True
 
 
 @contextmanager

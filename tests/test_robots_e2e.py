@@ -17,8 +17,8 @@ import uvicorn
 
 from server.app import create_app
 from server.settings import Settings
-from tests.test_agent import free_port
-from tests.test_robots_server import SMALL, WAIT, eventually
+from tests.helpers import eventually, free_port
+from tests.test_robots_server import SMALL, WAIT
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,8 @@ from __future__ import annotations
 import json
 import queue
 import threading
-import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,21 +52,11 @@ from server.db import make_engine
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
 from server.robots import RobotService, RobotSettings, ranked_document, replay_trace
 from server.settings import Settings
-from tests.test_agent import constant_drive, free_port, random_controller, save
+from tests.helpers import eventually, free_port
+from tests.test_agent import constant_drive, random_controller, save
 
 WAIT = 30.0
 SMALL = {"population": 8, "generations": 2, "steps": 10, "job_size": 4}
-
-
-def eventually(predicate: Callable[[], bool], timeout: float = WAIT) -> bool:
-    """Poll a condition that no event announces (the REST view) until a deadline."""
-    deadline = time.monotonic() + timeout
-    tick = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        tick.wait(0.05)
-    return True
 
 
 def router_config(port: int) -> zenoh.Config:

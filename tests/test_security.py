@@ -27,7 +27,8 @@ from schemas.security import ZenohClientAuth, ZenohRouterAuth
 from server.dispatch import Dispatcher
 from server.settings import Settings
 from server.signing import Signer, load_or_create_key
-from tests.test_dispatch import MemorySource, dispatch_settings, free_port
+from tests.helpers import free_port
+from tests.test_dispatch import MemorySource, dispatch_settings
 from tests.test_server_api import serving
 from worker.main import WorkerSettings, WorkerStats, run_worker
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -23,17 +22,11 @@ from evorobotics.evolution import evolve
 from schemas.run import RunConfig
 from server.app import create_app
 from server.settings import Settings
+from tests.helpers import free_port
 from worker.main import WorkerSettings, run_worker
 
 SMALL = {"population": 12, "generations": 5, "steps": 20, "job_size": 5}
 TIMEOUT_S = 60.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 @contextmanager

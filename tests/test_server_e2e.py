@@ -20,7 +20,7 @@ import sqlalchemy as sa
 
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig
-from tests.test_server_api import free_port
+from tests.helpers import free_port
 
 CONFIG = {"population": 12, "generations": 40, "steps": 20, "job_size": 5, "seed": 3}
 TIMEOUT_S = 90.0

@@ -24,15 +24,14 @@ from schemas.wire import (
     encode_message,
 )
 from server.dispatch import Dispatcher
+from tests.helpers import eventually, free_port
 from tests.test_dispatch import (
     CONFIG,
     WAIT,
     MemorySource,
     W,
     dispatch_settings,
-    eventually,
     fake_fitness,
-    free_port,
     worker_thread,
 )
 from worker.main import WorkerSettings, evaluate_slice
