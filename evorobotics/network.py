@@ -62,6 +62,7 @@ import pickle
 import stat
 import sys
 import tempfile
+import threading
 from collections.abc import Callable, Sequence
 from functools import cache
 from pathlib import Path
@@ -371,6 +372,9 @@ def _drop_unreadable_machine_code(pycache: Path, name: str) -> None:
             index.unlink(missing_ok=True)
 
 
+_IMPORT_LOCK = threading.RLock()
+
+
 def cached_module(
     kind: str, source: str, depends: Sequence[str] = (), directory: Path | None = None
 ) -> ModuleType:
@@ -381,8 +385,9 @@ def cached_module(
     functions the source calls: numba's cache of the generated code would not notice their
     changes, a new name does). An existing file whose bytes differ (partial write, corruption)
     is rewritten, and unreadable numba cache files of it are dropped (recompiled); writes are
-    atomic, so concurrent processes are safe. Imported once per
-    process (kept in `sys.modules`, where modules generated later import it from).
+    atomic, so concurrent processes are safe, and one import at a time runs in a process, so
+    concurrent threads are too. Imported once per process (kept in `sys.modules`, where
+    modules generated later import it from).
     """
     if not kind.isidentifier():
         raise ValueError(f"kind must be an identifier, got {kind!r}")
@@ -391,9 +396,14 @@ def cached_module(
         key.update(part.encode())
         key.update(b"\0")
     name = f"evocolony_{kind}_{key.hexdigest()[:32]}"
-    loaded = sys.modules.get(name)
-    if loaded is not None:
-        return loaded
+    # One import at a time: the module sits in sys.modules while its body runs, and another
+    # thread must not take it half executed (re-entrant: generated modules load others).
+    with _IMPORT_LOCK:
+        return sys.modules.get(name) or _load(name, source, directory)
+
+
+def _load(name: str, source: str, directory: Path | None) -> ModuleType:
+    """Write (if needed) and import the generated module `name`; callers hold _IMPORT_LOCK."""
     folder = kernel_cache_dir() if directory is None else directory
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     path = folder / f"{name}.py"

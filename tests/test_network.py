@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
+import types
 from collections.abc import Callable
 from pathlib import Path
 
@@ -415,3 +417,38 @@ def test_kernel_cache_dir_honours_the_environment(
     monkeypatch.setenv(CACHE_ENV, str(shared))
     fallback = kernel_cache_dir()
     assert fallback != shared and fallback.is_dir() and os.access(fallback, os.W_OK)
+
+
+def test_threads_importing_one_generated_module_at_once_all_see_it_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The first import stops halfway (its body waits on `release`); the other threads ask for
+    # the module meanwhile and must wait for it whole, never get it half executed.
+    hooks = types.ModuleType("race_hooks")
+    hooks.started, hooks.release = threading.Event(), threading.Event()  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "race_hooks", hooks)
+    source = (
+        "import race_hooks\nrace_hooks.started.set()\nrace_hooks.release.wait(30)\ndone = True\n"
+    )
+    seen: list[bool] = []
+    errors: list[BaseException] = []
+    returned = threading.Semaphore(0)
+
+    def load() -> None:
+        try:
+            seen.append(cached_module("race", source, directory=tmp_path).done)
+        except BaseException as exc:
+            errors.append(exc)
+        returned.release()
+
+    first = threading.Thread(target=load)
+    first.start()
+    assert hooks.started.wait(30)
+    others = [threading.Thread(target=load) for _ in range(4)]
+    for t in others:
+        t.start()
+    early = returned.acquire(timeout=0.5)  # nobody may come back before the module is whole
+    hooks.release.set()
+    for t in [first, *others]:
+        t.join(timeout=30)
+    assert not early and errors == [] and seen == [True] * 5
