@@ -123,6 +123,9 @@ class DispatchSettings:
         conf.insert_json5(
             "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
         )
+        # zenoh's shared memory (on by default) gives every local peer that sends more than
+        # 3 KiB a 16 MiB pool, which the router maps: 64 local robots cost it 1 GiB of RSS
+        conf.insert_json5("transport/shared_memory/enabled", "false")
         for key, value in self.auth.entries():
             conf.insert_json5(key, value)
         return conf
