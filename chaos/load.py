@@ -5,7 +5,12 @@ evolution (a new run whenever one ends); 64 virtual EvBots (BasicX emulator on a
 agent with a random paper-best controller, each) run in `--procs` spawned processes, as in
 bench/colony.py; a thread issues 50 GET/s alternating /api/colony and /api/robots. Reports: trace
 samples stored and gaps (steps missing below each robot's highest stored step: must be 0),
-status latency p50/p99/max, generations evolved, and the RSS of every process at start and end.
+status latency p50/p99/max, generations evolved, and the RSS of every process sampled every
+`--sample-seconds` (a series: flat, bounded growth or a leak are told apart by its shape).
+
+`--tracemalloc` runs the server under tracemalloc (25 frames) and writes, every
+`--sample-seconds`, the top allocation sites by line grown since the first snapshot to
+`tracemalloc.txt` in the logs directory (slow: for hunting growth, not for figures).
 
     .venv/bin/python chaos/load.py --seconds 300
 """
@@ -37,6 +42,41 @@ from schemas.network import NetworkSpec
 
 COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
 RUN = {"population": 40, "job_size": 5, "generations": 200, "steps": 400}
+TRACED_SERVER = """
+import os, sys, threading, tracemalloc
+sys.argv = ["colony", *sys.argv[1:]]
+from colony.cli import main
+import server.app, server.dispatch, server.manager, server.robots  # imported before tracing
+inboxes = []  # (name, queue) of the zenoh callbacks' queues: their depth is reported too
+def keep(cls, method):
+    original = getattr(cls, method)
+    def wrapped(self, *a, **k):
+        result = original(self, *a, **k)
+        inboxes.append((cls.__name__, self._inbox))
+        return result
+    setattr(cls, method, wrapped)
+keep(server.robots.RobotService, "start")
+keep(server.dispatch.Dispatcher, "__init__")
+tracemalloc.start(int(os.environ.get("LOAD_TRACEMALLOC_FRAMES", "1")))
+out, every = os.environ["LOAD_TRACEMALLOC"], float(os.environ["LOAD_TRACEMALLOC_EVERY"])
+def dump():
+    base, halt, k = tracemalloc.take_snapshot(), threading.Event(), 0
+    while not halt.wait(every):
+        k += 1
+        snap = tracemalloc.take_snapshot()
+        top = snap.compare_to(base, "traceback" if FRAMES > 1 else "lineno")[:25]
+        size = sum(s.size for s in snap.statistics("filename")) / 2**20
+        with open(out, "a") as f:
+            depth = ", ".join(f"{n} inbox {q.qsize()}" for n, q in inboxes)
+            print(f"== snapshot {k} at {k * every:.0f} s: traced {size:.1f} MiB; {depth}", file=f)
+            for stat in top:
+                print(f"  {stat}", file=f)
+                if FRAMES > 1:
+                    print("    " + "\\n    ".join(stat.traceback.format()[-2 * FRAMES:]), file=f)
+FRAMES = tracemalloc.get_traceback_limit()
+threading.Thread(target=dump, daemon=True).start()
+main()
+"""
 
 
 def free_port() -> int:
@@ -45,11 +85,12 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def rss_mib(pid: int) -> float:
-    """Resident set size of `pid` in MiB (0 once it is gone)."""
+def rss_mib(pid: int, field: str = "VmRSS") -> float:
+    """Resident set size of `pid` in MiB (0 once it is gone); `field="RssShmem"`: the part of
+    it in shared memory (zenoh's shared-memory pools, mapped by both ends of a link)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) / 1024
     except FileNotFoundError:
         pass
@@ -111,6 +152,8 @@ def main() -> None:
     parser.add_argument("--procs", type=int, default=4, help="processes hosting the robots")
     parser.add_argument("--workers", type=int, default=4)
     parser.add_argument("--rate", type=float, default=50.0, help="status queries per second")
+    parser.add_argument("--sample-seconds", type=float, default=5.0, help="RSS sampling period")
+    parser.add_argument("--tracemalloc", action="store_true", help="server growth by line")
     args = parser.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="colony-load-"))
     db = tmp / "colony.db"
@@ -127,16 +170,21 @@ def main() -> None:
     ctx = mp.get_context("spawn")
     robot_procs: list[Any] = []
     try:
-        argv = [*COLONY, "server", "--db", f"sqlite:///{db}", "--port", str(http)]
+        server = [sys.executable, "-c", TRACED_SERVER] if args.tracemalloc else COLONY
+        os.environ["LOAD_TRACEMALLOC"] = str(tmp / "tracemalloc.txt")
+        os.environ["LOAD_TRACEMALLOC_EVERY"] = str(args.sample_seconds)
+        argv = [*server, "server", "--db", f"sqlite:///{db}", "--port", str(http)]
         spawn("server", [*argv, "--zenoh-listen", endpoint])
         client = httpx.Client(base_url=url, timeout=10)
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + (300 if args.tracemalloc else 60)
         while True:
             try:
                 if client.get("/healthz").is_success:
                     break
             except httpx.TransportError:
                 pass
+            if procs["server"].poll() is not None:
+                raise RuntimeError(f"server exited: see {tmp}/server.log")
             if time.monotonic() > deadline:
                 raise TimeoutError("server did not start")
             threading.Event().wait(0.1)
@@ -163,7 +211,8 @@ def main() -> None:
             threading.Event().wait(0.5)
         pids = {name: p.pid for name, p in procs.items()}
         pids.update({f"robots{k}": p.pid for k, p in enumerate(robot_procs)})
-        rss_start = {name: rss_mib(pid) for name, pid in pids.items()}
+        series: dict[str, list[float]] = {name: [rss_mib(pid)] for name, pid in pids.items()}
+        shmem = {name: rss_mib(pid, "RssShmem") for name, pid in pids.items()}
         print(f"logs in {tmp}; {args.robots} robots online; load for {args.seconds:.0f} s")
         stop_queries = threading.Event()
         latencies: list[float] = []
@@ -171,14 +220,21 @@ def main() -> None:
             target=query_loop, args=(url, args.rate, stop_queries, latencies)
         )
         began = time.monotonic()
+        sampled = began
         querier.start()
         while time.monotonic() - began < args.seconds:
             if client.get(f"/api/runs/{run_ids[-1]}").json()["status"] != "running":
                 run_ids.append(int(client.post("/api/runs", json=RUN).json()["id"]))
-            stop_queries.wait(2.0)
+            if time.monotonic() - sampled >= args.sample_seconds:
+                sampled += args.sample_seconds
+                for name, pid in pids.items():
+                    series[name].append(rss_mib(pid))
+            stop_queries.wait(min(2.0, args.sample_seconds))
         stop_queries.set()
         querier.join(30)
-        rss_end = {name: rss_mib(pid) for name, pid in pids.items()}
+        for name, pid in pids.items():
+            series[name].append(rss_mib(pid))
+            shmem[name] = max(shmem[name], rss_mib(pid, "RssShmem"))
         generations = sum(int(client.get(f"/api/runs/{r}").json()["generation"]) for r in run_ids)
         halt.set()
         reports = [out.get(timeout=120) for _ in robot_procs]
@@ -214,8 +270,10 @@ def main() -> None:
         f"{np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms, max {lat.max():.1f} ms"
     )
     print(f"  generations evolved {generations} over {len(run_ids)} run(s)")
-    for name in pids:
-        print(f"  RSS {name:9s} {rss_start[name]:7.1f} MiB -> {rss_end[name]:7.1f} MiB")
+    print(f"  RSS in MiB every {args.sample_seconds:.0f} s (last: at stop)")
+    for name, values in series.items():
+        shm = f" (of it shared memory, max {shmem[name]:.0f})"
+        print(f"  RSS {name:9s} " + " ".join(f"{v:.0f}" for v in values) + shm)
     sys.exit(0 if gaps == 0 else 1)
 
 
