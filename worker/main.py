@@ -95,6 +95,9 @@ class WorkerSettings:
         conf.insert_json5(
             "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
         )
+        # zenoh's shared memory maps a 16 MiB pool per session for messages over 3 KiB: a cost,
+        # not a gain, for jobs of a few KiB (docs/reliability.md, "Load")
+        conf.insert_json5("transport/shared_memory/enabled", "false")
         for key, value in self.auth.entries():
             conf.insert_json5(key, value)
         return conf
