@@ -12,7 +12,8 @@ from typing import Annotated
 import httpx
 import typer
 
-DEFAULT_SERVER = "http://127.0.0.1:8000"
+from colony.options import LogFormatOpt, LogLevelOpt, ZenohPasswordOpt, ZenohRootCaOpt, ZenohUserOpt
+from colony.server_cli import DEFAULT_SERVER, ServerOpt, TokenOpt, call_server
 
 
 def agent_command(
@@ -54,27 +55,11 @@ def agent_command(
     insecure_no_verify: Annotated[
         bool, typer.Option("--insecure-no-verify", help="accept unsigned pushes (testing only)")
     ] = False,
-    zenoh_user: Annotated[
-        str | None, typer.Option(envvar="COLONY_ZENOH_USER", help="zenoh usrpwd user")
-    ] = None,
-    zenoh_password: Annotated[
-        str | None,
-        typer.Option(envvar="COLONY_ZENOH_PASSWORD", help="its password (prefer the env var)"),
-    ] = None,
-    zenoh_root_ca: Annotated[
-        Path | None,
-        typer.Option(envvar="COLONY_ZENOH_ROOT_CA", help="CA (PEM) of the router's TLS cert"),
-    ] = None,
-    log_level: Annotated[
-        str, typer.Option(envvar="COLONY_LOG_LEVEL", help="DEBUG, INFO, WARNING or ERROR")
-    ] = "INFO",
-    log_format: Annotated[
-        str,
-        typer.Option(
-            envvar="COLONY_LOG_FORMAT",
-            help="text, or json: one JSON object per line with the robot id",
-        ),
-    ] = "text",
+    zenoh_user: ZenohUserOpt = None,
+    zenoh_password: ZenohPasswordOpt = None,
+    zenoh_root_ca: ZenohRootCaOpt = None,
+    log_level: LogLevelOpt = "INFO",
+    log_format: LogFormatOpt = "text",
 ) -> None:
     """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck."""
     from robot_agent.agent import Agent, AgentSettings
@@ -162,26 +147,16 @@ def _server_key(path: Path | None, state_dir: Path, server: str, insecure: bool)
 
 
 def replay_command(
+    ctx: typer.Context,
     robot: Annotated[str, typer.Argument(help="robot id")],
-    server: Annotated[str, typer.Option("--server", help="server base URL")] = DEFAULT_SERVER,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
 ) -> None:
     """Sim-to-real check: replay the robot's stored whiskers through its controllers.
 
     Exit status 0 when every checked motor command is bit-identical, 1 otherwise.
     """
-    try:
-        response = httpx.get(f"{server.rstrip('/')}/api/robots/{robot}/replay", timeout=60.0)
-    except httpx.HTTPError as exc:
-        typer.echo(f"error: cannot reach {server}: {exc}", err=True)
-        raise typer.Exit(1) from exc
-    if response.is_error:
-        try:
-            detail = response.json().get("detail", response.text)
-        except ValueError:
-            detail = response.text
-        typer.echo(f"error {response.status_code}: {detail}", err=True)
-        raise typer.Exit(1)
-    report = response.json()
+    report = call_server(ctx, server, token, "GET", f"/api/robots/{robot}/replay")
     verdict = "identical" if report["identical"] else "NOT identical"
     typer.echo(
         f"robot {robot}: {verdict}: {report['checked']} samples checked in "

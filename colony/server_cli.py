@@ -158,7 +158,7 @@ def _client(ctx: typer.Context, server: str, token: str | None) -> httpx.Client:
     )
 
 
-def _call(
+def call_server(
     ctx: typer.Context,
     server: str,
     token: str | None,
@@ -290,7 +290,7 @@ def run_start(
         "job_size": job_size,
     }
     body.update({k: v for k, v in flags.items() if v is not None})
-    run = _call(ctx, server, token, "POST", "/api/runs", body)
+    run = call_server(ctx, server, token, "POST", "/api/runs", body)
     if follow:
         with _client(ctx, server, token) as client:
             try:
@@ -315,7 +315,7 @@ def run_list(
     as_json: JsonOpt = False,
 ) -> None:
     """Every run, newest first."""
-    runs = _call(ctx, server, token, "GET", "/api/runs")
+    runs = call_server(ctx, server, token, "GET", "/api/runs")
     if as_json:
         _print_json(runs)
     else:
@@ -331,8 +331,8 @@ def run_show(
     as_json: JsonOpt = False,
 ) -> None:
     """One run with its fitness per generation."""
-    run = _call(ctx, server, token, "GET", f"/api/runs/{run_id}")
-    generations = _call(ctx, server, token, "GET", f"/api/runs/{run_id}/generations")
+    run = call_server(ctx, server, token, "GET", f"/api/runs/{run_id}")
+    generations = call_server(ctx, server, token, "GET", f"/api/runs/{run_id}/generations")
     if as_json:
         _print_json({**run, "history": generations})
         return
@@ -347,7 +347,7 @@ def run_show(
 
 
 def _steer(ctx: typer.Context, server: str, token: str | None, run_id: int, action: str) -> None:
-    run = _call(ctx, server, token, "POST", f"/api/runs/{run_id}/{action}")
+    run = call_server(ctx, server, token, "POST", f"/api/runs/{run_id}/{action}")
     typer.echo(f"run {run['id']} {run['status']}")
 
 
@@ -415,7 +415,7 @@ def status(
     as_json: JsonOpt = False,
 ) -> None:
     """Colony summary: runs by status, jobs, and tables of active runs, workers and robots."""
-    colony = _call(ctx, server, token, "GET", "/api/colony")
+    colony = call_server(ctx, server, token, "GET", "/api/colony")
     if as_json:
         _print_json(colony)
         return
@@ -436,7 +436,7 @@ def workers_command(
     as_json: JsonOpt = False,
 ) -> None:
     """The simulation workers the server knows (gone ones for a while)."""
-    workers = _call(ctx, server, token, "GET", "/api/workers")
+    workers = call_server(ctx, server, token, "GET", "/api/workers")
     if as_json:
         _print_json(workers)
     else:
@@ -450,7 +450,7 @@ def robots_command(
     as_json: JsonOpt = False,
 ) -> None:
     """Every robot ever seen: online, state, steps, controller."""
-    robots = _call(ctx, server, token, "GET", "/api/robots")
+    robots = call_server(ctx, server, token, "GET", "/api/robots")
     if as_json:
         _print_json(robots)
     else:
@@ -469,7 +469,7 @@ def robot_show(
     as_json: JsonOpt = False,
 ) -> None:
     """One robot: state, controller origin, whiskers, stuck events, link."""
-    detail = _call(ctx, server, token, "GET", f"/api/robots/{robot}")
+    detail = call_server(ctx, server, token, "GET", f"/api/robots/{robot}")
     if as_json:
         _print_json(detail)
         return
@@ -509,7 +509,9 @@ def robot_push(
     if (run is None) == (sha is None):
         raise typer.BadParameter("give exactly one of --run or --sha")
     body: dict[str, Any] = {"run_id": run, "rank": rank} if run is not None else {"sha256": sha}
-    _pushed(_call(ctx, server, token, "POST", f"/api/robots/{robot}/controller", body), as_json)
+    _pushed(
+        call_server(ctx, server, token, "POST", f"/api/robots/{robot}/controller", body), as_json
+    )
 
 
 @robot_app.command("stop")
@@ -521,7 +523,7 @@ def robot_stop(
     as_json: JsonOpt = False,
 ) -> None:
     """Motors to zero until the next push."""
-    _pushed(_call(ctx, server, token, "POST", f"/api/robots/{robot}/stop"), as_json)
+    _pushed(call_server(ctx, server, token, "POST", f"/api/robots/{robot}/stop"), as_json)
 
 
 def register(app: typer.Typer) -> None:

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import threading
-from pathlib import Path
 from typing import Annotated
 
 import typer
+
+from colony.options import LogFormatOpt, LogLevelOpt, ZenohPasswordOpt, ZenohRootCaOpt, ZenohUserOpt
 
 
 def worker_command(
@@ -22,27 +23,11 @@ def worker_command(
         str | None,
         typer.Option(help="worker name shown in GET /api/workers (default: hostname-pid)"),
     ] = None,
-    zenoh_user: Annotated[
-        str | None, typer.Option(envvar="COLONY_ZENOH_USER", help="zenoh usrpwd user")
-    ] = None,
-    zenoh_password: Annotated[
-        str | None,
-        typer.Option(envvar="COLONY_ZENOH_PASSWORD", help="its password (prefer the env var)"),
-    ] = None,
-    zenoh_root_ca: Annotated[
-        Path | None,
-        typer.Option(envvar="COLONY_ZENOH_ROOT_CA", help="CA (PEM) of the router's TLS cert"),
-    ] = None,
-    log_level: Annotated[
-        str, typer.Option(envvar="COLONY_LOG_LEVEL", help="DEBUG, INFO, WARNING or ERROR")
-    ] = "INFO",
-    log_format: Annotated[
-        str,
-        typer.Option(
-            envvar="COLONY_LOG_FORMAT",
-            help="text, or json: one JSON object per line with the worker id",
-        ),
-    ] = "text",
+    zenoh_user: ZenohUserOpt = None,
+    zenoh_password: ZenohPasswordOpt = None,
+    zenoh_root_ca: ZenohRootCaOpt = None,
+    log_level: LogLevelOpt = "INFO",
+    log_format: LogFormatOpt = "text",
     exit_with_parent: Annotated[
         bool,
         typer.Option(
