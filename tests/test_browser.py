@@ -141,11 +141,9 @@ def test_push_best_controller_to_a_robot_with_a_click(
             best = client.get(f"/api/runs/{run_id}/best").json()["sha256"]
             assert agent.controller is not None and agent.controller.sha256 == best
             assert best[:12] in result.inner_text()
-            # the card follows the robot: its controller and origin arrive over the stream
-            card.locator('[data-field="origin"]').filter(
-                has_text=f"run {run_id}, rank 0"
-            ).wait_for()
-            assert best[:12] in card.locator('[data-field="controller"]').inner_text()
+            # the card follows the robot: its controller's origin arrives over the stream (any
+            # rank: a robot that got stuck meanwhile runs a replacement from the same run)
+            card.locator('[data-field="origin"]').filter(has_text=f"run {run_id}, rank").wait_for()
             card.locator('[data-field="state"]').filter(has_text="running").wait_for()
             page.wait_for_function(
                 """Number(document.querySelector('[data-robot="virt-1"] [data-field="steps"]')
