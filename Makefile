@@ -27,10 +27,12 @@ chaos: $(STAMP)
 load: $(STAMP)
 	$(BIN)/python chaos/load.py $(if $(SECONDS),--seconds $(SECONDS))
 
+# bench/ gets its own mypy run: bench/colony.py would clash with the colony package.
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
+	$(BIN)/mypy bench
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info
