@@ -24,6 +24,7 @@ from server import metrics, signing
 from server.auth import SecurityMiddleware
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, QueueSource
+from server.errors import ServerError
 from server.executor import InProcessExecutor
 from server.manager import RunManager
 from server.robots import robot_service
@@ -135,6 +136,11 @@ def create_app(
     @app.exception_handler(RequestValidationError)
     async def _invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
         return JSONResponse(status_code=422, content={"detail": validation_message(exc)})
+
+    @app.exception_handler(ServerError)
+    async def _server_error(_request: Request, exc: ServerError) -> JSONResponse:
+        # not found, impossible transition, robot offline: each class carries its status
+        return JSONResponse(status_code=exc.status_code, content={"detail": str(exc)})
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:

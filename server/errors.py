@@ -5,17 +5,24 @@ Hierarchy:
     ├── NotFoundError        no run, generation or controller with that id (HTTP 404)
     └── TransitionError      the run's status does not allow the requested change (HTTP 409)
 
-Bad arguments raise plain `ValueError`; `HTTPException` is raised only in `server/routes`.
+Bad arguments raise plain `ValueError`. The app answers a ServerError that reaches a route
+with its `status_code` and message; `HTTPException` is raised only in `server/routes`.
 """
 
 
 class ServerError(Exception):
-    """Root of every error raised by `server`."""
+    """Root of every error raised by `server`; `status_code` is its HTTP answer (app.py maps it)."""
+
+    status_code = 500
 
 
 class NotFoundError(ServerError):
     """The requested run, generation or controller does not exist."""
 
+    status_code = 404
+
 
 class TransitionError(ServerError):
     """A lifecycle change that the run's current status forbids (e.g. resuming a completed run)."""
+
+    status_code = 409

@@ -77,6 +77,8 @@ log = logging.getLogger(__name__)
 class RobotOfflineError(ServerError):
     """The robot has no liveliness token: nothing can be pushed to it (HTTP 409)."""
 
+    status_code = 409
+
 
 @dataclass(frozen=True)
 class RobotSettings:

@@ -20,8 +20,6 @@ from evorobotics.document import ControllerDocument
 from schemas.run import RunConfig
 from server import crud
 from server.deps import ManagerDep, SessionDep
-from server.errors import ServerError
-from server.routes.runs import http_error
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
@@ -76,10 +74,7 @@ def best_figure(
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
     """`network` or `paths` of the fittest controller so far (rank 0, latest generation)."""
-    try:
-        sha = manager.best(run_id)
-    except ServerError as exc:
-        raise http_error(exc) from exc
+    sha = manager.best(run_id)
     run = crud.get_run(session, run_id=run_id)
     stored = crud.get_controller(session, sha256=sha)
     if run is None or stored is None:

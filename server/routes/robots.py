@@ -7,11 +7,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
 
 from schemas.robots import PushBody, PushOut, ReplayOut, RobotDetail, RobotOut, TracesOut
-from server.errors import ServerError
-from server.robots import RobotOfflineError, RobotService
+from server.robots import RobotService
 
 router = APIRouter(prefix="/api/robots", tags=["robots"])
 
@@ -26,11 +25,6 @@ def get_robots(request: Request) -> RobotService:
 RobotsDep = Annotated[RobotService, Depends(get_robots)]
 
 
-def _http(exc: ServerError) -> HTTPException:
-    code = status.HTTP_409_CONFLICT if isinstance(exc, RobotOfflineError) else 404
-    return HTTPException(status_code=code, detail=str(exc))
-
-
 @router.get("", response_model=list[RobotOut])
 def list_robots(robots: RobotsDep) -> list[RobotOut]:
     """Every robot ever seen, online or not."""
@@ -39,10 +33,7 @@ def list_robots(robots: RobotsDep) -> list[RobotOut]:
 
 @router.get("/{robot_id}", response_model=RobotDetail)
 def get_robot(robots: RobotsDep, robot_id: str) -> RobotDetail:
-    try:
-        return robots.robot(robot_id)
-    except ServerError as exc:
-        raise _http(exc) from exc
+    return robots.robot(robot_id)
 
 
 @router.post("/{robot_id}/controller", response_model=PushOut)
@@ -50,19 +41,13 @@ def push_controller(robots: RobotsDep, robot_id: str, body: PushBody) -> PushOut
     """Push a stored controller (`sha256`) or a run's ranked individual (`run_id`, `rank`)."""
     if (body.sha256 is None) == (body.run_id is None):
         raise HTTPException(422, detail="body: give exactly one of sha256 or run_id")
-    try:
-        return robots.push(robot_id, sha256=body.sha256, run_id=body.run_id, rank=body.rank)
-    except ServerError as exc:
-        raise _http(exc) from exc
+    return robots.push(robot_id, sha256=body.sha256, run_id=body.run_id, rank=body.rank)
 
 
 @router.post("/{robot_id}/stop", response_model=PushOut)
 def stop_robot(robots: RobotsDep, robot_id: str) -> PushOut:
     """Motors to zero until the next push."""
-    try:
-        return robots.stop_robot(robot_id)
-    except ServerError as exc:
-        raise _http(exc) from exc
+    return robots.stop_robot(robot_id)
 
 
 @router.get("/{robot_id}/traces", response_model=TracesOut)
@@ -71,16 +56,10 @@ def get_traces(
     robot_id: str,
     limit: Annotated[int, Query(ge=1, le=100_000, description="newest samples")] = 1000,
 ) -> TracesOut:
-    try:
-        return robots.traces(robot_id, limit)
-    except ServerError as exc:
-        raise _http(exc) from exc
+    return robots.traces(robot_id, limit)
 
 
 @router.get("/{robot_id}/replay", response_model=ReplayOut)
 def replay(robots: RobotsDep, robot_id: str) -> ReplayOut:
     """Same whiskers into the same controller: are the motor commands bit-identical?"""
-    try:
-        return robots.replay(robot_id)
-    except ServerError as exc:
-        raise _http(exc) from exc
+    return robots.replay(robot_id)

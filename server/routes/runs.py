@@ -14,7 +14,6 @@ from schemas.run import RunConfig
 from server import crud
 from server.auth import run_limit_error
 from server.deps import ManagerDep, SessionDep
-from server.errors import ServerError, TransitionError
 from server.models import Run
 
 RunId = Annotated[int, Path(ge=0, le=2**63 - 1, description="a run id (64-bit)")]
@@ -49,11 +48,6 @@ def run_out(run: Run) -> RunOut:
         finished_at=aware(run.finished_at),
         error=run.error,
     )
-
-
-def http_error(exc: ServerError) -> HTTPException:
-    code = status.HTTP_409_CONFLICT if isinstance(exc, TransitionError) else 404
-    return HTTPException(status_code=code, detail=str(exc))
 
 
 def _run(session: SessionDep, run_id: RunId) -> Run:
@@ -154,10 +148,7 @@ def list_individuals(
 )
 def best(manager: ManagerDep, session: SessionDep, run_id: RunId) -> Response:
     """The controller document of the fittest individual so far (rank 0, latest generation)."""
-    try:
-        sha = manager.best(run_id)
-    except ServerError as exc:
-        raise http_error(exc) from exc
+    sha = manager.best(run_id)
     document = crud.get_controller(session, sha256=sha)
     if document is None:
         raise HTTPException(404, detail=f"controller {sha} vanished")
@@ -165,10 +156,7 @@ def best(manager: ManagerDep, session: SessionDep, run_id: RunId) -> Response:
 
 
 def _steer(manager: ManagerDep, session: SessionDep, run_id: RunId, action: str) -> RunOut:
-    try:
-        getattr(manager, action)(run_id)
-    except ServerError as exc:
-        raise http_error(exc) from exc
+    getattr(manager, action)(run_id)
     session.expire_all()
     return run_out(_run(session, run_id))
 
