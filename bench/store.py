@@ -36,7 +36,7 @@ def main() -> None:
     config = RunConfig(generations=GENERATIONS + 1, steps=5, trials=1)
     load = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
-        engine = make_engine(f"sqlite:///{Path(tmp) / 'bench.db'}")
+        engine = make_engine(f"sqlite:///{Path(tmp) / 'bench.db'}", background_checkpoint=True)
         upgrade(engine)
         manager = RunManager(engine, Settings(db_url="unused"))
         manager.create_run(config)

@@ -22,7 +22,7 @@ from fastapi.responses import JSONResponse
 from schemas.api import ErrorOut
 from server import metrics, signing
 from server.auth import SecurityMiddleware
-from server.db import make_engine, upgrade
+from server.db import Checkpointer, is_sqlite, make_engine, upgrade
 from server.dispatch import Dispatcher, QueueSource
 from server.errors import ServerError
 from server.executor import InProcessExecutor
@@ -94,8 +94,10 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         async with AsyncExitStack() as stack:
-            engine = make_engine(settings.db_url)
+            engine = make_engine(settings.db_url, background_checkpoint=True)
             stack.callback(engine.dispose)
+            if is_sqlite(engine):
+                stack.callback(Checkpointer(engine).close)
             upgrade(engine)
             key_path = settings.server_key_path()
             app.state.signer = Signer.from_file(key_path)
@@ -111,6 +113,7 @@ def create_app(
                 stack.callback(session.close)
                 source = QueueSource(manager.queue)
                 dispatcher = Dispatcher(dispatch, source, session=session)
+                manager.queue.set_job_sizer(dispatcher.job_size)
                 closers = [service(app, session) for service in services]
                 for close in closers:
                     stack.callback(close)
