@@ -24,10 +24,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
-from sqlalchemy import Engine, Table, delete, func, insert, select, update
+from sqlalchemy import Connection, Engine, Table, bindparam, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import best_document
@@ -35,6 +35,7 @@ from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, li
 from evorobotics.layout import Layout, layout
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
+from schemas.wire import MAGIC, decode_frame, encode_frame
 from server import crud
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
@@ -49,10 +50,27 @@ _RUNS = cast(Table, Run.__table__)
 _GENERATIONS = cast(Table, Generation.__table__)
 _INDIVIDUALS = cast(Table, Individual.__table__)
 """The tables behind the hot path's Core statements."""
+_ADVANCE_RUN = (
+    update(_RUNS)
+    .where(
+        _RUNS.c.id == bindparam("run"),
+        _RUNS.c.generation == bindparam("at"),
+        _RUNS.c.status.in_(("running", "paused")),
+    )
+    .values(
+        generation=bindparam("next"),
+        best_fitness=bindparam("top"),
+        evaluations=_RUNS.c.evaluations + bindparam("evaluated"),
+    )
+)
+"""Moves a live run from generation `at` to `next` (built once: building it cost more than
+executing it)."""
+_INSERT_GENERATION = insert(_GENERATIONS)
 
 
 def encode_state(state: GAState, *, with_ranked: bool = True) -> bytes:
-    """GAState as an uncompressed .npz (self-describing dtype and shape, no pickle).
+    """GAState as a frame of raw arrays (schemas.wire: self-describing dtype and shape, no
+    pickle; a tenth of the time of the .npz that servers before 0.2 wrote).
 
     The store passes `with_ranked=False`: `ranked` is the generation's individuals in rank
     order, already stored bit for bit in `individuals`, so keeping it twice would double the
@@ -61,15 +79,17 @@ def encode_state(state: GAState, *, with_ranked: bool = True) -> bytes:
     arrays = state.to_arrays()
     if not with_ranked:
         arrays.pop("ranked", None)
-    buffer = io.BytesIO()
-    np.savez(buffer, allow_pickle=False, **arrays)
-    return buffer.getvalue()
+    return encode_frame({"kind": "ga-state"}, arrays)
 
 
 def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None) -> GAState:
-    """Inverse of `encode_state`; `ranked` loads the population a compact encoding left out."""
-    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-        arrays = {name: npz[name] for name in npz.files}
+    """Inverse of `encode_state` (and reads the .npz of older servers); `ranked` loads the
+    population a compact encoding left out."""
+    if data.startswith(MAGIC):
+        arrays = decode_frame(data)[1]
+    else:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            arrays = {name: npz[name] for name in npz.files}
     if "ranked" not in arrays and "ranked_fitness" in arrays and ranked is not None:
         arrays["ranked"] = ranked()
     return GAState.from_arrays(arrays)
@@ -105,6 +125,36 @@ class _Asked:
     generation: int
     genomes: np.ndarray
     running: bool
+
+
+_INDIVIDUAL_COLUMNS = (
+    "run_id",
+    "generation",
+    "rank",
+    "index",
+    "parent",
+    "fitness",
+    "components",
+    "genome",
+    "dtype",
+    "shape",
+)
+_MARKERS = {"qmark": "?", "format": "%s", "pyformat": "%s"}
+"""Positional placeholders of the drivers the server supports (sqlite3, psycopg)."""
+
+
+def _insert_rows(
+    conn: Connection, table: Table, columns: tuple[str, ...], rows: list[tuple[Any, ...]]
+) -> None:
+    """One executemany straight to the driver: for the 100 rows of a generation, SQLAlchemy's
+    per-row parameter processing cost half as much again as SQLite's own insert."""
+    marker = _MARKERS.get(conn.dialect.paramstyle)
+    if marker is None:
+        raise ValueError(f"unsupported driver paramstyle {conn.dialect.paramstyle!r}")
+    quote = conn.dialect.identifier_preparer.quote
+    names = ", ".join(quote(c) for c in columns)
+    places = ", ".join([marker] * len(columns))
+    conn.exec_driver_sql(f"INSERT INTO {quote(table.name)} ({names}) VALUES ({places})", rows)
 
 
 class RunManager:
@@ -396,15 +446,15 @@ class RunManager:
         order = metrics.order
         top = float(fitness[order[0]])
         conn = session.connection()  # Core on the session's transaction: no ORM unit of work
-        runs = _RUNS.c
         moved = conn.execute(
-            update(_RUNS)
-            .where(runs.id == run_id, runs.generation == g, runs.status.in_(("running", "paused")))
-            .values(
-                generation=g + 1,
-                best_fitness=top if np.isfinite(top) else None,
-                evaluations=runs.evaluations + plan.config.population,
-            )
+            _ADVANCE_RUN,
+            {
+                "run": run_id,
+                "at": g,
+                "next": g + 1,
+                "top": top if np.isfinite(top) else None,
+                "evaluated": plan.config.population,
+            },
         )
         if moved.rowcount != 1:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
@@ -416,34 +466,37 @@ class RunManager:
             metrics.mean,
         )
         conn.execute(
-            insert(_GENERATIONS).values(
-                run_id=run_id,
-                generation=g,
-                best=metrics.best,
-                mean=metrics.mean,
-                worst=metrics.worst,
-                nan_count=metrics.nan_count,
-                state=encode_state(state, with_ranked=False),
-                committed_at=utcnow(),
-            )
+            _INSERT_GENERATION,
+            {
+                "run_id": run_id,
+                "generation": g,
+                "best": metrics.best,
+                "mean": metrics.mean,
+                "worst": metrics.worst,
+                "nan_count": metrics.nan_count,
+                "state": encode_state(state, with_ranked=False),
+                "committed_at": utcnow(),
+            },
         )
         parents = [p if p >= 0 else None for _, p in lineage(plan.params, g)]
         dtype, shape = genomes.dtype.str, str(genomes.shape[1])
-        conn.execute(
-            insert(_INDIVIDUALS),
+        _insert_rows(
+            conn,
+            _INDIVIDUALS,
+            _INDIVIDUAL_COLUMNS,
             [
-                {
-                    "run_id": run_id,
-                    "generation": g,
-                    "rank": r,
-                    "index": i,
-                    "parent": parents[i],
-                    "fitness": float(fitness[i]) if np.isfinite(fitness[i]) else None,
-                    "components": components[i].tobytes(),
-                    "genome": genomes[i].tobytes(),
-                    "dtype": dtype,
-                    "shape": shape,
-                }
+                (
+                    run_id,
+                    g,
+                    r,
+                    i,
+                    parents[i],
+                    float(fitness[i]) if np.isfinite(fitness[i]) else None,
+                    components[i].tobytes(),
+                    genomes[i].tobytes(),
+                    dtype,
+                    shape,
+                )
                 for r, i in enumerate(order.tolist())
             ],
         )
