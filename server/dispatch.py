@@ -28,6 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
+from schemas.run import RunConfig
 from schemas.security import ZenohRouterAuth
 from schemas.wire import (
     KEY_JOB_NEXT,
@@ -224,6 +225,13 @@ class Dispatcher:
     def notify(self) -> None:
         """New jobs may be leasable: answer held requests now instead of at the next poll."""
         self._inbox.put(_WAKE)
+
+    def job_size(self, config: RunConfig) -> int:
+        """Individuals per job of `config`'s next generation: one job per live worker, never
+        smaller than the run's `job_size` (a `JobSizer` for the job queue)."""
+        with self._lock:
+            live = sum(1 for w in self._workers.values() if w.gone_at is None)
+        return max(config.job_size, -(-config.population // max(live, 1)))
 
     def workers(self) -> list[WorkerStatus]:
         """Every known worker, gone ones included until `gone_keep_s` after they left."""

@@ -108,6 +108,8 @@ GenerationDone = Callable[[GenerationResults], Advance]
 """Tells the GA a generation's fitness (in memory, no I/O): the next genomes and the write."""
 RunFailed = Callable[[Session, int, str], None]
 """Fails a run (by id) inside the given transaction, after a job exhausted its attempts."""
+JobSizer = Callable[[RunConfig], int]
+"""Individuals per job for a generation about to be cut (see `JobQueue.set_job_sizer`)."""
 
 
 @dataclass
@@ -182,6 +184,18 @@ class JobQueue:
         self._listeners: list[Callable[[], None]] = []
         self._totals = dict.fromkeys(TOTALS, 0)
         """Running totals since construction (see `totals`)."""
+        self._job_size: JobSizer = lambda config: config.job_size
+
+    def set_job_sizer(self, sizer: JobSizer) -> None:
+        """How generations are cut from now on (default: the run's `job_size`).
+
+        The zenoh dispatcher cuts a generation into one job per live worker: every message and
+        every `evaluate` call has a fixed cost, so fewer, larger jobs are cheaper. Results cannot
+        change (an individual's fitness does not depend on the slice it is evaluated in), and a
+        generation keeps its cut while in flight, so a job key names one slice for ever.
+        """
+        with self._lock:
+            self._job_size = sizer
 
     def add_listener(self, listener: Callable[[], None]) -> Callable[[], None]:
         """Call `listener` (it must not block) whenever jobs may have become leasable (executors
@@ -207,7 +221,7 @@ class JobQueue:
     def add(
         self, *, run_id: int, config: RunConfig, generation: int, genomes: np.ndarray, running: bool
     ) -> None:
-        """Cut a committed run's generation into its fixed jobs (replacing any older generation).
+        """Cut a committed run's generation into jobs (replacing any older generation).
 
         Call it after the transaction that made the generation askable has committed.
         """
@@ -215,8 +229,8 @@ class JobQueue:
             raise ValueError(f"genomes of shape {genomes.shape} for population {config.population}")
         frozen = np.array(genomes, dtype=np.float64, order="C")
         frozen.flags.writeable = False
-        slots = [_Slot(a, b) for a, b in job_slices(config.population, config.job_size)]
         with self._lock:
+            slots = [_Slot(a, b) for a, b in job_slices(config.population, self._job_size(config))]
             self._runs[run_id] = _RunJobs(
                 run_id=run_id,
                 generation=generation,
