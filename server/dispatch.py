@@ -228,10 +228,13 @@ class Dispatcher:
 
     def job_size(self, config: RunConfig) -> int:
         """Individuals per job of `config`'s next generation: one job per live worker, never
-        smaller than the run's `job_size` (a `JobSizer` for the job queue)."""
+        smaller than the run's `job_size`, which also applies while no worker is known (a
+        `JobSizer` for the job queue)."""
         with self._lock:
             live = sum(1 for w in self._workers.values() if w.gone_at is None)
-        return max(config.job_size, -(-config.population // max(live, 1)))
+        if live == 0:
+            return config.job_size
+        return max(config.job_size, -(-config.population // live))
 
     def workers(self) -> list[WorkerStatus]:
         """Every known worker, gone ones included until `gone_keep_s` after they left."""

@@ -320,6 +320,25 @@ def test_worker_that_leaves_is_listed_as_gone() -> None:
     assert status.name == "brief" and status.jobs_done == 4
 
 
+def test_job_size_gives_each_live_worker_one_job() -> None:
+    """The queue's JobSizer: population / live workers, rounded up, never below job_size."""
+    port = free_port()
+    config = CONFIG.model_copy(update={"population": 12, "job_size": 3})
+    with (
+        Dispatcher(dispatch_settings(port), MemorySource()) as dispatcher,
+        zenoh.open(client_config(port)) as session,
+    ):
+        assert dispatcher.job_size(config) == 3  # nobody yet: the run's own size
+        tokens = [session.liveliness().declare_token(worker_key(n)) for n in ("a", "b", "c")]
+        assert eventually(lambda: dispatcher.job_size(config) == 4)
+        assert dispatcher.job_size(config.model_copy(update={"job_size": 5})) == 5
+        tokens.pop().undeclare()  # type: ignore[no-untyped-call]
+        assert eventually(lambda: dispatcher.job_size(config) == 6)
+        for token in tokens:
+            token.undeclare()  # type: ignore[no-untyped-call]
+        assert eventually(lambda: dispatcher.job_size(config) == 3)
+
+
 def test_settings_reject_bad_values() -> None:
     with pytest.raises(ValueError):
         DispatchSettings(listen=(), connect=())
@@ -361,12 +380,14 @@ def test_queue_source_two_workers_give_the_same_best_as_local_evolve(tmp_path: P
                 assert run is not None
                 return run.status
 
-        with (
-            Dispatcher(dispatch_settings(port), source),
-            worker_thread(port, "one", evaluate_slice),
-            worker_thread(port, "two", evaluate_slice),
-        ):
-            assert eventually(lambda: status() == "completed", timeout=60.0), status()
+        with Dispatcher(dispatch_settings(port), source) as dispatcher:
+            # generations are cut per live worker (4 + 4 once both are up), run 0 as 3+3+2
+            manager.queue.set_job_sizer(dispatcher.job_size)
+            with (
+                worker_thread(port, "one", evaluate_slice),
+                worker_thread(port, "two", evaluate_slice),
+            ):
+                assert eventually(lambda: status() == "completed", timeout=60.0), status()
         sha = manager.best(run_id)
     finally:
         manager.stop()

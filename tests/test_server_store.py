@@ -22,7 +22,7 @@ from evorobotics.layout import layout
 from schemas.run import RunConfig
 from schemas.wire import decode_frame
 from server import crud
-from server.db import alembic_config, make_engine, upgrade
+from server.db import Checkpointer, alembic_config, make_engine, upgrade
 from server.jobs import JobKey, JobResult
 from server.manager import RunManager, decode_state, encode_state, stored_ranked
 from server.models import pack, unpack
@@ -112,6 +112,46 @@ def _evaluate(manager: RunManager, worker: str, now: float) -> tuple[JobKey, Job
         return None
     ev = evaluate(job.config, job.key.generation, job.genomes)
     return job.key, JobResult(ev.fitness, ev.components)
+
+
+def test_a_job_sizer_cuts_later_generations_and_the_run_matches_evolve(
+    manager: RunManager,
+) -> None:
+    """Generation 0 is cut by the run's job_size; from the sizer on, by the sizer (the zenoh
+    dispatcher's one job per worker); fitness does not depend on the cut."""
+    run_id = manager.create_run(SMALL)
+    cuts: list[list[tuple[int, int]]] = []
+    for g in range(SMALL.generations):
+        jobs = []
+        while (job := manager.queue.lease("w", 0.0)) is not None:
+            jobs.append(job)
+        cuts.append([(j.start, j.stop) for j in jobs])
+        if g == 0:  # generation 0 is cut already; its last result cuts generation 1
+            manager.queue.set_job_sizer(lambda config: config.population)
+        for job in jobs:
+            ev = evaluate(job.config, job.key.generation, job.genomes)
+            manager.queue.complete(job.key, JobResult(ev.fitness, ev.components))
+    assert cuts == [[(0, 5), (5, 10), (10, 12)], [(0, 12)], [(0, 12)]]
+    assert manager.best(run_id) == evolve(SMALL).best.sha256
+
+
+def test_background_checkpoint_copies_the_log_that_writes_no_longer_copy(tmp_path: Path) -> None:
+    engine = make_engine(f"sqlite:///{tmp_path / 'c.db'}", background_checkpoint=True)
+    upgrade(engine)
+    with engine.connect() as conn:
+        assert conn.exec_driver_sql("PRAGMA wal_autocheckpoint").scalar() == 0
+    checkpointer = Checkpointer(engine, interval_s=3600.0)
+    try:
+        with engine.begin() as conn:
+            conn.exec_driver_sql("CREATE TABLE t (x BLOB)")
+            conn.exec_driver_sql("INSERT INTO t VALUES (?)", (bytes(1 << 16),))
+        frames, copied = checkpointer.checkpoint()
+        assert frames > 0 and copied == frames
+    finally:
+        checkpointer.close()
+        engine.dispose()
+    with pytest.raises(ValueError, match="SQLite"):
+        Checkpointer(sa.create_engine("postgresql+psycopg://u@localhost/db"))
 
 
 def test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once(manager: RunManager) -> None:
