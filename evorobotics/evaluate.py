@@ -13,6 +13,7 @@ it is evaluated in:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -25,9 +26,8 @@ from evorobotics.sim import (
     Gap,
     SimResult,
     WorldParams,
-    body_hits_wall,
+    clear_of_walls,
     simulate,
-    whisker_bits,
 )
 from schemas.run import RunConfig
 
@@ -51,13 +51,36 @@ class Evaluation:
 def start_poses(
     maze: Maze, seed: int, generation: int, trials: int, params: WorldParams = DEFAULT_WORLD
 ) -> np.ndarray:
-    """(trials, 3) random free poses: body clear of walls, every whisker untriggered.
+    """(trials, 3) random free poses: body clear of walls, every whisker untriggered (read-only).
 
     Candidates are drawn in rounds of 64 and accepted in draw order, so the result is a pure
-    function of (maze, seed, generation, trials, params).
+    function of (maze, seed, generation, trials, params). Every job of a generation asks for the
+    same poses, so the last START_CACHE draws of this process are kept (keyed by the Maze
+    object, as `load_maze` hands out one per spec); the array is a read-only view of the cached
+    one, so no caller can change another's poses.
     """
     if trials < 0:
         raise ValueError(f"trials must be >= 0, got {trials}")
+    return _cached_start_poses(maze, seed, generation, trials, params).view()
+
+
+START_CACHE = 64
+"""Entries of the start-pose and reality-gap caches: a few generations of a few runs."""
+
+
+@lru_cache(maxsize=START_CACHE)
+def _cached_start_poses(
+    maze: Maze, seed: int, generation: int, trials: int, params: WorldParams
+) -> np.ndarray:
+    poses = _draw_start_poses(maze, seed, generation, trials, params)
+    poses.flags.writeable = False
+    return poses
+
+
+def _draw_start_poses(
+    maze: Maze, seed: int, generation: int, trials: int, params: WorldParams
+) -> np.ndarray:
+    """`start_poses` without the cache: the draws themselves."""
     gen = rng(seed, generation, Purpose.START_POSES)
     accepted: list[np.ndarray] = [np.empty((0, 3))]
     found = 0
@@ -71,23 +94,36 @@ def start_poses(
                 gen.uniform(-np.pi, np.pi, _CANDIDATES),
             ]
         )
-        free = ~body_hits_wall(maze, cand, params) & ~whisker_bits(maze, cand, params).any(axis=1)
+        free = clear_of_walls(maze, cand, params)
         accepted.append(cand[free])
         found += int(free.sum())
     if found < trials:
         raise MazeError(f"maze {maze.name!r} has no room for the robot: no free start pose")
-    poses = np.concatenate(accepted)
-    return np.ascontiguousarray(poses[:trials])
+    # a copy owns its data: once the cache clears its writeable flag, no view can set it again
+    return np.concatenate(accepted)[:trials].copy()
 
 
 def draw_gap(seed: int, generation: int, trials: int) -> Gap:
-    """Per-trial reality-gap draws (trials,), (trials, 2) from Purpose.REALITY_GAP."""
+    """Per-trial reality-gap draws (trials,), (trials, 2) from Purpose.REALITY_GAP (read-only).
+
+    Cached like `start_poses` (every job of a generation draws the same); read-only views.
+    """
+    if trials < 0:
+        raise ValueError(f"trials must be >= 0, got {trials}")
+    cached = _cached_gap(seed, generation, trials)
+    return Gap(cached.whisker_range.view(), cached.motor_gain.view())
+
+
+@lru_cache(maxsize=START_CACHE)
+def _cached_gap(seed: int, generation: int, trials: int) -> Gap:
     ranges = np.empty(trials)
     gains = np.empty((trials, 2))
     for t in range(trials):
         gen = rng(seed, generation, Purpose.REALITY_GAP, t)
         ranges[t] = gen.uniform(*GAP_WHISKER_RANGE)
         gains[t] = gen.uniform(1.0 - GAP_MOTOR_GAIN, 1.0 + GAP_MOTOR_GAIN, 2)
+    ranges.flags.writeable = False
+    gains.flags.writeable = False
     return Gap(ranges, gains)
 
 

@@ -52,4 +52,6 @@ def mean_fitness(components: np.ndarray, weights: FitnessWeights) -> np.ndarray:
     """A controller's fitness: Eq 12 averaged over its trials, (k, trials, 4) -> (k,)."""
     if components.ndim != 3:
         raise ValueError(f"components must be (k, trials, 4), got shape {components.shape}")
-    return np.asarray(fitness(components, weights).mean(axis=1), dtype=np.float64)
+    # np.mean's own steps (add.reduce, then true division by the count) minus its Python layer
+    total = np.add.reduce(fitness(components, weights), axis=1)
+    return np.asarray(total / components.shape[1])

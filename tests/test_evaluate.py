@@ -6,10 +6,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evorobotics.errors import MazeError
-from evorobotics.evaluate import draw_gap, evaluate, record_path, start_poses
+from evorobotics.evaluate import (
+    START_CACHE,
+    _cached_start_poses,
+    draw_gap,
+    evaluate,
+    record_path,
+    start_poses,
+)
 from evorobotics.fitness import COMPONENTS, fitness, mean_fitness
-from evorobotics.maze import load_maze, parse_maze
-from evorobotics.sim import body_hits_wall, whisker_bits
+from evorobotics.maze import Maze, load_maze, parse_maze
+from evorobotics.seeds import Purpose, rng
+from evorobotics.sim import DEFAULT_WORLD, WorldParams, body_hits_wall, whisker_bits
 from schemas.run import FitnessWeights, RunConfig
 
 
@@ -34,6 +42,83 @@ def test_start_poses_are_free_and_deterministic(seed: int, generation: int) -> N
     assert np.array_equal(poses, start_poses(maze, seed, generation, 5))
     assert not np.array_equal(poses, start_poses(maze, seed, generation + 1, 5))
     assert np.array_equal(poses[:2], start_poses(maze, seed, generation, 2))
+
+
+def numpy_start_poses(
+    maze: Maze, seed: int, generation: int, trials: int, params: WorldParams
+) -> np.ndarray:
+    """The start-pose draw as first written: rounds of 64, the numpy geometry, no cache."""
+    gen = rng(seed, generation, Purpose.START_POSES)
+    accepted = [np.empty((0, 3))]
+    while sum(len(a) for a in accepted) < trials:
+        cand = np.column_stack(
+            [
+                gen.uniform(0.0, maze.width, 64),
+                gen.uniform(0.0, maze.height, 64),
+                gen.uniform(-np.pi, np.pi, 64),
+            ]
+        )
+        free = ~body_hits_wall(maze, cand, params) & ~whisker_bits(maze, cand, params).any(axis=1)
+        accepted.append(cand[free])
+    return np.concatenate(accepted)[:trials]
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    name=st.sampled_from(["paper", "arena", "corridor", "zigzag", "gen:4:2"]),
+    params=st.sampled_from(
+        [DEFAULT_WORLD, WorldParams(whisker_range=0.1), WorldParams(body_length=0.3)]
+    ),
+    seed=st.integers(0, 2**40),
+    generation=st.integers(0, 1000),
+    trials=st.integers(1, 80),
+)
+def test_start_poses_are_the_numpy_draws_bit_for_bit(
+    name: str, params: WorldParams, seed: int, generation: int, trials: int
+) -> None:
+    maze = load_maze(name)
+    expected = numpy_start_poses(maze, seed, generation, trials, params).tobytes()
+    assert start_poses(maze, seed, generation, trials, params).tobytes() == expected
+    assert start_poses(maze, seed, generation, trials, params).tobytes() == expected  # cached
+
+
+def test_start_poses_cache_cannot_be_corrupted_and_is_bounded() -> None:
+    maze = load_maze("paper")
+    poses = start_poses(maze, 21, 3, 4)
+    expected = poses.copy()
+    with pytest.raises(ValueError, match="read-only"):
+        poses[0, 0] = 0.0
+    with pytest.raises(ValueError):
+        poses.flags.writeable = True
+    assert np.array_equal(start_poses(maze, 21, 3, 4), expected)
+    gap = draw_gap(21, 3, 4)
+    with pytest.raises(ValueError, match="read-only"):
+        gap.motor_gain[0, 0] = 2.0
+    assert np.array_equal(draw_gap(21, 3, 4).motor_gain, gap.motor_gain)
+    for g in range(START_CACHE + 5):
+        start_poses(maze, 22, g, 2)
+    assert _cached_start_poses.cache_info().currsize <= START_CACHE
+    assert np.array_equal(start_poses(maze, 21, 3, 4), expected)  # evicted and drawn again
+    with pytest.raises(ValueError, match="trials"):
+        start_poses(maze, 0, 0, -1)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    k=st.integers(1, 40),
+    trials=st.integers(1, 30),
+    k4=st.floats(0.0, 100.0),
+)
+def test_mean_fitness_is_numpy_mean_bit_for_bit(seed: int, k: int, trials: int, k4: float) -> None:
+    g = np.random.default_rng(seed)
+    comps = np.concatenate(
+        [g.exponential(1.0, (k, trials, 3)), g.integers(0, 2, (k, trials, 1))], axis=-1
+    )
+    weights = FitnessWeights(k1=0.5, k4=k4)
+    expected = fitness(comps, weights).mean(axis=1)
+    got = mean_fitness(comps, weights)
+    assert got.dtype == np.float64 and got.tobytes() == expected.tobytes()
 
 
 def test_no_room_for_a_start_pose() -> None:

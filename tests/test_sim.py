@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -12,13 +13,15 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from evorobotics import network
-from evorobotics.evaluate import start_poses
+from evorobotics.evaluate import draw_gap, start_poses
 from evorobotics.maze import load_maze
 from evorobotics.sim import (
     DEFAULT_WORLD,
     Gap,
     WorldParams,
+    _episode_kernel,
     body_hits_wall,
+    clear_of_walls,
     simulate,
     simulate_reference,
     whisker_bits,
@@ -322,3 +325,79 @@ def test_fresh_process_with_warm_kernel_cache_gives_the_same_bits(tmp_path: Path
     assert any("data saved" in line for line in logs[0])
     assert any("data loaded" in line for line in logs[1])
     assert not any("saved" in line for line in logs[1])
+
+
+CHECK_MAZES = ["arena", "corridor", "paper", "zigzag", "gen:4:2"]
+CHECK_WORLDS = [
+    DEFAULT_WORLD,
+    WorldParams(whisker_range=0.1),
+    WorldParams(body_length=0.3, body_width=0.2),
+    WorldParams(whisker_range=0.0),
+]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    name=st.sampled_from(CHECK_MAZES),
+    params=st.sampled_from(CHECK_WORLDS),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_clear_of_walls_is_the_numpy_test_bit_for_bit(
+    name: str, params: WorldParams, seed: int
+) -> None:
+    # the start-pose check: random poses, plus a quarter-cell lattice at headings k pi / 4
+    # (poses exactly on cell edges and axis-parallel whiskers, where rounding would show)
+    maze = load_maze(name)
+    g = np.random.default_rng(seed)
+    uniform = np.column_stack(
+        [
+            g.uniform(0.0, maze.width, 200),
+            g.uniform(0.0, maze.height, 200),
+            g.uniform(-math.pi, math.pi, 200),
+        ]
+    )
+    quarter = maze.cell_size / 4
+    lattice = np.column_stack(
+        [
+            g.integers(0, round(maze.width / quarter), 200) * quarter,
+            g.integers(0, round(maze.height / quarter), 200) * quarter,
+            g.integers(-4, 4, 200) * (math.pi / 4),
+        ]
+    )
+    for poses in (uniform, lattice):
+        ref = ~body_hits_wall(maze, poses, params) & ~whisker_bits(maze, poses, params).any(axis=1)
+        got = clear_of_walls(maze, poses, params)
+        assert got.dtype == np.bool_ and got.shape == (200,)
+        assert np.array_equal(got, ref)
+    assert ref.any() and not ref.all()  # both outcomes are exercised
+
+
+def test_clear_of_walls_examples_and_bad_arguments() -> None:
+    # arena: inner faces at 0.1 and 1.9; a body in the middle is clear, one across a wall is not
+    poses = np.array([[1.0, 1.0, 0.0], [0.1, 1.0, 0.0], [1.9 - 0.0825 - 0.049, 1.0, 0.0]])
+    assert clear_of_walls(ARENA, poses).tolist() == [True, False, False]  # last: whisker
+    assert clear_of_walls(ARENA, poses[2:], WorldParams(whisker_range=0.04)).tolist() == [True]
+    assert clear_of_walls(ARENA, np.empty((0, 3))).shape == (0,)
+    with pytest.raises(ValueError, match="poses must be"):
+        clear_of_walls(ARENA, np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="finite"):
+        clear_of_walls(ARENA, np.array([[1.0, math.nan, 0.0]]))
+
+
+def test_read_only_inputs_give_the_same_bits_without_a_new_compilation() -> None:
+    # start_poses and draw_gap hand out read-only cached arrays: numba would type them as a
+    # different array type and compile the whole kernel again
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    poses, gap = start_poses(maze, 4, 0, 6), draw_gap(4, 0, 6)
+    assert not poses.flags.writeable and not gap.motor_gain.flags.writeable
+    weights = np.random.default_rng(2).normal(0.0, 1.5, (6, spec.weight_count))
+    copied = Gap(gap.whisker_range.copy(), gap.motor_gain.copy())
+    first = simulate(spec, weights, maze, poses.copy(), 30, gap=copied)
+    kernel: Any = _episode_kernel(spec)  # a numba dispatcher
+    compiled = len(kernel.signatures)
+    weights.flags.writeable = False
+    again = simulate(spec, weights, maze, poses, 30, gap=gap)
+    assert len(kernel.signatures) == compiled
+    assert again.components.tobytes() == first.components.tobytes()
+    assert again.poses_final.tobytes() == first.poses_final.tobytes()
