@@ -1,9 +1,12 @@
 """Local evolution: the run loop every role composes identically, and its fixed job slices.
 
-A generation is cut into contiguous jobs that depend on the config only (never on how many
-workers exist), so a run evaluated in one process or on many gives the same fitness arrays.
-`evolve` is that loop in one process; `best_document` names the best controller the same way
-for `colony evolve` and the server (rank 0 of the latest completed generation).
+An individual's fitness depends on the config, the generation and its own genome only (trial
+conditions are drawn per generation, robots are independent), never on which other genomes
+share its `evaluate` call. So `job_size` is only the unit the server dispatches: a generation is
+cut into contiguous jobs that depend on the config only (never on how many workers exist), and
+`evolve` evaluates the whole generation in one call; both give bit-identical fitness arrays.
+`best_document` names the best controller the same way for `colony evolve` and the server
+(rank 0 of the latest completed generation).
 """
 
 from __future__ import annotations
@@ -92,14 +95,19 @@ def best_document(
 def evaluate_population(
     config: RunConfig, generation: int, genomes: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fitness (n,) and components (n, trials, 4) of a generation, job by job in slice order."""
-    parts = [
-        evaluate(config, generation, genomes[a:b])
-        for a, b in job_slices(config.population, config.job_size)
-    ]
-    fitness = np.concatenate([p.fitness for p in parts])
-    components = np.concatenate([p.components for p in parts])
-    return fitness, components
+    """Fitness (n,) and components (n, trials, 4) of a generation's n = population genomes.
+
+    One `evaluate` call for the whole population: bit-identical to evaluating it job by job in
+    `job_slices` and concatenating (property-tested), without the per-call cost of each job.
+    """
+    genomes = np.asarray(genomes)
+    if genomes.ndim != 2 or genomes.shape[0] != config.population:
+        raise ValueError(
+            f"genomes must be ({config.population}, n_weights), one row per individual, "
+            f"got {genomes.shape}"
+        )
+    result = evaluate(config, generation, genomes)
+    return result.fitness, result.components
 
 
 def evolve(

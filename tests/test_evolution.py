@@ -4,11 +4,17 @@ from itertools import pairwise
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evorobotics.evaluate import evaluate
-from evorobotics.evolution import GenerationSummary, best_document, evolve, job_slices
+from evorobotics.evolution import (
+    GenerationSummary,
+    best_document,
+    evaluate_population,
+    evolve,
+    job_slices,
+)
 from evorobotics.ga import GAParams, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from schemas.run import RunConfig
@@ -42,7 +48,7 @@ SMALL = RunConfig(population=12, generations=4, steps=20, job_size=5, seed=7)
 
 
 def _manual(config: RunConfig) -> tuple[np.ndarray, np.ndarray, list[tuple[int, float]], int]:
-    """The documented loop, but each generation evaluated as ONE job, not in job_size slices."""
+    """The documented loop, each generation evaluated job by job as the server dispatches it."""
     lay = layout(config.network_spec)
     params = GAParams.from_config(config)
     state = init(lay, params)
@@ -51,8 +57,8 @@ def _manual(config: RunConfig) -> tuple[np.ndarray, np.ndarray, list[tuple[int, 
     top = -1
     for g in range(config.generations):
         genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
-        whole = evaluate(config, g, genomes)
-        fitness = whole.fitness
+        jobs = job_slices(config.population, config.job_size)
+        fitness = np.concatenate([evaluate(config, g, genomes[a:b]).fitness for a, b in jobs])
         state, metrics = tell(genomes, fitness, state, params)
         rows.append((g, metrics.best))
         top = int(metrics.order[0])
@@ -108,3 +114,35 @@ def test_best_document_rejects_bad_arguments() -> None:
         best_document(SMALL, genomes, np.zeros(2), np.array([0]), generation=0)
     with pytest.raises(ValueError, match="generation"):
         best_document(SMALL, genomes, np.zeros(3), np.array([0]), generation=-1)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    generation=st.integers(0, 500),
+    scale=st.floats(0.05, 3.0),
+    cuts=st.lists(st.integers(1, 10), max_size=6),
+    trials=st.integers(1, 4),
+    gap=st.booleans(),
+)
+def test_evaluate_population_equals_any_slicing(
+    seed: int, generation: int, scale: float, cuts: list[int], trials: int, gap: bool
+) -> None:
+    # trial conditions are per generation and robots independent: one call for the whole
+    # population is bit-identical to any cut into jobs, concatenated in order
+    config = RunConfig(population=11, steps=30, trials=trials, seed=seed, reality_gap=gap)
+    genomes = np.random.default_rng(seed).normal(0.0, scale, (11, config.network_spec.weight_count))
+    fitness, components = evaluate_population(config, generation, genomes)
+    bounds = [0, *sorted(set(cuts)), 11]
+    parts = [evaluate(config, generation, genomes[a:b]) for a, b in pairwise(bounds)]
+    assert fitness.shape == (11,) and components.shape == (11, trials, 4)
+    assert np.concatenate([p.fitness for p in parts]).tobytes() == fitness.tobytes()
+    assert np.concatenate([p.components for p in parts]).tobytes() == components.tobytes()
+
+
+def test_evaluate_population_needs_one_row_per_individual() -> None:
+    genomes = np.zeros((SMALL.population + 1, SMALL.network_spec.weight_count))
+    with pytest.raises(ValueError, match="one row per individual"):
+        evaluate_population(SMALL, 0, genomes)
+    with pytest.raises(ValueError, match="one row per individual"):
+        evaluate_population(SMALL, 0, genomes[0])
