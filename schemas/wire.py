@@ -31,13 +31,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 3
+PROTOCOL = 4
 """Wire protocol version, sent in every job request; the server idles other versions.
 
 2: a result may ask for the next job (`want_next`); the server then answers with that job,
 carrying the acknowledgement, instead of a bare Ack (one round trip per job instead of two).
 3: requests and results name the jobs the worker still has in hand (`holding`), so a worker
 may hold one prefetched job and deliver a result while it evaluates the next.
+4: a job says whether others were still pending when it was leased (`more`); without them a
+prefetch could only come back idle, so the worker does not send one.
 """
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
@@ -206,6 +208,8 @@ class JobHeader(_Model):
     start: int = Field(ge=0)
     stop: int = Field(ge=1)
     lease_s: float = Field(gt=0.0, allow_inf_nan=False)
+    more: bool = True
+    """Other jobs were pending when this one was leased: a prefetch may get one."""
     config: RunConfig
     ack: Ack | None = None
     """Set when the job answers a result that asked for the next job: that result's Ack."""
@@ -221,6 +225,8 @@ class Job:
     config: RunConfig
     genomes: np.ndarray
     lease_s: float = 60.0
+    more: bool = True
+    """Other jobs were pending when this one was leased (protocol 4): worth a prefetch."""
 
     def __post_init__(self) -> None:
         check_job(self.key, self.start, self.stop, self.config, self.genomes)
@@ -252,6 +258,7 @@ def encode_job(job: Job, ack: Ack | None = None) -> bytes:
         "start": job.start,
         "stop": job.stop,
         "lease_s": job.lease_s,
+        "more": job.more,
         "config": _config_json(job.config),
     }
     if ack is not None:
@@ -314,6 +321,7 @@ def _job_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Job:
         config=parsed.config,
         genomes=arrays["genomes"],
         lease_s=parsed.lease_s,
+        more=parsed.more,
     )
 
 

@@ -202,6 +202,8 @@ class Dispatcher:
         self.jobs_served = 0
         self.results_accepted = 0
         self.results_dropped = 0
+        self.prefetches = 0
+        """Requests of workers already holding a job (protocol 3 prefetches)."""
         self.malformed = 0
         self._owns_session = session is None
         self._session = zenoh.open(settings.zenoh_config()) if session is None else session
@@ -343,6 +345,7 @@ class Dispatcher:
         if request.protocol != PROTOCOL:
             self._answer_idle(held, f"server speaks protocol {PROTOCOL}")
         elif request.holding:  # a prefetch: a job now or idle now, never held
+            self.prefetches += 1
             if not (self._may_prefetch(request.worker) and self._try_serve(held)):
                 self._answer_idle(held, "no job to prefetch")
         elif not self._try_serve(held):
@@ -564,7 +567,7 @@ class QueueSource:
             return None
         key = JobKey(run_id=job.key.run_id, generation=job.key.generation, index=job.key.index)
         genomes = np.ascontiguousarray(job.genomes, dtype=np.float64)
-        return Job(key, job.start, job.stop, job.config, genomes)
+        return Job(key, job.start, job.stop, job.config, genomes, more=self._queue.has_pending())
 
     def complete(self, result: Result) -> bool:
         key = _queue_key(result.key)

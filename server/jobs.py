@@ -263,6 +263,11 @@ class JobQueue:
             self._runs.pop(run_id, None)
             self._served.pop(run_id, None)
 
+    def has_pending(self) -> bool:
+        """Whether any running run has a job waiting for a worker."""
+        with self._lock:
+            return any(jobs.running and jobs.pending for jobs in self._runs.values())
+
     def lease(self, worker: str, now: float) -> Job | None:
         """The next pending job of the running run served least recently, or None."""
         with self._lock:

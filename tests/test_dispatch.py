@@ -6,6 +6,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -258,6 +259,20 @@ def test_prefetch_is_answered_at_once_and_holding_keeps_the_prefetched_lease() -
         result = Result(second.key, "pre", fake_fitness(second.genomes))
         ack = decode_ack(_ok(ask(session, KEY_JOB_RESULT, encode_result(result))))
         assert ack.accepted and source.done.is_set() and not source.released
+
+
+@pytest.mark.parametrize("more", [True, False])
+def test_a_worker_prefetches_only_while_other_jobs_are_pending(more: bool) -> None:
+    """Protocol 4: a job leased as the last pending one (`more` False) gets no prefetch,
+    which could only come back idle."""
+    port = free_port()
+    source = MemorySource()
+    source.jobs = {i: replace(job, more=more) for i, job in source.jobs.items()}
+    with Dispatcher(dispatch_settings(port), source) as dispatcher:
+        with worker_thread(port, "solo"):
+            assert source.done.wait(WAIT)
+        assert (dispatcher.prefetches > 0) is more
+    assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
 
 
 def test_expired_lease_returns_the_job_and_late_result_is_dropped() -> None:

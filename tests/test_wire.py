@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import struct
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -69,6 +70,9 @@ def test_job_round_trip_is_bit_exact() -> None:
     assert back.config == CONFIG
     assert back.genomes.tobytes() == job.genomes.tobytes()
     assert back.robot_steps == 4 * CONFIG.trials * CONFIG.steps
+    assert back.more  # the default: a prefetch may find another job
+    last = decode_next_reply(encode_job(replace(job, more=False)))
+    assert isinstance(last, Job) and not last.more
 
 
 def test_result_and_control_round_trips() -> None:

@@ -176,9 +176,9 @@ def _serve(
 ) -> None:
     """Evaluate jobs with the next one already in hand when possible (protocol 3).
 
-    While a job is evaluated one request is in flight: a prefetch of the next job, or the
-    previous result asking for the next. So in steady state a worker never waits for a round
-    trip between jobs. Once stopping, no prefetch: the job in evaluation is delivered, a
+    While a job is evaluated one request is in flight: a prefetch of the next job (unless the
+    server said no other job was pending), or the previous result asking for the next. So in
+    steady state a worker never waits for a round trip between jobs. Once stopping, no prefetch: the job in evaluation is delivered, a
     prefetched one is left to lapse (released when the liveliness token goes).
     """
     in_hand: deque[Job] = deque()
@@ -190,7 +190,7 @@ def _serve(
                 continue
             in_hand.append(job)
         job = in_hand.popleft()
-        if ahead is None and not in_hand:
+        if ahead is None and not in_hand and job.more:
             request = JobRequest(
                 worker=settings.name,
                 host=host[:255],
