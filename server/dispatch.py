@@ -98,6 +98,8 @@ class DispatchSettings:
     """Lease for a worker with no measured speed yet (its first job compiles the kernels)."""
     gone_keep_s: float = 600.0
     """How long a departed worker stays listed as gone."""
+    jobs_per_worker: int = 1
+    """A generation is cut into this many jobs per live worker (see `Dispatcher.job_size`)."""
     auth: ZenohRouterAuth = field(default_factory=ZenohRouterAuth)
     """usrpwd dictionary, TLS certificate and message-size limit of the router (security.md)."""
 
@@ -109,6 +111,8 @@ class DispatchSettings:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.gone_keep_s < 0:
             raise ValueError(f"gone_keep_s must be >= 0, got {self.gone_keep_s}")
+        if self.jobs_per_worker < 1:
+            raise ValueError(f"jobs_per_worker must be >= 1, got {self.jobs_per_worker}")
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
         """The lease of a job of `robot_steps` for a worker running `speed` robot-steps/s."""
@@ -229,14 +233,16 @@ class Dispatcher:
         self._inbox.put(_WAKE)
 
     def job_size(self, config: RunConfig) -> int:
-        """Individuals per job of `config`'s next generation: one job per live worker, never
-        smaller than the run's `job_size`, which also applies while no worker is known (a
-        `JobSizer` for the job queue)."""
+        """Individuals per job of `config`'s next generation (a `JobSizer` for the job queue):
+        `jobs_per_worker` jobs per live worker, never smaller than the run's `job_size`, which
+        also applies while no worker is known. Each message and each `evaluate` call has a
+        fixed cost: fewer, larger jobs are cheaper; more of them balance unequal workers."""
         with self._lock:
             live = sum(1 for w in self._workers.values() if w.gone_at is None)
         if live == 0:
             return config.job_size
-        return max(config.job_size, -(-config.population // live))
+        jobs = live * self.settings.jobs_per_worker
+        return max(config.job_size, -(-config.population // jobs))
 
     def workers(self) -> list[WorkerStatus]:
         """Every known worker, gone ones included until `gone_keep_s` after they left."""

@@ -40,6 +40,12 @@ class Settings(BaseSettings):
     executors: int | None = Field(
         None, ge=0, le=64, description="in-process evaluation threads (default: 0 with zenoh, 1)"
     )
+    jobs_per_worker: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="zenoh jobs per live worker and generation (more: finer balance)",
+    )
     lease_seconds: float = Field(300.0, gt=0.0, description="a leased job returns after this")
     lease_min_seconds: float = Field(
         10.0, gt=0.0, description="shortest zenoh lease (lease = max(this, 10 x job time))"
@@ -139,5 +145,6 @@ class Settings(BaseSettings):
             connect=tuple(self.zenoh_connect),
             lease_min_s=self.lease_min_seconds,
             lease_unknown_s=self.lease_unknown_seconds,
+            jobs_per_worker=self.jobs_per_worker,
             auth=self.zenoh_router_auth(),
         )

@@ -352,6 +352,11 @@ def test_job_size_gives_each_live_worker_one_job() -> None:
         for token in tokens:
             token.undeclare()  # type: ignore[no-untyped-call]
         assert eventually(lambda: dispatcher.job_size(config) == 3)
+    finer = Dispatcher(dispatch_settings(free_port(), jobs_per_worker=2), MemorySource())
+    with finer, zenoh.open(client_config(int(finer.settings.listen[0].rsplit(":", 1)[1]))) as s:
+        token = s.liveliness().declare_token(worker_key("a"))
+        assert eventually(lambda: finer.job_size(config) == 6)
+        token.undeclare()  # type: ignore[no-untyped-call]
 
 
 def test_settings_reject_bad_values() -> None:
@@ -359,6 +364,8 @@ def test_settings_reject_bad_values() -> None:
         DispatchSettings(listen=(), connect=())
     with pytest.raises(ValueError):
         DispatchSettings(long_poll_s=0)
+    with pytest.raises(ValueError, match="jobs_per_worker"):
+        DispatchSettings(jobs_per_worker=0)
     settings = DispatchSettings(lease_min_s=2.0, lease_factor=10.0, lease_unknown_s=60.0)
     assert settings.lease_seconds(1000, None) == 60.0
     assert settings.lease_seconds(1000, 1000.0) == 10.0
