@@ -19,10 +19,12 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
 from evorobotics.evaluate import evaluate, start_poses
+from evorobotics.evolution import evolve
 from evorobotics.maze import load_maze
 from evorobotics.sim import DEFAULT_WORLD, WorldParams, simulate, simulate_reference
 from schemas.network import PRESETS
@@ -106,15 +108,33 @@ def main() -> None:
             )
         r, stuck = rate("paper-best", 1024, params, True)
         print(f"  reference  paper-best     batch  1024: {r / 1e6:7.3f} M/s  stuck {stuck:.2f}")
+    evaluate_calls()
+
+
+def each_call_a_new_generation(config: RunConfig, genomes: np.ndarray) -> Callable[[], object]:
+    """evaluate() as a worker meets it: new trial conditions, so start poses are drawn anew."""
+    generations = iter(range(1, 10**6))
+    return lambda: evaluate(config, next(generations), genomes)
+
+
+def evaluate_calls() -> None:
+    """evaluate() per call, paper config, on an evolved population (random genomes get stuck
+    early, so they are unrepresentatively fast); then the whole default run."""
     config = RunConfig()
-    pop = np.random.default_rng(1).normal(0.0, 1.5, (config.population, 222))
-    seconds = best_of(lambda: evaluate(config, 0, pop), 20)
-    robots = config.population * config.trials
-    print(
-        f"evaluate() of one default generation ({robots} robots x {config.steps} steps): "
-        f"{seconds * 1e3:.2f} ms = {robots * config.steps / seconds / 1e6:.3f} M/s; "
-        f"x {config.generations} generations = {seconds * config.generations:.2f} s"
-    )
+    pop = evolve(RunConfig(generations=50)).genomes
+    print(f"evaluate() calls, paper config, population of generation 50 ({config.trials} trials):")
+    for k in (1, 25, config.population):
+        seconds = best_of(partial(evaluate, config, 7, pop[:k]), max(20, 2000 // k))
+        robots = k * config.trials
+        print(
+            f"  {k:3d} individuals, same generation (cached draws): {seconds * 1e3:6.3f} ms "
+            f"= {robots * config.steps / seconds / 1e6:.3f} M robot-steps/s"
+        )
+    for k in (1, 25):
+        seconds = best_of(each_call_a_new_generation(config, pop[:k]), 200)
+        print(f"  {k:3d} individuals, a new generation each call:     {seconds * 1e3:6.3f} ms")
+    seconds = best_of(lambda: evolve(RunConfig()), 3)
+    print(f"evolve(RunConfig()): {seconds:.2f} s ({config.generations} generations)")
 
 
 if __name__ == "__main__":
