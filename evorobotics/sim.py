@@ -24,7 +24,8 @@ largest distance from the start position at any step.
 
 `simulate` is the canonical path: one numba kernel runs controller, physics and fitness for all
 robots and steps. `simulate_reference` is the same science as vectorised numpy over the batch,
-kept as the reference the tests compare against.
+kept as the reference the tests compare against. `clear_of_walls` is the start-pose test
+(body clear, no whisker touching) in compiled code, bit-identical to the numpy geometry.
 """
 
 from __future__ import annotations
