@@ -209,7 +209,8 @@ class JobHeader(_Model):
     stop: int = Field(ge=1)
     lease_s: float = Field(gt=0.0, allow_inf_nan=False)
     more: bool = True
-    """Other jobs were pending when this one was leased: a prefetch may get one."""
+    """When leased, jobs were pending and every other live worker held one: a prefetch may
+    get a job."""
     config: RunConfig
     ack: Ack | None = None
     """Set when the job answers a result that asked for the next job: that result's Ack."""
@@ -226,7 +227,7 @@ class Job:
     genomes: np.ndarray
     lease_s: float = 60.0
     more: bool = True
-    """Other jobs were pending when this one was leased (protocol 4): worth a prefetch."""
+    """A prefetch may get another job (protocol 4; see JobHeader.more)."""
 
     def __post_init__(self) -> None:
         check_job(self.key, self.start, self.stop, self.config, self.genomes)
@@ -426,10 +427,12 @@ def decode_ack(payload: bytes) -> Ack:
 
 def decode_next_reply(payload: bytes) -> Job | Idle:
     """The server's answer on KEY_JOB_NEXT: a job (possibly InvalidJobError) or idle."""
-    header, _ = decode_frame(payload)
+    header, arrays = decode_frame(payload)
     if header.get("kind") == "idle":
-        return _decode_model(payload, Idle)
-    return decode_job(payload)
+        if arrays:
+            raise WireError(f"Idle carries no arrays, got {sorted(arrays)}")
+        return _validate(header, Idle)
+    return _job_from(header, arrays)
 
 
 def decode_result_reply(payload: bytes) -> tuple[Ack, Job | None]:

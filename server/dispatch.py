@@ -392,8 +392,11 @@ class Dispatcher:
         """Reply `job` (with `ack` if it answers a result) and record its lease."""
         record = self._workers[worker]
         lease_s = self.settings.lease_seconds(job.robot_steps, record.speed)
+        # A prefetch gets a job only while every other live worker holds one: otherwise it
+        # would come back idle, so tell the worker not to send it.
+        more = job.more and self._may_prefetch(worker)
         try:
-            query.reply(key, encode_job(replace(job, lease_s=lease_s), ack))
+            query.reply(key, encode_job(replace(job, lease_s=lease_s, more=more), ack))
         except zenoh.ZError:
             _job_log(job.key, worker).warning(
                 "could not send %s to %s; releasing it", job.key.label(), worker
