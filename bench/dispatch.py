@@ -7,7 +7,10 @@
    best controllers compared.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
-        [--only throughput|paper]
+        [--steps 40] [--only throughput|paper]
+
+`--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
+generation: the coordination cost per generation weighs a tenth as much.
 """
 
 from __future__ import annotations
@@ -116,7 +119,7 @@ def bench_throughput(seconds: float, workers: int) -> None:
     )
 
 
-def bench_paper(workers: int, generations: int) -> None:
+def bench_paper(workers: int, generations: int, steps: int) -> None:
     """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve."""
     import subprocess
     import sys
@@ -125,7 +128,7 @@ def bench_paper(workers: int, generations: int) -> None:
 
     from evorobotics.evolution import evolve
 
-    config = RunConfig(generations=generations)
+    config = RunConfig(generations=generations, steps=steps)
     evolve(config.model_copy(update={"generations": 1, "seed": 99}))  # compile the kernels
     began = time.perf_counter()
     local = evolve(config)
@@ -170,7 +173,8 @@ def bench_paper(workers: int, generations: int) -> None:
             server.wait(timeout=60)
     same = "identical" if sha == local.best.sha256 else "DIFFERENT"
     print(
-        f"paper experiment ({generations} generations, kernels warm): colony evolve "
+        f"paper experiment ({generations} generations of {steps} steps, kernels warm): "
+        f"colony evolve "
         f"{local_s:.2f} s, colony server --workers {workers} {dist_s:.2f} s (run started to "
         f"finished, server clock); best controllers {same}; load average "
         f"{os.getloadavg()[0]:.2f}"
@@ -182,12 +186,13 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--generations", type=int, default=350)
+    parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
     if args.only != "paper":
         bench_throughput(args.seconds, args.workers)
     if args.only != "throughput":
-        bench_paper(args.workers, args.generations)
+        bench_paper(args.workers, args.generations, args.steps)
 
 
 if __name__ == "__main__":
