@@ -360,6 +360,18 @@ def _wall(solid: np.ndarray, j: int, i: int) -> bool:
     return bool(solid[j, i])
 
 
+@njit(inline="always")
+def _sat_extents(
+    cell: float, c: float, s: float, a: float, b: float
+) -> tuple[float, float, float, float]:
+    """Separating-axis half-extents of body (half-sizes a, b; heading (c, s)) plus a wall cell,
+    on the world x, y axes and the body's u, v axes."""
+    h = cell / 2
+    ac = abs(c)
+    as_ = abs(s)
+    return (a * ac + b * as_ + h, a * as_ + b * ac + h, a + h * (ac + as_), b + h * (ac + as_))
+
+
 @njit(cache=True)
 def _blocked(
     solid: np.ndarray,
@@ -373,13 +385,7 @@ def _blocked(
     hd: float,
 ) -> bool:
     """The SAT test of `body_hits_wall` for one pose, heading given as (cos, sin)."""
-    h = cell / 2
-    ac = abs(c)
-    as_ = abs(s)
-    ex = a * ac + b * as_ + h
-    ey = a * as_ + b * ac + h
-    eu = a + h * (ac + as_)
-    ev = b + h * (ac + as_)
+    ex, ey, eu, ev = _sat_extents(cell, c, s, a, b)
     i0 = math.floor((x - hd) / cell)
     j0 = math.floor((y - hd) / cell)
     i1 = math.floor((x + hd) / cell)
@@ -595,13 +601,7 @@ def _body_overlaps(
     k: int,
 ) -> bool:
     """`body_hits_wall` of one pose: its k x k cells and its operations, in the same order."""
-    h = cell / 2
-    ac = abs(c)
-    as_ = abs(s)
-    ex = a * ac + b * as_ + h
-    ey = a * as_ + b * ac + h
-    eu = a + h * (ac + as_)
-    ev = b + h * (ac + as_)
+    ex, ey, eu, ev = _sat_extents(cell, c, s, a, b)
     i0 = math.floor((x - hd) / cell)
     j0 = math.floor((y - hd) / cell)
     for i in range(i0, i0 + k):
