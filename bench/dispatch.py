@@ -7,7 +7,7 @@
    best controllers compared.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
-        [--steps 40] [--only throughput|paper]
+        [--steps 40] [--repeats 3] [--only throughput|paper]
 
 `--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
 generation: the coordination cost per generation weighs a tenth as much.
@@ -19,6 +19,7 @@ import argparse
 import multiprocessing as mp
 import os
 import socket
+import statistics
 import tempfile
 import threading
 import time
@@ -119,8 +120,9 @@ def bench_throughput(seconds: float, workers: int) -> None:
     )
 
 
-def bench_paper(workers: int, generations: int, steps: int) -> None:
-    """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve."""
+def bench_paper(workers: int, generations: int, steps: int, repeats: int) -> None:
+    """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve, each
+    timed `repeats` times, alternately (figures on a shared 2-core VM move by 15 %)."""
     import subprocess
     import sys
 
@@ -130,10 +132,9 @@ def bench_paper(workers: int, generations: int, steps: int) -> None:
 
     config = RunConfig(generations=generations, steps=steps)
     evolve(config.model_copy(update={"generations": 1, "seed": 99}))  # compile the kernels
-    began = time.perf_counter()
-    local = evolve(config)
-    local_s = time.perf_counter() - began
-
+    local_s: list[float] = []
+    dist_s: list[float] = []
+    shas: set[str] = set()
     http, zport = free_port(), free_port()
     url = f"http://127.0.0.1:{http}"
     tick = threading.Event()
@@ -164,21 +165,30 @@ def bench_paper(workers: int, generations: int, steps: int) -> None:
             # Warm the workers' numba kernels on a throwaway run, as a long-lived worker is:
             # the timed run excludes compilation on both sides.
             finish(config.model_copy(update={"generations": 1, "seed": 99}).model_dump(mode="json"))
-            run = finish(config.model_dump(mode="json"))
-            started = datetime.fromisoformat(run["started_at"])
-            dist_s = (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
-            sha = httpx.get(f"{url}/api/runs/{run['id']}/best").json()["sha256"]
+            for _ in range(repeats):
+                began = time.perf_counter()
+                shas.add(evolve(config).best.sha256)
+                local_s.append(time.perf_counter() - began)
+                run = finish(config.model_dump(mode="json"))
+                started = datetime.fromisoformat(run["started_at"])
+                dist_s.append(
+                    (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
+                )
+                shas.add(httpx.get(f"{url}/api/runs/{run['id']}/best").json()["sha256"])
         finally:
             server.terminate()
             server.wait(timeout=60)
-    same = "identical" if sha == local.best.sha256 else "DIFFERENT"
+    same = "identical" if len(shas) == 1 else "DIFFERENT"
     print(
-        f"paper experiment ({generations} generations of {steps} steps, kernels warm): "
-        f"colony evolve "
-        f"{local_s:.2f} s, colony server --workers {workers} {dist_s:.2f} s (run started to "
-        f"finished, server clock); best controllers {same}; load average "
-        f"{os.getloadavg()[0]:.2f}"
+        f"paper experiment ({generations} generations of {steps} steps, kernels warm, median "
+        f"[min-max] of {repeats}): colony evolve {_spread(local_s)}, colony server --workers "
+        f"{workers} {_spread(dist_s)} (run started to finished, server clock); best "
+        f"controllers {same}; load average {os.getloadavg()[0]:.2f}"
     )
+
+
+def _spread(seconds: list[float]) -> str:
+    return f"{statistics.median(seconds):.2f} s [{min(seconds):.2f}-{max(seconds):.2f}]"
 
 
 def main() -> None:
@@ -187,12 +197,13 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--generations", type=int, default=350)
     parser.add_argument("--steps", type=int, default=40)
+    parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
     if args.only != "paper":
         bench_throughput(args.seconds, args.workers)
     if args.only != "throughput":
-        bench_paper(args.workers, args.generations, args.steps)
+        bench_paper(args.workers, args.generations, args.steps, args.repeats)
 
 
 if __name__ == "__main__":
