@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
-from sqlalchemy import Connection, Engine, Table, bindparam, delete, func, insert, select, update
+from sqlalchemy import Connection, Engine, Table, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import best_document
@@ -41,7 +41,7 @@ from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
 from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
 from server.logs import context
-from server.models import Generation, Individual, Job, Run, utcnow
+from server.models import Generation, Individual, Run, utcnow
 from server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -233,7 +233,6 @@ class RunManager:
         """Re-ask the generation in flight of every live run (its results died with the process)."""
         asked: list[_Asked] = []
         with self._lock, self.sessions.begin() as session:
-            session.execute(delete(Job))  # rows kept by server versions before jobs moved to memory
             runs = session.scalars(select(Run).where(Run.status.in_(("running", "paused"))))
             for run in runs:
                 plan = self._plan(run)

@@ -13,7 +13,6 @@ from sqlalchemy import (
     DateTime,
     Float,
     ForeignKey,
-    Index,
     Integer,
     LargeBinary,
     String,
@@ -90,34 +89,6 @@ class Individual(Base):
     genome: Mapped[bytes] = mapped_column(LargeBinary)
     dtype: Mapped[str] = mapped_column(String(16))
     shape: Mapped[str] = mapped_column(String(64))
-
-
-class Job(Base):
-    """Unused: jobs live in memory (server.jobs). Kept until nothing refers to it; the server
-    empties it at start (rows of versions that kept jobs here)."""
-
-    __tablename__ = "jobs"
-    __table_args__ = (Index("ix_jobs_status_run", "status", "run_id"),)
-
-    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), primary_key=True)
-    generation: Mapped[int] = mapped_column(Integer, primary_key=True)
-    index: Mapped[int] = mapped_column(Integer, primary_key=True)
-    start: Mapped[int] = mapped_column(Integer)
-    stop: Mapped[int] = mapped_column(Integer)
-    status: Mapped[str] = mapped_column(String(16))
-    """pending, leased or done."""
-    worker: Mapped[str | None] = mapped_column(String(128), nullable=True)
-    deadline: Mapped[float | None] = mapped_column(Float, nullable=True)
-    """Unix time when the lease lapses (operations clock, never the science)."""
-    attempts: Mapped[int] = mapped_column(Integer, default=0)
-    genomes: Mapped[bytes] = mapped_column(LargeBinary)
-    dtype: Mapped[str] = mapped_column(String(16))
-    shape: Mapped[str] = mapped_column(String(64))
-    fitness: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
-    """(stop-start,) float64 once done."""
-    components: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
-    """(stop-start, trials, 4) float64 once done."""
-    error: Mapped[str | None] = mapped_column(Text, nullable=True)
 
 
 class Controller(Base):

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sqlalchemy as sa
+from alembic import command
 from alembic.script import ScriptDirectory
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -28,7 +29,7 @@ from server.manager import RunManager, decode_state, encode_state, stored_ranked
 from server.models import pack, unpack
 from server.settings import Settings
 
-TABLES = {"runs", "generations", "individuals", "jobs", "controllers", "workers", "robots"}
+TABLES = {"runs", "generations", "individuals", "controllers", "workers", "robots"}
 SMALL = RunConfig(population=12, generations=3, steps=10, trials=2, job_size=5)
 
 
@@ -38,6 +39,29 @@ def manager(tmp_path: Path) -> Iterator[RunManager]:
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
     yield RunManager(engine, Settings(db_url="unused", lease_seconds=10.0, max_attempts=2))
+    engine.dispose()
+
+
+def test_upgrade_drops_the_jobs_table_of_older_servers_with_its_rows(tmp_path: Path) -> None:
+    """Servers before 0004 kept jobs in a table (rows may be left by a crash); jobs live in
+    memory now, so the upgrade drops it, and the revision reverts to an empty table."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
+    cfg = alembic_config(engine)
+    command.upgrade(cfg, "0003_nullable_fitness")
+    with engine.begin() as conn:
+        conn.exec_driver_sql(
+            "INSERT INTO runs (id, config, seed, status, generation, evaluations, served,"
+            " created_at) VALUES (1, '{}', 0, 'running', 0, 0, 0, '2026-01-01')"
+        )
+        conn.exec_driver_sql(
+            'INSERT INTO jobs (run_id, generation, "index", start, stop, status, attempts,'
+            " genomes, dtype, shape) VALUES (1, 0, 0, 0, 4, 'leased', 1, x'00', '<f8', '1')"
+        )
+    upgrade(engine)
+    assert "jobs" not in sa.inspect(engine).get_table_names()
+    command.downgrade(cfg, "0003_nullable_fitness")
+    with engine.connect() as conn:
+        assert conn.exec_driver_sql("SELECT count(*) FROM jobs").scalar() == 0
     engine.dispose()
 
 
