@@ -339,6 +339,10 @@ class ResultHeader(_Model):
     """Answer with the worker's next job (carrying the Ack) if one is ready now."""
     holding: tuple[JobKey, ...] = Field((), max_length=16)
     """Other jobs the worker has in hand (a prefetched one): their leases are kept."""
+    start: int | None = Field(None, ge=0)
+    stop: int | None = Field(None, ge=1)
+    """The evaluated slice (protocol 4): a key names one slice only within a server's life
+    (the cut follows the workers), so a result for another slice is late."""
 
     @field_validator("worker")
     @classmethod
@@ -359,9 +363,16 @@ class Result:
     error: str | None = None
     want_next: bool = False
     holding: tuple[JobKey, ...] = ()
+    start: int | None = None
+    stop: int | None = None
+    """The job's slice; None only for an error about a job whose slice did not parse."""
 
     def __post_init__(self) -> None:
         check_worker_name(self.worker)
+        if (self.start is None) != (self.stop is None) or (
+            self.start is not None and self.stop is not None and not 0 <= self.start < self.stop
+        ):
+            raise WireError(f"result {self.key.label()}: bad slice {self.start}:{self.stop}")
         if self.error is None:
             if self.fitness is None or self.fitness.ndim != 1:
                 raise WireError(f"result {self.key.label()} needs a 1-D fitness array")
@@ -371,6 +382,10 @@ class Result:
                 self.components.ndim < 1 or self.components.shape[0] != self.fitness.shape[0]
             ):
                 raise WireError(f"result {self.key.label()}: components do not match fitness")
+            if self.start is None or self.stop is None:
+                raise WireError(f"result {self.key.label()} needs its slice (start, stop)")
+            if self.fitness.shape[0] != self.stop - self.start:
+                raise WireError(f"result {self.key.label()}: fitness does not match its slice")
 
 
 def encode_result(result: Result) -> bytes:
@@ -382,6 +397,8 @@ def encode_result(result: Result) -> bytes:
         error=result.error,
         want_next=result.want_next,
         holding=result.holding,
+        start=result.start,
+        stop=result.stop,
     )
     arrays: dict[str, np.ndarray] = {}
     if result.fitness is not None:
@@ -409,6 +426,8 @@ def decode_result(payload: bytes) -> Result:
         error=parsed.error,
         want_next=parsed.want_next,
         holding=parsed.holding,
+        start=parsed.start,
+        stop=parsed.stop,
     )
 
 

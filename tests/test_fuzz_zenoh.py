@@ -131,7 +131,9 @@ class EndlessSource:
 
 VALID: list[bytes] = [
     encode_message(JobRequest(worker="template", holding=())),
-    encode_result(Result(_job().key, "template", np.zeros(3), np.zeros((3, 2, 4)))),
+    encode_result(
+        Result(_job().key, "template", np.zeros(3), np.zeros((3, 2, 4)), start=0, stop=3)
+    ),
     encode_job(_job()),
     encode_message(Ack(key=_job().key, accepted=True)),
     encode_trace(trace("template-bot", 0)),
@@ -243,7 +245,8 @@ def test_job_queryables_drop_garbage_and_keep_serving(
         refused_or_valid(ask(session, key, payload))
     job = lease(session)
     fitness = np.arange(job.stop - job.start, dtype=np.float64)
-    result = Result(job.key, "fuzzer", fitness, np.zeros((len(fitness), CONFIG.trials, 4)))
+    components = np.zeros((len(fitness), CONFIG.trials, 4))
+    result = Result(job.key, "fuzzer", fitness, components, start=job.start, stop=job.stop)
     reply = ask(session, KEY_JOB_RESULT, encode_result(result))
     assert reply.ok is not None
     ack = decode_ack(reply.ok.payload.to_bytes())

@@ -78,9 +78,10 @@ def test_job_round_trip_is_bit_exact() -> None:
 def test_result_and_control_round_trips() -> None:
     fitness = np.array([1.5, -2.0, 0.0])
     components = np.arange(3 * 3 * 4, dtype=np.float64).reshape(3, 3, 4)
-    result = Result(KEY, "w-1", fitness, components, 1234.5, 0.25)
+    result = Result(KEY, "w-1", fitness, components, 1234.5, 0.25, start=4, stop=7)
     back = decode_result(encode_result(result))
     assert back.key == KEY and back.worker == "w-1" and back.error is None
+    assert (back.start, back.stop) == (4, 7)
     assert back.fitness is not None and back.fitness.tobytes() == fitness.tobytes()
     assert back.components is not None and np.array_equal(back.components, components)
     err = decode_result(encode_result(Result(KEY, "w-1", error="boom")))
@@ -90,7 +91,8 @@ def test_result_and_control_round_trips() -> None:
     other = KEY.model_copy(update={"index": KEY.index + 1})
     prefetch = JobRequest(worker="w-1", holding=(KEY, other))
     assert decode_request(encode_message(prefetch)).holding == (KEY, other)
-    holding = decode_result(encode_result(Result(KEY, "w-1", fitness, holding=(other,))))
+    held = Result(KEY, "w-1", fitness, holding=(other,), start=0, stop=3)
+    holding = decode_result(encode_result(held))
     assert holding.holding == (other,) and not holding.want_next
     ack = Ack(key=KEY, accepted=False, reason="late")
     assert decode_ack(encode_message(ack)) == ack
@@ -171,7 +173,13 @@ def test_results_must_be_finite_and_consistent() -> None:
     with pytest.raises(WireError, match="1-D"):
         Result(KEY, "w")
     with pytest.raises(WireError, match="components"):
-        Result(KEY, "w", np.zeros(2), np.zeros((3, 1, 4)))
+        Result(KEY, "w", np.zeros(2), np.zeros((3, 1, 4)), start=0, stop=2)
+    with pytest.raises(WireError, match="needs its slice"):
+        Result(KEY, "w", np.zeros(2))
+    with pytest.raises(WireError, match="does not match its slice"):
+        Result(KEY, "w", np.zeros(2), start=0, stop=3)
+    with pytest.raises(WireError, match="bad slice"):
+        Result(KEY, "w", error="boom", start=3, stop=3)
 
 
 def test_result_reply_is_an_ack_or_the_next_job_carrying_it() -> None:

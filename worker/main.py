@@ -177,9 +177,10 @@ def _serve(
     """Evaluate jobs with the next one already in hand when possible (protocol 3).
 
     While a job is evaluated one request is in flight: a prefetch of the next job (unless the
-    server said no other job was pending), or the previous result asking for the next. So in
-    steady state a worker never waits for a round trip between jobs. Once stopping, no prefetch: the job in evaluation is delivered, a
-    prefetched one is left to lapse (released when the liveliness token goes).
+    server said it could only come back idle), or the previous result asking for the next. So in
+    steady state a worker never waits for a round trip between jobs. Once stopping, no
+    prefetch: the job in evaluation is delivered, a prefetched one is left to lapse (released
+    when the liveliness token goes).
     """
     in_hand: deque[Job] = deque()
     ahead: _Ahead | None = None
@@ -319,12 +320,15 @@ def _evaluate(job: Job, name: str, evaluator: Evaluator, stats: WorkerStats) -> 
     except Exception as exc:  # report it to the server instead of crashing the worker
         log.exception("evaluating %s failed", job.key.label())
         stats.errors += 1
-        return Result(job.key, name, error=f"{type(exc).__name__}: {exc}")
+        error = f"{type(exc).__name__}: {exc}"
+        return Result(job.key, name, error=error, start=job.start, stop=job.stop)
     seconds = time.perf_counter() - began
     speed = job.robot_steps / seconds if seconds > 0 else None
     stats.jobs_done += 1
     stats.robot_steps_per_s = speed
-    return Result(job.key, name, fitness, components, speed or 0.0, seconds)
+    return Result(
+        job.key, name, fitness, components, speed or 0.0, seconds, start=job.start, stop=job.stop
+    )
 
 
 def _deliver(
