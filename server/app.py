@@ -12,6 +12,7 @@ import logging
 import os
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import AsyncExitStack, asynccontextmanager
+from functools import partial
 from typing import Any
 
 import zenoh
@@ -113,7 +114,8 @@ def create_app(
                 stack.callback(session.close)
                 source = QueueSource(manager.queue)
                 dispatcher = Dispatcher(dispatch, source, session=session)
-                manager.queue.set_job_sizer(dispatcher.job_size)
+                threads = settings.executor_threads()  # they lease from the same queue
+                manager.queue.set_job_sizer(partial(dispatcher.job_size, local=threads))
                 closers = [service(app, session) for service in services]
                 for close in closers:
                     stack.callback(close)

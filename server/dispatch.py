@@ -146,6 +146,8 @@ class _Lease:
     worker: str
     deadline: float
     robot_steps: int
+    start: int
+    stop: int
 
 
 @dataclass
@@ -158,6 +160,13 @@ class _WorkerRecord:
     last_seen: float = field(default_factory=time.time)
     gone_at: float | None = None
     """Monotonic time the token vanished (None while alive)."""
+    protocol: int | None = None
+    """Protocol its last request spoke (None before any request)."""
+
+    @property
+    def serving(self) -> bool:
+        """Alive and not known to speak another protocol: it can take jobs."""
+        return self.gone_at is None and self.protocol in (None, PROTOCOL)
 
     def status(self) -> WorkerStatus:
         state = "gone" if self.gone_at is not None else self.state
@@ -199,6 +208,9 @@ class Dispatcher:
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._leases: dict[JobKey, _Lease] = {}
         self._held: list[_Held] = []
+        self._other_protocol: list[_Held] = []
+        """Requests of workers speaking another protocol: answered idle at their long-poll's
+        end, never served, so an old worker asks about once a second instead of spinning."""
         self._flush_at: float | None = None
         self._workers: dict[str, _WorkerRecord] = {}
         self._lock = threading.Lock()
@@ -232,13 +244,17 @@ class Dispatcher:
         """New jobs may be leasable: answer held requests now instead of at the next poll."""
         self._inbox.put(_WAKE)
 
-    def job_size(self, config: RunConfig) -> int:
+    def job_size(self, config: RunConfig, *, local: int = 0) -> int:
         """Individuals per job of `config`'s next generation (a `JobSizer` for the job queue):
-        `jobs_per_worker` jobs per live worker, never smaller than the run's `job_size`, which
-        also applies while no worker is known. Each message and each `evaluate` call has a
-        fixed cost: fewer, larger jobs are cheaper; more of them balance unequal workers."""
+        `jobs_per_worker` jobs per live worker (of this protocol) and per `local` evaluator
+        leasing from the same queue (in-process executor threads), never smaller than the
+        run's `job_size`, which also applies while none is known. Each message and each
+        `evaluate` call has a fixed cost: fewer, larger jobs are cheaper; more of them balance
+        unequal workers."""
+        if local < 0:
+            raise ValueError(f"local must be >= 0, got {local}")
         with self._lock:
-            live = sum(1 for w in self._workers.values() if w.gone_at is None)
+            live = local + sum(1 for w in self._workers.values() if w.serving)
         if live == 0:
             return config.job_size
         jobs = live * self.settings.jobs_per_worker
@@ -256,9 +272,10 @@ class Dispatcher:
         self._stopping.set()
         self._inbox.put(_WAKE)
         self._thread.join(timeout=10.0)
-        for held in self._held:
+        for held in self._held + self._other_protocol:
             self._answer_idle(held, "server stopping")
         self._held.clear()
+        self._other_protocol.clear()
         for entity in (self._next, self._result, self._alive):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()  # type: ignore[no-untyped-call]
@@ -312,7 +329,7 @@ class Dispatcher:
         """Until the next deadline: a lease, a held request's long-poll, a gone worker's
         expiry from the table; None (block until a message) when there is none."""
         deadlines = [lease.deadline for lease in self._leases.values()]
-        deadlines += [held.until for held in self._held]
+        deadlines += [held.until for held in self._held + self._other_protocol]
         if self._flush_at is not None:
             deadlines.append(self._flush_at)
         with self._lock:
@@ -347,9 +364,11 @@ class Dispatcher:
         if request.robot_steps_per_s:
             record.speed = request.robot_steps_per_s
         self._release_lost(request.worker, keep=request.holding)
+        with self._lock:
+            record.protocol = request.protocol
         held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s)
         if request.protocol != PROTOCOL:
-            self._answer_idle(held, f"server speaks protocol {PROTOCOL}")
+            self._other_protocol.append(held)
         elif request.holding:  # a prefetch: a job now or idle now, never held
             self.prefetches += 1
             if not (self._may_prefetch(request.worker) and self._try_serve(held)):
@@ -375,9 +394,7 @@ class Dispatcher:
         busy = {lease.worker for lease in self._leases.values()}
         with self._lock:
             return all(
-                w.name in busy or w.name == worker
-                for w in self._workers.values()
-                if w.gone_at is None
+                w.name in busy or w.name == worker for w in self._workers.values() if w.serving
             )
 
     def _try_serve(self, held: _Held) -> bool:
@@ -403,7 +420,10 @@ class Dispatcher:
             )
             self._source.release(job.key)
             return
-        self._leases[job.key] = _Lease(job.key, worker, self._clock() + lease_s, job.robot_steps)
+        deadline = self._clock() + lease_s
+        self._leases[job.key] = _Lease(
+            job.key, worker, deadline, job.robot_steps, job.start, job.stop
+        )
         _job_log(job.key, worker).debug(
             "leased %s to %s for %.0f s", job.key.label(), worker, lease_s
         )
@@ -425,6 +445,9 @@ class Dispatcher:
             else:
                 waiting.append(held)
         self._held = waiting
+        for held in [h for h in self._other_protocol if h.until <= now]:
+            self._answer_idle(held, f"server speaks protocol {PROTOCOL}")
+        self._other_protocol = [h for h in self._other_protocol if h.until > now]
 
     def _answer_idle(self, held: _Held, reason: str) -> None:
         with contextlib.suppress(zenoh.ZError), held.query as query:
@@ -438,7 +461,7 @@ class Dispatcher:
             return
         record = self._touch(result.worker, None)
         lease = self._leases.get(result.key)
-        if lease is None or lease.worker != result.worker:
+        if lease is None or lease.worker != result.worker or _other_slice(result, lease):
             self.results_dropped += 1
             ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
             _job_log(result.key, result.worker).debug(
@@ -549,6 +572,12 @@ class Dispatcher:
         log.warning("dropping malformed message on %s: %s", query.key_expr, exc)
         with contextlib.suppress(zenoh.ZError), query:
             query.reply_err(f"malformed: {exc}".encode())
+
+
+def _other_slice(result: Result, lease: _Lease) -> bool:
+    """The result is for another cut of the generation (a job leased by an earlier server life
+    under the same key): late, whatever its key says."""
+    return result.start is not None and (result.start, result.stop) != (lease.start, lease.stop)
 
 
 def _payload(query: zenoh.Query) -> bytes:

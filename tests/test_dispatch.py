@@ -18,6 +18,7 @@ from schemas.run import RunConfig
 from schemas.wire import (
     KEY_JOB_NEXT,
     KEY_JOB_RESULT,
+    PROTOCOL,
     Idle,
     Job,
     JobKey,
@@ -232,7 +233,9 @@ def test_vanished_worker_releases_its_job_and_its_late_result_is_dropped() -> No
         assert source.wait_for(lambda: job.key.index in source.released)
         with worker_thread(port, "survivor"), zenoh.open(client_config(port)) as late:
             assert source.done.wait(WAIT)
-            result = Result(job.key, "doomed", np.zeros(job.stop - job.start))
+            result = Result(
+                job.key, "doomed", np.zeros(job.stop - job.start), start=job.start, stop=job.stop
+            )
             ack = decode_ack(_ok(ask(late, KEY_JOB_RESULT, encode_result(result))))
         assert not ack.accepted and ack.key == job.key
     assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
@@ -253,12 +256,38 @@ def test_prefetch_is_answered_at_once_and_holding_keeps_the_prefetched_lease() -
         both = JobRequest(worker="pre", holding=(first.key, second.key))
         idle = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, encode_message(both))))
         assert isinstance(idle, Idle) and time.monotonic() - began < settings.long_poll_s
-        result = Result(first.key, "pre", fake_fitness(first.genomes), holding=(second.key,))
+        result = Result(
+            first.key,
+            "pre",
+            fake_fitness(first.genomes),
+            holding=(second.key,),
+            start=first.start,
+            stop=first.stop,
+        )
         ack = decode_ack(_ok(ask(session, KEY_JOB_RESULT, encode_result(result))))
         assert ack.accepted and not source.released
-        result = Result(second.key, "pre", fake_fitness(second.genomes))
+        result = Result(
+            second.key, "pre", fake_fitness(second.genomes), start=second.start, stop=second.stop
+        )
         ack = decode_ack(_ok(ask(session, KEY_JOB_RESULT, encode_result(result))))
         assert ack.accepted and source.done.is_set() and not source.released
+
+
+def test_a_result_for_another_cut_of_the_same_key_is_dropped_as_late() -> None:
+    """Protocol 4: after a restart the same key may name another slice; a result carries its
+    slice, and one that is not the lease's is late, not a failure."""
+    port = free_port()
+    source = MemorySource()
+    with Dispatcher(dispatch_settings(port), source), zenoh.open(client_config(port)) as session:
+        job = lease_raw(session, "w")
+        wide = np.zeros(job.stop - job.start + 1)
+        stale = Result(job.key, "w", wide, start=job.start, stop=job.stop + 1)
+        ack = decode_ack(_ok(ask(session, KEY_JOB_RESULT, encode_result(stale))))
+        assert not ack.accepted and not source.fitness and not source.failures
+        fitness = fake_fitness(job.genomes)
+        good = Result(job.key, "w", fitness, start=job.start, stop=job.stop)
+        ack = decode_ack(_ok(ask(session, KEY_JOB_RESULT, encode_result(good))))
+        assert ack.accepted and source.fitness[job.key.index].tobytes() == fitness.tobytes()
 
 
 @pytest.mark.parametrize("more", [True, False])
@@ -286,7 +315,9 @@ def test_expired_lease_returns_the_job_and_late_result_is_dropped() -> None:
         assert source.wait_for(lambda: job.key.index in source.released)
         with worker_thread(port, "fresh"):
             assert source.done.wait(WAIT)
-        result = Result(job.key, "hung", np.zeros(job.stop - job.start))
+        result = Result(
+            job.key, "hung", np.zeros(job.stop - job.start), start=job.start, stop=job.stop
+        )
         ack = decode_ack(_ok(ask(hung, KEY_JOB_RESULT, encode_result(result))))
         token.undeclare()  # type: ignore[no-untyped-call]
     assert not ack.accepted
@@ -347,6 +378,7 @@ def test_job_size_gives_each_live_worker_one_job() -> None:
         tokens = [session.liveliness().declare_token(worker_key(n)) for n in ("a", "b", "c")]
         assert eventually(lambda: dispatcher.job_size(config) == 4)
         assert dispatcher.job_size(config.model_copy(update={"job_size": 5})) == 5
+        assert dispatcher.job_size(config, local=1) == 3  # + an in-process executor thread
         tokens.pop().undeclare()  # type: ignore[no-untyped-call]
         assert eventually(lambda: dispatcher.job_size(config) == 6)
         for token in tokens:
@@ -357,6 +389,27 @@ def test_job_size_gives_each_live_worker_one_job() -> None:
         token = s.liveliness().declare_token(worker_key("a"))
         assert eventually(lambda: finer.job_size(config) == 6)
         token.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_worker_of_another_protocol_waits_out_the_long_poll_and_is_not_counted() -> None:
+    """An old worker gets no job and no share of the cut, and its requests are held for the
+    long-poll (about one a second) instead of being answered idle at once."""
+    port = free_port()
+    config = CONFIG.model_copy(update={"population": 12, "job_size": 3})
+    source = MemorySource()
+    settings = dispatch_settings(port, long_poll_s=0.3)
+    with Dispatcher(settings, source) as dispatcher, zenoh.open(client_config(port)) as session:
+        tokens = [session.liveliness().declare_token(worker_key(n)) for n in ("old", "new")]
+        assert eventually(lambda: dispatcher.job_size(config) == 6)
+        old = JobRequest(worker="old", protocol=PROTOCOL - 1)
+        began = time.monotonic()
+        reply = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, encode_message(old))))
+        assert isinstance(reply, Idle) and f"protocol {PROTOCOL}" in reply.reason
+        assert time.monotonic() - began >= settings.long_poll_s * 0.9
+        assert dispatcher.job_size(config) == 12  # only "new" takes jobs
+        assert not source.leased_by
+        for token in tokens:
+            token.undeclare()  # type: ignore[no-untyped-call]
 
 
 def test_settings_reject_bad_values() -> None:
