@@ -28,6 +28,7 @@ from server.jobs import JobKey, JobResult
 from server.manager import RunManager, decode_state, encode_state, stored_ranked
 from server.models import pack, unpack
 from server.settings import Settings
+from tests.helpers import eventually
 
 TABLES = {"runs", "generations", "individuals", "controllers", "workers", "robots"}
 SMALL = RunConfig(population=12, generations=3, steps=10, trials=2, job_size=5)
@@ -44,7 +45,8 @@ def manager(tmp_path: Path) -> Iterator[RunManager]:
 
 def test_upgrade_drops_the_jobs_table_of_older_servers_with_its_rows(tmp_path: Path) -> None:
     """Servers before 0004 kept jobs in a table (rows may be left by a crash); jobs live in
-    memory now, so the upgrade drops it, and the revision reverts to an empty table."""
+    memory now, so the upgrade drops it. The downgrade brings back an empty table and turns
+    GA states back into the .npz older servers read."""
     engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
     cfg = alembic_config(engine)
     command.upgrade(cfg, "0003_nullable_fitness")
@@ -59,9 +61,22 @@ def test_upgrade_drops_the_jobs_table_of_older_servers_with_its_rows(tmp_path: P
         )
     upgrade(engine)
     assert "jobs" not in sa.inspect(engine).get_table_names()
+    lay, params = layout(SMALL.network_spec), GAParams.from_config(SMALL)
+    state = init(lay, params)
+    with engine.begin() as conn:  # a generation written by this release: a frame
+        conn.exec_driver_sql(
+            "INSERT INTO generations (run_id, generation, best, mean, worst, nan_count, state,"
+            " committed_at) VALUES (1, 0, 1.0, 0.5, 0.0, 0, ?, '2026-01-01')",
+            (encode_state(state),),
+        )
     command.downgrade(cfg, "0003_nullable_fitness")
     with engine.connect() as conn:
         assert conn.exec_driver_sql("SELECT count(*) FROM jobs").scalar() == 0
+        stored = conn.exec_driver_sql("SELECT state FROM generations").scalar_one()
+    with np.load(io.BytesIO(stored), allow_pickle=False) as npz:  # what older servers read
+        assert {name: npz[name].tobytes() for name in npz.files} == {
+            name: value.tobytes() for name, value in state.to_arrays().items()
+        }
     engine.dispose()
 
 
@@ -164,13 +179,16 @@ def test_background_checkpoint_copies_the_log_that_writes_no_longer_copy(tmp_pat
     upgrade(engine)
     with engine.connect() as conn:
         assert conn.exec_driver_sql("PRAGMA wal_autocheckpoint").scalar() == 0
-    checkpointer = Checkpointer(engine, interval_s=3600.0)
+    database = tmp_path / "c.db"
+    with engine.begin() as conn:
+        conn.exec_driver_sql("CREATE TABLE t (x BLOB)")
+        conn.exec_driver_sql("INSERT INTO t VALUES (?)", (bytes(1 << 16),))
+    assert database.stat().st_size < 1 << 16  # the blob is only in the write-ahead log
+    checkpointer = Checkpointer(engine, interval_s=0.05)
     try:
-        with engine.begin() as conn:
-            conn.exec_driver_sql("CREATE TABLE t (x BLOB)")
-            conn.exec_driver_sql("INSERT INTO t VALUES (?)", (bytes(1 << 16),))
+        assert eventually(lambda: database.stat().st_size > 1 << 16, timeout=10.0)
         frames, copied = checkpointer.checkpoint()
-        assert frames > 0 and copied == frames
+        assert copied == frames
     finally:
         checkpointer.close()
         engine.dispose()

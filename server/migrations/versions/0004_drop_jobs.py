@@ -1,5 +1,8 @@
 """drop the jobs table: jobs, leases and job results live in the server's memory
 
+The same release stores GA states as raw-array frames (schemas.wire) instead of .npz; the
+downgrade writes them back as .npz, so the release before can resume its runs.
+
 Revision ID: 0004_drop_jobs
 Revises: 0003_nullable_fitness
 Create Date: 2026-11-22 07:00:00.000000
@@ -7,10 +10,14 @@ Create Date: 2026-11-22 07:00:00.000000
 
 from __future__ import annotations
 
+import io
 from collections.abc import Sequence
 
+import numpy as np
 import sqlalchemy as sa
 from alembic import op
+
+from schemas.wire import MAGIC, decode_frame
 
 revision: str = "0004_drop_jobs"
 down_revision: str | None = "0003_nullable_fitness"
@@ -27,7 +34,17 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    """The table of 0001, empty."""
+    """The table of 0001, empty; GA states back to .npz."""
+    conn = op.get_bind()
+    states = conn.execute(sa.text("SELECT run_id, generation, state FROM generations")).all()
+    for run_id, generation, state in states:
+        if bytes(state).startswith(MAGIC):
+            buffer = io.BytesIO()
+            np.savez(buffer, allow_pickle=False, **decode_frame(bytes(state))[1])
+            conn.execute(
+                sa.text("UPDATE generations SET state = :s WHERE run_id = :r AND generation = :g"),
+                {"s": buffer.getvalue(), "r": run_id, "g": generation},
+            )
     op.create_table(
         "jobs",
         sa.Column("run_id", sa.Integer(), nullable=False),
