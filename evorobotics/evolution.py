@@ -1,10 +1,11 @@
-"""Local evolution: the run loop every role composes identically, and its fixed job slices.
+"""Local evolution: the run loop every role composes identically, and the job slices.
 
 An individual's fitness depends on the config, the generation and its own genome only (trial
 conditions are drawn per generation, robots are independent), never on which other genomes
-share its `evaluate` call. So `job_size` is only the unit the server dispatches: a generation is
-cut into contiguous jobs that depend on the config only (never on how many workers exist), and
-`evolve` evaluates the whole generation in one call; both give bit-identical fitness arrays.
+share its `evaluate` call. So how a generation is cut into contiguous jobs (`job_slices`; the
+server cuts by the run's `job_size` or, with zenoh workers, one job per live worker) cannot
+change a run, and `evolve` evaluates the whole generation in one call: bit-identical fitness
+arrays either way.
 `best_document` names the best controller the same way for `colony evolve` and the server
 (rank 0 of the latest completed generation).
 """

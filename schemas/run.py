@@ -67,7 +67,11 @@ class RunConfig(BaseModel):
     reality_gap: bool = False
     ga: GAConfig = GAConfig()
     job_size: int = Field(
-        25, ge=1, le=10_000, description="individuals per evaluation job (fixed slices)"
+        25,
+        ge=1,
+        le=10_000,
+        description="smallest evaluation job: the server cuts generations into jobs of this "
+        "size, or one per live zenoh worker if larger; results never depend on the cut",
     )
 
     @model_validator(mode="after")

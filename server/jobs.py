@@ -1,6 +1,8 @@
 """The job queue: the seam between the run loop and whoever evaluates (threads or zenoh workers).
 
-A job is a fixed slice of one generation (evorobotics.evolution.job_slices). Jobs, leases and
+A job is a contiguous slice of one generation (evorobotics.evolution.job_slices), cut when the
+generation is asked: by the run's `job_size`, or by a `JobSizer` (the zenoh dispatcher's one
+job per live worker); the cut cannot change a result. Jobs, leases and
 job results live in memory, one generation per run; the database holds only committed
 generations. `lease` hands the next pending job of the running run served least recently to a
 worker with a deadline; `complete` stores its result once (duplicates and late results are
@@ -192,7 +194,8 @@ class JobQueue:
         The zenoh dispatcher cuts a generation into one job per live worker: every message and
         every `evaluate` call has a fixed cost, so fewer, larger jobs are cheaper. Results cannot
         change (an individual's fitness does not depend on the slice it is evaluated in), and a
-        generation keeps its cut while in flight, so a job key names one slice for ever.
+        generation keeps its cut while in flight, so within one server's life a job key names one
+        slice (across a restart it may not: results carry their slice, see schemas.wire).
         """
         with self._lock:
             self._job_size = sizer
