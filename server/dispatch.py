@@ -529,6 +529,10 @@ class Dispatcher:
             record = self._workers.setdefault(name, _WorkerRecord(name))
             record.gone_at = self._clock()
         context(log, worker=name).info("worker %s gone", name)
+        # a request it left held must not take a job: the job would wait out a lease
+        for held in [h for h in self._held if h.worker == name]:
+            self._answer_idle(held, "worker gone")
+        self._held = [h for h in self._held if h.worker != name]
         for key in [k for k, lease in self._leases.items() if lease.worker == name]:
             _job_log(key, name).warning(
                 "worker %s vanished holding %s; releasing it", name, key.label()

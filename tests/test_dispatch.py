@@ -241,6 +241,30 @@ def test_vanished_worker_releases_its_job_and_its_late_result_is_dropped() -> No
     assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
 
 
+def test_a_vanished_worker_s_held_request_takes_no_job() -> None:
+    """Its token gone, the request it left waiting is answered idle at once: a job leased to
+    it would wait out a lease while live workers idle."""
+    port = free_port()
+    source = MemorySource()
+    jobs = list(source.pending)
+    source.pending.clear()
+    settings = dispatch_settings(port, long_poll_s=30.0)
+    with Dispatcher(settings, source) as dispatcher, zenoh.open(client_config(port)) as doomed:
+        token = doomed.liveliness().declare_token(worker_key("doomed"))
+        assert eventually(lambda: [w.name for w in dispatcher.workers()] == ["doomed"])
+        request = JobRequest(worker="doomed", host="doomed-host")
+        held = doomed.get(KEY_JOB_NEXT, payload=encode_message(request), timeout=WAIT)
+        assert eventually(lambda: dispatcher.workers()[0].host == "doomed-host")  # held now
+        token.undeclare()  # type: ignore[no-untyped-call]
+        assert eventually(lambda: [w.state for w in dispatcher.workers()] == ["gone"])
+        assert isinstance(decode_next_reply(_ok(next(iter(held)))), Idle)
+        source.pending.extend(jobs)
+        dispatcher.notify()
+        with worker_thread(port, "survivor"):
+            assert source.done.wait(WAIT)
+    assert {worker for _, worker in source.leased_by} == {"survivor"}
+
+
 def test_prefetch_is_answered_at_once_and_holding_keeps_the_prefetched_lease() -> None:
     """Protocol 3: a request naming jobs in hand is never held (idle at once when no job is
     left) and releases none of them; a result's `holding` keeps the prefetched lease."""
