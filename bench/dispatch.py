@@ -7,10 +7,12 @@
    best controllers compared.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
-        [--steps 40] [--repeats 3] [--only throughput|paper]
+        [--steps 40] [--repeats 3] [--sweep] [--only throughput|paper]
 
 `--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
-generation: the coordination cost per generation weighs a tenth as much.
+generation: the coordination cost per generation weighs a tenth as much. `--sweep` also times
+100 to 1,600 steps (generations scaled to the same robot-steps) on the same server and
+prints where the distributed run catches up with `colony evolve`.
 """
 
 from __future__ import annotations
@@ -120,9 +122,10 @@ def bench_throughput(seconds: float, workers: int) -> None:
     )
 
 
-def bench_paper(workers: int, generations: int, steps: int, repeats: int) -> None:
-    """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve, each
-    timed `repeats` times, alternately (figures on a shared 2-core VM move by 15 %)."""
+def bench_paper(workers: int, shapes: list[tuple[int, int]], repeats: int) -> None:
+    """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve for each
+    (generations, steps) shape on one server, each timed `repeats` times, alternately (figures
+    on a shared 2-core VM move by 15 %)."""
     import subprocess
     import sys
 
@@ -130,14 +133,11 @@ def bench_paper(workers: int, generations: int, steps: int, repeats: int) -> Non
 
     from evorobotics.evolution import evolve
 
-    config = RunConfig(generations=generations, steps=steps)
-    evolve(config.model_copy(update={"generations": 1, "seed": 99}))  # compile the kernels
-    local_s: list[float] = []
-    dist_s: list[float] = []
-    shas: set[str] = set()
+    evolve(RunConfig(generations=1, seed=99))  # compile the kernels
     http, zport = free_port(), free_port()
     url = f"http://127.0.0.1:{http}"
     tick = threading.Event()
+    caught_up: tuple[int, int] | None = None
     with tempfile.TemporaryDirectory() as tmp:
         argv = [sys.executable, "-c", "from colony.cli import main; main()", "server"]
         argv += ["--db", f"sqlite:///{Path(tmp) / 'bench.db'}", "--port", str(http)]
@@ -164,27 +164,39 @@ def bench_paper(workers: int, generations: int, steps: int, repeats: int) -> Non
                     tick.wait(0.05)
             # Warm the workers' numba kernels on a throwaway run, as a long-lived worker is:
             # the timed run excludes compilation on both sides.
-            finish(config.model_copy(update={"generations": 1, "seed": 99}).model_dump(mode="json"))
-            for _ in range(repeats):
-                began = time.perf_counter()
-                shas.add(evolve(config).best.sha256)
-                local_s.append(time.perf_counter() - began)
-                run = finish(config.model_dump(mode="json"))
-                started = datetime.fromisoformat(run["started_at"])
-                dist_s.append(
-                    (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
+            finish(RunConfig(generations=1, seed=99).model_dump(mode="json"))
+            for generations, steps in shapes:
+                config = RunConfig(generations=generations, steps=steps)
+                local_s: list[float] = []
+                dist_s: list[float] = []
+                shas: set[str] = set()
+                for _ in range(repeats):
+                    began = time.perf_counter()
+                    shas.add(evolve(config).best.sha256)
+                    local_s.append(time.perf_counter() - began)
+                    run = finish(config.model_dump(mode="json"))
+                    started = datetime.fromisoformat(run["started_at"])
+                    dist_s.append(
+                        (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
+                    )
+                    shas.add(httpx.get(f"{url}/api/runs/{run['id']}/best").json()["sha256"])
+                same = "identical" if len(shas) == 1 else "DIFFERENT"
+                ratio = statistics.median(dist_s) / statistics.median(local_s)
+                if caught_up is None and ratio <= 1.0:
+                    caught_up = (generations, steps)
+                print(
+                    f"{generations} generations of {steps} steps (kernels warm, median [min-max] "
+                    f"of {repeats}): colony evolve {_spread(local_s)}, colony server --workers "
+                    f"{workers} {_spread(dist_s)} (run started to finished, server clock), "
+                    f"{ratio:.2f}x; best controllers {same}; "
+                    f"load average {os.getloadavg()[0]:.2f}"
                 )
-                shas.add(httpx.get(f"{url}/api/runs/{run['id']}/best").json()["sha256"])
         finally:
             server.terminate()
             server.wait(timeout=60)
-    same = "identical" if len(shas) == 1 else "DIFFERENT"
-    print(
-        f"paper experiment ({generations} generations of {steps} steps, kernels warm, median "
-        f"[min-max] of {repeats}): colony evolve {_spread(local_s)}, colony server --workers "
-        f"{workers} {_spread(dist_s)} (run started to finished, server clock); best "
-        f"controllers {same}; load average {os.getloadavg()[0]:.2f}"
-    )
+    if len(shapes) > 1:
+        where = "never" if caught_up is None else f"from {caught_up[1]} steps per trial on"
+        print(f"the distributed run is no slower than colony evolve: {where}")
 
 
 def _spread(seconds: list[float]) -> str:
@@ -198,12 +210,19 @@ def main() -> None:
     parser.add_argument("--generations", type=int, default=350)
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--sweep", action="store_true")
     parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
+    shapes = [(args.generations, args.steps)]
+    if args.sweep:  # the same robot-steps, more of them per generation
+        robot_steps = args.generations * args.steps
+        shapes += [
+            (max(1, robot_steps // s), s) for s in (100, 200, 400, 800, 1600) if s > args.steps
+        ]
     if args.only != "paper":
         bench_throughput(args.seconds, args.workers)
     if args.only != "throughput":
-        bench_paper(args.workers, args.generations, args.steps, args.repeats)
+        bench_paper(args.workers, shapes, args.repeats)
 
 
 if __name__ == "__main__":
