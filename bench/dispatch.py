@@ -184,8 +184,14 @@ def bench_paper(workers: int, shapes: list[tuple[int, int]], repeats: int) -> No
                 ratio = statistics.median(dist_s) / statistics.median(local_s)
                 if caught_up is None and ratio <= 1.0:
                     caught_up = (generations, steps)
+                paper = RunConfig()
+                name = (
+                    "paper experiment: "
+                    if (generations, steps) == (paper.generations, paper.steps)
+                    else ""
+                )
                 print(
-                    f"{generations} generations of {steps} steps (kernels warm, median [min-max] "
+                    f"{name}{generations} generations of {steps} steps (kernels warm, median [min-max] "
                     f"of {repeats}): colony evolve {_spread(local_s)}, colony server --workers "
                     f"{workers} {_spread(dist_s)} (run started to finished, server clock), "
                     f"{ratio:.2f}x; best controllers {same}; "
