@@ -19,6 +19,7 @@ Hierarchy:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import re
@@ -31,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 4
+PROTOCOL = 5
 """Wire protocol version, sent in every job request; the server idles other versions.
 
 2: a result may ask for the next job (`want_next`); the server then answers with that job,
@@ -40,6 +41,10 @@ carrying the acknowledgement, instead of a bare Ack (one round trip per job inst
 may hold one prefetched job and deliver a result while it evaluates the next.
 4: a job says whether others were still pending when it was leased (`more`); without them a
 prefetch could only come back idle, so the worker does not send one.
+5: a job of a whole generation may be a span (`span` > 1, with the GA state): the worker
+evolves that many generations itself and sends their results as it goes, several consecutive
+generations per message (`SpanResults`), each with the digest of the genomes it evaluated;
+each accepted generation moves the lease to the next.
 """
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
@@ -57,6 +62,8 @@ ALLOWED_DTYPES = frozenset({"<f8", "<f4", "<i8", "<i4", "|u1", "|b1"})
 """Plain numeric dtypes only: object arrays would need pickle."""
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
 """Worker names: one key-expression chunk, no wildcards or separators."""
+_DIGEST = "^[0-9a-f]{64}$"
+"""A `genome_digest`: sha256 in lowercase hex."""
 
 
 class WireError(ValueError):
@@ -214,6 +221,9 @@ class JobHeader(_Model):
     config: RunConfig
     ack: Ack | None = None
     """Set when the job answers a result that asked for the next job: that result's Ack."""
+    span: int = Field(1, ge=1)
+    """Generations the worker evolves from this one (protocol 5); above 1 the frame also
+    carries the GA state the generation's `tell` starts from, as `state.*` arrays."""
 
 
 @dataclass(frozen=True)
@@ -228,9 +238,15 @@ class Job:
     lease_s: float = 60.0
     more: bool = True
     """A prefetch may get another job (protocol 4; see JobHeader.more)."""
+    span: int = 1
+    """Generations to evolve from this one (protocol 5; see JobHeader.span)."""
+    state: dict[str, np.ndarray] | None = None
+    """The GA state (`GAState.to_arrays`) before this generation's `tell`; only with a span."""
 
     def __post_init__(self) -> None:
         check_job(self.key, self.start, self.stop, self.config, self.genomes)
+        if self.span > 1 or self.state is not None:
+            check_span(self.key, self.start, self.stop, self.config, self.span, self.state)
 
     @property
     def robot_steps(self) -> int:
@@ -251,6 +267,39 @@ def check_job(key: JobKey, start: int, stop: int, config: RunConfig, genomes: np
         raise InvalidJobError(key, "genomes contain NaN or infinity")
 
 
+def check_span(
+    key: JobKey,
+    start: int,
+    stop: int,
+    config: RunConfig,
+    span: int,
+    state: dict[str, np.ndarray] | None,
+) -> None:
+    """InvalidJobError unless a span covers the whole population, stays within the run's
+    generations and brings the GA state (validated by `GAState.from_arrays` where it is used)."""
+    if span < 1:
+        raise InvalidJobError(key, f"span {span} must be >= 1")
+    if (start, stop) != (0, config.population):
+        raise InvalidJobError(key, f"a span needs the whole population, got slice {start}:{stop}")
+    if key.generation + span > config.generations:
+        raise InvalidJobError(
+            key, f"span of {span} from generation {key.generation} passes {config.generations}"
+        )
+    if not state:
+        raise InvalidJobError(key, "a span needs the GA state")
+
+
+def genome_digest(genomes: np.ndarray) -> str:
+    """sha256 (hex) of a generation's genomes as float64 little-endian C-order bytes.
+
+    A span's worker asks its generations itself; the server compares this digest with the
+    genomes it asked, so a worker whose GA differs (another version) cannot slip fitness for
+    other genomes into a run.
+    """
+    data = np.ascontiguousarray(genomes, dtype="<f8")
+    return hashlib.sha256(data.tobytes()).hexdigest()
+
+
 def encode_job(job: Job, ack: Ack | None = None) -> bytes:
     """A job frame; `ack` acknowledges the result whose reply this job is (protocol 2)."""
     header = {
@@ -264,7 +313,11 @@ def encode_job(job: Job, ack: Ack | None = None) -> bytes:
     }
     if ack is not None:
         header["ack"] = ack.model_dump(mode="json")
-    return encode_frame(header, {"genomes": job.genomes})
+    arrays = {"genomes": job.genomes}
+    if job.span > 1 and job.state is not None:
+        header["span"] = job.span
+        arrays |= {f"state.{name}": value for name, value in job.state.items()}
+    return encode_frame(header, arrays)
 
 
 _CONFIG_JSON: dict[int, tuple[RunConfig, dict[str, Any]]] = {}
@@ -313,16 +366,22 @@ def _job_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Job:
         parsed = JobHeader.model_validate({**header, "config": config})
     except ValidationError as exc:
         raise InvalidJobError(key, str(exc)) from exc
-    if set(arrays) != {"genomes"}:
-        raise InvalidJobError(key, f"expected one array 'genomes', got {sorted(arrays)}")
+    genomes = arrays.pop("genomes", None)
+    if genomes is None or (parsed.span == 1 and arrays):
+        raise InvalidJobError(key, f"expected the array 'genomes' only, got {sorted(arrays)}")
+    state = {name.removeprefix("state."): value for name, value in arrays.items()}
+    if len(state) != len(arrays):
+        raise InvalidJobError(key, f"unexpected arrays {sorted(arrays)} in a span")
     return Job(
         key=key,
         start=parsed.start,
         stop=parsed.stop,
         config=parsed.config,
-        genomes=arrays["genomes"],
+        genomes=genomes,
         lease_s=parsed.lease_s,
         more=parsed.more,
+        span=parsed.span,
+        state=state if parsed.span > 1 else None,
     )
 
 
@@ -343,6 +402,8 @@ class ResultHeader(_Model):
     stop: int | None = Field(None, ge=1)
     """The evaluated slice (protocol 4): a key names one slice only within a server's life
     (the cut follows the workers), so a result for another slice is late."""
+    digest: str | None = Field(None, pattern=_DIGEST)
+    """`genome_digest` of the genomes evaluated: set by a span's worker (protocol 5)."""
 
     @field_validator("worker")
     @classmethod
@@ -366,6 +427,8 @@ class Result:
     start: int | None = None
     stop: int | None = None
     """The job's slice; None only for an error about a job whose slice did not parse."""
+    digest: str | None = None
+    """`genome_digest` of the evaluated genomes (a span's generations)."""
 
     def __post_init__(self) -> None:
         check_worker_name(self.worker)
@@ -399,6 +462,7 @@ def encode_result(result: Result) -> bytes:
         holding=result.holding,
         start=result.start,
         stop=result.stop,
+        digest=result.digest,
     )
     arrays: dict[str, np.ndarray] = {}
     if result.fitness is not None:
@@ -409,7 +473,10 @@ def encode_result(result: Result) -> bytes:
 
 
 def decode_result(payload: bytes) -> Result:
-    header, arrays = decode_frame(payload)
+    return _result_from(*decode_frame(payload))
+
+
+def _result_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Result:
     try:
         parsed = ResultHeader.model_validate(header)
     except ValidationError as exc:
@@ -428,7 +495,100 @@ def decode_result(payload: bytes) -> Result:
         holding=parsed.holding,
         start=parsed.start,
         stop=parsed.stop,
+        digest=parsed.digest,
     )
+
+
+SPAN_BATCH_MAX = 64
+"""Most generations one SpanResults message carries."""
+
+
+class SpanResultsHeader(_Model):
+    """The JSON part of consecutive generations' results of one span (protocol 5)."""
+
+    kind: Literal["span-results"] = "span-results"
+    key: JobKey
+    """The first generation's job; the others follow it generation by generation."""
+    worker: str
+    robot_steps_per_s: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+    seconds: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+    digests: tuple[str, ...] = Field(min_length=1, max_length=SPAN_BATCH_MAX)
+    """`genome_digest` of each generation's genomes, in order."""
+
+    @field_validator("worker")
+    @classmethod
+    def _check_name(cls, value: str) -> str:
+        return check_worker_name(value)
+
+    @field_validator("digests")
+    @classmethod
+    def _check_digests(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        if not all(re.match(_DIGEST, d) for d in value):
+            raise ValueError("digests must be 64 lowercase hex characters")
+        return value
+
+
+def encode_span_results(results: list[Result]) -> bytes:
+    """Consecutive generations' whole-population results of a span, in one frame: fitness
+    (k, n) and components (k, n, trials, 4) stacked, one digest each."""
+    first = results[0]
+    if not 1 <= len(results) <= SPAN_BATCH_MAX:
+        raise ValueError(f"{len(results)} results; a message carries 1 to {SPAN_BATCH_MAX}")
+    for i, result in enumerate(results):
+        expected = first.key.model_copy(update={"generation": first.key.generation + i})
+        if result.key != expected or result.fitness is None or result.components is None:
+            raise ValueError(f"result {i} is not generation {expected.generation}'s, evaluated")
+        if result.digest is None or result.worker != first.worker:
+            raise ValueError(f"result {i} lacks its digest or comes from another worker")
+    header = SpanResultsHeader(
+        key=first.key,
+        worker=first.worker,
+        robot_steps_per_s=results[-1].robot_steps_per_s,
+        seconds=sum(r.seconds for r in results),
+        digests=tuple(r.digest or "" for r in results),
+    )
+    arrays = {
+        "fitness": np.stack([r.fitness for r in results if r.fitness is not None]),
+        "components": np.stack([r.components for r in results if r.components is not None]),
+    }
+    return encode_frame(header.model_dump(mode="json"), arrays)
+
+
+def decode_results(payload: bytes) -> list[Result]:
+    """A result, or a span's consecutive generations as one Result each (WireError if bad)."""
+    header, arrays = decode_frame(payload)
+    if header.get("kind") != "span-results":
+        return [_result_from(header, arrays)]
+    try:
+        parsed = SpanResultsHeader.model_validate(header)
+    except ValidationError as exc:
+        raise WireError(f"span results header: {exc}") from exc
+    fitness, components = arrays.get("fitness"), arrays.get("components")
+    k = len(parsed.digests)
+    if set(arrays) != {"fitness", "components"} or fitness is None or components is None:
+        raise WireError(f"span results need fitness and components, got {sorted(arrays)}")
+    if fitness.ndim != 2 or fitness.shape[0] != k or components.shape[:2] != fitness.shape:
+        raise WireError(
+            f"span results of {k} generations with fitness {fitness.shape} and "
+            f"components {components.shape}"
+        )
+    n = fitness.shape[1]
+    if n < 1:
+        raise WireError("span results of an empty population")
+    return [
+        Result(
+            key=parsed.key.model_copy(update={"generation": parsed.key.generation + i}),
+            worker=parsed.worker,
+            fitness=fitness[i],
+            components=components[i],
+            robot_steps_per_s=parsed.robot_steps_per_s,
+            seconds=parsed.seconds / k,
+            start=0,
+            stop=n,
+            digest=digest,
+        )
+        for i, digest in enumerate(parsed.digests)
+    ]
 
 
 def encode_message(message: JobRequest | Idle | Ack) -> bytes:

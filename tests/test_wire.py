@@ -28,10 +28,13 @@ from schemas.wire import (
     decode_request,
     decode_result,
     decode_result_reply,
+    decode_results,
     encode_frame,
     encode_job,
     encode_message,
     encode_result,
+    encode_span_results,
+    genome_digest,
     worker_key,
 )
 
@@ -126,7 +129,7 @@ def test_malformed_frames_raise_wire_error(payload: bytes) -> None:
 @given(st.binary(max_size=300))
 @settings(max_examples=200, deadline=None)
 def test_arbitrary_bytes_never_raise_anything_but_wire_error(payload: bytes) -> None:
-    for decode in (decode_next_reply, decode_result, decode_request, decode_ack):
+    for decode in (decode_next_reply, decode_result, decode_results, decode_request, decode_ack):
         with contextlib.suppress(WireError):
             decode(payload)
 
@@ -197,3 +200,121 @@ def test_result_reply_is_an_ack_or_the_next_job_carrying_it() -> None:
     with pytest.raises(InvalidJobError) as caught:
         decode_result_reply(bad)
     assert caught.value.ack == ack and caught.value.key == job.key
+
+
+def span_job(span: int = 2) -> Job:
+    from evorobotics.ga import GAParams, init
+    from evorobotics.layout import layout
+
+    state = init(layout(CONFIG.network_spec), GAParams.from_config(CONFIG)).to_arrays()
+    genomes = np.arange(10 * W, dtype=np.float64).reshape(10, W) / 3.0
+    key = JobKey(run_id=3, generation=0, index=0)
+    return Job(key, 0, 10, CONFIG, genomes, span=span, state=state, more=False)
+
+
+def test_span_job_round_trips_with_its_ga_state() -> None:
+    job = span_job()
+    back = decode_next_reply(encode_job(job))
+    assert isinstance(back, Job) and back.span == 2 and back.state is not None
+    assert job.state is not None and back.state.keys() == job.state.keys()
+    assert all(back.state[k].tobytes() == job.state[k].tobytes() for k in job.state)
+    assert back.genomes.tobytes() == job.genomes.tobytes()
+    plain = decode_next_reply(encode_job(make_job()))
+    assert isinstance(plain, Job) and (plain.span, plain.state) == (1, None)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"span": 3}, "passes 2"),  # generation 0 + 3 > CONFIG.generations
+        ({"state": None}, "GA state"),
+        ({"state": {}}, "GA state"),
+        ({"start": 2, "genomes": np.zeros((8, W))}, "whole population"),
+    ],
+)
+def test_a_span_must_fit_the_run_and_bring_its_state(
+    change: dict[str, object], message: str
+) -> None:
+    with pytest.raises(InvalidJobError, match=message):
+        replace(span_job(), **change)  # type: ignore[arg-type]
+
+
+def test_a_span_frame_with_stray_arrays_is_an_invalid_job() -> None:
+    job = make_job()
+    frame = encode_frame(
+        {
+            "kind": "job",
+            "key": KEY.model_dump(mode="json"),
+            "start": job.start,
+            "stop": job.stop,
+            "lease_s": 1.0,
+            "config": CONFIG.model_dump(mode="json"),
+        },
+        {"genomes": job.genomes, "state.generation": np.array(0)},
+    )
+    with pytest.raises(InvalidJobError, match="'genomes' only"):
+        decode_job(frame)
+
+
+def span_results(k: int, first: int = 4) -> list[Result]:
+    rng = np.random.default_rng(k)
+    return [
+        Result(
+            JobKey(run_id=3, generation=first + i, index=0),
+            "w-1",
+            rng.normal(size=10),
+            rng.normal(size=(10, 3, 4)),
+            2.5e6,
+            0.01,
+            start=0,
+            stop=10,
+            digest=genome_digest(rng.normal(size=(10, W))),
+        )
+        for i in range(k)
+    ]
+
+
+@pytest.mark.parametrize("k", [1, 5])
+def test_span_results_round_trip_generation_by_generation(k: int) -> None:
+    results = span_results(k)
+    back = decode_results(encode_span_results(results))
+    assert [r.key for r in back] == [r.key for r in results]
+    for sent, got in zip(results, back, strict=True):
+        assert sent.fitness is not None and got.fitness is not None
+        assert sent.components is not None and got.components is not None
+        assert got.fitness.tobytes() == sent.fitness.tobytes()
+        assert got.components.tobytes() == sent.components.tobytes()
+        assert (got.digest, got.start, got.stop, got.worker) == (sent.digest, 0, 10, "w-1")
+    single = decode_results(encode_result(results[0]))
+    assert len(single) == 1 and single[0].digest == results[0].digest
+
+
+def test_span_results_must_be_consecutive_and_digested() -> None:
+    results = span_results(3)
+    with pytest.raises(ValueError, match="not generation 5"):
+        encode_span_results([results[0], results[2]])
+    with pytest.raises(ValueError, match="digest"):
+        encode_span_results([replace(results[0], digest=None)])
+
+
+def test_malformed_span_results_raise_wire_error() -> None:
+    payload = encode_span_results(span_results(2))
+    header, arrays = decode_frame(payload)
+    broken = [
+        encode_frame({**header, "digests": header["digests"][:1]}, arrays),
+        encode_frame({**header, "digests": ["xyz", "abc"]}, arrays),
+        encode_frame(header, {"fitness": arrays["fitness"]}),
+        encode_frame(header, {**arrays, "components": arrays["components"][:, :3]}),
+        encode_frame({**header, "worker": "no/slash"}, arrays),
+    ]
+    for bad in broken:
+        with pytest.raises(WireError):
+            decode_results(bad)
+
+
+def test_genome_digest_sees_any_changed_bit() -> None:
+    genomes = np.random.default_rng(1).normal(size=(10, W))
+    changed = genomes.copy()
+    changed.view(np.uint64)[3, 7] ^= 1
+    assert genome_digest(genomes) == genome_digest(genomes.copy(order="F"))
+    assert genome_digest(genomes) != genome_digest(changed)
