@@ -13,6 +13,10 @@ it here; the generation is then written (see `server.manager`), either inside th
 after it has sent the new jobs, so workers evaluate generation g + 1 while g is written.
 Writes happen in the order generations were told, in one transaction per flush.
 
+A span (`grant_span`) lets the worker holding a generation's only job evolve the next ones
+itself: when that generation completes, the next one's job is leased to the same worker at
+once (`complete(..., now=...)`), until the span is used up or the lease returns.
+
 Why memory: a generation of the paper's population costs the server one transaction instead of
 one per lease and per result. A crash loses leases and the results of the generation in flight,
 never a committed generation; `ask` is a pure function of the committed GA state and the seed,
@@ -32,6 +36,7 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics.evolution import job_slices
+from evorobotics.ga import GAState
 from schemas.run import RunConfig
 from server.logs import context
 
@@ -63,6 +68,8 @@ class Job:
     worker: str
     deadline: float
     attempt: int
+    state: GAState | None = None
+    """The GA state the generation's `tell` starts from (what a span's worker needs)."""
 
 
 @dataclass(frozen=True)
@@ -101,6 +108,8 @@ class Advance:
 
     following: np.ndarray | None
     """The next generation's genomes (asked from the told GA state), None when the run is over."""
+    state: GAState | None
+    """The told GA state (the next generation's `tell` starts from it)."""
     write: Callable[[Session], None]
     """Stores the generation inside the given transaction; raises RunOverError if the run is
     no longer live."""
@@ -128,6 +137,14 @@ class _Slot:
 
 
 @dataclass
+class _Span:
+    """A worker evolving generations itself: `left` more after the one in flight."""
+
+    worker: str
+    left: int
+
+
+@dataclass
 class _RunJobs:
     """The generation in flight of one run."""
 
@@ -142,6 +159,8 @@ class _RunJobs:
     remaining: int = 0
     fitness: np.ndarray = field(default_factory=lambda: np.empty(0))
     components: np.ndarray = field(default_factory=lambda: np.empty(0))
+    state: GAState | None = None
+    span: _Span | None = None
 
 
 @dataclass(frozen=True)
@@ -222,7 +241,14 @@ class JobQueue:
             listener()
 
     def add(
-        self, *, run_id: int, config: RunConfig, generation: int, genomes: np.ndarray, running: bool
+        self,
+        *,
+        run_id: int,
+        config: RunConfig,
+        generation: int,
+        genomes: np.ndarray,
+        running: bool,
+        state: GAState | None = None,
     ) -> None:
         """Cut a committed run's generation into jobs (replacing any older generation).
 
@@ -245,6 +271,7 @@ class JobQueue:
                 remaining=len(slots),
                 fitness=np.full(config.population, np.nan),
                 components=np.full((config.population, config.trials, 4), np.nan),
+                state=state,
             )
             self._served.setdefault(run_id, 0)
         if running:
@@ -257,6 +284,8 @@ class JobQueue:
             if jobs is None:
                 return
             jobs.running = running
+            if not running:
+                jobs.span = None
         if running:
             self._announce()
 
@@ -302,7 +331,44 @@ class JobQueue:
                 worker=worker,
                 deadline=slot.deadline,
                 attempt=slot.attempts,
+                state=chosen.state,
             )
+
+    def grant_span(self, key: JobKey, worker: str, generations: int) -> tuple[int, GAState | None]:
+        """Let `worker`, holding job `key`, evolve up to `generations` generations from it.
+
+        Only a generation cut into one job can be a span (its worker then has every fitness
+        `tell` needs). Returns the generations granted (1: none beyond this job) and the GA
+        state the job's `tell` starts from.
+        """
+        with self._lock:
+            found = self._slot(key)
+            if found is None:
+                return 1, None
+            jobs, slot = found
+            if len(jobs.slots) != 1 or slot.status != "leased" or slot.worker != worker:
+                return 1, None
+            granted = max(1, min(generations, jobs.config.generations - jobs.generation))
+            if granted == 1 or jobs.state is None:
+                return 1, jobs.state
+            jobs.span = _Span(worker, granted - 1)
+            return granted, jobs.state
+
+    def leased_to(self, key: JobKey) -> str | None:
+        """The worker holding job `key` now, if it is leased."""
+        with self._lock:
+            found = self._slot(key)
+            if found is None or found[1].status != "leased":
+                return None
+            return found[1].worker
+
+    def genomes(self, key: JobKey) -> np.ndarray | None:
+        """The genomes of job `key` while its generation is in flight."""
+        with self._lock:
+            found = self._slot(key)
+            if found is None:
+                return None
+            return found[0].genomes[found[1].start : found[1].stop]
 
     def _slot(self, key: JobKey) -> tuple[_RunJobs, _Slot] | None:
         jobs = self._runs.get(key.run_id)
@@ -312,14 +378,17 @@ class JobQueue:
             return None
         return jobs, jobs.slots[key.index]
 
-    def complete(self, key: JobKey, result: JobResult, *, defer: bool = False) -> bool:
+    def complete(
+        self, key: JobKey, result: JobResult, *, defer: bool = False, now: float | None = None
+    ) -> bool:
         """Store a job's result; False when it was already stored or its run is over (dropped).
 
         The result of any lease (even an expired one) is accepted: evaluation is a pure
         function of the job, so every copy is the same. The last job tells the GA, installs the
         next generation's jobs and writes the generation (with any earlier unwritten ones, in
         order), now or (`defer`) at a later `flush`. If a write raises, the generations stay
-        unwritten and the next flush retries them.
+        unwritten and the next flush retries them. With `now`, a span goes on: the next
+        generation's job is leased to the span's worker from `now`.
         """
         with self._lock:
             found = self._slot(key)
@@ -339,7 +408,7 @@ class JobQueue:
             jobs.components[slot.start : slot.stop] = components
             self._totals["done"] += 1
             if jobs.remaining == 1:
-                self._advance(jobs)
+                self._advance(jobs, now)
                 if not defer:
                     self.flush()
                 return True
@@ -350,8 +419,9 @@ class JobQueue:
             slot.status, slot.worker, slot.deadline = "done", None, None
             return True
 
-    def _advance(self, jobs: _RunJobs) -> None:
-        """Tell the GA, queue the generation's write and install the next generation's jobs."""
+    def _advance(self, jobs: _RunJobs, now: float | None) -> None:
+        """Tell the GA, queue the generation's write and install the next generation's jobs
+        (the next one of a span leased to its worker)."""
         results = GenerationResults(
             run_id=jobs.run_id,
             generation=jobs.generation,
@@ -371,7 +441,24 @@ class JobQueue:
                 generation=jobs.generation + 1,
                 genomes=advance.following,
                 running=jobs.running,
+                state=advance.state,
             )
+            if jobs.span is not None and jobs.span.left > 0 and now is not None:
+                self._go_on(self._runs[jobs.run_id], jobs.span, now)
+
+    def _go_on(self, jobs: _RunJobs, span: _Span, now: float) -> None:
+        """Lease the new generation's only job to the span's worker (as `lease` would)."""
+        if not jobs.running or len(jobs.slots) != 1:
+            return
+        slot = jobs.slots[0]
+        jobs.pending.clear()
+        slot.status, slot.worker = "leased", span.worker
+        slot.deadline = now + self._lease_seconds
+        slot.attempts += 1
+        jobs.span = _Span(span.worker, span.left - 1)
+        self._sequence += 1
+        self._served[jobs.run_id] = self._sequence
+        self._totals["leased"] += 1
 
     def flush(self) -> None:
         """Write the told generations not yet written, oldest first, in one transaction.
@@ -475,6 +562,8 @@ class JobQueue:
 
     @staticmethod
     def _make_pending(jobs: _RunJobs, index: int) -> None:
+        """The job waits for a lease again; a span it was part of is over."""
+        jobs.span = None
         slot = jobs.slots[index]
         if slot.status != "pending":
             slot.status, slot.worker, slot.deadline = "pending", None, None

@@ -125,6 +125,8 @@ class _Asked:
     generation: int
     genomes: np.ndarray
     running: bool
+    state: GAState
+    """The GA state the generation's `tell` starts from."""
 
 
 _INDIVIDUAL_COLUMNS = (
@@ -251,6 +253,7 @@ class RunManager:
                 generation=a.generation,
                 genomes=a.genomes,
                 running=a.running,
+                state=a.state,
             )
 
     # run lifecycle ---------------------------------------------------------------------------
@@ -406,7 +409,7 @@ class RunManager:
         plan, g = self._plan(run), run.generation
         state = self._state_before(session, run.id, plan, g)
         genomes, _ = ask(ga_rng(plan.config.seed, g), state, plan.params, plan.layout)
-        return _Asked(run.id, plan.config, g, genomes, run.status == "running")
+        return _Asked(run.id, plan.config, g, genomes, run.status == "running", state)
 
     def _advance(self, results: GenerationResults) -> Advance:
         """Tell the GA and ask the next generation in memory; the write stores the generation
@@ -429,7 +432,7 @@ class RunManager:
             if last:
                 self._finish(session, self._get(session, run_id), plan.config)
 
-        return Advance(following, write)
+        return Advance(following, state, write)
 
     def _write_generation(
         self,

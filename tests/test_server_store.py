@@ -414,7 +414,9 @@ def test_listeners_hear_of_new_and_returned_jobs_until_removed(manager: RunManag
 TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
 EVENTS = st.lists(
     st.tuples(
-        st.sampled_from(["lease", "complete", "release", "expire", "flush", "restart"]),
+        st.sampled_from(
+            ["lease", "complete", "release", "expire", "flush", "restart", "whole", "span"]
+        ),
         st.integers(),
     ),
     max_size=25,
@@ -434,21 +436,35 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
     events: list[tuple[str, int]],
 ) -> None:
     """Leases, results (also from before a restart), releases, expiries, deferred writes (a
-    restart loses the unwritten ones, as a crash would), server restarts: the run ends with
+    restart loses the unwritten ones, as a crash would), server restarts, whole generations
+    and spans (their worker evolves the next generation it is leased): the run ends with
     `evolve`'s best controller, and no generation is ever committed twice."""
     engine = make_engine(f"sqlite:///{tmp_path_factory.mktemp('q') / 'colony.db'}")
     upgrade(engine)
     settings_ = Settings(db_url="unused", lease_seconds=10.0, max_attempts=2)
     manager = RunManager(engine, settings_)
     run_id = manager.create_run(TINY)
-    held: list[tuple[JobKey, JobResult]] = []
+    held: list[tuple[JobKey, JobResult, str]] = []
     now = 0.0
     for kind, n in events:
         now += 1.0
-        if kind == "lease" and (item := _evaluate(manager, f"w{n % 3}", now)) is not None:
-            held.append(item)
+        worker = f"w{n % 3}"
+        if kind == "lease" and (item := _evaluate(manager, worker, now)) is not None:
+            held.append((*item, worker))
         elif kind == "complete" and held:
-            manager.queue.complete(*held.pop(n % len(held)), defer=n % 2 == 0)
+            key, result, worker = held.pop(n % len(held))
+            manager.queue.complete(key, result, defer=n % 2 == 0, now=now)
+            following = JobKey(key.run_id, key.generation + 1, 0)
+            if manager.queue.leased_to(following) == worker:  # a span goes on
+                genomes = manager.queue.genomes(following)
+                assert genomes is not None
+                ev = evaluate(TINY, following.generation, genomes)
+                held.append((following, JobResult(ev.fitness, ev.components), worker))
+        elif kind == "whole":
+            manager.queue.set_job_sizer(lambda config: config.population)
+        elif kind == "span" and held:
+            key, _, worker = held[n % len(held)]
+            manager.queue.grant_span(key, worker, n % 3 + 2)
         elif kind == "flush":
             manager.queue.flush()
         elif kind == "release" and held:
@@ -458,8 +474,8 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
         elif kind == "restart":  # the old process dies; its workers' results may still arrive
             manager = RunManager(engine, settings_)
             manager.recover()
-    for item in held:
-        manager.queue.complete(*item)
+    for key, result, _ in held:
+        manager.queue.complete(key, result)
     while (item := _evaluate(manager, "drain", now)) is not None:
         assert manager.queue.complete(*item) is True
     with manager.sessions() as session:
@@ -488,3 +504,76 @@ def test_a_failed_evaluation_is_stored_as_null_ranks_last_and_the_run_goes_on(
     assert [i.index for i in ranked if i.fitness is None] == [2]
     assert ranked[-1].index == 2  # NaN never wins: it ranks last
     assert _evaluate(manager, "w", 0.0) is not None  # generation 1 was asked
+
+
+def _whole(manager: RunManager, config: RunConfig) -> int:
+    manager.queue.set_job_sizer(lambda c: c.population)
+    return manager.create_run(config)
+
+
+def _result(config: RunConfig, generation: int, genomes: np.ndarray) -> JobResult:
+    ev = evaluate(config, generation, genomes)
+    return JobResult(ev.fitness, ev.components)
+
+
+SPANNED = RunConfig(population=6, generations=6, steps=5, trials=1, seed=3)
+
+
+def test_a_span_leases_each_next_generation_to_its_worker_until_used_up(
+    manager: RunManager,
+) -> None:
+    run_id = _whole(manager, SPANNED)
+    job = manager.queue.lease("w", 0.0)
+    assert job is not None and job.state is not None and job.state.generation == 0
+    granted, state = manager.queue.grant_span(job.key, "w", 3)
+    assert (granted, state) == (3, job.state)
+    key, genomes = job.key, job.genomes
+    for g in (1, 2):  # the span's second and third generations go to "w" alone
+        assert manager.queue.complete(key, _result(SPANNED, g - 1, genomes), now=float(g))
+        key = JobKey(run_id, g, 0)
+        assert manager.queue.leased_to(key) == "w"
+        assert manager.queue.lease("x", float(g)) is None
+        leased = manager.queue.genomes(key)
+        assert leased is not None
+        genomes = leased
+    assert manager.queue.complete(key, _result(SPANNED, 2, genomes), now=3.0)
+    assert manager.queue.leased_to(JobKey(run_id, 3, 0)) is None  # used up: pending again
+    while (job := manager.queue.lease("x", 4.0)) is not None:
+        manager.queue.complete(job.key, _result(SPANNED, job.key.generation, job.genomes))
+    assert manager.best(run_id) == evolve(SPANNED).best.sha256
+
+
+def test_a_span_is_only_granted_for_a_whole_generation_to_its_holder(
+    manager: RunManager,
+) -> None:
+    manager.create_run(SMALL)  # cut by job_size: three jobs
+    job = manager.queue.lease("w", 0.0)
+    assert job is not None
+    assert manager.queue.grant_span(job.key, "w", 3)[0] == 1
+    whole = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=6)
+    run_id = manager.create_run(whole)
+    while (job := manager.queue.lease("w", 0.0)) is not None and job.key.run_id != run_id:
+        pass
+    assert job is not None
+    assert manager.queue.grant_span(job.key, "other", 3)[0] == 1
+    assert manager.queue.grant_span(job.key, "w", 99)[0] == whole.generations  # capped
+
+
+@pytest.mark.parametrize("how", ["release", "expire", "pause"])
+def test_a_span_ends_when_its_lease_returns_or_its_run_pauses(
+    manager: RunManager, how: str
+) -> None:
+    run_id = _whole(manager, SPANNED)
+    job = manager.queue.lease("w", 0.0)
+    assert job is not None
+    manager.queue.grant_span(job.key, "w", 5)
+    if how == "release":
+        manager.queue.release(job.key)
+        again = manager.queue.lease("x", 1.0)
+        assert again is not None and again.key == job.key
+    elif how == "expire":
+        assert manager.queue.expire(100.0) == 1
+    else:
+        manager.pause(run_id)
+    manager.queue.complete(job.key, _result(SPANNED, 0, job.genomes), now=2.0)
+    assert manager.queue.leased_to(JobKey(run_id, 1, 0)) is None
