@@ -7,12 +7,13 @@
    best controllers compared.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
-        [--steps 40] [--repeats 3] [--sweep] [--only throughput|paper]
+        [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS] [--only throughput|paper]
 
 `--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
 generation: the coordination cost per generation weighs a tenth as much. `--sweep` also times
 100 to 1,600 steps (generations scaled to the same robot-steps) on the same server and
-prints where the distributed run catches up with `colony evolve`.
+prints where the distributed run catches up with `colony evolve`. `--span-below` sets the
+server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no spans).
 """
 
 from __future__ import annotations
@@ -122,7 +123,9 @@ def bench_throughput(seconds: float, workers: int) -> None:
     )
 
 
-def bench_paper(workers: int, shapes: list[tuple[int, int]], repeats: int) -> None:
+def bench_paper(
+    workers: int, shapes: list[tuple[int, int]], repeats: int, span_below: float | None
+) -> None:
     """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve for each
     (generations, steps) shape on one server, each timed `repeats` times, alternately (figures
     on a shared 2-core VM move by 15 %)."""
@@ -143,6 +146,10 @@ def bench_paper(workers: int, shapes: list[tuple[int, int]], repeats: int) -> No
         argv += ["--db", f"sqlite:///{Path(tmp) / 'bench.db'}", "--port", str(http)]
         argv += ["--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--workers", str(workers)]
         env = {**os.environ, "COLONY_HOUSEKEEPING_SECONDS": "0.2"}
+        if span_below is not None:
+            env["COLONY_SPAN_BELOW_SECONDS"] = str(span_below)
+        below = DispatchSettings().span_below_s if span_below is None else span_below
+        mode = f"spans below {below * 1e3:g} ms a generation" if below else "slices only"
         server = subprocess.Popen(
             argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
         )
@@ -193,7 +200,7 @@ def bench_paper(workers: int, shapes: list[tuple[int, int]], repeats: int) -> No
                 print(
                     f"{name}{generations} generations of {steps} steps (kernels warm, median [min-max] "
                     f"of {repeats}): colony evolve {_spread(local_s)}, colony server --workers "
-                    f"{workers} {_spread(dist_s)} (run started to finished, server clock), "
+                    f"{workers} {_spread(dist_s)} (run started to finished, server clock; {mode}), "
                     f"{ratio:.2f}x; best controllers {same}; "
                     f"load average {os.getloadavg()[0]:.2f}"
                 )
@@ -217,6 +224,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sweep", action="store_true")
+    parser.add_argument("--span-below", type=float, default=None)
     parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
     shapes = [(args.generations, args.steps)]
@@ -228,7 +236,7 @@ def main() -> None:
     if args.only != "paper":
         bench_throughput(args.seconds, args.workers)
     if args.only != "throughput":
-        bench_paper(args.workers, shapes, args.repeats)
+        bench_paper(args.workers, shapes, args.repeats, args.span_below)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,13 @@ thread blocks on that one queue for everything (requests, results, liveliness, `
 new jobs exist) with a timeout of the next deadline (a lease, a long-poll, a gone worker's
 expiry): nothing is polled. Once the queue is empty it calls `JobSource.flush`, so slow
 bookkeeping (writing a finished generation) runs after the next generation's jobs are sent.
+
+Spans: a generation that one worker evaluates in less than `span_below_s` costs less than
+the round trip through this server that parallel slices would add to it (docs/protocol.md,
+"Throughput"). Such a generation is cut into one job, and its worker gets it as a span: it
+evolves about `span_s` of generations itself (ask and tell are pure functions of the GA state
+and the seed), sending each one's result as it goes, while this server records them. Each
+accepted result moves the lease to the next generation, so a span fails over like any job.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ import threading
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import zenoh
@@ -44,9 +51,10 @@ from schemas.wire import (
     WorkerStatus,
     check_worker_name,
     decode_request,
-    decode_result,
+    decode_results,
     encode_job,
     encode_message,
+    genome_digest,
 )
 from server.jobs import JobKey as QueueKey
 from server.jobs import JobQueue, JobResult
@@ -81,6 +89,19 @@ class JobSource(Protocol):
         if it raises, it is called again within a second."""
 
 
+@runtime_checkable
+class SpanSource(JobSource, Protocol):
+    """A JobSource whose generations can be evolved by one worker (spans, protocol 5)."""
+
+    def span(self, job: Job, worker: str, generations: int) -> Job:
+        """`job` (a whole generation, leased to `worker`) as a span of up to `generations`,
+        with the GA state; unchanged if it cannot be one."""
+
+    def continues(self, key: JobKey, worker: str) -> bool:
+        """Whether the generation after job `key` is now leased to `worker` (its span goes
+        on after `complete`)."""
+
+
 @dataclass(frozen=True)
 class DispatchSettings:
     """Zenoh endpoints and lease policy; the defaults serve a lab network."""
@@ -100,6 +121,12 @@ class DispatchSettings:
     """How long a departed worker stays listed as gone."""
     jobs_per_worker: int = 1
     """A generation is cut into this many jobs per live worker (see `Dispatcher.job_size`)."""
+    span_below_s: float = 0.025
+    """A generation a worker evaluates faster than this runs in spans (0: never); 25 ms is
+    where parallel slices caught up with one process on a 2-core machine."""
+    span_s: float = 5.0
+    """A span covers about this much evaluation time, then its worker asks again (so other
+    runs and newly joined workers get their turn)."""
     auth: ZenohRouterAuth = field(default_factory=ZenohRouterAuth)
     """usrpwd dictionary, TLS certificate and message-size limit of the router (security.md)."""
 
@@ -113,12 +140,26 @@ class DispatchSettings:
             raise ValueError(f"gone_keep_s must be >= 0, got {self.gone_keep_s}")
         if self.jobs_per_worker < 1:
             raise ValueError(f"jobs_per_worker must be >= 1, got {self.jobs_per_worker}")
+        if self.span_below_s < 0:
+            raise ValueError(f"span_below_s must be >= 0, got {self.span_below_s}")
+        if not self.span_s > 0:
+            raise ValueError(f"span_s must be > 0, got {self.span_s}")
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
         """The lease of a job of `robot_steps` for a worker running `speed` robot-steps/s."""
         if not speed:
             return self.lease_unknown_s
         return max(self.lease_min_s, self.lease_factor * robot_steps / speed)
+
+    def span_generations(self, config: RunConfig, speed: float | None) -> int:
+        """Generations of `config` a worker of `speed` robot-steps/s evolves in one span
+        (1: no span, the generation is cut into parallel slices)."""
+        if not speed:
+            return 1
+        seconds = config.population * config.trials * config.steps / speed
+        if seconds >= self.span_below_s:
+            return 1
+        return max(1, int(self.span_s / seconds))
 
     def zenoh_config(self) -> zenoh.Config:
         conf = zenoh.Config()
@@ -148,6 +189,10 @@ class _Lease:
     robot_steps: int
     start: int
     stop: int
+    span_left: int = 0
+    """Generations of a span after this one."""
+    continued: bool = False
+    """Leased by a span going on: the worker asked these genomes itself (digest required)."""
 
 
 @dataclass
@@ -220,6 +265,8 @@ class Dispatcher:
         self.results_dropped = 0
         self.prefetches = 0
         """Requests of workers already holding a job (protocol 3 prefetches)."""
+        self.spans_served = 0
+        """Jobs sent as spans (protocol 5)."""
         self.malformed = 0
         self._owns_session = session is None
         self._session = zenoh.open(settings.zenoh_config()) if session is None else session
@@ -255,8 +302,12 @@ class Dispatcher:
             raise ValueError(f"local must be >= 0, got {local}")
         with self._lock:
             live = local + sum(1 for w in self._workers.values() if w.serving)
+            speeds = sorted(w.speed for w in self._workers.values() if w.serving and w.speed)
         if live == 0:
             return config.job_size
+        median = speeds[len(speeds) // 2] if speeds else None
+        if local == 0 and self.settings.span_generations(config, median) > 1:
+            return config.population  # a span needs the whole generation in one job
         jobs = live * self.settings.jobs_per_worker
         return max(config.job_size, -(-config.population // jobs))
 
@@ -371,7 +422,7 @@ class Dispatcher:
             self._other_protocol.append(held)
         elif request.holding:  # a prefetch: a job now or idle now, never held
             self.prefetches += 1
-            if not (self._may_prefetch(request.worker) and self._try_serve(held)):
+            if not (self._may_prefetch(request.worker) and self._try_serve(held, prefetch=True)):
                 self._answer_idle(held, "no job to prefetch")
         elif not self._try_serve(held):
             self._held.append(held)
@@ -397,21 +448,45 @@ class Dispatcher:
                 w.name in busy or w.name == worker for w in self._workers.values() if w.serving
             )
 
-    def _try_serve(self, held: _Held) -> bool:
+    def _try_serve(self, held: _Held, *, prefetch: bool = False) -> bool:
         job = self._source.lease(held.worker)
         if job is None:
             return False
         with held.query as query:
-            self._send(query, KEY_JOB_NEXT, job, held.worker, None)
+            self._send(query, KEY_JOB_NEXT, job, held.worker, None, may_span=not prefetch)
         return True
 
-    def _send(self, query: zenoh.Query, key: str, job: Job, worker: str, ack: Ack | None) -> None:
-        """Reply `job` (with `ack` if it answers a result) and record its lease."""
+    def _spanned(self, job: Job, worker: str) -> Job:
+        """`job` as a span if its generation is quick enough for one worker."""
+        source = self._source
+        if not isinstance(source, SpanSource) or (job.start, job.stop) != (
+            0,
+            job.config.population,
+        ):
+            return job
+        generations = self.settings.span_generations(job.config, self._workers[worker].speed)
+        return job if generations == 1 else source.span(job, worker, generations)
+
+    def _send(
+        self,
+        query: zenoh.Query,
+        key: str,
+        job: Job,
+        worker: str,
+        ack: Ack | None,
+        *,
+        may_span: bool = True,
+    ) -> None:
+        """Reply `job` (with `ack` if it answers a result) and record its lease; a job for a
+        worker holding no other (`may_span`) may go out as a span."""
         record = self._workers[worker]
+        if may_span:
+            job = self._spanned(job, worker)
         lease_s = self.settings.lease_seconds(job.robot_steps, record.speed)
         # A prefetch gets a job only while every other live worker holds one: otherwise it
-        # would come back idle, so tell the worker not to send it.
-        more = job.more and self._may_prefetch(worker)
+        # would come back idle, so tell the worker not to send it. A span is never prefetched
+        # behind: its worker is busy for the whole span.
+        more = job.more and job.span == 1 and self._may_prefetch(worker)
         try:
             query.reply(key, encode_job(replace(job, lease_s=lease_s, more=more), ack))
         except zenoh.ZError:
@@ -422,11 +497,17 @@ class Dispatcher:
             return
         deadline = self._clock() + lease_s
         self._leases[job.key] = _Lease(
-            job.key, worker, deadline, job.robot_steps, job.start, job.stop
+            job.key, worker, deadline, job.robot_steps, job.start, job.stop, job.span - 1
         )
-        _job_log(job.key, worker).debug(
-            "leased %s to %s for %.0f s", job.key.label(), worker, lease_s
-        )
+        if job.span > 1:
+            self.spans_served += 1
+            _job_log(job.key, worker).info(
+                "leased %s to %s as a span of %d generations", job.key.label(), worker, job.span
+            )
+        else:
+            _job_log(job.key, worker).debug(
+                "leased %s to %s for %.0f s", job.key.label(), worker, lease_s
+            )
         with self._lock:
             record.state = "busy"
         self.jobs_served += 1
@@ -454,45 +535,73 @@ class Dispatcher:
             query.reply(KEY_JOB_NEXT, encode_message(Idle(reason=reason)))
 
     def _on_result(self, query: zenoh.Query) -> None:
+        """A result, or consecutive generations of a span (taken in order until one is
+        refused); one acknowledgement, under the first one's key."""
         try:
-            result = decode_result(_payload(query))
+            results = decode_results(_payload(query))
         except WireError as exc:
             self._reject(query, exc)
             return
+        result = results[0]
         record = self._touch(result.worker, None)
-        lease = self._leases.get(result.key)
-        if lease is None or lease.worker != result.worker or _other_slice(result, lease):
-            self.results_dropped += 1
-            ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
-            _job_log(result.key, result.worker).debug(
-                "dropped a late or duplicate result of %s from %s",
-                result.key.label(),
-                result.worker,
-            )
-        else:
-            del self._leases[result.key]
-            ack = self._settle(result, lease)
-            still = any(other.worker == result.worker for other in self._leases.values())
-            with self._lock:
-                record.state = "busy" if still else "idle"
-                if result.robot_steps_per_s:
-                    record.speed = result.robot_steps_per_s
+        for each in results:
+            ack = self._take(each, record)
+            if not ack.accepted:
+                break
+        if ack.key != result.key:
+            ack = ack.model_copy(update={"key": result.key})
         if result.want_next:
             # Pipelined request (protocol 2): the next job rides on the acknowledgement.
             # Requests already held waited longer: they are served first.
             self._serve_held()
             job = None if self._held else self._lease_for(result.worker, result.holding)
             if job is not None:
-                self._send(query, KEY_JOB_RESULT, job, result.worker, ack)
+                may_span = not result.holding
+                self._send(query, KEY_JOB_RESULT, job, result.worker, ack, may_span=may_span)
                 return
         query.reply(KEY_JOB_RESULT, encode_message(ack))
+
+    def _take(self, result: Result, record: _WorkerRecord) -> Ack:
+        """Settle one result if its worker holds the lease (a span's lease then moves on)."""
+        lease = self._leases.get(result.key)
+        if lease is None or lease.worker != result.worker or _other_slice(result, lease):
+            self.results_dropped += 1
+            _job_log(result.key, result.worker).debug(
+                "dropped a late or duplicate result of %s from %s",
+                result.key.label(),
+                result.worker,
+            )
+            return Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
+        del self._leases[result.key]
+        ack = self._settle(result, lease)
+        if ack.accepted and result.error is None and lease.span_left > 0:
+            self._go_on(result.key, lease)
+        still = any(other.worker == result.worker for other in self._leases.values())
+        with self._lock:
+            record.state = "busy" if still else "idle"
+            if result.robot_steps_per_s:
+                record.speed = result.robot_steps_per_s
+        return ack
 
     def _lease_for(self, worker: str, holding: Collection[JobKey]) -> Job | None:
         """A job for a worker that holds `holding` (any other lease of it lost its reply)."""
         self._release_lost(worker, keep=holding)
         return self._source.lease(worker)
 
+    def _go_on(self, key: JobKey, lease: _Lease) -> None:
+        """The span's next generation is leased to the same worker (if the source went on)."""
+        if not (isinstance(self._source, SpanSource) and self._source.continues(key, lease.worker)):
+            return
+        following = key.model_copy(update={"generation": key.generation + 1})
+        speed = self._workers[lease.worker].speed
+        deadline = self._clock() + self.settings.lease_seconds(lease.robot_steps, speed)
+        self._leases[following] = replace(
+            lease, key=following, deadline=deadline, span_left=lease.span_left - 1, continued=True
+        )
+
     def _settle(self, result: Result, lease: _Lease) -> Ack:
+        if result.error is None and lease.continued and result.digest is None:
+            result = replace(result, fitness=None, error="a span's result without its digest")
         if result.error is not None:
             _job_log(result.key, result.worker).warning(
                 "%s failed %s: %s", result.worker, result.key.label(), result.error
@@ -616,12 +725,31 @@ class QueueSource:
         if result.fitness is None or result.components is None:
             self._queue.fail(key, f"{result.worker}: result without fitness or components")
             return False
+        if result.digest is not None:
+            genomes = self._queue.genomes(key)
+            if genomes is not None and genome_digest(genomes) != result.digest:
+                self._queue.fail(
+                    key,
+                    f"{result.worker}: evaluated other genomes than the server asked "
+                    "(its GA differs: another version?)",
+                )
+                return False
         try:
             job_result = JobResult(result.fitness, result.components)
-            return self._queue.complete(key, job_result, defer=True)
+            return self._queue.complete(key, job_result, defer=True, now=self._clock())
         except ValueError as exc:  # wrong shapes: the worker is broken, count it as a failure
             self._queue.fail(key, f"{result.worker}: {exc}")
             return False
+
+    def span(self, job: Job, worker: str, generations: int) -> Job:
+        granted, state = self._queue.grant_span(_queue_key(job.key), worker, generations)
+        if granted == 1 or state is None:
+            return job
+        return replace(job, span=granted, state=state.to_arrays(), more=False)
+
+    def continues(self, key: JobKey, worker: str) -> bool:
+        following = QueueKey(key.run_id, key.generation + 1, key.index)
+        return self._queue.leased_to(following) == worker
 
     def fail(self, key: JobKey, error: str) -> None:
         self._queue.fail(_queue_key(key), error)

@@ -46,6 +46,14 @@ class Settings(BaseSettings):
         le=64,
         description="zenoh jobs per live worker and generation (more: finer balance)",
     )
+    span_below_seconds: float = Field(
+        0.025,
+        ge=0.0,
+        description="a generation a worker evaluates faster than this runs in spans (0: never)",
+    )
+    span_seconds: float = Field(
+        5.0, gt=0.0, description="evaluation time of one span, then its worker asks again"
+    )
     lease_seconds: float = Field(300.0, gt=0.0, description="a leased job returns after this")
     lease_min_seconds: float = Field(
         10.0, gt=0.0, description="shortest zenoh lease (lease = max(this, 10 x job time))"
@@ -146,5 +154,7 @@ class Settings(BaseSettings):
             lease_min_s=self.lease_min_seconds,
             lease_unknown_s=self.lease_unknown_seconds,
             jobs_per_worker=self.jobs_per_worker,
+            span_below_s=self.span_below_seconds,
+            span_s=self.span_seconds,
             auth=self.zenoh_router_auth(),
         )

@@ -28,6 +28,7 @@ from schemas.wire import (
     decode_next_reply,
     encode_message,
     encode_result,
+    genome_digest,
     worker_key,
 )
 from server.dispatch import Dispatcher, DispatchSettings, QueueSource
@@ -492,3 +493,90 @@ def test_queue_source_two_workers_give_the_same_best_as_local_evolve(tmp_path: P
         manager.stop()
         engine.dispose()
     assert sha == evolve(config).best.sha256
+
+
+def test_quick_generations_go_out_as_spans_that_pause_resume_and_match_evolve(
+    tmp_path: Path,
+) -> None:
+    """A generation far below `span_below_s` is one job, sent as a span: its worker evolves
+    the next ones itself. Pausing ends the span; resuming starts another; the best controller
+    is `evolve`'s bit for bit."""
+    from evorobotics.evolution import evolve
+    from server.db import make_engine, upgrade
+    from server.manager import RunManager
+    from server.models import Run
+    from server.settings import Settings
+    from worker.main import evaluate_slice
+
+    config = RunConfig(population=8, generations=300, trials=1, steps=10, seed=6)
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
+    manager.start()
+    port = free_port()
+    try:
+
+        def run() -> Run:
+            with manager.sessions.begin() as session:
+                found = session.get(Run, run_id)
+                assert found is not None
+                session.expunge(found)
+                return found
+
+        settings = dispatch_settings(port, span_below_s=10.0)
+        with Dispatcher(settings, QueueSource(manager.queue)) as dispatcher:
+            manager.queue.set_job_sizer(dispatcher.job_size)
+            with (
+                worker_thread(port, "one", evaluate_slice),
+                worker_thread(port, "two", evaluate_slice),
+            ):
+                assert eventually(lambda: len(dispatcher.workers()) == 2, timeout=WAIT)
+                run_id = manager.create_run(config)
+                assert eventually(lambda: run().generation >= 5, timeout=60.0)
+                manager.pause(run_id)
+                # the generation in flight may still be written; nothing is leased after it
+                assert eventually(lambda: manager.queue.counts()["leased"] == 0, timeout=WAIT)
+                manager.queue.flush()
+                paused_at = run().generation
+                spans = dispatcher.spans_served
+                assert paused_at < config.generations and spans >= 1
+                manager.resume(run_id)
+                assert eventually(lambda: run().status == "completed", timeout=60.0)
+                assert dispatcher.spans_served > spans
+        sha = manager.best(run_id)
+    finally:
+        manager.stop()
+        engine.dispose()
+    assert sha == evolve(config).best.sha256
+
+
+def test_a_span_result_for_other_genomes_is_a_failed_attempt(tmp_path: Path) -> None:
+    """A worker whose GA differs (its digest does not match the genomes the server asked)
+    never gets its fitness recorded; past the attempt limit the run fails, saying why."""
+    from evorobotics.evaluate import evaluate
+    from server.db import make_engine, upgrade
+    from server.manager import RunManager
+    from server.models import Run
+    from server.settings import Settings
+
+    config = RunConfig(population=6, generations=4, trials=1, steps=5, seed=2)
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    manager = RunManager(engine, Settings(executors=0, max_attempts=2))
+    manager.queue.set_job_sizer(lambda c: c.population)
+    source = QueueSource(manager.queue)
+    run_id = manager.create_run(config)
+    for _ in range(2):
+        job = source.lease("w")
+        assert job is not None and job.key.generation == 0
+        spanned = source.span(job, "w", 3)
+        assert spanned.span == 3 and spanned.state is not None
+        ev = evaluate(config, 0, job.genomes)
+        wrong = genome_digest(job.genomes + 1.0)
+        result = Result(job.key, "w", ev.fitness, ev.components, start=0, stop=6, digest=wrong)
+        assert source.complete(result) is False
+    with manager.sessions() as session:
+        run = session.get(Run, run_id)
+        assert run is not None and run.status == "failed" and run.generation == 0
+        assert run.error is not None and "other genomes" in run.error
+    engine.dispose()

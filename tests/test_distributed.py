@@ -49,7 +49,11 @@ class Colony:
         self.procs: list[subprocess.Popen[bytes]] = []
         self.server: subprocess.Popen[bytes] | None = None
 
-    def start_server(self, workers: int = 0, **env: str) -> subprocess.Popen[bytes]:
+    def start_server(
+        self, workers: int = 0, *, spans: bool = False, **env: str
+    ) -> subprocess.Popen[bytes]:
+        """`spans`: every generation with a measured worker speed goes out as a span of the
+        rest of the run; otherwise generations are cut into parallel slices."""
         argv = [
             *COLONY,
             "server",
@@ -62,7 +66,9 @@ class Colony:
             "--workers",
             str(workers),
         ]
-        env = {"COLONY_HOUSEKEEPING_SECONDS": "0.2", **env}
+        spanning = {"COLONY_SPAN_BELOW_SECONDS": "10", "COLONY_SPAN_SECONDS": "600"}
+        off = {"COLONY_SPAN_BELOW_SECONDS": "0"}
+        env = {"COLONY_HOUSEKEEPING_SECONDS": "0.2", **(spanning if spans else off), **env}
         self.server = self._spawn(argv, env, "server")
         wait_until(lambda: self._healthy(), "server health")
         return self.server
@@ -252,4 +258,80 @@ def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(
     server.wait(timeout=10)
     colony.start_server()
     colony.finish(run_id, expected_sha)
+    assert {"one", "two"} <= set(colony.workers())
+
+
+SPAN_CONFIG = {"population": 16, "generations": 300, "steps": 300, "seed": 12}
+"""Generations of a few milliseconds: far below the span threshold the span tests set."""
+
+
+@pytest.fixture(scope="module")
+def span_sha() -> str:
+    return evolve(RunConfig(**SPAN_CONFIG)).best.sha256
+
+
+def span_holder(colony: Colony, run_id: int) -> tuple[str, dict[str, dict[str, Any]]]:
+    """Once the run is a few generations in: the worker evolving it alone, and the table."""
+    wait_until(lambda: colony.run(run_id)["generation"] >= 5, "generation 5")
+    workers = colony.workers()
+    holder = max(workers, key=lambda name: workers[name]["jobs_done"])
+    # generation 0 went out in slices (no speed measured yet); every later one to the holder
+    assert all(w["jobs_done"] <= 1 for name, w in workers.items() if name != holder), workers
+    return holder, workers
+
+
+def test_a_span_s_worker_sigkilled_mid_span_hands_the_run_over(
+    colony: Colony, span_sha: str
+) -> None:
+    colony.start_server(spans=True)
+    procs = {name: colony.start_worker(name) for name in ("a", "b")}
+    wait_until(lambda: len(colony.workers()) == 2, "two workers")
+    run_id = colony.post("/api/runs", SPAN_CONFIG)["id"]
+    holder, before = span_holder(colony, run_id)
+    procs[holder].kill()
+    colony.finish(run_id, span_sha, evaluations=16 * 300)
+    after = colony.workers()
+    [other] = set(procs) - {holder}
+    assert after[holder]["state"] == "gone"
+    assert after[other]["jobs_done"] > before[other]["jobs_done"]
+
+
+def test_a_span_s_worker_stopped_past_its_lease_is_replaced_and_its_late_results_dropped(
+    colony: Colony, span_sha: str
+) -> None:
+    colony.start_server(spans=True, COLONY_LEASE_MIN_SECONDS="0.5")
+    hung = colony.start_worker("hung")
+    run_id = colony.post("/api/runs", SPAN_CONFIG)["id"]
+    span_holder(colony, run_id)
+    hung.send_signal(signal.SIGSTOP)
+    colony.start_worker("rescuer")
+    try:
+        # once the rescuer evolves, every result the hung worker sent before it stopped is in
+        wait_until(lambda: colony.workers().get("rescuer", {}).get("jobs_done", 0) >= 3, "rescue")
+        done_before = colony.workers()["hung"]["jobs_done"]
+        colony.finish(run_id, span_sha, evaluations=16 * 300)
+    finally:
+        hung.send_signal(signal.SIGCONT)
+    woke = datetime.now(UTC)
+    wait_until(
+        lambda: datetime.fromisoformat(colony.workers()["hung"]["last_seen"]) >= woke,
+        "the late results",
+    )
+    assert colony.workers()["hung"]["jobs_done"] == done_before
+    assert colony.run(run_id)["evaluations"] == 16 * 300
+
+
+def test_a_server_sigkilled_mid_span_resumes_it_with_the_same_workers(
+    colony: Colony, span_sha: str
+) -> None:
+    server = colony.start_server(spans=True)
+    colony.start_worker("one")
+    colony.start_worker("two")
+    wait_until(lambda: len(colony.workers()) == 2, "two workers")
+    run_id = colony.post("/api/runs", SPAN_CONFIG)["id"]
+    span_holder(colony, run_id)
+    server.kill()
+    server.wait(timeout=10)
+    colony.start_server(spans=True)
+    colony.finish(run_id, span_sha, evaluations=16 * 300)
     assert {"one", "two"} <= set(colony.workers())

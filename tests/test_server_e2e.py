@@ -22,7 +22,8 @@ from evorobotics.evolution import evolve
 from schemas.run import RunConfig
 from tests.helpers import free_port
 
-CONFIG = {"population": 12, "generations": 40, "steps": 20, "job_size": 5, "seed": 3}
+CONFIG = {"population": 12, "generations": 400, "steps": 20, "job_size": 5, "seed": 3}
+"""Generations of about a millisecond: with spans, enough of them to be killed mid-run."""
 TIMEOUT_S = 90.0
 
 

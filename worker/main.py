@@ -5,6 +5,7 @@ zenoh itself reconnects a live session after a server restart), a liveliness tok
 `evocolony/workers/NAME`, then the loop of docs/protocol.md. Every job is validated before it
 runs; a bad job or a failing evaluation becomes an error result, never a crash. A stop request
 (SIGINT, SIGTERM) lets the current job finish and its result go back, then the worker exits.
+A span (protocol 5) is evolved here generation after generation, with the GA of `evorobotics`.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from schemas.security import ZenohClientAuth
 from schemas.wire import (
     KEY_JOB_NEXT,
     KEY_JOB_RESULT,
+    SPAN_BATCH_MAX,
     Idle,
     InvalidJobError,
     Job,
@@ -41,6 +43,8 @@ from schemas.wire import (
     decode_result_reply,
     encode_message,
     encode_result,
+    encode_span_results,
+    genome_digest,
     worker_key,
 )
 
@@ -48,6 +52,11 @@ log = logging.getLogger(__name__)
 
 Evaluator = Callable[[RunConfig, int, np.ndarray], tuple[np.ndarray, np.ndarray]]
 """(config, generation, genomes (n, w)) -> fitness (n,), components (n, trials, 4)."""
+
+SPAN_SEND_S = 0.05
+"""A span's results go to the server at least this often (several generations a message)."""
+SPAN_WINDOW = 4
+"""A span's messages sent but not yet acknowledged before the worker waits for the oldest."""
 
 
 def evaluate_slice(
@@ -191,6 +200,14 @@ def _serve(
                 continue
             in_hand.append(job)
         job = in_hand.popleft()
+        if job.span > 1:
+            if ahead is not None:
+                in_hand.extend(_collect(session, settings, stop, stats, ahead, in_hand))
+                ahead = None
+            following = _evolve_span(session, settings, stop, job, evaluator, stats)
+            if following is not None:
+                in_hand.append(following)
+            continue
         if ahead is None and not in_hand and job.more:
             request = JobRequest(
                 worker=settings.name,
@@ -213,6 +230,97 @@ def _serve(
             in_hand.append(following)
     if ahead is not None:
         _collect(session, settings, stop, stats, ahead, in_hand)
+
+
+def _evolve_span(
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    stop: threading.Event,
+    job: Job,
+    evaluator: Evaluator,
+    stats: WorkerStats,
+) -> Job | None:
+    """Evolve the span's generations here, sending their results as it goes; the next job
+    if the server sent one with the acknowledgement of an error.
+
+    Results go out every SPAN_SEND_S (several generations a message) without waiting for
+    their acknowledgement (up to SPAN_WINDOW messages), so the server records generations
+    while this worker evaluates the next. Each carries the digest of the genomes this worker
+    asked, checked against the server's. The span ends early when stopping, or when a result
+    is refused or unanswered (the lease moved on: the run paused or ended, the lease expired,
+    the server restarted): the server re-leases from the last generation it recorded, so a
+    generation evolved twice still counts once.
+    """
+    from evorobotics.ga import GAParams, GAState, ask, ga_rng, tell
+    from evorobotics.layout import layout
+
+    config = job.config
+    try:
+        params, spec_layout = GAParams.from_config(config), layout(config.network_spec)
+        state = GAState.from_arrays(job.state or {})
+    except ValueError as exc:
+        error = f"span of {job.key.label()} has an unusable GA state: {exc}"
+        stats.errors += 1
+        failed = Result(job.key, settings.name, error=error, start=job.start, stop=job.stop)
+        return _deliver(session, settings, stop, failed, stats)
+    in_flight: deque[tuple[JobKey, zenoh.Handler[zenoh.Reply]]] = deque()
+    batch: list[Result] = []
+    sent_at = time.monotonic()
+    current = replace(job, span=1, state=None, more=False)
+    for offset in range(job.span):
+        result = _evaluate(current, settings.name, evaluator, stats)
+        fitness = result.fitness
+        if result.error is not None or fitness is None:
+            if batch:  # the generations before it count; the failed one is retried
+                _send(session, KEY_JOB_RESULT, encode_span_results(batch), settings)
+            return _deliver(session, settings, stop, result, stats)
+        batch.append(replace(result, digest=genome_digest(current.genomes)))
+        last = stop.is_set() or offset + 1 == job.span
+        if last or len(batch) == SPAN_BATCH_MAX or time.monotonic() - sent_at >= SPAN_SEND_S:
+            payload = encode_span_results(batch)
+            in_flight.append((batch[0].key, _send(session, KEY_JOB_RESULT, payload, settings)))
+            batch, sent_at = [], time.monotonic()
+            if not _span_acks(in_flight, keep=SPAN_WINDOW):
+                return None
+        if last:
+            break
+        state, _ = tell(current.genomes, fitness, state, params)
+        generation = current.key.generation + 1
+        genomes, _ = ask(ga_rng(config.seed, generation), state, params, spec_layout)
+        key = current.key.model_copy(update={"generation": generation})
+        current = replace(current, key=key, genomes=genomes)
+    _span_acks(in_flight, keep=0)
+    return None
+
+
+def _span_acks(in_flight: deque[tuple[JobKey, zenoh.Handler[zenoh.Reply]]], keep: int) -> bool:
+    """Take the acknowledgements that have come, waiting for the oldest while more than
+    `keep` are outstanding; False (and the rest abandoned) once one is refused or missing."""
+    while in_flight:
+        key, replies = in_flight[0]
+        if len(in_flight) > keep:
+            payload = _first_ok(replies, KEY_JOB_RESULT)
+        else:
+            try:
+                reply = replies.try_recv()
+            except zenoh.ZError:  # finished without a reply
+                payload = None
+            else:
+                if reply is None:
+                    return True
+                payload = None if reply.ok is None else reply.ok.payload.to_bytes()
+        in_flight.popleft()
+        try:
+            ack = None if payload is None else decode_result_reply(payload)[0]
+        except WireError as exc:
+            log.warning("malformed acknowledgement for %s: %s", key.label(), exc)
+            ack = None
+        if ack is None or ack.key != key or not ack.accepted:
+            reason = "no answer" if ack is None else ack.reason or "refused"
+            log.info("span ends at %s: %s", key.label(), reason)
+            in_flight.clear()
+            return False
+    return True
 
 
 def _send(
