@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import io
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -416,10 +417,14 @@ class RunManager:
         whole (in the queue's one transaction) and finishes the run after its last one."""
         run_id, g = results.run_id, results.generation
         plan = self._plans.get(run_id)
-        with self.sessions() as session:  # reads only on a cold cache (after a restart)
-            if plan is None:
-                plan = self._plan(self._get(session, run_id))
-            before = self._state_before(session, run_id, plan, g)
+        cached = self._states.get(run_id)
+        if plan is not None and cached is not None and cached[0] == g:
+            before = cached[1]
+        else:  # a cold cache (after a restart): read the run and its last state
+            with self.sessions() as session:
+                if plan is None:
+                    plan = self._plan(self._get(session, run_id))
+                before = self._state_before(session, run_id, plan, g)
         state, metrics = tell(results.genomes, results.fitness, before, plan.params)
         self._states[run_id] = (g + 1, state)
         last = g + 1 >= plan.config.generations
@@ -481,6 +486,7 @@ class RunManager:
             },
         )
         parents = [p if p >= 0 else None for _, p in lineage(plan.params, g)]
+        values = [v if math.isfinite(v) else None for v in fitness.tolist()]
         dtype, shape = genomes.dtype.str, str(genomes.shape[1])
         _insert_rows(
             conn,
@@ -493,7 +499,7 @@ class RunManager:
                     r,
                     i,
                     parents[i],
-                    float(fitness[i]) if np.isfinite(fitness[i]) else None,
+                    values[i],
                     components[i].tobytes(),
                     genomes[i].tobytes(),
                     dtype,
