@@ -121,9 +121,10 @@ class DispatchSettings:
     """How long a departed worker stays listed as gone."""
     jobs_per_worker: int = 1
     """A generation is cut into this many jobs per live worker (see `Dispatcher.job_size`)."""
-    span_below_s: float = 0.025
-    """A generation a worker evaluates faster than this runs in spans (0: never); 25 ms is
-    where parallel slices caught up with one process on a 2-core machine."""
+    span_below_s: float = 0.015
+    """A generation a worker evaluates faster than this runs in spans (0: never); spans and
+    parallel slices broke even between 10 and 20 ms on a 2-core machine (bench/dispatch.py
+    --sweep, with and without spans)."""
     span_s: float = 5.0
     """A span covers about this much evaluation time, then its worker asks again (so other
     runs and newly joined workers get their turn)."""

@@ -47,7 +47,7 @@ class Settings(BaseSettings):
         description="zenoh jobs per live worker and generation (more: finer balance)",
     )
     span_below_seconds: float = Field(
-        0.025,
+        0.015,
         ge=0.0,
         description="a generation a worker evaluates faster than this runs in spans (0: never)",
     )
