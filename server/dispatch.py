@@ -250,6 +250,8 @@ class Dispatcher:
         """Serve `source`; on `session` if given (the caller closes it), else on its own."""
         self.settings = settings
         self._source = source
+        self._spans = source if isinstance(source, SpanSource) else None
+        """The source again if it can serve spans (checked once: a protocol check is slow)."""
         self._clock = clock
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._leases: dict[JobKey, _Lease] = {}
@@ -459,11 +461,8 @@ class Dispatcher:
 
     def _spanned(self, job: Job, worker: str) -> Job:
         """`job` as a span if its generation is quick enough for one worker."""
-        source = self._source
-        if not isinstance(source, SpanSource) or (job.start, job.stop) != (
-            0,
-            job.config.population,
-        ):
+        source = self._spans
+        if source is None or (job.start, job.stop) != (0, job.config.population):
             return job
         generations = self.settings.span_generations(job.config, self._workers[worker].speed)
         return job if generations == 1 else source.span(job, worker, generations)
@@ -591,7 +590,7 @@ class Dispatcher:
 
     def _go_on(self, key: JobKey, lease: _Lease) -> None:
         """The span's next generation is leased to the same worker (if the source went on)."""
-        if not (isinstance(self._source, SpanSource) and self._source.continues(key, lease.worker)):
+        if self._spans is None or not self._spans.continues(key, lease.worker):
             return
         following = key.model_copy(update={"generation": key.generation + 1})
         speed = self._workers[lease.worker].speed
