@@ -10,8 +10,9 @@ All zenoh callbacks only put into a queue; one dispatcher thread does every zeno
 every JobSource call, so the source needs no locking of its own against the dispatcher. The
 thread blocks on that one queue for everything (requests, results, liveliness, `notify` when
 new jobs exist) with a timeout of the next deadline (a lease, a long-poll, a gone worker's
-expiry): nothing is polled. Once the queue is empty it calls `JobSource.flush`, so slow
-bookkeeping (writing a finished generation) runs after the next generation's jobs are sent.
+expiry): nothing is polled. Once the queue is empty (or `FLUSH_EVERY_S` after the last flush,
+should messages never stop) it calls `JobSource.flush`, so slow bookkeeping (writing a
+finished generation) runs after the next generation's jobs are sent.
 
 Spans: a generation that one worker evaluates in less than `span_below_s` costs less than
 the round trip through this server that parallel slices would add to it (docs/protocol.md,
@@ -62,6 +63,9 @@ from server.logs import ContextAdapter, context
 
 log = logging.getLogger(__name__)
 
+FLUSH_EVERY_S = 0.5
+"""The longest a busy dispatcher puts off `JobSource.flush` (writing told generations)."""
+
 
 def _job_log(key: JobKey, worker: str) -> ContextAdapter:
     """`log` carrying the job's run, job (`run/generation/index`) and worker ids."""
@@ -100,6 +104,10 @@ class SpanSource(JobSource, Protocol):
     def continues(self, key: JobKey, worker: str) -> bool:
         """Whether the generation after job `key` is now leased to `worker` (its span goes
         on after `complete`)."""
+
+    def digest(self, key: JobKey) -> str | None:
+        """`genome_digest` of job `key`'s genomes as the server asked them (None once its
+        generation is no longer in flight)."""
 
 
 @dataclass(frozen=True)
@@ -208,6 +216,8 @@ class _WorkerRecord:
     """Monotonic time the token vanished (None while alive)."""
     protocol: int | None = None
     """Protocol its last request spoke (None before any request)."""
+    spans: bool = True
+    """False once it evaluated genomes other than the server asked: its GA differs."""
 
     @property
     def serving(self) -> bool:
@@ -260,6 +270,7 @@ class Dispatcher:
         """Requests of workers speaking another protocol: answered idle at their long-poll's
         end, never served, so an old worker asks about once a second instead of spinning."""
         self._flush_at: float | None = None
+        self._flushed_at = clock()
         self._workers: dict[str, _WorkerRecord] = {}
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -355,11 +366,14 @@ class Dispatcher:
                     self._finish(event)
                     return
                 self._step(event)
+                if self._clock() - self._flushed_at >= FLUSH_EVERY_S:
+                    break  # busy without a pause: write now, then go on
                 try:
                     event = self._inbox.get_nowait()
                 except queue.Empty:
                     break
             self._flush_at = None
+            self._flushed_at = self._clock()
             try:
                 self._source.flush()
             except Exception:  # e.g. the database is down: retried within a second
@@ -460,11 +474,17 @@ class Dispatcher:
         return True
 
     def _spanned(self, job: Job, worker: str) -> Job:
-        """`job` as a span if its generation is quick enough for one worker."""
-        source = self._spans
-        if source is None or (job.start, job.stop) != (0, job.config.population):
+        """`job` as a span if its generation is quick enough for one worker, which holds no
+        other job and has never evaluated other genomes than the server asked."""
+        source, record = self._spans, self._workers[worker]
+        if (
+            source is None
+            or not record.spans
+            or (job.start, job.stop) != (0, job.config.population)
+            or any(lease.worker == worker for lease in self._leases.values())
+        ):
             return job
-        generations = self.settings.span_generations(job.config, self._workers[worker].speed)
+        generations = self.settings.span_generations(job.config, record.speed)
         return job if generations == 1 else source.span(job, worker, generations)
 
     def _send(
@@ -600,8 +620,10 @@ class Dispatcher:
         )
 
     def _settle(self, result: Result, lease: _Lease) -> Ack:
-        if result.error is None and lease.continued and result.digest is None:
-            result = replace(result, fitness=None, error="a span's result without its digest")
+        if result.error is None and lease.continued:
+            error = self._check_digest(result)
+            if error is not None:
+                result = replace(result, fitness=None, components=None, error=error)
         if result.error is not None:
             _job_log(result.key, result.worker).warning(
                 "%s failed %s: %s", result.worker, result.key.label(), result.error
@@ -622,6 +644,25 @@ class Dispatcher:
                 "dropped a duplicate result of %s from %s", result.key.label(), result.worker
             )
         return Ack(key=result.key, accepted=accepted, reason="" if accepted else "duplicate")
+
+    def _check_digest(self, result: Result) -> str | None:
+        """Why a span's generation cannot count (None if it can): the worker must have
+        evaluated the genomes the server asked. A worker that did not runs another GA (another
+        version?): it gets no more spans, only genomes asked here."""
+        expected = None if self._spans is None else self._spans.digest(result.key)
+        if result.digest is None:
+            return "a span's result without its digest"
+        if expected is None or result.digest == expected:
+            return None
+        with self._lock:
+            self._workers[result.worker].spans = False
+        _job_log(result.key, result.worker).warning(
+            "%s evaluated other genomes than the server asked for %s (its GA differs: another "
+            "version?); no more spans for it",
+            result.worker,
+            result.key.label(),
+        )
+        return "evaluated other genomes than the server asked (its GA differs: another version?)"
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -725,15 +766,6 @@ class QueueSource:
         if result.fitness is None or result.components is None:
             self._queue.fail(key, f"{result.worker}: result without fitness or components")
             return False
-        if result.digest is not None:
-            genomes = self._queue.genomes(key)
-            if genomes is not None and genome_digest(genomes) != result.digest:
-                self._queue.fail(
-                    key,
-                    f"{result.worker}: evaluated other genomes than the server asked "
-                    "(its GA differs: another version?)",
-                )
-                return False
         try:
             job_result = JobResult(result.fitness, result.components)
             return self._queue.complete(key, job_result, defer=True, now=self._clock())
@@ -750,6 +782,10 @@ class QueueSource:
     def continues(self, key: JobKey, worker: str) -> bool:
         following = QueueKey(key.run_id, key.generation + 1, key.index)
         return self._queue.leased_to(following) == worker
+
+    def digest(self, key: JobKey) -> str | None:
+        genomes = self._queue.genomes(_queue_key(key))
+        return None if genomes is None else genome_digest(genomes)
 
     def fail(self, key: JobKey, error: str) -> None:
         self._queue.fail(_queue_key(key), error)

@@ -28,9 +28,11 @@ from schemas.wire import (
     decode_next_reply,
     encode_message,
     encode_result,
+    encode_span_results,
     genome_digest,
     worker_key,
 )
+from server import crud
 from server.dispatch import Dispatcher, DispatchSettings, QueueSource
 from tests.helpers import eventually, free_port
 from worker.main import Evaluator, WorkerSettings, WorkerStats, run_worker
@@ -550,33 +552,67 @@ def test_quick_generations_go_out_as_spans_that_pause_resume_and_match_evolve(
     assert sha == evolve(config).best.sha256
 
 
-def test_a_span_result_for_other_genomes_is_a_failed_attempt(tmp_path: Path) -> None:
-    """A worker whose GA differs (its digest does not match the genomes the server asked)
-    never gets its fitness recorded; past the attempt limit the run fails, saying why."""
-    from evorobotics.evaluate import evaluate
+def test_a_worker_whose_ga_differs_has_its_span_refused_and_gets_no_more(
+    tmp_path: Path,
+) -> None:
+    """A hand-driven worker sends generation 0 of its span right and generation 1 with the
+    digest of other genomes: generation 0 counts, generation 1 is a failed attempt (retried,
+    not recorded), and the worker's next job is an ordinary one with genomes asked here."""
+    from evorobotics.ga import GAParams, GAState, ga_rng, tell
+    from evorobotics.ga import ask as ga_ask
+    from evorobotics.layout import layout
     from server.db import make_engine, upgrade
     from server.manager import RunManager
-    from server.models import Run
     from server.settings import Settings
 
-    config = RunConfig(population=6, generations=4, trials=1, steps=5, seed=2)
+    config = RunConfig(population=6, generations=5, trials=1, steps=5, seed=2)
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
-    manager = RunManager(engine, Settings(executors=0, max_attempts=2))
+    manager = RunManager(engine, Settings(executors=0, max_attempts=3))
     manager.queue.set_job_sizer(lambda c: c.population)
-    source = QueueSource(manager.queue)
+    port = free_port()
     run_id = manager.create_run(config)
-    for _ in range(2):
-        job = source.lease("w")
-        assert job is not None and job.key.generation == 0
-        spanned = source.span(job, "w", 3)
-        assert spanned.span == 3 and spanned.state is not None
-        ev = evaluate(config, 0, job.genomes)
-        wrong = genome_digest(job.genomes + 1.0)
-        result = Result(job.key, "w", ev.fitness, ev.components, start=0, stop=6, digest=wrong)
-        assert source.complete(result) is False
-    with manager.sessions() as session:
-        run = session.get(Run, run_id)
-        assert run is not None and run.status == "failed" and run.generation == 0
-        assert run.error is not None and "other genomes" in run.error
-    engine.dispose()
+    settings = dispatch_settings(port, span_below_s=10.0)
+    request = encode_message(JobRequest(worker="skewed", robot_steps_per_s=1e6))
+    try:
+        with (
+            Dispatcher(settings, QueueSource(manager.queue)) as dispatcher,
+            zenoh.open(client_config(port)) as session,
+        ):
+            token = session.liveliness().declare_token(worker_key("skewed"))
+            span = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, request)))
+            assert isinstance(span, Job) and span.span == 5 and span.state is not None
+            params, lay = GAParams.from_config(config), layout(config.network_spec)
+            fitness0 = fake_fitness(span.genomes)
+            state = tell(span.genomes, fitness0, GAState.from_arrays(span.state), params)[0]
+            genomes1 = ga_ask(ga_rng(config.seed, 1), state, params, lay)[0]
+            results = [
+                Result(
+                    JobKey(run_id=run_id, generation=g, index=0),
+                    "skewed",
+                    fake_fitness(genomes),
+                    np.zeros((6, 1, 4)),
+                    start=0,
+                    stop=6,
+                    digest=genome_digest(genomes),
+                )
+                for g, genomes in ((0, span.genomes), (1, genomes1 + 1.0))
+            ]
+            reply = ask(session, KEY_JOB_RESULT, encode_span_results(results))
+            assert decode_ack(_ok(reply)).key == results[0].key
+            with manager.sessions() as db:
+                run = crud.get_run(db, run_id=run_id)
+                assert run is not None and run.status == "running"
+            assert manager.queue.totals()["requeued"] == 1  # generation 1, retried
+            following = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, request)))
+            assert isinstance(following, Job) and following.key.generation == 1
+            assert following.span == 1 and following.state is None
+            assert following.genomes.tobytes() == genomes1.tobytes()
+            assert dispatcher.spans_served == 1
+            token.undeclare()  # type: ignore[no-untyped-call]
+        manager.queue.flush()
+        with manager.sessions() as db:
+            generations = crud.list_generations(db, run_id=run_id)
+            assert [g.generation for g in generations] == [0]
+    finally:
+        engine.dispose()
