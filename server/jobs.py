@@ -68,8 +68,6 @@ class Job:
     worker: str
     deadline: float
     attempt: int
-    state: GAState | None = None
-    """The GA state the generation's `tell` starts from (what a span's worker needs)."""
 
 
 @dataclass(frozen=True)
@@ -331,7 +329,6 @@ class JobQueue:
                 worker=worker,
                 deadline=slot.deadline,
                 attempt=slot.attempts,
-                state=chosen.state,
             )
 
     def grant_span(self, key: JobKey, worker: str, generations: int) -> tuple[int, GAState | None]:
@@ -346,7 +343,12 @@ class JobQueue:
             if found is None:
                 return 1, None
             jobs, slot = found
-            if len(jobs.slots) != 1 or slot.status != "leased" or slot.worker != worker:
+            if (
+                not jobs.running
+                or len(jobs.slots) != 1
+                or slot.status != "leased"
+                or slot.worker != worker
+            ):
                 return 1, None
             granted = max(1, min(generations, jobs.config.generations - jobs.generation))
             if granted == 1 or jobs.state is None:

@@ -17,6 +17,7 @@ from schemas.wire import (
     KEY_JOB_NEXT,
     KEY_JOB_RESULT,
     Ack,
+    Idle,
     JobKey,
     WireError,
     decode_result,
@@ -147,3 +148,57 @@ def test_settings_validate() -> None:
     with pytest.raises(ValueError):
         WorkerSettings(backoff_max_s=0)
     assert issubclass(WireError, ValueError)
+
+
+@pytest.mark.parametrize(
+    ("state", "reason"),
+    [
+        ({"generation": np.array(0), "n_weights": np.array(W + 1)}, "weights"),
+        ({"generation": np.array(1), "n_weights": np.array(W)}, "generation 1"),
+        ({"generation": np.array(0)}, "unusable"),
+    ],
+)
+def test_a_span_whose_ga_state_does_not_fit_is_an_error_result_not_a_crash(
+    state: dict[str, np.ndarray], reason: str
+) -> None:
+    config = CONFIG.model_copy(update={"generations": 3})
+    key = JobKey(run_id=9, generation=0, index=0)
+    arrays = {"genomes": np.zeros((config.population, W))}
+    arrays |= {f"state.{name}": value for name, value in state.items()}
+    span = encode_frame(
+        {"kind": "job", "key": key.model_dump(), "start": 0, "stop": config.population,
+         "lease_s": 5.0, "span": 3, "config": config.model_dump(mode="json")},
+        arrays,
+    )  # fmt: skip
+    inbox: list[bytes] = []
+    got = threading.Event()
+    served = threading.Event()
+
+    def on_next(query: zenoh.Query) -> None:
+        with query:
+            if not served.is_set():
+                served.set()
+                query.reply(KEY_JOB_NEXT, span)
+            else:
+                query.reply(KEY_JOB_NEXT, encode_message(Idle()))
+
+    def on_result(query: zenoh.Query) -> None:
+        with query:
+            assert query.payload is not None
+            inbox.append(query.payload.to_bytes())
+            query.reply(KEY_JOB_RESULT, encode_message(Ack(key=key, accepted=True)))
+            got.set()
+
+    with zenoh.open(router_config(port := free_port())) as session:
+        nxt = session.declare_queryable(KEY_JOB_NEXT, on_next)
+        res = session.declare_queryable(KEY_JOB_RESULT, on_result)
+        try:
+            with worker_thread(port, "careful") as stats:
+                assert got.wait(WAIT)
+        finally:
+            nxt.undeclare()  # type: ignore[no-untyped-call]
+            res.undeclare()  # type: ignore[no-untyped-call]
+    result = decode_result(inbox[0])
+    assert result.key == key and result.fitness is None
+    assert result.error is not None and "GA state" in result.error and reason in result.error
+    assert stats.jobs_done == 0

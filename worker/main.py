@@ -258,12 +258,22 @@ def _evolve_span(
     try:
         params, spec_layout = GAParams.from_config(config), layout(config.network_spec)
         state = GAState.from_arrays(job.state or {})
+        if (state.generation, state.n_weights) != (job.key.generation, spec_layout.n_weights):
+            raise ValueError(
+                f"state of generation {state.generation} with {state.n_weights} weights for "
+                f"generation {job.key.generation} of a {spec_layout.n_weights}-weight network"
+            )
     except ValueError as exc:
         error = f"span of {job.key.label()} has an unusable GA state: {exc}"
         stats.errors += 1
         failed = Result(job.key, settings.name, error=error, start=job.start, stop=job.stop)
         return _deliver(session, settings, stop, failed, stats)
     in_flight: deque[tuple[JobKey, zenoh.Handler[zenoh.Reply]]] = deque()
+
+    def send(batch: list[Result]) -> None:
+        payload = encode_span_results(batch)
+        in_flight.append((batch[0].key, _send(session, KEY_JOB_RESULT, payload, settings)))
+
     batch: list[Result] = []
     sent_at = time.monotonic()
     current = replace(job, span=1, state=None, more=False)
@@ -271,24 +281,30 @@ def _evolve_span(
         result = _evaluate(current, settings.name, evaluator, stats)
         fitness = result.fitness
         if result.error is not None or fitness is None:
-            if batch:  # the generations before it count; the failed one is retried
-                _send(session, KEY_JOB_RESULT, encode_span_results(batch), settings)
+            if batch:  # the generations before it count (their reply is not needed: the
+                # error's own acknowledgement comes after it); the failed one is retried
+                send(batch)
             return _deliver(session, settings, stop, result, stats)
         batch.append(replace(result, digest=genome_digest(current.genomes)))
         last = stop.is_set() or offset + 1 == job.span
         if last or len(batch) == SPAN_BATCH_MAX or time.monotonic() - sent_at >= SPAN_SEND_S:
-            payload = encode_span_results(batch)
-            in_flight.append((batch[0].key, _send(session, KEY_JOB_RESULT, payload, settings)))
+            send(batch)
             batch, sent_at = [], time.monotonic()
             if not _span_acks(in_flight, keep=SPAN_WINDOW):
                 return None
         if last:
             break
-        state, _ = tell(current.genomes, fitness, state, params)
         generation = current.key.generation + 1
-        genomes, _ = ask(ga_rng(config.seed, generation), state, params, spec_layout)
+        try:
+            state, _ = tell(current.genomes, fitness, state, params)
+            genomes, _ = ask(ga_rng(config.seed, generation), state, params, spec_layout)
+        except ValueError as exc:  # a state that did not fit: the server asks the rest itself
+            log.warning("span of %s stops at generation %d: %s", job.key.label(), generation, exc)
+            break
         key = current.key.model_copy(update={"generation": generation})
         current = replace(current, key=key, genomes=genomes)
+    if batch:
+        send(batch)
     _span_acks(in_flight, keep=0)
     return None
 
