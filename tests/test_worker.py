@@ -19,6 +19,7 @@ from schemas.wire import (
     Ack,
     Idle,
     JobKey,
+    Result,
     WireError,
     decode_result,
     encode_frame,
@@ -35,7 +36,7 @@ from tests.test_dispatch import (
     fake_fitness,
     worker_thread,
 )
-from worker.main import WorkerSettings, evaluate_slice
+from worker.main import WorkerSettings, WorkerStats, evaluate_slice
 
 KEY = JobKey(run_id=9, generation=2, index=0)
 
@@ -48,15 +49,12 @@ def router_config(port: int) -> zenoh.Config:
     return conf
 
 
-def test_invalid_job_is_reported_as_an_error_result() -> None:
-    """A hand-made server hands out a job with NaN genomes; the worker answers with an error."""
+def serve_one_job(
+    frame: bytes, key: JobKey, after: bytes | None = None
+) -> tuple[Result, WorkerStats]:
+    """A hand-made server hands `frame` to a real worker as its job (then `after`, default
+    Idle, to every request) and acknowledges the first result: returned with the stats."""
     port = free_port()
-    nan_genomes = np.full((3, W), np.nan)
-    bad = encode_frame(
-        {"kind": "job", "key": KEY.model_dump(), "start": 0, "stop": 3, "lease_s": 5.0,
-         "config": CONFIG.model_dump(mode="json")},
-        {"genomes": nan_genomes},
-    )  # fmt: skip
     inbox: list[bytes] = []
     got = threading.Event()
     served = threading.Event()
@@ -65,15 +63,15 @@ def test_invalid_job_is_reported_as_an_error_result() -> None:
         with query:
             if not served.is_set():
                 served.set()
-                query.reply(KEY_JOB_NEXT, bad)
+                query.reply(KEY_JOB_NEXT, frame)
             else:
-                query.reply(KEY_JOB_NEXT, b"not a frame")  # malformed replies are dropped too
+                query.reply(KEY_JOB_NEXT, encode_message(Idle()) if after is None else after)
 
     def on_result(query: zenoh.Query) -> None:
         with query:
             assert query.payload is not None
             inbox.append(query.payload.to_bytes())
-            query.reply(KEY_JOB_RESULT, encode_message(Ack(key=KEY, accepted=True)))
+            query.reply(KEY_JOB_RESULT, encode_message(Ack(key=key, accepted=True)))
             got.set()
 
     with zenoh.open(router_config(port)) as session:
@@ -85,7 +83,18 @@ def test_invalid_job_is_reported_as_an_error_result() -> None:
         finally:
             nxt.undeclare()  # type: ignore[no-untyped-call]
             res.undeclare()  # type: ignore[no-untyped-call]
-    result = decode_result(inbox[0])
+    return decode_result(inbox[0]), stats
+
+
+def test_invalid_job_is_reported_as_an_error_result() -> None:
+    """A hand-made server hands out a job with NaN genomes; the worker answers with an error."""
+    nan_genomes = np.full((3, W), np.nan)
+    bad = encode_frame(
+        {"kind": "job", "key": KEY.model_dump(), "start": 0, "stop": 3, "lease_s": 5.0,
+         "config": CONFIG.model_dump(mode="json")},
+        {"genomes": nan_genomes},
+    )  # fmt: skip
+    result, stats = serve_one_job(bad, KEY, after=b"not a frame")  # malformed: dropped too
     assert result.key == KEY and result.fitness is None
     assert result.error is not None and "NaN" in result.error
     assert stats.jobs_done == 0
@@ -170,35 +179,7 @@ def test_a_span_whose_ga_state_does_not_fit_is_an_error_result_not_a_crash(
          "lease_s": 5.0, "span": 3, "config": config.model_dump(mode="json")},
         arrays,
     )  # fmt: skip
-    inbox: list[bytes] = []
-    got = threading.Event()
-    served = threading.Event()
-
-    def on_next(query: zenoh.Query) -> None:
-        with query:
-            if not served.is_set():
-                served.set()
-                query.reply(KEY_JOB_NEXT, span)
-            else:
-                query.reply(KEY_JOB_NEXT, encode_message(Idle()))
-
-    def on_result(query: zenoh.Query) -> None:
-        with query:
-            assert query.payload is not None
-            inbox.append(query.payload.to_bytes())
-            query.reply(KEY_JOB_RESULT, encode_message(Ack(key=key, accepted=True)))
-            got.set()
-
-    with zenoh.open(router_config(port := free_port())) as session:
-        nxt = session.declare_queryable(KEY_JOB_NEXT, on_next)
-        res = session.declare_queryable(KEY_JOB_RESULT, on_result)
-        try:
-            with worker_thread(port, "careful") as stats:
-                assert got.wait(WAIT)
-        finally:
-            nxt.undeclare()  # type: ignore[no-untyped-call]
-            res.undeclare()  # type: ignore[no-untyped-call]
-    result = decode_result(inbox[0])
+    result, stats = serve_one_job(span, key)
     assert result.key == key and result.fitness is None
     assert result.error is not None and "GA state" in result.error and reason in result.error
     assert stats.jobs_done == 0
