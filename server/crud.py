@@ -7,11 +7,26 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from sqlalchemy import func, select
-from sqlalchemy.orm import Session
+from sqlalchemy import and_, func, outerjoin, select
+from sqlalchemy.orm import Session, aliased, defer
 
+from server.errors import ServerError
 from server.jobs import JobQueue
 from server.models import Controller, Generation, Individual, Robot, Run, Worker
+
+_ORIGIN = aliased(Individual, name="origin")
+WITH_ORIGIN = outerjoin(
+    Individual,
+    _ORIGIN,
+    and_(
+        _ORIGIN.run_id == Individual.run_id,
+        _ORIGIN.generation == Individual.origin_generation,
+        _ORIGIN.rank == Individual.origin_rank,
+    ),
+)
+"""`individuals` LEFT JOIN the row holding a copy's genome bytes (select from it with GENOME)."""
+GENOME = func.coalesce(Individual.genome, _ORIGIN.genome)
+"""An individual's genome bytes: its own, or a copy's origin's (one hop: origins hold bytes)."""
 
 
 def get_run(session: Session, *, run_id: int) -> Run | None:
@@ -64,10 +79,29 @@ def list_individuals(session: Session, *, run_id: int, generation: int) -> list[
     return list(session.scalars(query))
 
 
-def get_individual(
-    session: Session, *, run_id: int, generation: int, rank: int
-) -> Individual | None:
-    return session.get(Individual, (run_id, generation, rank))
+def individuals_with_genomes(
+    session: Session, *, run_id: int, generation: int, rank: int | None = None
+) -> list[tuple[Individual, bytes]]:
+    """Ranked, fittest first (only `rank` if given), each with its genome bytes: read them
+    here, not from `Individual.genome`, which is NULL for a copy."""
+    query = (
+        select(Individual, GENOME)
+        .select_from(WITH_ORIGIN)
+        .options(defer(Individual.genome, raiseload=True))
+        .where(Individual.run_id == run_id, Individual.generation == generation)
+        .order_by(Individual.rank)
+    )
+    if rank is not None:
+        query = query.where(Individual.rank == rank)
+    out = []
+    for row, genome in session.execute(query):
+        if genome is None:
+            raise ServerError(
+                f"run {run_id} generation {generation} rank {row.rank}: no genome bytes at its "
+                f"origin ({row.origin_generation}, {row.origin_rank})"
+            )
+        out.append((row, bytes(genome)))
+    return out
 
 
 def get_controller(session: Session, *, sha256: str) -> Controller | None:

@@ -7,7 +7,9 @@ is committed with its generation; `ask` is a pure function of that state and the
 restarted server re-asks whatever generation was in flight and resumes exactly.
 
 The hot path (one commit per generation) uses SQLAlchemy Core statements and per-run caches of
-the parsed config, GA params, layout and latest GA state; lifecycle changes use the ORM. A
+the parsed config, GA params, layout, latest GA state and where the last generation's genome
+bytes are; lifecycle changes use the ORM. Eq 11 copies three quarters of each generation from
+the two before it: a copy stores no bytes but the (generation, rank) of the row holding them. A
 finished generation is told and the next asked in memory (`_advance`), and written by the job
 queue afterwards (see `server.jobs`), so the zenoh dispatcher can send generation g + 1 before
 g's transaction; lifecycle changes flush unwritten generations first.
@@ -18,6 +20,7 @@ running -> completed | failed. Terminal: completed, failed, cancelled.
 
 from __future__ import annotations
 
+import functools
 import io
 import logging
 import math
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
-from sqlalchemy import Connection, Engine, Table, bindparam, func, insert, select, update
+from sqlalchemy import Connection, Engine, Table, and_, bindparam, func, insert, or_, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import best_document
@@ -39,7 +42,7 @@ from schemas.run import RunConfig
 from schemas.wire import MAGIC, decode_frame, encode_frame
 from server import crud
 from server.db import session_factory
-from server.errors import NotFoundError, TransitionError
+from server.errors import NotFoundError, ServerError, TransitionError
 from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
 from server.logs import context
 from server.models import Generation, Individual, Run, utcnow
@@ -97,14 +100,18 @@ def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None)
 
 
 def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarray:
-    """The committed generation's genomes in rank order (the GA state's `ranked`)."""
+    """The committed generation's genomes in rank order (the GA state's `ranked`), a copy's
+    bytes read from its origin."""
     rows = session.execute(
-        select(Individual.genome, Individual.dtype)
+        select(crud.GENOME, Individual.dtype)
+        .select_from(crud.WITH_ORIGIN)
         .where(Individual.run_id == run_id, Individual.generation == generation)
         .order_by(Individual.rank)
     ).all()
     if not rows:
         raise NotFoundError(f"run {run_id} generation {generation} has no individuals")
+    if any(genome is None for genome, _ in rows):
+        raise ServerError(f"run {run_id} generation {generation} has a copy without its origin")
     return np.stack([np.frombuffer(genome, dtype=np.dtype(dtype)) for genome, dtype in rows])
 
 
@@ -141,6 +148,8 @@ _INDIVIDUAL_COLUMNS = (
     "genome",
     "dtype",
     "shape",
+    "origin_generation",
+    "origin_rank",
 )
 _MARKERS = {"qmark": "?", "format": "%s", "pyformat": "%s"}
 """Positional placeholders of the drivers the server supports (sqlite3, psycopg)."""
@@ -158,6 +167,84 @@ def _insert_rows(
     names = ", ".join(quote(c) for c in columns)
     places = ", ".join([marker] * len(columns))
     conn.exec_driver_sql(f"INSERT INTO {quote(table.name)} ({names}) VALUES ({places})", rows)
+
+
+@dataclass(frozen=True)
+class _Origins:
+    """Where the genome bytes of a run's last written generation are, by rank: the (generation,
+    rank) of the row that holds them (the row itself unless it is a copy); -1 when unknown."""
+
+    generation: int
+    generations: np.ndarray
+    """(n,) int64"""
+    ranks: np.ndarray
+    """(n,) int64"""
+    elite: tuple[int, int]
+    """The same for rank 0 of `generation - 1` (the next generation's k-2 elite); (-1, -1)
+    when there is none."""
+
+
+_NO_ORIGIN = (-1, -1)
+
+
+@dataclass(frozen=True)
+class _Lineage:
+    """`lineage` of a generation as the write uses it (the same for every generation >= 2)."""
+
+    parents: list[int | None]
+    """By index: the parent rank in the previous generation, None for none."""
+    copies: np.ndarray
+    """Indices of Eq 11's copies of the previous generation (elites and fill)."""
+    copied: np.ndarray
+    """Their parent ranks: each is a copy of that rank of the previous generation."""
+    elite_k2: int
+    """Index of the k-2 elite (a copy of rank 0 two generations back); -1 if none."""
+
+
+@functools.lru_cache(maxsize=64)
+def _lineage(params: GAParams, generation: int) -> _Lineage:
+    kinds = lineage(params, generation)
+    copies = [(i, p) for i, (kind, p) in enumerate(kinds) if kind in ("elite", "fill")]
+    return _Lineage(
+        parents=[p if p >= 0 else None for _, p in kinds],
+        copies=np.array([i for i, _ in copies], dtype=np.int64),
+        copied=np.array([p for _, p in copies], dtype=np.int64),
+        elite_k2=next((i for i, (kind, _) in enumerate(kinds) if kind == "elite_k2"), -1),
+    )
+
+
+def _read_origins(conn: Connection, run_id: int, generation: int, population: int) -> _Origins:
+    """The origins of a written generation, from the store (one query; after a restart)."""
+    c = _INDIVIDUALS.c
+    rows = conn.execute(
+        select(c.generation, c.rank, c.origin_generation, c.origin_rank).where(
+            c.run_id == run_id,
+            or_(
+                c.generation == generation,
+                and_(c.generation == generation - 1, c.rank == 0),
+            ),
+        )
+    ).all()
+    generations = np.full(population, -1, dtype=np.int64)
+    ranks = np.full(population, -1, dtype=np.int64)
+    elite = _NO_ORIGIN
+    for g, r, origin_g, origin_r in rows:
+        at = (g, r) if origin_g is None or origin_r is None else (origin_g, origin_r)
+        if g == generation and 0 <= r < population:
+            generations[r], ranks[r] = at
+        elif g == generation - 1:
+            elite = at
+    return _Origins(generation, generations, ranks, elite)
+
+
+def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(k,) whether row i of `a` and of `b` hold the same bytes (NaN payloads and -0.0 too)."""
+    if a.shape != b.shape or a.dtype != b.dtype or a.ndim != 2:
+        return np.zeros(len(a), dtype=bool)
+    bytes_a = np.ascontiguousarray(a).view(np.uint8).reshape(len(a), -1)
+    bytes_b = np.ascontiguousarray(b).view(np.uint8).reshape(len(b), -1)
+    same: np.ndarray = (bytes_a == bytes_b).all(axis=1)
+    return same
 
 
 class RunManager:
@@ -179,6 +266,9 @@ class RunManager:
         self._plans: dict[int, _Plan] = {}
         self._states: dict[int, tuple[int, GAState]] = {}
         """run id -> (generation g, GA state after tell of g - 1): saves a decode per generation."""
+        self._origins: dict[int, _Origins] = {}
+        """run id -> where the genome bytes of its last written generation are: saves a query
+        per generation (see `_genome_origins`)."""
         self._stop = threading.Event()
         self._housekeeper: threading.Thread | None = None
 
@@ -376,6 +466,7 @@ class RunManager:
         """Drop a run's jobs and caches (it is over)."""
         self.queue.forget(run_id)
         self._states.pop(run_id, None)
+        self._origins.pop(run_id, None)
         self._plans.pop(run_id, None)
 
     # the generation loop ---------------------------------------------------------------------
@@ -433,7 +524,7 @@ class RunManager:
             following, _ = ask(ga_rng(plan.config.seed, g + 1), state, plan.params, plan.layout)
 
         def write(session: Session) -> None:
-            self._write_generation(session, results, plan, state, metrics)
+            self._write_generation(session, results, plan, before, state, metrics)
             if last:
                 self._finish(session, self._get(session, run_id), plan.config)
 
@@ -444,10 +535,15 @@ class RunManager:
         session: Session,
         results: GenerationResults,
         plan: _Plan,
+        before: GAState,
         state: GAState,
         metrics: TellMetrics,
     ) -> None:
-        """Store generation g (statistics, GA state, individuals) and move the run to g + 1."""
+        """Store generation g (statistics, GA state, individuals) and move the run to g + 1.
+
+        `before` is the state g was asked from (`tell` of g starts from it). A copy's genome
+        bytes are stored once, at its origin (see `_genome_origins`).
+        """
         run_id, g = results.run_id, results.generation
         genomes, fitness, components = results.genomes, results.fitness, results.components
         order = metrics.order
@@ -485,9 +581,11 @@ class RunManager:
                 "committed_at": utcnow(),
             },
         )
-        parents = [p if p >= 0 else None for _, p in lineage(plan.params, g)]
+        kin = _lineage(plan.params, min(g, 2))  # every generation from 2 on has the same
+        parents = kin.parents
         values = [v if math.isfinite(v) else None for v in fitness.tolist()]
         dtype, shape = genomes.dtype.str, str(genomes.shape[1])
+        origin_g, origin_r = self._genome_origins(conn, run_id, g, kin, genomes, before, order)
         _insert_rows(
             conn,
             _INDIVIDUALS,
@@ -501,13 +599,64 @@ class RunManager:
                     parents[i],
                     values[i],
                     components[i].tobytes(),
-                    genomes[i].tobytes(),
+                    None if origin_g[i] >= 0 else genomes[i].tobytes(),
                     dtype,
                     shape,
+                    None if origin_g[i] < 0 else origin_g[i],
+                    None if origin_g[i] < 0 else origin_r[i],
                 )
                 for r, i in enumerate(order.tolist())
             ],
         )
+
+    def _genome_origins(
+        self,
+        conn: Connection,
+        run_id: int,
+        g: int,
+        kin: _Lineage,
+        genomes: np.ndarray,
+        before: GAState,
+        order: np.ndarray,
+    ) -> tuple[list[int], list[int]]:
+        """By index as asked: the (generation, rank) of the row that holds the individual's
+        genome bytes, or -1 where it stores its own (generation 0, mutants, and anything whose
+        bytes differ from its origin's).
+
+        Eq 11 copies genomes: an elite or fill of parent rank p is rank p of g - 1
+        (`before.ranked[p]`), the k-2 elite rank 0 of g - 2 (`before.elite_k2`). Their origins
+        are remembered per run (`_origins`, read back with one query after a restart) and
+        followed one hop, so an origin always holds bytes. Records g's origins for g + 1.
+        """
+        n = len(genomes)
+        origin_g = np.full(n, -1, dtype=np.int64)
+        origin_r = np.full(n, -1, dtype=np.int64)
+        previous: _Origins | None = None
+        if g >= 1 and before.ranked is not None and before.ranked.shape == genomes.shape:
+            previous = self._origins.get(run_id)
+            if previous is None or previous.generation != g - 1:
+                previous = _read_origins(conn, run_id, g - 1, n)
+            at_g, at_r = previous.generations[kin.copied], previous.ranks[kin.copied]
+            same = _same_rows(genomes[kin.copies], before.ranked[kin.copied]) & (at_g >= 0)
+            origin_g[kin.copies[same]], origin_r[kin.copies[same]] = at_g[same], at_r[same]
+            k2 = kin.elite_k2
+            if (
+                k2 >= 0
+                and before.elite_k2 is not None
+                and previous.elite[0] >= 0
+                and _same_rows(genomes[k2 : k2 + 1], before.elite_k2[np.newaxis, :])[0]
+            ):
+                origin_g[k2], origin_r[k2] = previous.elite
+        copy = origin_g[order] >= 0
+        self._origins[run_id] = _Origins(
+            generation=g,
+            generations=np.where(copy, origin_g[order], g),
+            ranks=np.where(copy, origin_r[order], np.arange(n)),
+            elite=_NO_ORIGIN
+            if previous is None
+            else (int(previous.generations[0]), int(previous.ranks[0])),
+        )
+        return origin_g.tolist(), origin_r.tolist()
 
     def _finish(self, session: Session, run: Run, config: RunConfig) -> None:
         run.status, run.finished_at = "completed", utcnow()
@@ -532,10 +681,13 @@ class RunManager:
         latest = crud.latest_generation(session, run_id=run.id)
         if latest is None:
             return None
-        top = crud.get_individual(session, run_id=run.id, generation=latest.generation, rank=0)
-        if top is None:
+        found = crud.individuals_with_genomes(
+            session, run_id=run.id, generation=latest.generation, rank=0
+        )
+        if not found:
             raise NotFoundError(f"run {run.id} generation {latest.generation} has no rank 0")
-        genome = np.frombuffer(top.genome, dtype=np.dtype(top.dtype))
+        top, data = found[0]
+        genome = np.frombuffer(data, dtype=np.dtype(top.dtype))
         document = best_document(
             config,
             genome[np.newaxis, :],

@@ -86,9 +86,16 @@ class Individual(Base):
     """Eq 12 averaged over trials; NULL for a failed (NaN) evaluation, which ranks last."""
     components: Mapped[bytes] = mapped_column(LargeBinary)
     """(trials, 4) float64: Eq 12's curve length, net offset, max offset, stuck per trial."""
-    genome: Mapped[bytes] = mapped_column(LargeBinary)
+    genome: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    """Raw genome bytes; NULL for a copy (Eq 11's elites, fill and k-2 elite repeat genomes
+    already stored: three quarters of a generation), whose bytes are those of its origin. Read
+    it through `crud.GENOME`, which resolves the origin."""
     dtype: Mapped[str] = mapped_column(String(16))
     shape: Mapped[str] = mapped_column(String(64))
+    origin_generation: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    """With `origin_rank`, the row of the same run that holds a copy's genome bytes (always
+    one with bytes: one hop, never a chain); NULL when the row has its own bytes."""
+    origin_rank: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class Controller(Base):

@@ -596,14 +596,17 @@ def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
     latest = crud.latest_generation(db, run_id=run_id)
     if run is None or latest is None:
         raise NotFoundError(f"run {run_id} has no completed generation yet")
-    ind = crud.get_individual(db, run_id=run_id, generation=latest.generation, rank=rank)
-    if ind is None:
+    found = crud.individuals_with_genomes(
+        db, run_id=run_id, generation=latest.generation, rank=rank
+    )
+    if not found:
         raise NotFoundError(f"run {run_id} has no individual of rank {rank}")
+    ind, genome = found[0]
     config = RunConfig.model_validate_json(run.config)
     fitness = np.nan if ind.fitness is None else float(ind.fitness)
     doc = ControllerDocument(
         spec=config.network_spec,
-        weights=np.frombuffer(ind.genome, dtype=np.dtype(ind.dtype)),
+        weights=np.frombuffer(genome, dtype=np.dtype(ind.dtype)),
         fitness=fitness if np.isfinite(fitness) else None,
         provenance={
             "seed": config.seed,

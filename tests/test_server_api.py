@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import threading
 import time
@@ -93,6 +94,10 @@ def test_small_run_completes_and_matches_evolve(base_url: str) -> None:
     local = evolve(RunConfig(**SMALL))
     assert best["sha256"] == local.best.sha256
     assert best["weights"] == local.best.to_dict()["weights"]
+    assert local.state.ranked is not None  # the store keeps a copy's bytes at its origin only
+    assert [i["genome_sha256"] for i in ranked["individuals"]] == [
+        hashlib.sha256(genome.tobytes()).hexdigest() for genome in local.state.ranked
+    ]
 
 
 def test_errors_name_the_problem(base_url: str) -> None:

@@ -17,9 +17,11 @@ from typing import Any
 import httpx
 import pytest
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig
+from server import crud
 from tests.helpers import free_port
 
 CONFIG = {"population": 12, "generations": 400, "steps": 20, "job_size": 5, "seed": 3}
@@ -68,16 +70,12 @@ def wait_for(url: str, predicate: Any) -> dict[str, Any]:
 
 
 def population_hash(db: Path, run_id: int, generation: int) -> str:
+    """sha256 of the generation's genome bytes in rank order (a copy's read from its origin)."""
     engine = sa.create_engine(f"sqlite:///{db}")
-    with engine.connect() as conn:
-        rows = conn.execute(
-            sa.text(
-                "SELECT genome FROM individuals WHERE run_id = :r AND generation = :g ORDER BY rank"
-            ),
-            {"r": run_id, "g": generation},
-        ).all()
+    with Session(engine) as session:
+        rows = crud.individuals_with_genomes(session, run_id=run_id, generation=generation)
     engine.dispose()
-    return hashlib.sha256(b"".join(r[0] for r in rows)).hexdigest()
+    return hashlib.sha256(b"".join(genome for _, genome in rows)).hexdigest()
 
 
 @pytest.mark.slow

@@ -1,7 +1,9 @@
-"""The store: migrations, array packing, GA state round trip, and the job queue's contract."""
+"""The store: migrations, array packing, GA state round trip, the job queue's contract, and
+genomes stored once per run (Eq 11's copies point to the row holding their bytes)."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import threading
 from collections.abc import Iterator
@@ -15,18 +17,27 @@ from alembic.script import ScriptDirectory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from sqlalchemy.orm import Session
 
 from evorobotics.evaluate import evaluate
-from evorobotics.evolution import evolve
-from evorobotics.ga import GAParams, ask, ga_rng, init, tell
+from evorobotics.evolution import evaluate_population, evolve
+from evorobotics.ga import GAParams, ask, ga_rng, init, lineage, tell
 from evorobotics.layout import layout
-from schemas.run import RunConfig
+from schemas.run import GAConfig, RunConfig
 from schemas.wire import decode_frame
 from server import crud
 from server.db import Checkpointer, alembic_config, make_engine, upgrade
 from server.jobs import JobKey, JobResult
-from server.manager import RunManager, decode_state, encode_state, stored_ranked
+from server.manager import (
+    RunManager,
+    _lineage,
+    _Origins,
+    decode_state,
+    encode_state,
+    stored_ranked,
+)
 from server.models import pack, unpack
+from server.robots import ranked_document
 from server.settings import Settings
 from tests.helpers import eventually
 
@@ -438,7 +449,8 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
     """Leases, results (also from before a restart), releases, expiries, deferred writes (a
     restart loses the unwritten ones, as a crash would), server restarts, whole generations
     and spans (their worker evolves the next generation it is leased): the run ends with
-    `evolve`'s best controller, and no generation is ever committed twice."""
+    `evolve`'s best controller, no generation is ever committed twice, and each genome is
+    stored once."""
     engine = make_engine(f"sqlite:///{tmp_path_factory.mktemp('q') / 'colony.db'}")
     upgrade(engine)
     settings_ = Settings(db_url="unused", lease_seconds=10.0, max_attempts=2)
@@ -483,6 +495,7 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
         assert run is not None and (run.status, run.generation) == ("completed", 3)
         assert [g.generation for g in crud.list_generations(session, run_id=run_id)] == [0, 1, 2]
     assert manager.best(run_id) == tiny_best
+    _assert_stored_once(engine, run_id, TINY, _local_ranked(TINY))
     engine.dispose()
 
 
@@ -577,3 +590,203 @@ def test_a_span_ends_when_its_lease_returns_or_its_run_pauses(
         manager.pause(run_id)
     manager.queue.complete(job.key, _result(SPANNED, 0, job.genomes), now=2.0)
     assert manager.queue.leased_to(JobKey(run_id, 1, 0)) is None
+
+
+# genomes stored once: Eq 11's copies point to the row holding their bytes ---------------------
+
+COPIES = RunConfig(population=12, generations=6, steps=10, trials=2, job_size=5, seed=5)
+LITERAL = COPIES.model_copy(update={"ga": GAConfig(selection="literal"), "seed": 6})
+
+
+def _local_ranked(config: RunConfig) -> list[np.ndarray]:
+    """Every generation's genomes in rank order, composed as `evolve` composes the GA."""
+    lay, params = layout(config.network_spec), GAParams.from_config(config)
+    state, out = init(lay, params), []
+    for g in range(config.generations):
+        genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
+        fitness, _ = evaluate_population(config, g, genomes)
+        state, _ = tell(genomes, fitness, state, params)
+        assert state.ranked is not None
+        out.append(state.ranked)
+    assert out[-1].tobytes() == np.asarray(evolve(config).state.ranked).tobytes()
+    return out
+
+
+def _drive(manager: RunManager, *, until: int | None = None) -> None:
+    """Evaluate and complete jobs (every other write deferred) until the run ends, or until
+    generation `until` is in flight with every earlier one written."""
+    while (item := _evaluate(manager, "w", 0.0)) is not None:
+        if until is not None and item[0].generation >= until:
+            manager.queue.release(item[0])
+            break
+        manager.queue.complete(*item, defer=item[0].index % 2 == 0)
+    manager.queue.flush()
+
+
+def _assert_stored_once(
+    engine: sa.Engine, run_id: int, config: RunConfig, expected: list[np.ndarray], *, old: int = 0
+) -> None:
+    """Bytes only for generation 0, the mutants of later generations (and the first `old`
+    generations, written before the origins existed); every copy resolves in one hop to
+    exactly `evolve`'s genome."""
+    m = config.replacement_count
+    with engine.connect() as conn:
+        counts: dict[int, int] = dict(
+            conn.exec_driver_sql(
+                "SELECT generation, count(genome) FROM individuals WHERE run_id = ?"
+                " GROUP BY generation",
+                (run_id,),
+            ).all()
+        )
+        broken = conn.exec_driver_sql(
+            "SELECT count(*) FROM individuals AS c LEFT JOIN individuals AS o"
+            " ON o.run_id = c.run_id AND o.generation = c.origin_generation"
+            " AND o.rank = c.origin_rank"
+            " WHERE (c.genome IS NULL) = (c.origin_generation IS NULL)"
+            " OR (c.genome IS NULL AND (o.genome IS NULL OR o.origin_generation IS NOT NULL))"
+        ).scalar()
+    assert broken == 0
+    want = {g: config.population if g == 0 or g < old else m for g in range(len(expected))}
+    assert counts == want
+    with Session(engine) as session:
+        for g, ranked in enumerate(expected):
+            rows = crud.individuals_with_genomes(session, run_id=run_id, generation=g)
+            assert [r.rank for r, _ in rows] == list(range(config.population))
+            assert b"".join(genome for _, genome in rows) == ranked.tobytes()
+            assert stored_ranked(session, run_id=run_id, generation=g).tobytes() == ranked.tobytes()
+        for rank in (0, m, 2 * m, config.population - 1):  # elite, mutant, fill, k-2 elite
+            document = ranked_document(session, run_id, rank)
+            assert document.weights.tobytes() == expected[-1][rank].tobytes()
+
+
+@pytest.mark.parametrize("config", [COPIES, LITERAL], ids=["prose", "literal"])
+def test_a_run_stores_each_genome_once_and_reads_back_evolve_bit_for_bit(
+    tmp_path: Path, config: RunConfig
+) -> None:
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
+    run_id = manager.create_run(config)
+    _drive(manager)
+    _assert_stored_once(engine, run_id, config, _local_ranked(config))
+    assert manager.best(run_id) == evolve(config).best.sha256
+    engine.dispose()
+
+
+@pytest.mark.parametrize("restart_after", [1, 2, 4])
+def test_copies_after_a_restart_find_their_origins_in_the_store(
+    tmp_path: Path, restart_after: int
+) -> None:
+    """A restarted manager has no origins in memory: its first write reads them back (one
+    query) and copies still point at rows with bytes, written before the restart."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    settings_ = Settings(db_url="unused", lease_seconds=10.0)
+    first = RunManager(engine, settings_)
+    run_id = first.create_run(COPIES)
+    _drive(first, until=restart_after)
+    second = RunManager(engine, settings_)
+    second.recover()
+    _drive(second)
+    with second.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and run.status == "completed"
+    _assert_stored_once(engine, run_id, COPIES, _local_ranked(COPIES))
+    assert second.best(run_id) == evolve(COPIES).best.sha256
+    engine.dispose()
+
+
+def test_a_copy_whose_bytes_differ_from_its_origin_keeps_them(manager: RunManager) -> None:
+    """The lineage says which rows are copies; the bytes decide: -0.0 == 0.0 as a float, but a
+    copy must give back its own bits, so it keeps them."""
+    lay, params = layout(COPIES.network_spec), GAParams.from_config(COPIES)
+    state = init(lay, params)
+    for g in range(2):
+        genomes, state = ask(ga_rng(1, g), state, params, lay)
+        state, _ = tell(genomes, np.arange(12.0), state, params)
+    genomes, before = ask(ga_rng(1, 2), state, params, lay)
+    assert before.ranked is not None
+    genomes = genomes.copy()
+    genomes[0, 0], genomes[2, 0] = 0.0, -0.0  # elites: ranks 0 and 2 of the previous generation
+    ranked = before.ranked.copy()
+    ranked[0, 0] = ranked[2, 0] = 0.0
+    before = dataclasses.replace(before, ranked=ranked)
+    manager._origins[1] = _Origins(1, np.full(12, 1), np.arange(12), (0, 0))
+    with manager.sessions() as session:  # the origins are in memory: no query
+        origin_g, origin_r = manager._genome_origins(
+            session.connection(), 1, 2, _lineage(params, 2), genomes, before, np.arange(12)
+        )
+    m = COPIES.replacement_count
+    copies = [i for i in range(12) if not m <= i < 2 * m and i != 2]
+    assert [i for i in range(12) if origin_g[i] >= 0] == copies
+    assert [(origin_g[i], origin_r[i]) for i in copies[:2]] == [(1, 0), (1, 1)]
+    assert (origin_g[11], origin_r[11]) == (0, 0)  # the k-2 elite: rank 0 two generations back
+
+
+def _write_old_layout(engine: sa.Engine, config: RunConfig, generations: int) -> None:
+    """Run 1 as a server before revision 0005 left it: `generations` committed, every
+    individual with its genome bytes, the next generation in flight."""
+    lay, params = layout(config.network_spec), GAParams.from_config(config)
+    state = init(lay, params)
+    with engine.begin() as conn:
+        conn.exec_driver_sql(
+            "INSERT INTO runs (id, config, seed, status, generation, evaluations, served,"
+            " created_at, started_at) VALUES (1, ?, ?, 'running', ?, ?, 0, '2026-01-01',"
+            " '2026-01-01')",
+            (config.model_dump_json(), config.seed, generations, generations * config.population),
+        )
+        for g in range(generations):
+            genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
+            fitness, components = evaluate_population(config, g, genomes)
+            state, metrics = tell(genomes, fitness, state, params)
+            conn.exec_driver_sql(
+                "INSERT INTO generations (run_id, generation, best, mean, worst, nan_count,"
+                " state, committed_at) VALUES (1, ?, ?, ?, ?, 0, ?, '2026-01-01')",
+                (
+                    g,
+                    metrics.best,
+                    metrics.mean,
+                    metrics.worst,
+                    encode_state(state, with_ranked=False),
+                ),
+            )
+            parents = [p if p >= 0 else None for _, p in lineage(params, g)]
+            conn.exec_driver_sql(
+                'INSERT INTO individuals (run_id, generation, rank, "index", parent, fitness,'
+                " components, genome, dtype, shape) VALUES (1, ?, ?, ?, ?, ?, ?, ?, '<f8', ?)",
+                [
+                    (g, r, i, parents[i], float(fitness[i]), components[i].tobytes(),
+                     genomes[i].tobytes(), str(lay.n_weights))
+                    for r, i in enumerate(metrics.order.tolist())
+                ],
+            )  # fmt: skip
+
+
+def test_a_database_of_the_old_layout_upgrades_reads_back_and_resumes(tmp_path: Path) -> None:
+    """Rows written before 0005 all hold bytes: they read back unchanged, the run resumes to
+    `evolve`'s result with new copies pointing at old rows, and the downgrade gives every copy
+    its bytes back."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
+    cfg = alembic_config(engine)
+    command.upgrade(cfg, "0004_drop_jobs")
+    _write_old_layout(engine, COPIES, generations=3)
+    expected = _local_ranked(COPIES)
+    upgrade(engine)
+    with Session(engine) as session:
+        for g in range(3):
+            ranked = stored_ranked(session, run_id=1, generation=g)
+            assert ranked.tobytes() == expected[g].tobytes()
+    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
+    manager.recover()
+    _drive(manager)
+    _assert_stored_once(engine, 1, COPIES, expected, old=3)
+    assert manager.best(1) == evolve(COPIES).best.sha256
+    command.downgrade(cfg, "0004_drop_jobs")
+    with engine.connect() as conn:
+        for g, ranked in enumerate(expected):
+            rows = conn.exec_driver_sql(
+                "SELECT genome FROM individuals WHERE run_id = 1 AND generation = ? ORDER BY rank",
+                (g,),
+            ).all()
+            assert b"".join(row[0] for row in rows) == ranked.tobytes()
+    engine.dispose()

@@ -123,7 +123,7 @@ def list_individuals(
         raise HTTPException(
             404, detail=f"run {run_id} has committed generations 0..{run.generation - 1} only"
         )
-    rows = crud.list_individuals(session, run_id=run_id, generation=generation)
+    rows = crud.individuals_with_genomes(session, run_id=run_id, generation=generation)
     return IndividualsOut(
         run_id=run_id,
         generation=generation,
@@ -134,9 +134,9 @@ def list_individuals(
                 parent=i.parent,
                 fitness=i.fitness,
                 components=np.frombuffer(i.components, np.float64).reshape(-1, 4).tolist(),
-                genome_sha256=hashlib.sha256(i.genome).hexdigest(),
+                genome_sha256=hashlib.sha256(genome).hexdigest(),
             )
-            for i in rows
+            for i, genome in rows
         ],
     )
 
