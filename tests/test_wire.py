@@ -312,9 +312,12 @@ def test_malformed_span_results_raise_wire_error() -> None:
             decode_results(bad)
 
 
-def test_genome_digest_sees_any_changed_bit() -> None:
+def test_genome_digest_sees_any_changed_bit_and_any_reordering() -> None:
     genomes = np.random.default_rng(1).normal(size=(10, W))
     changed = genomes.copy()
     changed.view(np.uint64)[3, 7] ^= 1
     assert genome_digest(genomes) == genome_digest(genomes.copy(order="F"))
     assert genome_digest(genomes) != genome_digest(changed)
+    swapped = genomes[[1, 0, *range(2, 10)]]
+    assert genome_digest(genomes) != genome_digest(swapped)
+    assert genome_digest(genomes.astype(">f8")) == genome_digest(genomes)
