@@ -2,7 +2,8 @@
 
 1. jobs/s through a real Dispatcher with empty jobs (an endless in-memory source, workers in
    spawned processes whose evaluator returns zeros): the transport's ceiling.
-2. The paper's experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
+2. `colony evolve` alone and two side by side: how much two processes get from the cores.
+3. The paper's experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
    zenoh on loopback, two local worker processes), against `evolve` in this process, with the
    best controllers compared.
 
@@ -123,6 +124,45 @@ def bench_throughput(seconds: float, workers: int) -> None:
     )
 
 
+def _timed_evolve(config: RunConfig, go: threading.Event, seconds: Any) -> None:
+    """Child of `bench_capacity`: evolve `config` once `go` is set; its wall time to `seconds`."""
+    from evorobotics.evolution import evolve
+
+    evolve(RunConfig(generations=1, seed=99))  # compile the kernels
+    seconds.put(None)
+    go.wait()
+    began = time.perf_counter()
+    evolve(config)
+    seconds.put(time.perf_counter() - began)
+
+
+def bench_capacity(config: RunConfig) -> None:
+    """`colony evolve` alone and beside a second one: what two processes get from this
+    machine's cores (the ceiling of anything that runs beside the evolution, a server included)."""
+    from evorobotics.evolution import evolve
+
+    ctx = mp.get_context("spawn")
+    go, seconds = ctx.Event(), ctx.Queue()
+    other = ctx.Process(target=_timed_evolve, args=(config, go, seconds))
+    other.start()
+    seconds.get(timeout=300)
+    evolve(RunConfig(generations=1, seed=99))
+    began = time.perf_counter()
+    evolve(config)
+    alone = time.perf_counter() - began
+    go.set()
+    began = time.perf_counter()
+    evolve(config)
+    beside = time.perf_counter() - began
+    other_s = seconds.get(timeout=300)
+    other.join(timeout=30)
+    pair = (beside + other_s) / 2
+    print(
+        f"two colony evolve side by side: {pair:.2f} s each against {alone:.2f} s alone: this "
+        f"machine runs two at {2 * alone / pair:.2f}x one (load average {os.getloadavg()[0]:.2f})"
+    )
+
+
 def bench_paper(
     workers: int, shapes: list[tuple[int, int]], repeats: int, span_below: float | None
 ) -> None:
@@ -236,6 +276,7 @@ def main() -> None:
     if args.only != "paper":
         bench_throughput(args.seconds, args.workers)
     if args.only != "throughput":
+        bench_capacity(RunConfig(generations=args.generations, steps=args.steps))
         bench_paper(args.workers, shapes, args.repeats, args.span_below)
 
 
