@@ -153,6 +153,9 @@ _INDIVIDUAL_COLUMNS = (
 )
 _MARKERS = {"qmark": "?", "format": "%s", "pyformat": "%s"}
 """Positional placeholders of the drivers the server supports (sqlite3, psycopg)."""
+LOG_EVERY_S = 1.0
+"""A run's "generation written" lines go out at INFO at most this often (and for its first and
+last generation), the others at DEBUG: a span writes hundreds of generations a second."""
 
 
 def _insert_rows(
@@ -266,6 +269,8 @@ class RunManager:
         self._plans: dict[int, _Plan] = {}
         self._states: dict[int, tuple[int, GAState]] = {}
         """run id -> (generation g, GA state after tell of g - 1): saves a decode per generation."""
+        self._logged_at: dict[int, float] = {}
+        """run id -> when a "generation written" line last went out at INFO (LOG_EVERY_S)."""
         self._origins: dict[int, _Origins] = {}
         """run id -> where the genome bytes of its last written generation are: saves a query
         per generation (see `_genome_origins`)."""
@@ -467,6 +472,7 @@ class RunManager:
         self.queue.forget(run_id)
         self._states.pop(run_id, None)
         self._origins.pop(run_id, None)
+        self._logged_at.pop(run_id, None)
         self._plans.pop(run_id, None)
 
     # the generation loop ---------------------------------------------------------------------
@@ -561,13 +567,6 @@ class RunManager:
         )
         if moved.rowcount != 1:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
-        context(log, run=run_id).info(
-            "run %d generation %d written: best %.4g, mean %.4g",
-            run_id,
-            g,
-            metrics.best,
-            metrics.mean,
-        )
         conn.execute(
             _INSERT_GENERATION,
             {
@@ -607,6 +606,21 @@ class RunManager:
                 )
                 for r, i in enumerate(order.tolist())
             ],
+        )
+        now = time.monotonic()
+        loud = g == 0 or g + 1 >= plan.config.generations
+        if loud or now - self._logged_at.get(run_id, -math.inf) >= LOG_EVERY_S:
+            self._logged_at[run_id] = now
+            level = logging.INFO
+        else:
+            level = logging.DEBUG
+        context(log, run=run_id).log(
+            level,
+            "run %d generation %d written: best %.4g, mean %.4g",
+            run_id,
+            g,
+            metrics.best,
+            metrics.mean,
         )
 
     def _genome_origins(

@@ -19,7 +19,7 @@ from schemas.run import RunConfig
 from server.db import make_engine, upgrade
 from server.jobs import JobResult
 from server.logs import as_format, configure, context
-from server.manager import RunManager
+from server.manager import LOG_EVERY_S, RunManager
 from server.settings import Settings
 from tests.helpers import free_port
 
@@ -59,6 +59,35 @@ def test_a_run_through_the_manager_logs_json_lines_with_its_run_id(
     for word in ("created", "running", "generation 0 written", "generation 1 written", "completed"):
         assert word in messages, (word, messages)
     assert all(e["level"] == "INFO" and e["logger"] == "server.manager" for e in mine)
+
+
+def test_generation_lines_go_out_at_info_at_most_once_a_second_per_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], restore_logging: None
+) -> None:
+    """A span writes hundreds of generations a second: the first, the last and one a second
+    are INFO, the others DEBUG, and every generation has its line."""
+    configure("DEBUG", "json")
+    engine = make_engine(f"sqlite:///{tmp_path / 'c.db'}")
+    upgrade(engine)
+    generations = 40
+    try:
+        manager = RunManager(engine, Settings(db_url="unused"))
+        config = RunConfig(population=8, generations=generations, steps=5, trials=1, job_size=8)
+        began = time.monotonic()
+        run_id = manager.create_run(config)
+        while (job := manager.queue.lease("w", 0.0)) is not None:
+            ev = evaluate(job.config, job.key.generation, job.genomes)
+            manager.queue.complete(job.key, JobResult(ev.fitness, ev.components))
+        elapsed = time.monotonic() - began
+    finally:
+        engine.dispose()
+    entries = [json.loads(line) for line in capsys.readouterr().err.splitlines() if line.strip()]
+    written = [e for e in entries if e.get("run") == run_id and "written" in e["message"]]
+    assert [e["message"].split()[3] for e in written] == [str(g) for g in range(generations)]
+    loud = [int(e["message"].split()[3]) for e in written if e["level"] == "INFO"]
+    assert loud[0] == 0 and loud[-1] == generations - 1
+    assert len(loud) <= 3 + elapsed / LOG_EVERY_S, (loud, elapsed)
+    assert {e["level"] for e in written} == {"INFO", "DEBUG"}
 
 
 def test_process_ids_go_on_every_line_and_a_record_s_own_id_wins(
