@@ -42,7 +42,7 @@ from schemas.run import RunConfig
 from schemas.wire import MAGIC, decode_frame, encode_frame
 from server import crud
 from server.db import session_factory
-from server.errors import NotFoundError, ServerError, TransitionError
+from server.errors import NotFoundError, TransitionError
 from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
 from server.logs import context
 from server.models import Generation, Individual, Run, utcnow
@@ -102,17 +102,10 @@ def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None)
 def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarray:
     """The committed generation's genomes in rank order (the GA state's `ranked`), a copy's
     bytes read from its origin."""
-    rows = session.execute(
-        select(crud.GENOME, Individual.dtype)
-        .select_from(crud.WITH_ORIGIN)
-        .where(Individual.run_id == run_id, Individual.generation == generation)
-        .order_by(Individual.rank)
-    ).all()
-    if not rows:
+    found = crud.individuals_with_genomes(session, run_id=run_id, generation=generation)
+    if not found:
         raise NotFoundError(f"run {run_id} generation {generation} has no individuals")
-    if any(genome is None for genome, _ in rows):
-        raise ServerError(f"run {run_id} generation {generation} has a copy without its origin")
-    return np.stack([np.frombuffer(genome, dtype=np.dtype(dtype)) for genome, dtype in rows])
+    return np.stack([np.frombuffer(genome, dtype=np.dtype(row.dtype)) for row, genome in found])
 
 
 @dataclass(frozen=True)
