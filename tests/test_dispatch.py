@@ -510,7 +510,8 @@ def test_quick_generations_go_out_as_spans_that_pause_resume_and_match_evolve(
     from server.settings import Settings
     from worker.main import evaluate_slice
 
-    config = RunConfig(population=8, generations=300, trials=1, steps=10, seed=6)
+    # enough generations that the pause lands mid-run: 300 took 0.15 s and could end first
+    config = RunConfig(population=8, generations=3000, trials=1, steps=10, seed=6)
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
     manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
