@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 6
+PROTOCOL = 7
 """Wire protocol version, sent in every job request; the server idles other versions.
 
 2: a result may ask for the next job (`want_next`); the server then answers with that job,
@@ -46,6 +46,9 @@ evolves that many generations itself and sends their results as it goes, several
 generations per message (`SpanResults`), each with the digest of the genomes it evaluated;
 each accepted generation moves the lease to the next.
 6: the digests are CRC-32 instead of sha256 (a third of the cost, every generation).
+7: a span may go to a team (`team`, `member`, `team_id`): idle workers split each of its
+generations, exchange their slices' fitness on `evocolony/teams/NAME` (`TeamMessage`) and each
+tells and asks itself; only the team's leader (member 0) holds the lease and sends results.
 """
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
@@ -54,6 +57,8 @@ KEY_JOB_RESULT = "evocolony/jobs/result"
 """Queryable (server): a worker's `get` carries a result; reply is an acknowledgement."""
 KEY_WORKERS = "evocolony/workers/*"
 """Liveliness key expression matching every worker's token."""
+TEAM_MAX = 64
+"""Most workers in one team."""
 
 MAGIC = b"EVC1"
 _HEADER = struct.Struct("<4sI")
@@ -65,6 +70,8 @@ NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
 """Worker names: one key-expression chunk, no wildcards or separators."""
 _DIGEST = "^[0-9a-f]{8}$"
 """A `genome_digest`: CRC-32 in lowercase hex."""
+_TEAM_ID = "^[0-9a-f]{16}$"
+"""A team's identity: 16 lowercase hex digits the server draws per team."""
 
 
 class WireError(ValueError):
@@ -86,6 +93,20 @@ def worker_key(name: str) -> str:
     """The liveliness key of the worker called `name`."""
     check_worker_name(name)
     return f"evocolony/workers/{name}"
+
+
+def team_key(name: str) -> str:
+    """The key on which the worker called `name` receives its teams' messages."""
+    check_worker_name(name)
+    return f"evocolony/teams/{name}"
+
+
+def team_cuts(population: int, size: int) -> list[int]:
+    """Bounds of the `size` contiguous, near-equal slices of a team: member i evaluates
+    individuals cuts[i]..cuts[i + 1]."""
+    if not 1 <= size <= population:
+        raise ValueError(f"a team of {size} cannot split a population of {population}")
+    return [population * i // size for i in range(size + 1)]
 
 
 def check_worker_name(name: str) -> str:
@@ -225,6 +246,11 @@ class JobHeader(_Model):
     span: int = Field(1, ge=1)
     """Generations the worker evolves from this one (protocol 5); above 1 the frame also
     carries the GA state the generation's `tell` starts from, as `state.*` arrays."""
+    team: tuple[str, ...] = Field((), max_length=TEAM_MAX)
+    """The workers splitting the span's generations, leader first (protocol 7)."""
+    member: int = Field(0, ge=0)
+    """This worker's place in `team`: it evaluates slice `member` of `team_cuts`."""
+    team_id: str = Field("", pattern=f"^$|{_TEAM_ID}")
 
 
 @dataclass(frozen=True)
@@ -243,11 +269,17 @@ class Job:
     """Generations to evolve from this one (protocol 5; see JobHeader.span)."""
     state: dict[str, np.ndarray] | None = None
     """The GA state (`GAState.to_arrays`) before this generation's `tell`; only with a span."""
+    team: tuple[str, ...] = ()
+    """The workers splitting a span, leader first (protocol 7; see JobHeader.team)."""
+    member: int = 0
+    team_id: str = ""
 
     def __post_init__(self) -> None:
         check_job(self.key, self.start, self.stop, self.config, self.genomes)
         if self.span > 1 or self.state is not None:
             check_span(self.key, self.start, self.stop, self.config, self.span, self.state)
+        if self.team or self.member or self.team_id:
+            check_team(self.key, self.config, self.span, self.team, self.member, self.team_id)
 
     @property
     def robot_steps(self) -> int:
@@ -290,6 +322,23 @@ def check_span(
         raise InvalidJobError(key, "a span needs the GA state")
 
 
+def check_team(
+    key: JobKey, config: RunConfig, span: int, team: tuple[str, ...], member: int, team_id: str
+) -> None:
+    """InvalidJobError unless a team splits a span among 2 or more distinct, valid workers,
+    at most one per individual, and names this worker's place in it and the team."""
+    if span < 2:
+        raise InvalidJobError(key, "a team needs a span")
+    if not 2 <= len(team) <= min(TEAM_MAX, config.population):
+        raise InvalidJobError(key, f"a team of {len(team)} for a population of {config.population}")
+    if len(set(team)) != len(team) or not all(NAME_PATTERN.match(name) for name in team):
+        raise InvalidJobError(key, f"team members {team} must be distinct worker names")
+    if not 0 <= member < len(team):
+        raise InvalidJobError(key, f"member {member} of a team of {len(team)}")
+    if not re.match(_TEAM_ID, team_id):
+        raise InvalidJobError(key, f"team id {team_id!r} must be 16 lowercase hex digits")
+
+
 def genome_digest(genomes: np.ndarray) -> str:
     """CRC-32 (8 hex digits) of a generation's genomes as float64 little-endian C-order bytes.
 
@@ -320,6 +369,8 @@ def encode_job(job: Job, ack: Ack | None = None) -> bytes:
     if job.span > 1 and job.state is not None:
         header["span"] = job.span
         arrays |= {f"state.{name}": value for name, value in job.state.items()}
+    if job.team:
+        header |= {"team": list(job.team), "member": job.member, "team_id": job.team_id}
     return encode_frame(header, arrays)
 
 
@@ -385,6 +436,9 @@ def _job_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Job:
         more=parsed.more,
         span=parsed.span,
         state=state if parsed.span > 1 else None,
+        team=parsed.team,
+        member=parsed.member,
+        team_id=parsed.team_id,
     )
 
 
@@ -592,6 +646,94 @@ def decode_results(payload: bytes) -> list[Result]:
         )
         for i, digest in enumerate(parsed.digests)
     ]
+
+
+class TeamHeader(_Model):
+    """The JSON part of a team message; fitness and components travel as arrays."""
+
+    kind: Literal["team"] = "team"
+    team_id: str = Field(pattern=_TEAM_ID)
+    generation: int = Field(ge=0)
+    member: int = Field(ge=0, lt=TEAM_MAX)
+    """The sender's place in the team."""
+    ranges: tuple[tuple[int, int], ...] = Field((), max_length=TEAM_MAX)
+    """The [start, stop) slices whose fitness follows, concatenated in this order."""
+    over: bool = False
+    """The sender leaves the team (the leader: the span ends for everyone)."""
+
+
+@dataclass(frozen=True)
+class TeamMessage:
+    """Worker -> worker on `team_key`: fitness of slices of one generation of a team span
+    (protocol 7), so every member tells and asks the same generation; or leaving (`over`).
+
+    Members send fitness and components to the leader, fitness alone to the other members;
+    the leader also sends the slices it evaluated for a member that fell silent.
+    """
+
+    team_id: str
+    generation: int
+    member: int
+    ranges: tuple[tuple[int, int], ...] = ()
+    fitness: np.ndarray | None = None
+    components: np.ndarray | None = None
+    over: bool = False
+
+    def __post_init__(self) -> None:
+        where = f"team message of generation {self.generation} from member {self.member}"
+        previous = 0
+        for start, stop in self.ranges:
+            if not previous <= start < stop:
+                raise WireError(f"{where}: ranges {self.ranges} must be ascending and disjoint")
+            previous = stop
+        count = sum(stop - start for start, stop in self.ranges)
+        if self.over and (self.ranges or self.fitness is not None):
+            raise WireError(f"{where}: leaving carries no fitness")
+        if self.fitness is None:
+            if count or self.components is not None:
+                raise WireError(f"{where}: ranges without fitness")
+            return
+        if self.fitness.shape != (count,) or self.fitness.dtype != np.float64:
+            raise WireError(f"{where}: fitness {self.fitness.shape} for {count} individuals")
+        if not np.isfinite(self.fitness).all():
+            raise WireError(f"{where}: fitness must be finite")
+        if self.components is not None and (
+            self.components.ndim != 3 or self.components.shape[0] != count
+        ):
+            raise WireError(f"{where}: components {self.components.shape} for {count}")
+
+
+def encode_team_message(message: TeamMessage) -> bytes:
+    header = TeamHeader(
+        team_id=message.team_id,
+        generation=message.generation,
+        member=message.member,
+        ranges=message.ranges,
+        over=message.over,
+    )
+    arrays: dict[str, np.ndarray] = {}
+    if message.fitness is not None:
+        arrays["fitness"] = message.fitness
+    if message.components is not None:
+        arrays["components"] = message.components
+    return encode_frame(header.model_dump(mode="json"), arrays)
+
+
+def decode_team_message(payload: bytes) -> TeamMessage:
+    """A validated team message; WireError if malformed."""
+    header, arrays = decode_frame(payload)
+    parsed = _validate(header, TeamHeader)
+    if not set(arrays) <= {"fitness", "components"}:
+        raise WireError(f"unexpected arrays {sorted(arrays)} in a team message")
+    return TeamMessage(
+        team_id=parsed.team_id,
+        generation=parsed.generation,
+        member=parsed.member,
+        ranges=parsed.ranges,
+        fitness=arrays.get("fitness"),
+        components=arrays.get("components"),
+        over=parsed.over,
+    )
 
 
 def encode_message(message: JobRequest | Idle | Ack) -> bytes:

@@ -20,6 +20,14 @@ the round trip through this server that parallel slices would add to it (docs/pr
 evolves about `span_s` of generations itself (ask and tell are pure functions of the GA state
 and the seed), sending each one's result as it goes, while this server records them. Each
 accepted result moves the lease to the next generation, so a span fails over like any job.
+
+Teams (protocol 7): a span whose generations take a worker more than two `team_slice_s` is
+split with idle workers, up to one per `team_slice_s` of a generation. They get the same span
+as members (`Job.team`): each evaluates its slice of every generation, the members exchange
+fitness among themselves (`worker.team`) and only the leader holds the lease and sends
+results. Idle means waiting on a held request, or between requests (invited: the span goes
+out with its next request, within `INVITE_S`): a worker whose span just ended asks again a
+moment after the one that gets the next span.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import queue
+import secrets
 import threading
 import time
 from collections.abc import Callable, Collection
@@ -43,6 +52,7 @@ from schemas.wire import (
     KEY_JOB_RESULT,
     KEY_WORKERS,
     PROTOCOL,
+    TEAM_MAX,
     Ack,
     Idle,
     Job,
@@ -65,6 +75,9 @@ log = logging.getLogger(__name__)
 
 FLUSH_EVERY_S = 0.5
 """The longest a busy dispatcher puts off `JobSource.flush` (writing told generations)."""
+INVITE_S = 0.25
+"""How long a team's place waits for a worker that was between requests (worker.team: the
+leader evaluates the slice itself after LEADER_WAIT_S)."""
 
 
 def _job_log(key: JobKey, worker: str) -> ContextAdapter:
@@ -129,13 +142,18 @@ class DispatchSettings:
     """How long a departed worker stays listed as gone."""
     jobs_per_worker: int = 1
     """A generation is cut into this many jobs per live worker (see `Dispatcher.job_size`)."""
-    span_below_s: float = 0.015
-    """A generation a worker evaluates faster than this runs in spans (0: never); spans and
-    parallel slices broke even between 10 and 20 ms on a 2-core machine (bench/dispatch.py
-    --sweep, with and without spans)."""
+    span_below_s: float = 0.1
+    """A generation a worker evaluates faster than this runs in spans (0: never). Alone, a
+    span's worker beat parallel slices below 10-20 ms a generation on a 2-core machine; split
+    in a team it is as fast as slices up to 130 ms and faster below (bench/dispatch.py
+    --sweep)."""
     span_s: float = 5.0
     """A span covers about this much evaluation time, then its worker asks again (so other
     runs and newly joined workers get their turn)."""
+    team_slice_s: float = 0.005
+    """A span is split among idle workers, each evaluating at least this much of a
+    generation (0: never): on a shared 2-core machine the exchange costs a generation 1-2 ms,
+    and one worker alone was faster below about 10 ms a generation (bench/dispatch.py)."""
     auth: ZenohRouterAuth = field(default_factory=ZenohRouterAuth)
     """usrpwd dictionary, TLS certificate and message-size limit of the router (security.md)."""
 
@@ -153,6 +171,8 @@ class DispatchSettings:
             raise ValueError(f"span_below_s must be >= 0, got {self.span_below_s}")
         if not self.span_s > 0:
             raise ValueError(f"span_s must be > 0, got {self.span_s}")
+        if self.team_slice_s < 0:
+            raise ValueError(f"team_slice_s must be >= 0, got {self.team_slice_s}")
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
         """The lease of a job of `robot_steps` for a worker running `speed` robot-steps/s."""
@@ -169,6 +189,13 @@ class DispatchSettings:
         if seconds >= self.span_below_s:
             return 1
         return max(1, int(self.span_s / seconds))
+
+    def team_size(self, config: RunConfig, speed: float | None) -> int:
+        """Workers that should split a span's generations of `config` (1: no team)."""
+        if not speed or not self.team_slice_s:
+            return 1
+        seconds = config.population * config.trials * config.steps / speed
+        return max(1, min(int(seconds / self.team_slice_s), config.population, TEAM_MAX))
 
     def zenoh_config(self) -> zenoh.Config:
         conf = zenoh.Config()
@@ -218,6 +245,8 @@ class _WorkerRecord:
     """Protocol its last request spoke (None before any request)."""
     spans: bool = True
     """False once it evaluated genomes other than the server asked: its GA differs."""
+    team: str | None = None
+    """The team it was sent into as a member (until it asks again)."""
 
     @property
     def serving(self) -> bool:
@@ -281,6 +310,10 @@ class Dispatcher:
         """Requests of workers already holding a job (protocol 3 prefetches)."""
         self.spans_served = 0
         """Jobs sent as spans (protocol 5)."""
+        self.teams_served = 0
+        """Spans split with other workers (protocol 7)."""
+        self._invites: dict[str, tuple[Job, float]] = {}
+        """Team places for workers that were between requests, with their expiry."""
         self.malformed = 0
         self._owns_session = session is None
         self._session = zenoh.open(settings.zenoh_config()) if session is None else session
@@ -434,8 +467,14 @@ class Dispatcher:
         self._release_lost(request.worker, keep=request.holding)
         with self._lock:
             record.protocol = request.protocol
+            if not request.holding:
+                record.team, record.state = None, "idle"
         held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s)
-        if request.protocol != PROTOCOL:
+        place = self._invited(request.worker, request.holding)
+        if place is not None:
+            with query:
+                self._join(query, KEY_JOB_NEXT, held.worker, place)
+        elif request.protocol != PROTOCOL:
             self._other_protocol.append(held)
         elif request.holding:  # a prefetch: a job now or idle now, never held
             self.prefetches += 1
@@ -502,6 +541,8 @@ class Dispatcher:
         record = self._workers[worker]
         if may_span:
             job = self._spanned(job, worker)
+        if job.span > 1:
+            job = self._teamed(job, worker)
         lease_s = self.settings.lease_seconds(job.robot_steps, record.speed)
         # A prefetch gets a job only while every other live worker holds one: otherwise it
         # would come back idle, so tell the worker not to send it. A span is never prefetched
@@ -522,7 +563,11 @@ class Dispatcher:
         if job.span > 1:
             self.spans_served += 1
             _job_log(job.key, worker).info(
-                "leased %s to %s as a span of %d generations", job.key.label(), worker, job.span
+                "leased %s to %s as a span of %d generations%s",
+                job.key.label(),
+                worker,
+                job.span,
+                f" with {', '.join(job.team[1:])}" if job.team else "",
             )
         else:
             _job_log(job.key, worker).debug(
@@ -532,12 +577,73 @@ class Dispatcher:
             record.state = "busy"
         self.jobs_served += 1
 
+    def _teamed(self, job: Job, worker: str) -> Job:
+        """The span `job` of `worker` split with idle workers if its generations are long
+        enough (`team_size`): the held ones get their place now, the others are invited."""
+        size = self.settings.team_size(job.config, self._workers[worker].speed)
+        if size < 2:
+            return job
+        leasing = {lease.worker for lease in self._leases.values()}
+        with self._lock:
+            free = {
+                name
+                for name, record in self._workers.items()
+                if record.serving
+                and record.spans
+                and record.team is None
+                and name != worker
+                and name not in leasing
+            }
+        held = [h for h in self._held if h.worker in free]
+        names = list(dict.fromkeys(h.worker for h in held))
+        names += sorted(free - set(names))
+        names = names[: size - 1]
+        if not names:
+            return job
+        team, team_id = (worker, *names), secrets.token_hex(8)
+        expires = self._clock() + INVITE_S
+        for member, name in enumerate(names, start=1):
+            place = replace(job, team=team, member=member, team_id=team_id, more=False)
+            with self._lock:
+                self._workers[name].team = team_id
+            request = next((h for h in self._held if h.worker == name), None)
+            if request is None:
+                self._invites[name] = (place, expires)
+            else:
+                self._held.remove(request)
+                with request.query as query:
+                    self._join(query, KEY_JOB_NEXT, name, place)
+        self.teams_served += 1
+        return replace(job, team=team, member=0, team_id=team_id)
+
+    def _invited(self, worker: str, holding: Collection[JobKey]) -> Job | None:
+        """The team place `worker` was invited to, if still open and it holds no job."""
+        invite = self._invites.pop(worker, None)
+        if invite is None or invite[1] <= self._clock() or holding:
+            return None
+        return invite[0]
+
+    def _join(
+        self, query: zenoh.Query, key: str, worker: str, place: Job, ack: Ack | None = None
+    ) -> None:
+        """Answer a member's request with its place in a team (it holds no lease)."""
+        try:
+            query.reply(key, encode_job(place, ack))
+        except zenoh.ZError:  # the leader evaluates its slice after LEADER_WAIT_S
+            _job_log(place.key, worker).warning("could not send %s its place in a team", worker)
+            return
+        with self._lock:
+            record = self._workers[worker]
+            record.team, record.state = place.team_id, "busy"
+        _job_log(place.key, worker).debug("%s joins the team of %s", worker, place.key.label())
+
     def _serve_held(self) -> None:
         """Lease to held requests in arrival order; answer idle those past their long-poll."""
         now = self._clock()
         waiting: list[_Held] = []
         exhausted = False
-        for held in self._held:
+        while self._held:  # popped one by one: a team may take later ones meanwhile
+            held = self._held.pop(0)
             if not exhausted and self._try_serve(held):
                 continue
             exhausted = True
@@ -572,7 +678,11 @@ class Dispatcher:
             ack = ack.model_copy(update={"key": result.key})
         if result.want_next:
             # Pipelined request (protocol 2): the next job rides on the acknowledgement.
-            # Requests already held waited longer: they are served first.
+            # A place in a team was promised; requests already held waited longer.
+            place = self._invited(result.worker, result.holding)
+            if place is not None:
+                self._join(query, KEY_JOB_RESULT, result.worker, place, ack)
+                return
             self._serve_held()
             job = None if self._held else self._lease_for(result.worker, result.holding)
             if job is not None:

@@ -47,12 +47,18 @@ class Settings(BaseSettings):
         description="zenoh jobs per live worker and generation (more: finer balance)",
     )
     span_below_seconds: float = Field(
-        0.015,
+        0.1,
         ge=0.0,
         description="a generation a worker evaluates faster than this runs in spans (0: never)",
     )
     span_seconds: float = Field(
         5.0, gt=0.0, description="evaluation time of one span, then its worker asks again"
+    )
+    team_slice_seconds: float = Field(
+        0.005,
+        ge=0.0,
+        description="idle workers split a span, each evaluating at least this much of a "
+        "generation (0: never)",
     )
     lease_seconds: float = Field(300.0, gt=0.0, description="a leased job returns after this")
     lease_min_seconds: float = Field(
@@ -156,5 +162,6 @@ class Settings(BaseSettings):
             jobs_per_worker=self.jobs_per_worker,
             span_below_s=self.span_below_seconds,
             span_s=self.span_seconds,
+            team_slice_s=self.team_slice_seconds,
             auth=self.zenoh_router_auth(),
         )

@@ -35,7 +35,8 @@ from schemas.wire import (
 from server import crud
 from server.dispatch import Dispatcher, DispatchSettings, QueueSource
 from tests.helpers import eventually, free_port
-from worker.main import Evaluator, WorkerSettings, WorkerStats, run_worker
+from worker.main import WorkerSettings, WorkerStats, run_worker
+from worker.team import Evaluator
 
 CONFIG = RunConfig(population=12, job_size=3, generations=1, trials=2, steps=5)
 W = CONFIG.network_spec.weight_count
@@ -546,6 +547,54 @@ def test_quick_generations_go_out_as_spans_that_pause_resume_and_match_evolve(
                 manager.resume(run_id)
                 assert eventually(lambda: run().status == "completed", timeout=60.0)
                 assert dispatcher.spans_served > spans
+        sha = manager.best(run_id)
+    finally:
+        manager.stop()
+        engine.dispose()
+    assert sha == evolve(config).best.sha256
+
+
+def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path) -> None:
+    """With teams on, the span's worker splits every generation with the idle one (each
+    evaluates its slice, both tell and ask): the run is `evolve`'s bit for bit and only the
+    leader's results reach the server."""
+    from evorobotics.evolution import evolve
+    from server.db import make_engine, upgrade
+    from server.manager import RunManager
+    from server.models import Run
+    from server.settings import Settings
+    from worker.main import evaluate_slice
+
+    config = RunConfig(population=8, generations=200, trials=1, steps=10, seed=8)
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
+    manager.start()
+    port = free_port()
+    try:
+
+        def status() -> str:
+            with manager.sessions.begin() as session:
+                found = session.get(Run, run_id)
+                assert found is not None
+                return found.status
+
+        settings = dispatch_settings(port, span_below_s=10.0, team_slice_s=1e-9)
+        with Dispatcher(settings, QueueSource(manager.queue)) as dispatcher:
+            manager.queue.set_job_sizer(dispatcher.job_size)
+            with (
+                worker_thread(port, "one", evaluate_slice) as one,
+                worker_thread(port, "two", evaluate_slice) as two,
+            ):
+                assert eventually(lambda: len(dispatcher.workers()) == 2, timeout=WAIT)
+                run_id = manager.create_run(config)
+                assert eventually(lambda: status() == "completed", timeout=60.0), status()
+                served = {w.name: w.jobs_done for w in dispatcher.workers()}
+            assert dispatcher.teams_served >= 1
+            # the server counted the leader's generations (generation 0 may go out in two
+            # slices); the member evaluated its half of them too, but reported none
+            assert config.generations <= sum(served.values()) <= config.generations + 1
+            assert min(one.jobs_done, two.jobs_done) > min(served.values())
         sha = manager.best(run_id)
     finally:
         manager.stop()

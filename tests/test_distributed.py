@@ -50,10 +50,11 @@ class Colony:
         self.server: subprocess.Popen[bytes] | None = None
 
     def start_server(
-        self, workers: int = 0, *, spans: bool = False, **env: str
+        self, workers: int = 0, *, spans: bool = False, teams: bool = False, **env: str
     ) -> subprocess.Popen[bytes]:
         """`spans`: every generation with a measured worker speed goes out as a span of the
-        rest of the run; otherwise generations are cut into parallel slices."""
+        rest of the run, evolved by one worker or (`teams`) split with every idle one;
+        otherwise generations are cut into parallel slices."""
         argv = [
             *COLONY,
             "server",
@@ -66,7 +67,11 @@ class Colony:
             "--workers",
             str(workers),
         ]
-        spanning = {"COLONY_SPAN_BELOW_SECONDS": "10", "COLONY_SPAN_SECONDS": "600"}
+        spanning = {
+            "COLONY_SPAN_BELOW_SECONDS": "10",
+            "COLONY_SPAN_SECONDS": "600",
+            "COLONY_TEAM_SLICE_SECONDS": "0.000001" if teams else "0",
+        }
         off = {"COLONY_SPAN_BELOW_SECONDS": "0"}
         env = {"COLONY_HOUSEKEEPING_SECONDS": "0.2", **(spanning if spans else off), **env}
         self.server = self._spawn(argv, env, "server")
@@ -335,3 +340,29 @@ def test_a_server_sigkilled_mid_span_resumes_it_with_the_same_workers(
     colony.start_server(spans=True)
     colony.finish(run_id, span_sha, evaluations=16 * 300)
     assert {"one", "two"} <= set(colony.workers())
+
+
+@pytest.mark.parametrize("killed", ["member", "leader"])
+def test_a_team_loses_nothing_when_its_member_or_its_leader_is_sigkilled(
+    colony: Colony, span_sha: str, killed: str
+) -> None:
+    """Two workers split a span. Killing the member: the leader evaluates its slice after
+    half a second and goes on alone. Killing the leader: the server re-leases its span, which
+    the member takes once it stops waiting for the leader. Either way `evolve`'s result."""
+    colony.start_server(spans=True, teams=True)
+    procs = {name: colony.start_worker(name) for name in ("a", "b")}
+    wait_until(lambda: len(colony.workers()) == 2, "two workers")
+    run_id = colony.post("/api/runs", SPAN_CONFIG)["id"]
+    leader, before = span_holder(colony, run_id)
+    [member] = set(procs) - {leader}
+    assert before[member]["state"] == "busy"  # in the team, though it holds no lease
+    victim = leader if killed == "leader" else member
+    procs[victim].kill()
+    colony.finish(run_id, span_sha, evaluations=16 * 300)
+    after = colony.workers()
+    assert after[victim]["state"] == "gone"
+    survivor = member if killed == "leader" else leader
+    assert after[survivor]["jobs_done"] > before[survivor]["jobs_done"]
+    assert f"with {member}" in (colony.tmp / "server.log").read_text()  # it was a team
+    told = "silent at generation" if killed == "member" else "leaving the team"
+    assert told in (colony.tmp / f"{survivor}.log").read_text()

@@ -59,6 +59,7 @@ from schemas.wire import (
     encode_job,
     encode_message,
     encode_result,
+    team_key,
 )
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher
@@ -373,6 +374,36 @@ def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) ->
     assert result.key == job.key and result.error is None
     assert result.fitness is not None
     assert np.array_equal(result.fitness, job.genomes.sum(axis=1))
+
+
+@settings(max_examples=5, deadline=None)
+@given(junk=st.lists(garbage, min_size=1, max_size=4))
+def test_team_members_drop_garbage_on_their_keys_and_finish_the_generation(
+    junk: list[bytes],
+) -> None:
+    """Garbage on both members' team keys before a generation's exchange: each logs and
+    drops it and still gets the other's slice."""
+    from tests.test_team import members, place, router, run_member, whole
+
+    names = ("lead", "member")
+    out: dict[int, object] = {}
+    with router() as port, members(port, names) as sessions:
+        for name in names:
+            for payload in junk:
+                sessions[0][0].put(team_key(name), payload)
+        threads = [
+            threading.Thread(target=run_member, args=(s, i, place(names, m), 2, out))
+            for m, (s, i) in enumerate(sessions)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(WAIT)
+    for results in out.values():
+        assert isinstance(results, list) and len(results) == 2
+        for g, result in enumerate(results):
+            assert result is not None and result[0].tobytes() == whole(g)[0].tobytes()
+    assert sorted(out) == [0, 1]
 
 
 # ------------------------------------------------------------------------------------- agent

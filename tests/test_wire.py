@@ -20,6 +20,7 @@ from schemas.wire import (
     JobKey,
     JobRequest,
     Result,
+    TeamMessage,
     WireError,
     decode_ack,
     decode_frame,
@@ -29,12 +30,15 @@ from schemas.wire import (
     decode_result,
     decode_result_reply,
     decode_results,
+    decode_team_message,
     encode_frame,
     encode_job,
     encode_message,
     encode_result,
     encode_span_results,
+    encode_team_message,
     genome_digest,
+    team_cuts,
     worker_key,
 )
 
@@ -321,3 +325,70 @@ def test_genome_digest_sees_any_changed_bit_and_any_reordering() -> None:
     swapped = genomes[[1, 0, *range(2, 10)]]
     assert genome_digest(genomes) != genome_digest(swapped)
     assert genome_digest(genomes.astype(">f8")) == genome_digest(genomes)
+
+
+TEAM_ID = "0123456789abcdef"
+
+
+def test_a_team_place_round_trips_and_must_name_a_real_team() -> None:
+    job = replace(span_job(), team=("lead", "helper"), member=1, team_id=TEAM_ID)
+    back = decode_next_reply(encode_job(job))
+    assert isinstance(back, Job)
+    assert (back.team, back.member, back.team_id, back.span) == (("lead", "helper"), 1, TEAM_ID, 2)
+    bad = [
+        ({"span": 1, "state": None}, "needs a span"),
+        ({"team": ("lead",), "member": 0}, "team of 1"),
+        ({"team": tuple(f"w{i}" for i in range(11))}, "team of 11"),  # population 10
+        ({"team": ("lead", "lead")}, "distinct"),
+        ({"member": 2}, "member 2"),
+        ({"team_id": "XYZ"}, "team id"),
+    ]
+    for change, message in bad:
+        with pytest.raises(InvalidJobError, match=message):
+            replace(job, **change)  # type: ignore[arg-type]
+
+
+@given(population=st.integers(1, 500), size=st.integers(1, 64))
+def test_team_cuts_cover_the_population_in_near_equal_contiguous_slices(
+    population: int, size: int
+) -> None:
+    if size > population:
+        with pytest.raises(ValueError):
+            team_cuts(population, size)
+        return
+    cuts = team_cuts(population, size)
+    widths = np.diff(cuts)
+    assert cuts[0] == 0 and cuts[-1] == population and len(cuts) == size + 1
+    assert widths.min() >= 1 and widths.max() - widths.min() <= 1
+
+
+def test_team_messages_round_trip_and_malformed_ones_raise_wire_error() -> None:
+    fitness, components = np.arange(5.0), np.ones((5, 3, 4))
+    message = TeamMessage(TEAM_ID, 4, 1, ((0, 2), (6, 9)), fitness, components)
+    back = decode_team_message(encode_team_message(message))
+    assert (back.team_id, back.generation, back.member, back.ranges) == (
+        TEAM_ID,
+        4,
+        1,
+        ((0, 2), (6, 9)),
+    )
+    assert back.fitness is not None and back.fitness.tobytes() == fitness.tobytes()
+    assert back.components is not None and back.components.tobytes() == components.tobytes()
+    over = decode_team_message(encode_team_message(TeamMessage(TEAM_ID, 4, 0, over=True)))
+    assert over.over and over.fitness is None
+    with pytest.raises(WireError, match="ascending"):
+        TeamMessage(TEAM_ID, 4, 1, ((6, 9), (0, 2)), fitness, components)
+    header, arrays = decode_frame(encode_team_message(message))
+    broken = [
+        encode_frame({**header, "ranges": [[0, 2]]}, arrays),  # 2 individuals, 5 values
+        encode_frame({**header, "ranges": [[0, 3], [2, 4]]}, arrays),  # overlapping
+        encode_frame({**header, "team_id": "nope"}, arrays),
+        encode_frame(header, {**arrays, "fitness": np.array([0, 1, 2, 3, np.nan])}),
+        encode_frame(header, {**arrays, "components": np.ones((4, 3, 4))}),
+        encode_frame(header, {**arrays, "extra": np.ones(1)}),
+        encode_frame({**header, "over": True}, arrays),
+        encode_frame({**header, "ranges": []}, arrays),
+    ]
+    for bad in broken:
+        with pytest.raises(WireError):
+            decode_team_message(bad)

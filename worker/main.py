@@ -5,7 +5,8 @@ zenoh itself reconnects a live session after a server restart), a liveliness tok
 `evocolony/workers/NAME`, then the loop of docs/protocol.md. Every job is validated before it
 runs; a bad job or a failing evaluation becomes an error result, never a crash. A stop request
 (SIGINT, SIGTERM) lets the current job finish and its result go back, then the worker exits.
-A span (protocol 5) is evolved here generation after generation, with the GA of `evorobotics`.
+A span (protocol 5) is evolved here generation after generation, with the GA of `evorobotics`,
+alone or split with other workers in a team (protocol 7, `worker.team`).
 """
 
 from __future__ import annotations
@@ -18,13 +19,14 @@ import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from types import FrameType
 
 import numpy as np
 import zenoh
 
+from evorobotics.ga import GAParams, GAState, ask, ga_rng, tell
+from evorobotics.layout import Layout, layout
 from schemas.run import RunConfig
 from schemas.security import ZenohClientAuth
 from schemas.wire import (
@@ -47,11 +49,9 @@ from schemas.wire import (
     genome_digest,
     worker_key,
 )
+from worker.team import Evaluator, Inbox, Team
 
 log = logging.getLogger(__name__)
-
-Evaluator = Callable[[RunConfig, int, np.ndarray], tuple[np.ndarray, np.ndarray]]
-"""(config, generation, genomes (n, w)) -> fitness (n,), components (n, trials, 4)."""
 
 SPAN_SEND_S = 0.05
 """A span's results go to the server at least this often (several generations a message)."""
@@ -154,12 +154,14 @@ def run_worker(
             stop.wait(delay)
             continue
         try:
+            inbox = Inbox(session, settings.name)
             token = session.liveliness().declare_token(worker_key(settings.name))
             try:
                 log.info("worker %s connected to %s", settings.name, settings.connect)
-                _serve(session, settings, host, stop, evaluator, stats, backoff)
+                _serve(session, settings, host, stop, evaluator, stats, backoff, inbox)
             finally:
                 token.undeclare()  # type: ignore[no-untyped-call]
+                inbox.close()
         finally:
             session.close()  # type: ignore[no-untyped-call]
     return stats
@@ -182,6 +184,7 @@ def _serve(
     evaluator: Evaluator,
     stats: WorkerStats,
     backoff: _Backoff,
+    inbox: Inbox,
 ) -> None:
     """Evaluate jobs with the next one already in hand when possible (protocol 3).
 
@@ -204,7 +207,7 @@ def _serve(
             if ahead is not None:
                 in_hand.extend(_collect(session, settings, stop, stats, ahead, in_hand))
                 ahead = None
-            following = _evolve_span(session, settings, stop, job, evaluator, stats)
+            following = _evolve_span(session, settings, stop, job, evaluator, stats, inbox)
             if following is not None:
                 in_hand.append(following)
             continue
@@ -239,9 +242,13 @@ def _evolve_span(
     job: Job,
     evaluator: Evaluator,
     stats: WorkerStats,
+    inbox: Inbox,
 ) -> Job | None:
     """Evolve the span's generations here, sending their results as it goes; the next job
     if the server sent one with the acknowledgement of an error.
+
+    In a team, each generation is split between the members (`worker.team`); a member other
+    than the leader sends the server nothing.
 
     Results go out every SPAN_SEND_S (several generations a message) without waiting for
     their acknowledgement (up to SPAN_WINDOW messages), so the server records generations
@@ -251,9 +258,6 @@ def _evolve_span(
     the server restarted): the server re-leases from the last generation it recorded, so a
     generation evolved twice still counts once.
     """
-    from evorobotics.ga import GAParams, GAState, ask, ga_rng, tell
-    from evorobotics.layout import layout
-
     config = job.config
     try:
         params, spec_layout = GAParams.from_config(config), layout(config.network_spec)
@@ -266,8 +270,46 @@ def _evolve_span(
     except ValueError as exc:
         error = f"span of {job.key.label()} has an unusable GA state: {exc}"
         stats.errors += 1
+        if job.member > 0:  # not the lease holder: the leader evaluates this slice itself
+            log.warning("%s; not joining its team", error)
+            return None
         failed = Result(job.key, settings.name, error=error, start=job.start, stop=job.stop)
         return _deliver(session, settings, stop, failed, stats)
+    ga = _GA(params, spec_layout, state)
+    team = Team(session, inbox, job, evaluator) if job.team else None
+    if team is None:
+        return _lead(session, settings, stop, job, evaluator, stats, ga, None)
+    try:
+        if not team.leader:
+            _follow(team, job, ga, stop, stats)
+            return None
+        return _lead(session, settings, stop, job, evaluator, stats, ga, team)
+    finally:
+        team.close()
+
+
+@dataclass(frozen=True)
+class _GA:
+    """What a span's `tell` and `ask` need: the run's GA parameters, its genome layout and
+    the state before the span's first `tell`."""
+
+    params: GAParams
+    layout: Layout
+    state: GAState
+
+
+def _lead(
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    stop: threading.Event,
+    job: Job,
+    evaluator: Evaluator,
+    stats: WorkerStats,
+    ga: _GA,
+    team: Team | None,
+) -> Job | None:
+    """The span loop of its only worker or its team's leader: evaluate, send, tell, ask."""
+    config, state = job.config, ga.state
     in_flight: deque[tuple[JobKey, zenoh.Handler[zenoh.Reply]]] = deque()
 
     def send(batch: list[Result]) -> None:
@@ -276,37 +318,100 @@ def _evolve_span(
 
     batch: list[Result] = []
     sent_at = time.monotonic()
-    current = replace(job, span=1, state=None, more=False)
-    for offset in range(job.span):
-        result = _evaluate(current, settings.name, evaluator, stats)
-        fitness = result.fitness
-        if result.error is not None or fitness is None:
-            if batch:  # the generations before it count (their reply is not needed: the
-                # error's own acknowledgement comes after it); the failed one is retried
+    current = replace(job, span=1, state=None, more=False, team=(), member=0, team_id="")
+    generation = job.key.generation
+    finished = False
+    try:
+        for offset in range(job.span):
+            if team is None:
+                result = _evaluate(current, settings.name, evaluator, stats)
+            else:
+                result = _team_evaluate(team, current, settings.name, stats)
+            fitness = result.fitness
+            if result.error is not None or fitness is None:
+                if batch:  # the generations before it count (their reply is not needed: the
+                    # error's own acknowledgement comes after it); the failed one is retried
+                    send(batch)
+                return _deliver(session, settings, stop, result, stats)
+            batch.append(replace(result, digest=genome_digest(current.genomes)))
+            last = stop.is_set() or offset + 1 == job.span
+            if last or len(batch) == SPAN_BATCH_MAX or time.monotonic() - sent_at >= SPAN_SEND_S:
                 send(batch)
-            return _deliver(session, settings, stop, result, stats)
-        batch.append(replace(result, digest=genome_digest(current.genomes)))
-        last = stop.is_set() or offset + 1 == job.span
-        if last or len(batch) == SPAN_BATCH_MAX or time.monotonic() - sent_at >= SPAN_SEND_S:
+                batch, sent_at = [], time.monotonic()
+                if not _span_acks(in_flight, keep=SPAN_WINDOW):
+                    return None
+            if last:
+                finished = offset + 1 == job.span
+                break
+            generation = current.key.generation + 1
+            try:
+                state, _ = tell(current.genomes, fitness, state, ga.params)
+                genomes, _ = ask(ga_rng(config.seed, generation), state, ga.params, ga.layout)
+            except ValueError as exc:  # a state that did not fit: the server asks the rest
+                log.warning(
+                    "span of %s stops at generation %d: %s", job.key.label(), generation, exc
+                )
+                break
+            key = current.key.model_copy(update={"generation": generation})
+            current = replace(current, key=key, genomes=genomes)
+        if batch:
             send(batch)
-            batch, sent_at = [], time.monotonic()
-            if not _span_acks(in_flight, keep=SPAN_WINDOW):
-                return None
-        if last:
-            break
-        generation = current.key.generation + 1
+        _span_acks(in_flight, keep=0)
+        return None
+    finally:
+        if team is not None and not finished:
+            team.leave(generation)
+
+
+def _team_evaluate(team: Team, job: Job, name: str, stats: WorkerStats) -> Result:
+    """The whole generation `job` with the team, as `_evaluate` would return it; the speed is
+    that of this worker's own share."""
+    try:
+        out = team.generation(job.key.generation, job.genomes)
+        if out is None:
+            raise RuntimeError("the team fell apart")  # only a member's span ends this way
+    except Exception as exc:  # report it to the server instead of crashing the worker
+        log.exception("evaluating %s failed", job.key.label())
+        stats.errors += 1
+        error = f"{type(exc).__name__}: {exc}"
+        return Result(job.key, name, error=error, start=job.start, stop=job.stop)
+    fitness, components, seconds, individuals = out
+    steps = individuals * job.config.trials * job.config.steps
+    speed = steps / seconds if seconds > 0 else None
+    stats.jobs_done += 1
+    stats.robot_steps_per_s = speed
+    return Result(
+        job.key, name, fitness, components, speed or 0.0, seconds, start=job.start, stop=job.stop
+    )
+
+
+def _follow(team: Team, job: Job, ga: _GA, stop: threading.Event, stats: WorkerStats) -> None:
+    """A member's span: its slice of each generation, then tell and ask like the leader;
+    nothing goes to the server. Leaves the team when stopping or on any failure (the leader
+    evaluates its slice then)."""
+    config, state, genomes = job.config, ga.state, job.genomes
+    for offset in range(job.span):
+        generation = job.key.generation + offset
+        if stop.is_set():
+            team.leave(generation)
+            return
         try:
-            state, _ = tell(current.genomes, fitness, state, params)
-            genomes, _ = ask(ga_rng(config.seed, generation), state, params, spec_layout)
-        except ValueError as exc:  # a state that did not fit: the server asks the rest itself
-            log.warning("span of %s stops at generation %d: %s", job.key.label(), generation, exc)
-            break
-        key = current.key.model_copy(update={"generation": generation})
-        current = replace(current, key=key, genomes=genomes)
-    if batch:
-        send(batch)
-    _span_acks(in_flight, keep=0)
-    return None
+            out = team.generation(generation, genomes)
+            if out is None:
+                return
+            fitness, _, seconds, individuals = out
+            stats.jobs_done += 1
+            if seconds > 0:
+                stats.robot_steps_per_s = individuals * config.trials * config.steps / seconds
+            if offset + 1 == job.span:
+                return
+            state, _ = tell(genomes, fitness, state, ga.params)
+            genomes, _ = ask(ga_rng(config.seed, generation + 1), state, ga.params, ga.layout)
+        except Exception:  # the leader evaluates this worker's slice instead
+            log.exception("team member failed at generation %d of a span", generation)
+            stats.errors += 1
+            team.leave(generation)
+            return
 
 
 def _span_acks(in_flight: deque[tuple[JobKey, zenoh.Handler[zenoh.Reply]]], keep: int) -> bool:

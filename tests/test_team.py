@@ -1,0 +1,189 @@
+"""A team span's exchange (worker.team) over real zenoh sessions on 127.0.0.1: members in
+threads, each with its own client session to a router, no server."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+
+import numpy as np
+import pytest
+import zenoh
+
+from evorobotics.ga import GAParams, init
+from evorobotics.layout import layout
+from schemas.run import RunConfig
+from schemas.wire import (
+    Job,
+    JobKey,
+    TeamMessage,
+    decode_team_message,
+    encode_team_message,
+    team_cuts,
+    team_key,
+)
+from tests.helpers import free_port
+from worker import team as team_module
+from worker.team import Inbox, Team
+
+CONFIG = RunConfig(population=10, generations=20, trials=2, steps=5, seed=3)
+W = CONFIG.network_spec.weight_count
+TEAM_ID = "00000000000000aa"
+WAIT = 20.0
+
+
+def evaluator(
+    config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fitness of a genome alone (its row sum, shifted by the generation), as the science is."""
+    n = genomes.shape[0]
+    fitness = genomes.sum(axis=1) + generation
+    return fitness, np.repeat(fitness[:, None, None], config.trials * 4).reshape(n, -1, 4)
+
+
+def place(names: tuple[str, ...], member: int) -> Job:
+    state = init(layout(CONFIG.network_spec), GAParams.from_config(CONFIG)).to_arrays()
+    genomes = np.random.default_rng(1).normal(size=(CONFIG.population, W))
+    key = JobKey(run_id=1, generation=0, index=0)
+    return Job(
+        key, 0, CONFIG.population, CONFIG, genomes, span=CONFIG.generations, state=state,
+        team=names, member=member, team_id=TEAM_ID,
+    )  # fmt: skip
+
+
+def client(port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+@contextmanager
+def router() -> Iterator[int]:
+    port = free_port()
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf):
+        yield port
+
+
+@contextmanager
+def members(port: int, names: tuple[str, ...]) -> Iterator[list[tuple[zenoh.Session, Inbox]]]:
+    """A session and inbox per name, every inbox reachable (a probe went through) on exit."""
+    with ExitStack() as stack:
+        out = []
+        for name in names:
+            session = stack.enter_context(zenoh.open(client(port)))
+            inbox = Inbox(session, name)
+            stack.callback(inbox.close)
+            out.append((session, inbox))
+        probe = out[0][0]
+        for name, (_, inbox) in zip(names, out, strict=True):
+            payload = encode_team_message(TeamMessage("ffffffffffffffff", 0, 63, over=True))
+            for _ in range(200):  # subscriptions reach the router asynchronously
+                probe.put(team_key(name), payload)
+                if inbox.get(0.05) is not None:
+                    break
+            else:
+                raise AssertionError(f"{name}'s inbox is unreachable")
+        yield out
+
+
+def run_member(
+    session: zenoh.Session, inbox: Inbox, job: Job, generations: int, out: dict[int, object]
+) -> None:
+    team = Team(session, inbox, job, evaluator)
+    try:
+        got = []
+        for g in range(generations):
+            result = team.generation(g, job.genomes + g)
+            got.append(result)
+            if result is None:
+                break
+        out[job.member] = got
+    finally:
+        team.close()
+
+
+def whole(generation: int) -> tuple[np.ndarray, np.ndarray]:
+    genomes = place(("a", "b"), 0).genomes + generation
+    fitness, components = evaluator(CONFIG, generation, genomes)
+    return np.asarray(fitness), np.asarray(components)
+
+
+@pytest.mark.parametrize("size", [2, 3])
+def test_members_split_each_generation_and_all_see_the_whole_of_it(size: int) -> None:
+    names = ("a", "b", "c")[:size]
+    out: dict[int, object] = {}
+    with router() as port, members(port, names) as sessions:
+        threads = [
+            threading.Thread(target=run_member, args=(s, i, place(names, m), 4, out))
+            for m, (s, i) in enumerate(sessions)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(WAIT)
+    assert sorted(out) == list(range(size))
+    for member, results in out.items():
+        assert isinstance(results, list) and len(results) == 4
+        for g, result in enumerate(results):
+            fitness, components = whole(g)
+            assert result is not None
+            assert result[0].tobytes() == fitness.tobytes()
+            if member == 0:  # only the leader gets (and records) the components
+                assert result[1].tobytes() == components.tobytes()
+            cuts = team_cuts(CONFIG.population, size)
+            assert result[3] == cuts[member + 1] - cuts[member]
+
+
+def test_the_leader_evaluates_a_silent_member_s_slice_and_drops_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(team_module, "LEADER_WAIT_S", 0.2)
+    names = ("lead", "silent")
+    with router() as port, members(port, names) as [(session, inbox), (_, silent)]:
+        team = Team(session, inbox, place(names, 0), evaluator)
+        try:
+            first = team.generation(0, place(names, 0).genomes)
+            second = team.generation(1, place(names, 0).genomes + 1)
+        finally:
+            team.close()
+        heard = [decode_team_message(p) for p in iter(lambda: silent.get(1.0), None)]
+    told = [m for m in heard if m.team_id == TEAM_ID]  # not the probes
+    for g, result in enumerate((first, second)):
+        fitness, components = whole(g)
+        assert result is not None
+        assert result[0].tobytes() == fitness.tobytes()
+        assert result[1].tobytes() == components.tobytes()
+    assert first is not None and second is not None
+    assert (first[3], second[3]) == (5, 10)  # its own half, then the whole generation
+    assert team.active == set()
+    # the silent member got the leader's first slice, then word that it is out, then nothing
+    assert [(m.member, m.generation, m.over) for m in told] == [(0, 0, False), (0, 0, True)]
+
+
+def test_a_member_leaves_when_the_leader_ends_the_span_and_drops_malformed_messages() -> None:
+    names = ("lead", "member")
+    with router() as port, members(port, names) as [(lead_session, lead_inbox), (s, inbox)]:
+        leader = Team(lead_session, lead_inbox, place(names, 0), evaluator)
+        member = Team(s, inbox, place(names, 1), evaluator)
+        try:
+            lead_session.put(team_key("member"), b"not a frame")
+            done: dict[int, object] = {}
+            thread = threading.Thread(
+                target=lambda: done.setdefault(0, member.generation(0, place(names, 1).genomes))
+            )
+            thread.start()
+            assert leader.generation(0, place(names, 0).genomes) is not None
+            thread.join(WAIT)
+            assert done[0] is not None  # the malformed message was dropped, not fatal
+            leader.leave(1)
+            assert member.generation(1, place(names, 1).genomes + 1) is None
+        finally:
+            leader.close()
+            member.close()
