@@ -8,13 +8,15 @@
    best controllers compared.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
-        [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS] [--only throughput|paper]
+        [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS] [--team-slice SECONDS]
+        [--only throughput|paper]
 
 `--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
 generation: the coordination cost per generation weighs a tenth as much. `--sweep` also times
 100 to 1,600 steps (generations scaled to the same robot-steps) on the same server and
 prints where the distributed run catches up with `colony evolve`. `--span-below` sets the
-server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no spans).
+server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no spans),
+`--team-slice` its COLONY_TEAM_SLICE_SECONDS (0: every span evolved by one worker alone).
 """
 
 from __future__ import annotations
@@ -164,7 +166,11 @@ def bench_capacity(config: RunConfig) -> None:
 
 
 def bench_paper(
-    workers: int, shapes: list[tuple[int, int]], repeats: int, span_below: float | None
+    workers: int,
+    shapes: list[tuple[int, int]],
+    repeats: int,
+    span_below: float | None,
+    team_slice: float | None,
 ) -> None:
     """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve for each
     (generations, steps) shape on one server, each timed `repeats` times, alternately (figures
@@ -188,8 +194,13 @@ def bench_paper(
         env = {**os.environ, "COLONY_HOUSEKEEPING_SECONDS": "0.2"}
         if span_below is not None:
             env["COLONY_SPAN_BELOW_SECONDS"] = str(span_below)
+        if team_slice is not None:
+            env["COLONY_TEAM_SLICE_SECONDS"] = str(team_slice)
         below = DispatchSettings().span_below_s if span_below is None else span_below
+        team = DispatchSettings().team_slice_s if team_slice is None else team_slice
         mode = f"spans below {below * 1e3:g} ms a generation" if below else "slices only"
+        if below:
+            mode += f", teams of {team * 1e3:g} ms slices" if team else ", no teams"
         server = subprocess.Popen(
             argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
         )
@@ -265,6 +276,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sweep", action="store_true")
     parser.add_argument("--span-below", type=float, default=None)
+    parser.add_argument("--team-slice", type=float, default=None)
     parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
     shapes = [(args.generations, args.steps)]
@@ -277,7 +289,7 @@ def main() -> None:
         bench_throughput(args.seconds, args.workers)
     if args.only != "throughput":
         bench_capacity(RunConfig(generations=args.generations, steps=args.steps))
-        bench_paper(args.workers, shapes, args.repeats, args.span_below)
+        bench_paper(args.workers, shapes, args.repeats, args.span_below, args.team_slice)
 
 
 if __name__ == "__main__":

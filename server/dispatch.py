@@ -590,6 +590,7 @@ class Dispatcher:
                 for name, record in self._workers.items()
                 if record.serving
                 and record.spans
+                and record.speed  # it has evaluated: its kernels are compiled
                 and record.team is None
                 and name != worker
                 and name not in leasing
