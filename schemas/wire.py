@@ -658,6 +658,8 @@ class TeamHeader(_Model):
     """The sender's place in the team."""
     ranges: tuple[tuple[int, int], ...] = Field((), max_length=TEAM_MAX)
     """The [start, stop) slices whose fitness follows, concatenated in this order."""
+    digest: str | None = Field(None, pattern=_DIGEST)
+    """`genome_digest` of the whole generation the sender asked (with fitness)."""
     over: bool = False
     """The sender leaves the team (the leader: the span ends for everyone)."""
 
@@ -677,6 +679,9 @@ class TeamMessage:
     ranges: tuple[tuple[int, int], ...] = ()
     fitness: np.ndarray | None = None
     components: np.ndarray | None = None
+    digest: str | None = None
+    """`genome_digest` of the generation the sender asked: members whose GA differs (another
+    version) would evaluate other genomes, so their fitness must not count."""
     over: bool = False
 
     def __post_init__(self) -> None:
@@ -690,9 +695,11 @@ class TeamMessage:
         if self.over and (self.ranges or self.fitness is not None):
             raise WireError(f"{where}: leaving carries no fitness")
         if self.fitness is None:
-            if count or self.components is not None:
-                raise WireError(f"{where}: ranges without fitness")
+            if count or self.components is not None or self.digest is not None:
+                raise WireError(f"{where}: ranges or a digest without fitness")
             return
+        if self.digest is None or not re.match(_DIGEST, self.digest):
+            raise WireError(f"{where}: fitness without the digest of its genomes")
         if self.fitness.shape != (count,) or self.fitness.dtype != np.float64:
             raise WireError(f"{where}: fitness {self.fitness.shape} for {count} individuals")
         if not np.isfinite(self.fitness).all():
@@ -704,11 +711,13 @@ class TeamMessage:
 
 
 def encode_team_message(message: TeamMessage) -> bytes:
+    """A team message as a frame (validated when the message was built)."""
     header = TeamHeader(
         team_id=message.team_id,
         generation=message.generation,
         member=message.member,
         ranges=message.ranges,
+        digest=message.digest,
         over=message.over,
     )
     arrays: dict[str, np.ndarray] = {}
@@ -732,6 +741,7 @@ def decode_team_message(payload: bytes) -> TeamMessage:
         ranges=parsed.ranges,
         fitness=arrays.get("fitness"),
         components=arrays.get("components"),
+        digest=parsed.digest,
         over=parsed.over,
     )
 

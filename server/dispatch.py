@@ -145,7 +145,7 @@ class DispatchSettings:
     span_below_s: float = 0.1
     """A generation a worker evaluates faster than this runs in spans (0: never). Alone, a
     span's worker beat parallel slices below 10-20 ms a generation on a 2-core machine; split
-    in a team it is as fast as slices up to 130 ms and faster below (bench/dispatch.py
+    in a team it beat them at 15-30 ms and was about as fast at 65-130 ms (bench/dispatch.py
     --sweep)."""
     span_s: float = 5.0
     """A span covers about this much evaluation time, then its worker asks again (so other
@@ -555,6 +555,8 @@ class Dispatcher:
                 "could not send %s to %s; releasing it", job.key.label(), worker
             )
             self._source.release(job.key)
+            for name in job.team[1:]:  # members already answered leave after MEMBER_WAIT_S
+                self._uninvite(name, job.team_id)
             return
         deadline = self._clock() + lease_s
         self._leases[job.key] = _Lease(
@@ -620,9 +622,20 @@ class Dispatcher:
     def _invited(self, worker: str, holding: Collection[JobKey]) -> Job | None:
         """The team place `worker` was invited to, if still open and it holds no job."""
         invite = self._invites.pop(worker, None)
-        if invite is None or invite[1] <= self._clock() or holding:
+        if invite is None:
+            return None
+        if invite[1] <= self._clock() or holding:
+            self._uninvite(worker, invite[0].team_id)
             return None
         return invite[0]
+
+    def _uninvite(self, worker: str, team_id: str) -> None:
+        """`worker` will not join team `team_id` (its leader evaluates the slice)."""
+        self._invites.pop(worker, None)
+        with self._lock:
+            record = self._workers.get(worker)
+            if record is not None and record.team == team_id:
+                record.team = None
 
     def _join(
         self, query: zenoh.Query, key: str, worker: str, place: Job, ack: Ack | None = None
@@ -679,12 +692,13 @@ class Dispatcher:
             ack = ack.model_copy(update={"key": result.key})
         if result.want_next:
             # Pipelined request (protocol 2): the next job rides on the acknowledgement.
-            # A place in a team was promised; requests already held waited longer.
+            # Requests already held waited longer: they are served first (a span among them
+            # may invite this worker into its team).
+            self._serve_held()
             place = self._invited(result.worker, result.holding)
             if place is not None:
                 self._join(query, KEY_JOB_RESULT, result.worker, place, ack)
                 return
-            self._serve_held()
             job = None if self._held else self._lease_for(result.worker, result.holding)
             if job is not None:
                 may_span = not result.holding
@@ -786,9 +800,11 @@ class Dispatcher:
         if sample.kind == zenoh.SampleKind.PUT:
             self._touch(name, None)
             return
+        self._invites.pop(name, None)
         with self._lock:
             record = self._workers.setdefault(name, _WorkerRecord(name))
             record.gone_at = self._clock()
+            record.team = None
         context(log, worker=name).info("worker %s gone", name)
         # a request it left held must not take a job: the job would wait out a lease
         for held in [h for h in self._held if h.worker == name]:
@@ -816,6 +832,9 @@ class Dispatcher:
 
     def _expire(self) -> None:
         now = self._clock()
+        for name, (place, expires) in list(self._invites.items()):
+            if expires <= now:
+                self._uninvite(name, place.team_id)
         for key, lease in list(self._leases.items()):
             if lease.deadline <= now:
                 _job_log(key, lease.worker).warning(

@@ -364,5 +364,5 @@ def test_a_team_loses_nothing_when_its_member_or_its_leader_is_sigkilled(
     survivor = member if killed == "leader" else leader
     assert after[survivor]["jobs_done"] > before[survivor]["jobs_done"]
     assert f"with {member}" in (colony.tmp / "server.log").read_text()  # it was a team
-    told = "silent at generation" if killed == "member" else "leaving the team"
+    told = "dropped at generation" if killed == "member" else "leaving the team"
     assert told in (colony.tmp / f"{survivor}.log").read_text()

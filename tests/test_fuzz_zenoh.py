@@ -383,10 +383,10 @@ def test_team_members_drop_garbage_on_their_keys_and_finish_the_generation(
 ) -> None:
     """Garbage on both members' team keys before a generation's exchange: each logs and
     drops it and still gets the other's slice."""
-    from tests.test_team import members, place, router, run_member, whole
+    from tests.test_team import Outcome, members, place, router, run_member, whole
 
     names = ("lead", "member")
-    out: dict[int, object] = {}
+    out: Outcome = {}
     with router() as port, members(port, names) as sessions:
         for name in names:
             for payload in junk:
@@ -399,8 +399,8 @@ def test_team_members_drop_garbage_on_their_keys_and_finish_the_generation(
             thread.start()
         for thread in threads:
             thread.join(WAIT)
-    for results in out.values():
-        assert isinstance(results, list) and len(results) == 2
+    for results, _ in out.values():
+        assert len(results) == 2
         for g, result in enumerate(results):
             assert result is not None and result[0].tobytes() == whole(g)[0].tobytes()
     assert sorted(out) == [0, 1]

@@ -20,6 +20,7 @@ from schemas.wire import (
     TeamMessage,
     decode_team_message,
     encode_team_message,
+    genome_digest,
     team_cuts,
     team_key,
 )
@@ -93,18 +94,37 @@ def members(port: int, names: tuple[str, ...]) -> Iterator[list[tuple[zenoh.Sess
         yield out
 
 
+Step = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
+"""A generation's fitness, components, seconds and individuals evaluated (None: left)."""
+Outcome = dict[int, tuple[list[Step], set[int]]]
+"""Per member: its generations, and the members it still counted on at the end."""
+
+
+def step(team: Team, g: int, skew: float = 0.0) -> Step:
+    """Generation g of the test's span: the first generation's genomes shifted by g (and by
+    `skew`, a member whose GA differs)."""
+    genomes = place(("a", "b"), 0).genomes + g + skew
+    out = team.generation(g, genomes, genome_digest(genomes))
+    return None if out is None else (out[0], out[1], np.array(out[2]), np.array(out[3]))
+
+
 def run_member(
-    session: zenoh.Session, inbox: Inbox, job: Job, generations: int, out: dict[int, object]
+    session: zenoh.Session,
+    inbox: Inbox,
+    job: Job,
+    generations: int,
+    out: Outcome,
+    skew: float = 0.0,
 ) -> None:
     team = Team(session, inbox, job, evaluator)
     try:
-        got = []
+        got: list[Step] = []
         for g in range(generations):
-            result = team.generation(g, job.genomes + g)
+            result = step(team, g, skew)
             got.append(result)
             if result is None:
                 break
-        out[job.member] = got
+        out[job.member] = (got, set(team.active))
     finally:
         team.close()
 
@@ -118,7 +138,7 @@ def whole(generation: int) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("size", [2, 3])
 def test_members_split_each_generation_and_all_see_the_whole_of_it(size: int) -> None:
     names = ("a", "b", "c")[:size]
-    out: dict[int, object] = {}
+    out: Outcome = {}
     with router() as port, members(port, names) as sessions:
         threads = [
             threading.Thread(target=run_member, args=(s, i, place(names, m), 4, out))
@@ -129,8 +149,8 @@ def test_members_split_each_generation_and_all_see_the_whole_of_it(size: int) ->
         for thread in threads:
             thread.join(WAIT)
     assert sorted(out) == list(range(size))
-    for member, results in out.items():
-        assert isinstance(results, list) and len(results) == 4
+    for member, (results, _) in out.items():
+        assert len(results) == 4
         for g, result in enumerate(results):
             fitness, components = whole(g)
             assert result is not None
@@ -149,8 +169,8 @@ def test_the_leader_evaluates_a_silent_member_s_slice_and_drops_it(
     with router() as port, members(port, names) as [(session, inbox), (_, silent)]:
         team = Team(session, inbox, place(names, 0), evaluator)
         try:
-            first = team.generation(0, place(names, 0).genomes)
-            second = team.generation(1, place(names, 0).genomes + 1)
+            first = step(team, 0)
+            second = step(team, 1)
         finally:
             team.close()
         heard = [decode_team_message(p) for p in iter(lambda: silent.get(1.0), None)]
@@ -161,7 +181,7 @@ def test_the_leader_evaluates_a_silent_member_s_slice_and_drops_it(
         assert result[0].tobytes() == fitness.tobytes()
         assert result[1].tobytes() == components.tobytes()
     assert first is not None and second is not None
-    assert (first[3], second[3]) == (5, 10)  # its own half, then the whole generation
+    assert (int(first[3]), int(second[3])) == (5, 10)  # its own half, then the whole generation
     assert team.active == set()
     # the silent member got the leader's first slice, then word that it is out, then nothing
     assert [(m.member, m.generation, m.over) for m in told] == [(0, 0, False), (0, 0, True)]
@@ -175,15 +195,75 @@ def test_a_member_leaves_when_the_leader_ends_the_span_and_drops_malformed_messa
         try:
             lead_session.put(team_key("member"), b"not a frame")
             done: dict[int, object] = {}
-            thread = threading.Thread(
-                target=lambda: done.setdefault(0, member.generation(0, place(names, 1).genomes))
-            )
+            thread = threading.Thread(target=lambda: done.setdefault(0, step(member, 0)))
             thread.start()
-            assert leader.generation(0, place(names, 0).genomes) is not None
+            assert step(leader, 0) is not None
             thread.join(WAIT)
             assert done[0] is not None  # the malformed message was dropped, not fatal
             leader.leave(1)
-            assert member.generation(1, place(names, 1).genomes + 1) is None
+            assert step(member, 1) is None
         finally:
             leader.close()
             member.close()
+
+
+def test_a_member_whose_ga_differs_is_dropped_and_its_slice_evaluated_by_the_leader(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A member asking other genomes (another GA version) sends fitness under another digest:
+    the leader never counts it (no wait either), and the member leaves on the leader's."""
+    monkeypatch.setattr(team_module, "LEADER_WAIT_S", 60.0)  # a wait would hang the test
+    names = ("lead", "skewed")
+    out: Outcome = {}
+    with router() as port, members(port, names) as sessions:
+        threads = [
+            threading.Thread(target=run_member, args=(s, i, place(names, m), 3, out, 0.5 * m))
+            for m, (s, i) in enumerate(sessions)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(WAIT)
+        assert not any(thread.is_alive() for thread in threads)
+    leader, skewed = out[0], out[1]
+    for g, result in enumerate(leader[0]):
+        assert result is not None and result[0].tobytes() == whole(g)[0].tobytes()
+    assert skewed[0][-1] is None  # it left the team
+
+
+def test_a_member_that_leaves_costs_no_wait_and_the_others_learn_who_owns_its_slice(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Team of three: member 2 leaves after generation 0. The leader takes its slice over at
+    once (no LEADER_WAIT_S, set to a minute), and member 1 stops counting on member 2 when
+    the leader's messages carry member 2's slice."""
+    monkeypatch.setattr(team_module, "LEADER_WAIT_S", 60.0)
+    names = ("lead", "stays", "leaves")
+    out: Outcome = {}
+
+    def leaving(session: zenoh.Session, inbox: Inbox) -> None:
+        team = Team(session, inbox, place(names, 2), evaluator)
+        try:
+            out[2] = ([step(team, 0)], set(team.active))
+            team.leave(1)
+        finally:
+            team.close()
+
+    with router() as port, members(port, names) as sessions:
+        threads = [
+            threading.Thread(target=run_member, args=(*sessions[0], place(names, 0), 3, out)),
+            threading.Thread(target=run_member, args=(*sessions[1], place(names, 1), 3, out)),
+            threading.Thread(target=leaving, args=sessions[2]),
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(WAIT)
+        assert not any(thread.is_alive() for thread in threads)
+    for member in (0, 1):
+        results, active = out[member]
+        for g, result in enumerate(results):
+            assert result is not None and result[0].tobytes() == whole(g)[0].tobytes()
+        assert active == ({1} if member == 0 else {0})
+    counts = [int(r[3]) for r in out[0][0] if r is not None]
+    assert (counts[0], counts[-1]) == (3, 7)  # its own slice of 3, then member 2's 4 too

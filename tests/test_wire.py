@@ -364,7 +364,7 @@ def test_team_cuts_cover_the_population_in_near_equal_contiguous_slices(
 
 def test_team_messages_round_trip_and_malformed_ones_raise_wire_error() -> None:
     fitness, components = np.arange(5.0), np.ones((5, 3, 4))
-    message = TeamMessage(TEAM_ID, 4, 1, ((0, 2), (6, 9)), fitness, components)
+    message = TeamMessage(TEAM_ID, 4, 1, ((0, 2), (6, 9)), fitness, components, "0badcafe")
     back = decode_team_message(encode_team_message(message))
     assert (back.team_id, back.generation, back.member, back.ranges) == (
         TEAM_ID,
@@ -374,10 +374,11 @@ def test_team_messages_round_trip_and_malformed_ones_raise_wire_error() -> None:
     )
     assert back.fitness is not None and back.fitness.tobytes() == fitness.tobytes()
     assert back.components is not None and back.components.tobytes() == components.tobytes()
+    assert back.digest == "0badcafe"
     over = decode_team_message(encode_team_message(TeamMessage(TEAM_ID, 4, 0, over=True)))
     assert over.over and over.fitness is None
     with pytest.raises(WireError, match="ascending"):
-        TeamMessage(TEAM_ID, 4, 1, ((6, 9), (0, 2)), fitness, components)
+        TeamMessage(TEAM_ID, 4, 1, ((6, 9), (0, 2)), fitness, components, "0badcafe")
     header, arrays = decode_frame(encode_team_message(message))
     broken = [
         encode_frame({**header, "ranges": [[0, 2]]}, arrays),  # 2 individuals, 5 values
@@ -388,6 +389,9 @@ def test_team_messages_round_trip_and_malformed_ones_raise_wire_error() -> None:
         encode_frame(header, {**arrays, "extra": np.ones(1)}),
         encode_frame({**header, "over": True}, arrays),
         encode_frame({**header, "ranges": []}, arrays),
+        encode_frame({**header, "digest": None}, arrays),  # fitness of which genomes?
+        encode_frame({**header, "digest": "0BADCAFE"}, arrays),
+        encode_frame({**header, "ranges": [], "digest": "0badcafe"}),  # a digest alone
     ]
     for bad in broken:
         with pytest.raises(WireError):

@@ -259,33 +259,49 @@ def _evolve_span(
     generation evolved twice still counts once.
     """
     config = job.config
+    team = _join_team(session, inbox, job, evaluator)
+    if job.member > 0 and team is None:
+        return None  # the leader evaluates this worker's slice itself
     try:
-        params, spec_layout = GAParams.from_config(config), layout(config.network_spec)
-        state = GAState.from_arrays(job.state or {})
-        if (state.generation, state.n_weights) != (job.key.generation, spec_layout.n_weights):
-            raise ValueError(
-                f"state of generation {state.generation} with {state.n_weights} weights for "
-                f"generation {job.key.generation} of a {spec_layout.n_weights}-weight network"
-            )
-    except ValueError as exc:
-        error = f"span of {job.key.label()} has an unusable GA state: {exc}"
-        stats.errors += 1
-        if job.member > 0:  # not the lease holder: the leader evaluates this slice itself
-            log.warning("%s; not joining its team", error)
-            return None
-        failed = Result(job.key, settings.name, error=error, start=job.start, stop=job.stop)
-        return _deliver(session, settings, stop, failed, stats)
-    ga = _GA(params, spec_layout, state)
-    team = Team(session, inbox, job, evaluator) if job.team else None
-    if team is None:
-        return _lead(session, settings, stop, job, evaluator, stats, ga, None)
-    try:
-        if not team.leader:
+        try:
+            params, spec_layout = GAParams.from_config(config), layout(config.network_spec)
+            state = GAState.from_arrays(job.state or {})
+            if (state.generation, state.n_weights) != (job.key.generation, spec_layout.n_weights):
+                raise ValueError(
+                    f"state of generation {state.generation} with {state.n_weights} weights "
+                    f"for generation {job.key.generation} of a {spec_layout.n_weights}-weight "
+                    "network"
+                )
+        except ValueError as exc:
+            error = f"span of {job.key.label()} has an unusable GA state: {exc}"
+            stats.errors += 1
+            if team is not None:
+                team.leave(job.key.generation)  # a member's slice: the leader evaluates it
+            if job.member > 0:
+                log.warning("%s; leaving its team", error)
+                return None
+            failed = Result(job.key, settings.name, error=error, start=job.start, stop=job.stop)
+            return _deliver(session, settings, stop, failed, stats)
+        ga = _GA(params, spec_layout, state)
+        if team is not None and not team.leader:
             _follow(team, job, ga, stop, stats)
             return None
         return _lead(session, settings, stop, job, evaluator, stats, ga, team)
     finally:
-        team.close()
+        if team is not None:
+            team.close()
+
+
+def _join_team(session: zenoh.Session, inbox: Inbox, job: Job, evaluator: Evaluator) -> Team | None:
+    """This worker's part in the span's team; None without a team or if zenoh refused the
+    publishers (a leader then evolves alone, its members leave after MEMBER_WAIT_S)."""
+    if not job.team:
+        return None
+    try:
+        return Team(session, inbox, job, evaluator)
+    except zenoh.ZError as exc:
+        log.warning("cannot join the team of %s: %s", job.key.label(), exc)
+        return None
 
 
 @dataclass(frozen=True)
@@ -323,17 +339,18 @@ def _lead(
     finished = False
     try:
         for offset in range(job.span):
+            digest = genome_digest(current.genomes)
             if team is None:
                 result = _evaluate(current, settings.name, evaluator, stats)
             else:
-                result = _team_evaluate(team, current, settings.name, stats)
+                result = _team_evaluate(team, current, digest, settings.name, stats)
             fitness = result.fitness
             if result.error is not None or fitness is None:
                 if batch:  # the generations before it count (their reply is not needed: the
                     # error's own acknowledgement comes after it); the failed one is retried
                     send(batch)
                 return _deliver(session, settings, stop, result, stats)
-            batch.append(replace(result, digest=genome_digest(current.genomes)))
+            batch.append(replace(result, digest=digest))
             last = stop.is_set() or offset + 1 == job.span
             if last or len(batch) == SPAN_BATCH_MAX or time.monotonic() - sent_at >= SPAN_SEND_S:
                 send(batch)
@@ -363,11 +380,11 @@ def _lead(
             team.leave(generation)
 
 
-def _team_evaluate(team: Team, job: Job, name: str, stats: WorkerStats) -> Result:
+def _team_evaluate(team: Team, job: Job, digest: str, name: str, stats: WorkerStats) -> Result:
     """The whole generation `job` with the team, as `_evaluate` would return it; the speed is
     that of this worker's own share."""
     try:
-        out = team.generation(job.key.generation, job.genomes)
+        out = team.generation(job.key.generation, job.genomes, digest)
         if out is None:
             raise RuntimeError("the team fell apart")  # only a member's span ends this way
     except Exception as exc:  # report it to the server instead of crashing the worker
@@ -396,7 +413,7 @@ def _follow(team: Team, job: Job, ga: _GA, stop: threading.Event, stats: WorkerS
             team.leave(generation)
             return
         try:
-            out = team.generation(generation, genomes)
+            out = team.generation(generation, genomes, genome_digest(genomes))
             if out is None:
                 return
             fitness, _, seconds, individuals = out

@@ -9,10 +9,13 @@ genome and the generation only, so the members ask identical generations and the
 bit-identical to `evolve`.
 
 Only the leader (member 0) holds the span's lease and sends results to the server; the others
-send it nothing. A member silent for `LEADER_WAIT_S` is dropped: the leader evaluates its
-slice itself from then on, so a member that dies or hangs costs the span that long once. A
-member that hears nothing for `MEMBER_WAIT_S` (the leader died, or waits on the server) or is
-told the span is over goes back to asking the server for jobs.
+send it nothing. Every slice carries the digest of the generation its sender asked, so a
+member whose GA differs (another version) never has its fitness counted: the leader only
+takes slices under its own digest, which the server checks. A member silent for
+`LEADER_WAIT_S`, or that leaves, is dropped: the leader evaluates its slice itself from then
+on, so each member that dies or hangs costs the span that long once (one that leaves, or asks
+other genomes, nothing). A member that hears nothing for `MEMBER_WAIT_S` (the leader died, or
+waits on the server) or is told the span is over goes back to asking the server for jobs.
 """
 
 from __future__ import annotations
@@ -67,6 +70,7 @@ class Inbox:
             return None
 
     def close(self) -> None:
+        """Undeclare the subscriber before the session closes (or the process may hang)."""
         with contextlib.suppress(zenoh.ZError):
             self._subscriber.undeclare()  # type: ignore[no-untyped-call]
 
@@ -90,19 +94,23 @@ class Team:
         self._evaluator = evaluator
         self._early: dict[int, list[TeamMessage]] = {}
         """Messages for generations this worker has not reached yet."""
-        self._publishers = {
-            i: session.declare_publisher(
-                team_key(name), congestion_control=zenoh.CongestionControl.BLOCK
-            )
-            for i, name in enumerate(job.team)
-            if i != self.me
-        }
+        self._publishers: dict[int, zenoh.Publisher] = {}
+        try:
+            for i, name in enumerate(job.team):
+                if i != self.me:
+                    self._publishers[i] = session.declare_publisher(
+                        team_key(name), congestion_control=zenoh.CongestionControl.BLOCK
+                    )
+        except BaseException:
+            self.close()
+            raise
 
     def generation(
-        self, generation: int, genomes: np.ndarray
+        self, generation: int, genomes: np.ndarray, digest: str
     ) -> tuple[np.ndarray, np.ndarray, float, int] | None:
-        """Fitness (n,) and components (n, trials, 4) of the whole generation, with the
-        seconds and individuals this worker evaluated; None once the team is over for it.
+        """Fitness (n,) and components (n, trials, 4) of the whole generation (`genomes`, of
+        `genome_digest` `digest`), with the seconds and individuals this worker evaluated;
+        None once the team is over for it.
 
         Raises what the evaluator raises (for this worker's own slices).
         """
@@ -115,7 +123,7 @@ class Team:
         began = time.perf_counter()
         self._evaluate(generation, genomes, mine, fitness, components, have)
         seconds = time.perf_counter() - began
-        self._send(generation, mine, fitness, components, self.active)
+        self._send(generation, digest, mine, fitness, components, self.active)
         wait = LEADER_WAIT_S if self.leader else MEMBER_WAIT_S
         deadline = time.monotonic() + wait
         while not have.all():
@@ -125,7 +133,7 @@ class Team:
                     log.info("leaving the team of %s: nothing heard", self.job.key.label())
                     self.leave(generation)
                     return None
-                self._take_over(generation, genomes, fitness, components, have, None)
+                self._take_over(generation, digest, genomes, fitness, components, have, None)
             elif message.over and message.member == 0:
                 log.info("the team of %s is over for this worker", self.job.key.label())
                 self.active.clear()
@@ -133,8 +141,28 @@ class Team:
             elif message.over:  # a member left: the leader evaluates its slices now
                 self.active.discard(message.member)
                 if self.leader:
-                    owned = {message.member}
-                    self._take_over(generation, genomes, fitness, components, have, owned)
+                    gone = {message.member}
+                    self._take_over(generation, digest, genomes, fitness, components, have, gone)
+            elif message.digest != digest:
+                if not self.leader:
+                    if message.member == 0:
+                        log.warning(
+                            "leaving the team of %s: the leader asked other genomes "
+                            "(its GA differs: another version?)",
+                            self.job.key.label(),
+                        )
+                        self.leave(generation)
+                        return None
+                    continue  # the leader drops that member and sends its slices
+                log.warning(
+                    "team of %s: member %d asked other genomes at generation %d (its GA "
+                    "differs: another version?); evaluating its slices here",
+                    self.job.key.label(),
+                    message.member,
+                    generation,
+                )
+                wrong = {message.member}
+                self._take_over(generation, digest, genomes, fitness, components, have, wrong)
             else:
                 self._fill(message, fitness, components, have)
         return fitness, components, seconds, sum(b - a for a, b in mine)
@@ -148,6 +176,7 @@ class Team:
         self.active.clear()
 
     def close(self) -> None:
+        """Undeclare the publishers (the session outlives the team)."""
         for publisher in self._publishers.values():
             with contextlib.suppress(zenoh.ZError):
                 publisher.undeclare()  # type: ignore[no-untyped-call]
@@ -178,6 +207,7 @@ class Team:
     def _send(
         self,
         generation: int,
+        digest: str,
         slices: list[tuple[int, int]],
         fitness: np.ndarray,
         components: np.ndarray,
@@ -188,13 +218,13 @@ class Team:
         if not slices or not to:
             return
         rows = np.concatenate([np.arange(a, b) for a, b in slices])
-        ranges = tuple(slices)
-        plain = TeamMessage(self.job.team_id, generation, self.me, ranges, fitness[rows])
+        ranges, team_id = tuple(slices), self.job.team_id
+        plain = TeamMessage(team_id, generation, self.me, ranges, fitness[rows], digest=digest)
         for i in sorted(to):
             message = plain
             if i == 0:
                 message = TeamMessage(
-                    self.job.team_id, generation, self.me, ranges, fitness[rows], components[rows]
+                    team_id, generation, self.me, ranges, fitness[rows], components[rows], digest
                 )
             self._publishers[i].put(encode_team_message(message))
 
@@ -230,48 +260,54 @@ class Team:
         components: np.ndarray,
         have: np.ndarray,
     ) -> None:
+        """Take a message's slices (whole slices of `team_cuts`; anything else is ignored).
+
+        The leader records components, so it ignores fitness without them. Whoever sends a
+        slice evaluates it from now on: a member learns so that the leader took over another
+        member's slice, and stops sending to that member once it owns nothing."""
         if message.fitness is None:
             return
         if self.leader and message.components is None:
             log.warning("member %d sent the leader no components; ignoring it", message.member)
             return
+        if message.components is not None and message.components.shape[1:] != components.shape[1:]:
+            log.warning("member %d sent malformed components; ignoring it", message.member)
+            return
+        if not set(message.ranges) <= set(self.slices):
+            log.warning("member %d sent slices %s; ignoring it", message.member, message.ranges)
+            return
         offset = 0
         for start, stop in message.ranges:
-            if stop > len(fitness):
-                log.warning("member %d sent slice %d:%d; ignoring it", message.member, start, stop)
-                return
             k = stop - start
             fitness[start:stop] = message.fitness[offset : offset + k]
             if message.components is not None:
-                if message.components.shape[1:] != components.shape[1:]:
-                    log.warning("member %d sent malformed components", message.member)
-                    return
                 components[start:stop] = message.components[offset : offset + k]
             have[start:stop] = True
             offset += k
+            i = self.slices.index((start, stop))
+            previous, self.owner[i] = self.owner[i], message.member
+            if previous not in self.owner:
+                self.active.discard(previous)
 
     def _take_over(
         self,
         generation: int,
+        digest: str,
         genomes: np.ndarray,
         fitness: np.ndarray,
         components: np.ndarray,
         have: np.ndarray,
         members: set[int] | None,
     ) -> None:
-        """The leader evaluates the missing slices of `members` (None: every missing slice)
-        and owns them from now on; their members are dropped (told so, in case they are
-        only slow)."""
-        missing = [
-            i
-            for i, (a, b) in enumerate(self.slices)
-            if not have[a:b].all() and (members is None or self.owner[i] in members)
-        ]
-        dropped = {self.owner[i] for i in missing} | (members or set())
-        silent = dropped & self.active
+        """The leader drops `members` (None: the owners of every slice still missing): it
+        owns their slices from now on and evaluates the missing ones. The dropped are told so,
+        in case they are only slow; the others learn it from whose slices they get."""
+        if members is None:
+            members = {self.owner[i] for i, (a, b) in enumerate(self.slices) if not have[a:b].all()}
+        silent = members & self.active
         if silent:
             log.info(
-                "team of %s: member(s) %s silent at generation %d; evaluating their slices here",
+                "team of %s: member(s) %s dropped at generation %d; evaluating their slices here",
                 self.job.key.label(),
                 sorted(silent),
                 generation,
@@ -279,9 +315,10 @@ class Team:
             over = encode_team_message(TeamMessage(self.job.team_id, generation, 0, over=True))
             for i in sorted(silent):
                 self._publishers[i].put(over)
-        self.active -= dropped
-        for i in missing:
+        self.active -= members
+        taken = [i for i, owner in enumerate(self.owner) if owner in members]
+        for i in taken:
             self.owner[i] = self.me
-        slices = [self.slices[i] for i in missing]
-        self._evaluate(generation, genomes, slices, fitness, components, have)
-        self._send(generation, slices, fitness, components, self.active)
+        missing = [self.slices[i] for i in taken if not have[slice(*self.slices[i])].all()]
+        self._evaluate(generation, genomes, missing, fitness, components, have)
+        self._send(generation, digest, missing, fitness, components, self.active)
