@@ -458,30 +458,49 @@ def _ok(reply: zenoh.Reply) -> bytes:
     return reply.ok.payload.to_bytes()
 
 
-def test_queue_source_two_workers_give_the_same_best_as_local_evolve(tmp_path: Path) -> None:
-    """Through the database queue and two real workers: bit-identical to `evolve`."""
-    from evorobotics.evolution import evolve
+@contextmanager
+def started_manager(tmp_path: Path) -> Iterator[Any]:
+    """A started RunManager on a fresh SQLite file, without executors (zenoh workers
+    evaluate); stopped and its engine disposed on exit."""
     from server.db import make_engine, upgrade
     from server.manager import RunManager
-    from server.models import Run
     from server.settings import Settings
-    from worker.main import evaluate_slice
 
-    config = RunConfig(population=8, generations=3, trials=1, steps=10, job_size=3, seed=4)
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
     manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
     manager.start()
-    port = free_port()
-    source = QueueSource(manager.queue)
     try:
+        yield manager
+    finally:
+        manager.stop()
+        engine.dispose()
+
+
+def stored_run(manager: Any, run_id: int) -> Any:
+    """Run `run_id` as stored now (detached from its session)."""
+    from server.models import Run
+
+    with manager.sessions.begin() as session:
+        found = session.get(Run, run_id)
+        assert found is not None
+        session.expunge(found)
+        return found
+
+
+def test_queue_source_two_workers_give_the_same_best_as_local_evolve(tmp_path: Path) -> None:
+    """Through the database queue and two real workers: bit-identical to `evolve`."""
+    from evorobotics.evolution import evolve
+    from worker.main import evaluate_slice
+
+    config = RunConfig(population=8, generations=3, trials=1, steps=10, job_size=3, seed=4)
+    port = free_port()
+    with started_manager(tmp_path) as manager:
+        source = QueueSource(manager.queue)
         run_id = manager.create_run(config)
 
         def status() -> str:
-            with manager.sessions.begin() as session:
-                run = session.get(Run, run_id)
-                assert run is not None
-                return run.status
+            return str(stored_run(manager, run_id).status)
 
         with Dispatcher(dispatch_settings(port), source) as dispatcher:
             # generations are cut per live worker (4 + 4 once both are up), run 0 as 3+3+2
@@ -492,9 +511,6 @@ def test_queue_source_two_workers_give_the_same_best_as_local_evolve(tmp_path: P
             ):
                 assert eventually(lambda: status() == "completed", timeout=60.0), status()
         sha = manager.best(run_id)
-    finally:
-        manager.stop()
-        engine.dispose()
     assert sha == evolve(config).best.sha256
 
 
@@ -505,27 +521,15 @@ def test_quick_generations_go_out_as_spans_that_pause_resume_and_match_evolve(
     the next ones itself. Pausing ends the span; resuming starts another; the best controller
     is `evolve`'s bit for bit."""
     from evorobotics.evolution import evolve
-    from server.db import make_engine, upgrade
-    from server.manager import RunManager
-    from server.models import Run
-    from server.settings import Settings
     from worker.main import evaluate_slice
 
     # enough generations that the pause lands mid-run: 300 took 0.15 s and could end first
     config = RunConfig(population=8, generations=3000, trials=1, steps=10, seed=6)
-    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
-    upgrade(engine)
-    manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
-    manager.start()
     port = free_port()
-    try:
+    with started_manager(tmp_path) as manager:
 
-        def run() -> Run:
-            with manager.sessions.begin() as session:
-                found = session.get(Run, run_id)
-                assert found is not None
-                session.expunge(found)
-                return found
+        def run() -> Any:
+            return stored_run(manager, run_id)
 
         settings = dispatch_settings(port, span_below_s=10.0)
         with Dispatcher(settings, QueueSource(manager.queue)) as dispatcher:
@@ -548,9 +552,6 @@ def test_quick_generations_go_out_as_spans_that_pause_resume_and_match_evolve(
                 assert eventually(lambda: run().status == "completed", timeout=60.0)
                 assert dispatcher.spans_served > spans
         sha = manager.best(run_id)
-    finally:
-        manager.stop()
-        engine.dispose()
     assert sha == evolve(config).best.sha256
 
 
@@ -559,25 +560,14 @@ def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path) -> None
     evaluates its slice, both tell and ask): the run is `evolve`'s bit for bit and only the
     leader's results reach the server."""
     from evorobotics.evolution import evolve
-    from server.db import make_engine, upgrade
-    from server.manager import RunManager
-    from server.models import Run
-    from server.settings import Settings
     from worker.main import evaluate_slice
 
     config = RunConfig(population=8, generations=200, trials=1, steps=10, seed=8)
-    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
-    upgrade(engine)
-    manager = RunManager(engine, Settings(executors=0, housekeeping_seconds=0.1))
-    manager.start()
     port = free_port()
-    try:
+    with started_manager(tmp_path) as manager:
 
         def status() -> str:
-            with manager.sessions.begin() as session:
-                found = session.get(Run, run_id)
-                assert found is not None
-                return found.status
+            return str(stored_run(manager, run_id).status)
 
         settings = dispatch_settings(port, span_below_s=10.0, team_slice_s=1e-9)
         with Dispatcher(settings, QueueSource(manager.queue)) as dispatcher:
@@ -596,9 +586,6 @@ def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path) -> None
             assert config.generations <= sum(served.values()) <= config.generations + 1
             assert min(one.jobs_done, two.jobs_done) > min(served.values())
         sha = manager.best(run_id)
-    finally:
-        manager.stop()
-        engine.dispose()
     assert sha == evolve(config).best.sha256
 
 

@@ -25,6 +25,8 @@ from schemas.wire import (
     team_key,
 )
 from tests.helpers import free_port
+from tests.test_dispatch import client_config
+from tests.test_robots_server import router_config
 from worker import team as team_module
 from worker.team import Inbox, Team
 
@@ -53,22 +55,10 @@ def place(names: tuple[str, ...], member: int) -> Job:
     )  # fmt: skip
 
 
-def client(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
 @contextmanager
 def router() -> Iterator[int]:
     port = free_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    with zenoh.open(conf):
+    with zenoh.open(router_config(port)):
         yield port
 
 
@@ -78,7 +68,7 @@ def members(port: int, names: tuple[str, ...]) -> Iterator[list[tuple[zenoh.Sess
     with ExitStack() as stack:
         out = []
         for name in names:
-            session = stack.enter_context(zenoh.open(client(port)))
+            session = stack.enter_context(zenoh.open(client_config(port)))
             inbox = Inbox(session, name)
             stack.callback(inbox.close)
             out.append((session, inbox))
