@@ -276,7 +276,7 @@ def _evolve_span(
             error = f"span of {job.key.label()} has an unusable GA state: {exc}"
             stats.errors += 1
             if team is not None:
-                team.leave(job.key.generation)  # a member's slice: the leader evaluates it
+                team.leave(job.key.generation)  # from the leader: the span ends for all
             if job.member > 0:
                 log.warning("%s; leaving its team", error)
                 return None
