@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +116,9 @@ class Colony:
     def workers(self) -> dict[str, dict[str, Any]]:
         return {w["name"]: w for w in self.get("/api/workers")}
 
+    def finished(self, run_id: int) -> bool:
+        return self.run(run_id)["status"] in ("completed", "failed")
+
     def run(self, run_id: int) -> dict[str, Any]:
         run: dict[str, Any] = self.get(f"/api/runs/{run_id}")
         return run
@@ -123,7 +127,7 @@ class Colony:
         self, run_id: int, expected_sha: str, evaluations: int = EVALUATIONS
     ) -> dict[str, Any]:
         """Wait for the run's end; check it matches evolve and counted every job once."""
-        wait_until(lambda: self.run(run_id)["status"] in ("completed", "failed"), "run end")
+        wait_until(partial(self.finished, run_id), "run end")
         run = self.run(run_id)
         assert run["status"] == "completed", run["error"]
         assert run["evaluations"] == evaluations
@@ -352,10 +356,23 @@ def test_a_team_loses_nothing_when_its_member_or_its_leader_is_sigkilled(
     colony.start_server(spans=True, teams=True)
     procs = {name: colony.start_worker(name) for name in ("a", "b")}
     wait_until(lambda: len(colony.workers()) == 2, "two workers")
+    # only a worker that has evaluated (its kernels compiled) joins a team: one generation
+    # in slices first, again if one worker happened to take both
+    for _ in range(10):
+        if all(w["robot_steps_per_s"] for w in colony.workers().values()):
+            break
+        warm = colony.post("/api/runs", {**SPAN_CONFIG, "generations": 1})["id"]
+        wait_until(partial(colony.finished, warm), "warm-up run")
+    assert all(w["robot_steps_per_s"] for w in colony.workers().values())
+    base = {name: w["jobs_done"] for name, w in colony.workers().items()}
     run_id = colony.post("/api/runs", SPAN_CONFIG)["id"]
-    leader, before = span_holder(colony, run_id)
+    wait_until(lambda: colony.run(run_id)["generation"] >= 5, "generation 5")
+    before = colony.workers()
+    leader = max(before, key=lambda name: before[name]["jobs_done"] - base[name])
     [member] = set(procs) - {leader}
-    assert before[member]["state"] == "busy"  # in the team, though it holds no lease
+    # in the team, though it holds no lease and reports no generation
+    assert before[member]["state"] == "busy"
+    assert before[member]["jobs_done"] <= base[member] + 1
     victim = leader if killed == "leader" else member
     procs[victim].kill()
     colony.finish(run_id, span_sha, evaluations=16 * 300)
