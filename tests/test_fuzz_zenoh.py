@@ -383,22 +383,14 @@ def test_team_members_drop_garbage_on_their_keys_and_finish_the_generation(
 ) -> None:
     """Garbage on both members' team keys before a generation's exchange: each logs and
     drops it and still gets the other's slice."""
-    from tests.test_team import Outcome, members, place, router, run_member, whole
+    from tests.test_team import members, router, run_team, whole
 
     names = ("lead", "member")
-    out: Outcome = {}
     with router() as port, members(port, names) as sessions:
         for name in names:
             for payload in junk:
                 sessions[0][0].put(team_key(name), payload)
-        threads = [
-            threading.Thread(target=run_member, args=(s, i, place(names, m), 2, out))
-            for m, (s, i) in enumerate(sessions)
-        ]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join(WAIT)
+        out = run_team(sessions, names, 2)
     for results, _ in out.values():
         assert len(results) == 2
         for g, result in enumerate(results):

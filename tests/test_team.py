@@ -119,6 +119,29 @@ def run_member(
         team.close()
 
 
+def run_team(
+    sessions: list[tuple[zenoh.Session, Inbox]],
+    names: tuple[str, ...],
+    generations: int,
+    skew: float = 0.0,
+) -> Outcome:
+    """Every member in its own thread for `generations` (member m's GA shifted by m x `skew`);
+    each must finish within WAIT."""
+    out: Outcome = {}
+    threads = [
+        threading.Thread(
+            target=run_member, args=(s, i, place(names, m), generations, out, skew * m)
+        )
+        for m, (s, i) in enumerate(sessions)
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(WAIT)
+    assert not any(thread.is_alive() for thread in threads)
+    return out
+
+
 def whole(generation: int) -> tuple[np.ndarray, np.ndarray]:
     genomes = place(("a", "b"), 0).genomes + generation
     fitness, components = evaluator(CONFIG, generation, genomes)
@@ -128,16 +151,8 @@ def whole(generation: int) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("size", [2, 3])
 def test_members_split_each_generation_and_all_see_the_whole_of_it(size: int) -> None:
     names = ("a", "b", "c")[:size]
-    out: Outcome = {}
     with router() as port, members(port, names) as sessions:
-        threads = [
-            threading.Thread(target=run_member, args=(s, i, place(names, m), 4, out))
-            for m, (s, i) in enumerate(sessions)
-        ]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join(WAIT)
+        out = run_team(sessions, names, 4)
     assert sorted(out) == list(range(size))
     for member, (results, _) in out.items():
         assert len(results) == 4
@@ -204,17 +219,8 @@ def test_a_member_whose_ga_differs_is_dropped_and_its_slice_evaluated_by_the_lea
     the leader never counts it (no wait either), and the member leaves on the leader's."""
     monkeypatch.setattr(team_module, "LEADER_WAIT_S", 60.0)  # a wait would hang the test
     names = ("lead", "skewed")
-    out: Outcome = {}
     with router() as port, members(port, names) as sessions:
-        threads = [
-            threading.Thread(target=run_member, args=(s, i, place(names, m), 3, out, 0.5 * m))
-            for m, (s, i) in enumerate(sessions)
-        ]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join(WAIT)
-        assert not any(thread.is_alive() for thread in threads)
+        out = run_team(sessions, names, 3, skew=0.5)
     leader, skewed = out[0], out[1]
     for g, result in enumerate(leader[0]):
         assert result is not None and result[0].tobytes() == whole(g)[0].tobytes()
