@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 7
+PROTOCOL = 8
 """Wire protocol version, sent in every job request; the server idles other versions.
 
 2: a result may ask for the next job (`want_next`); the server then answers with that job,
@@ -49,6 +49,8 @@ each accepted generation moves the lease to the next.
 7: a span may go to a team (`team`, `member`, `team_id`): idle workers split each of its
 generations, exchange their slices' fitness on `evocolony/teams/NAME` (`TeamMessage`) and each
 tells and asks itself; only the team's leader (member 0) holds the lease and sends results.
+8: a team whose members share their leader's machine may be `shared`: they split each
+generation in chunks through a file in shared memory instead (`worker.shared`), no messages.
 """
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
@@ -251,6 +253,8 @@ class JobHeader(_Model):
     member: int = Field(0, ge=0)
     """This worker's place in `team`: it evaluates slice `member` of `team_cuts`."""
     team_id: str = Field("", pattern=f"^$|{_TEAM_ID}")
+    shared: bool = False
+    """The team splits generations in shared memory: its members share a machine (protocol 8)."""
 
 
 @dataclass(frozen=True)
@@ -273,12 +277,14 @@ class Job:
     """The workers splitting a span, leader first (protocol 7; see JobHeader.team)."""
     member: int = 0
     team_id: str = ""
+    shared: bool = False
+    """The team works in shared memory (protocol 8; see JobHeader.shared)."""
 
     def __post_init__(self) -> None:
         check_job(self.key, self.start, self.stop, self.config, self.genomes)
         if self.span > 1 or self.state is not None:
             check_span(self.key, self.start, self.stop, self.config, self.span, self.state)
-        if self.team or self.member or self.team_id:
+        if self.team or self.member or self.team_id or self.shared:
             check_team(self.key, self.config, self.span, self.team, self.member, self.team_id)
 
     @property
@@ -371,6 +377,7 @@ def encode_job(job: Job, ack: Ack | None = None) -> bytes:
         arrays |= {f"state.{name}": value for name, value in job.state.items()}
     if job.team:
         header |= {"team": list(job.team), "member": job.member, "team_id": job.team_id}
+        header["shared"] = job.shared
     return encode_frame(header, arrays)
 
 
@@ -439,6 +446,7 @@ def _job_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Job:
         team=parsed.team,
         member=parsed.member,
         team_id=parsed.team_id,
+        shared=parsed.shared,
     )
 
 

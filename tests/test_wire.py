@@ -335,6 +335,9 @@ def test_a_team_place_round_trips_and_must_name_a_real_team() -> None:
     back = decode_next_reply(encode_job(job))
     assert isinstance(back, Job)
     assert (back.team, back.member, back.team_id, back.span) == (("lead", "helper"), 1, TEAM_ID, 2)
+    assert not back.shared
+    shared = decode_next_reply(encode_job(replace(job, shared=True)))
+    assert isinstance(shared, Job) and shared.shared and shared.team == job.team
     bad = [
         ({"span": 1, "state": None}, "needs a span"),
         ({"team": ("lead",), "member": 0}, "team of 1"),
@@ -342,6 +345,7 @@ def test_a_team_place_round_trips_and_must_name_a_real_team() -> None:
         ({"team": ("lead", "lead")}, "distinct"),
         ({"member": 2}, "member 2"),
         ({"team_id": "XYZ"}, "team id"),
+        ({"team": (), "member": 0, "team_id": "", "shared": True}, "team of 0"),
     ]
     for change, message in bad:
         with pytest.raises(InvalidJobError, match=message):

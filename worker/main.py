@@ -49,7 +49,9 @@ from schemas.wire import (
     genome_digest,
     worker_key,
 )
-from worker.team import Evaluator, Inbox, Team
+from worker import shared
+from worker.shared import SharedTeam
+from worker.team import Evaluator, Inbox, Team, checked_evaluation
 
 log = logging.getLogger(__name__)
 
@@ -247,8 +249,8 @@ def _evolve_span(
     """Evolve the span's generations here, sending their results as it goes; the next job
     if the server sent one with the acknowledgement of an error.
 
-    In a team, each generation is split between the members (`worker.team`); a member other
-    than the leader sends the server nothing.
+    In a team, each generation is split between the members (`worker.team`, or
+    `worker.shared` on one machine); a member other than the leader sends the server nothing.
 
     Results go out every SPAN_SEND_S (several generations a message) without waiting for
     their acknowledgement (up to SPAN_WINDOW messages), so the server records generations
@@ -263,6 +265,9 @@ def _evolve_span(
     if job.member > 0 and team is None:
         return None  # the leader evaluates this worker's slice itself
     try:
+        if isinstance(team, SharedTeam) and not team.leader:
+            _help(team, stop, stats)
+            return None
         try:
             params, spec_layout = GAParams.from_config(config), layout(config.network_spec)
             state = GAState.from_arrays(job.state or {})
@@ -283,7 +288,7 @@ def _evolve_span(
             failed = Result(job.key, settings.name, error=error, start=job.start, stop=job.stop)
             return _deliver(session, settings, stop, failed, stats)
         ga = _GA(params, spec_layout, state)
-        if team is not None and not team.leader:
+        if isinstance(team, Team) and not team.leader:
             _follow(team, job, ga, stop, stats)
             return None
         return _lead(session, settings, stop, job, evaluator, stats, ga, team)
@@ -292,14 +297,20 @@ def _evolve_span(
             team.close()
 
 
-def _join_team(session: zenoh.Session, inbox: Inbox, job: Job, evaluator: Evaluator) -> Team | None:
+def _join_team(
+    session: zenoh.Session, inbox: Inbox, job: Job, evaluator: Evaluator
+) -> Team | SharedTeam | None:
     """This worker's part in the span's team; None without a team or if zenoh refused the
-    publishers (a leader then evolves alone, its members leave after MEMBER_WAIT_S)."""
+    publishers or the shared file could not be made (a leader then evolves alone, its
+    members leave after MEMBER_WAIT_S). A shared team's members all run on one machine, so
+    where it is not `shared.supported` they all fall back to a zenoh team alike."""
     if not job.team:
         return None
     try:
+        if job.shared and shared.supported():
+            return SharedTeam.join(job, evaluator)
         return Team(session, inbox, job, evaluator)
-    except zenoh.ZError as exc:
+    except (zenoh.ZError, OSError) as exc:
         log.warning("cannot join the team of %s: %s", job.key.label(), exc)
         return None
 
@@ -322,7 +333,7 @@ def _lead(
     evaluator: Evaluator,
     stats: WorkerStats,
     ga: _GA,
-    team: Team | None,
+    team: Team | SharedTeam | None,
 ) -> Job | None:
     """The span loop of its only worker or its team's leader: evaluate, send, tell, ask."""
     config, state = job.config, ga.state
@@ -334,7 +345,9 @@ def _lead(
 
     batch: list[Result] = []
     sent_at = time.monotonic()
-    current = replace(job, span=1, state=None, more=False, team=(), member=0, team_id="")
+    current = replace(
+        job, span=1, state=None, more=False, team=(), member=0, team_id="", shared=False
+    )
     generation = job.key.generation
     finished = False
     try:
@@ -380,7 +393,9 @@ def _lead(
             team.leave(generation)
 
 
-def _team_evaluate(team: Team, job: Job, digest: str, name: str, stats: WorkerStats) -> Result:
+def _team_evaluate(
+    team: Team | SharedTeam, job: Job, digest: str, name: str, stats: WorkerStats
+) -> Result:
     """The whole generation `job` with the team, as `_evaluate` would return it; the speed is
     that of this worker's own share."""
     try:
@@ -400,6 +415,22 @@ def _team_evaluate(team: Team, job: Job, digest: str, name: str, stats: WorkerSt
     return Result(
         job.key, name, fitness, components, speed or 0.0, seconds, start=job.start, stop=job.stop
     )
+
+
+def _help(team: SharedTeam, stop: threading.Event, stats: WorkerStats) -> None:
+    """A shared team member's span: chunks of the generations its leader publishes."""
+    config = team.job.config
+
+    def progress(individuals: int, seconds: float) -> None:
+        stats.jobs_done += 1
+        if seconds > 0:
+            stats.robot_steps_per_s = individuals * config.trials * config.steps / seconds
+
+    try:
+        team.follow(stop, progress)
+    except Exception:  # the leader evaluates the chunk itself
+        log.exception("shared team member failed in a span of %s", team.job.key.label())
+        stats.errors += 1
 
 
 def _follow(team: Team, job: Job, ga: _GA, stop: threading.Event, stats: WorkerStats) -> None:
@@ -555,14 +586,9 @@ def _reject_job(
 def _evaluate(job: Job, name: str, evaluator: Evaluator, stats: WorkerStats) -> Result:
     began = time.perf_counter()
     try:
-        fitness, components = evaluator(job.config, job.key.generation, job.genomes)
-        fitness = np.ascontiguousarray(fitness, dtype=np.float64)
-        components = np.ascontiguousarray(components, dtype=np.float64)
-        n = job.stop - job.start
-        if fitness.shape != (n,) or components.shape[:1] != (n,):
-            raise ValueError(f"evaluator returned {fitness.shape} and {components.shape} for {n}")
-        if not np.isfinite(fitness).all():
-            raise ValueError("evaluator returned non-finite fitness")
+        fitness, components = checked_evaluation(
+            evaluator, job.config, job.key.generation, job.genomes
+        )
     except Exception as exc:  # report it to the server instead of crashing the worker
         log.exception("evaluating %s failed", job.key.label())
         stats.errors += 1

@@ -45,6 +45,24 @@ log = logging.getLogger(__name__)
 Evaluator = Callable[[RunConfig, int, np.ndarray], tuple[np.ndarray, np.ndarray]]
 """(config, generation, genomes (n, w)) -> fitness (n,), components (n, trials, 4)."""
 
+
+def checked_evaluation(
+    evaluator: Evaluator, config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The evaluator's fitness (n,) and components (n, trials, 4) of `genomes` as float64;
+    ValueError if it returned other shapes or non-finite fitness (a result must not carry
+    them to the server, nor a member to its team)."""
+    f, c = evaluator(config, generation, genomes)
+    f = np.ascontiguousarray(f, dtype=np.float64)
+    c = np.ascontiguousarray(c, dtype=np.float64)
+    n = genomes.shape[0]
+    if f.shape != (n,) or c.shape != (n, config.trials, 4):
+        raise ValueError(f"evaluator returned {f.shape} and {c.shape} for {n}")
+    if not np.isfinite(f).all():
+        raise ValueError("evaluator returned non-finite fitness")
+    return f, c
+
+
 LEADER_WAIT_S = 0.5
 """How long the leader waits for a member's slice before evaluating it itself."""
 MEMBER_WAIT_S = 2.0
@@ -195,13 +213,7 @@ class Team:
         if not slices:
             return
         rows = np.concatenate([np.arange(a, b) for a, b in slices])
-        f, c = self._evaluator(self.job.config, generation, genomes[rows])
-        f = np.ascontiguousarray(f, dtype=np.float64)
-        c = np.ascontiguousarray(c, dtype=np.float64)
-        if f.shape != (len(rows),) or c.shape != (len(rows), self.job.config.trials, 4):
-            raise ValueError(f"evaluator returned {f.shape} and {c.shape} for {len(rows)}")
-        if not np.isfinite(f).all():
-            raise ValueError("evaluator returned non-finite fitness")
+        f, c = checked_evaluation(self._evaluator, self.job.config, generation, genomes[rows])
         fitness[rows], components[rows], have[rows] = f, c, True
 
     def _send(
