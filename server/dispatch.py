@@ -28,6 +28,11 @@ fitness among themselves (`worker.team`) and only the leader holds the lease and
 results. Idle means waiting on a held request, or between requests (invited: the span goes
 out with its next request, within `INVITE_S`): a worker whose span just ended asks again a
 moment after the one that gets the next span.
+
+Shared teams (protocol 8): idle workers on the span worker's own host split the span in shared
+memory instead (`worker.shared`), up to one per `shared_slice_s` of a generation: without
+messages between them, a second core pays from a few milliseconds a generation. A span goes to
+a shared team whenever one can be at least as large as the zenoh team it would get.
 """
 
 from __future__ import annotations
@@ -154,6 +159,9 @@ class DispatchSettings:
     """A span is split among idle workers, each evaluating at least this much of a
     generation (0: never): on a shared 2-core machine the exchange costs a generation 1-2 ms,
     and one worker alone was faster below about 10 ms a generation (bench/dispatch.py)."""
+    shared_slice_s: float = 0.001
+    """A span is split among idle workers of its worker's host, each evaluating at least this
+    much of a generation, in shared memory (0: never)."""
     auth: ZenohRouterAuth = field(default_factory=ZenohRouterAuth)
     """usrpwd dictionary, TLS certificate and message-size limit of the router (security.md)."""
 
@@ -171,8 +179,9 @@ class DispatchSettings:
             raise ValueError(f"span_below_s must be >= 0, got {self.span_below_s}")
         if not self.span_s > 0:
             raise ValueError(f"span_s must be > 0, got {self.span_s}")
-        if self.team_slice_s < 0:
-            raise ValueError(f"team_slice_s must be >= 0, got {self.team_slice_s}")
+        for name in ("team_slice_s", "shared_slice_s"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
         """The lease of a job of `robot_steps` for a worker running `speed` robot-steps/s."""
@@ -190,12 +199,14 @@ class DispatchSettings:
             return 1
         return max(1, int(self.span_s / seconds))
 
-    def team_size(self, config: RunConfig, speed: float | None) -> int:
-        """Workers that should split a span's generations of `config` (1: no team)."""
-        if not speed or not self.team_slice_s:
+    def team_size(self, config: RunConfig, speed: float | None, shared: bool = False) -> int:
+        """Workers that should split a span's generations of `config` (1: no team), in
+        shared memory or over zenoh."""
+        slice_s = self.shared_slice_s if shared else self.team_slice_s
+        if not speed or not slice_s:
             return 1
         seconds = config.population * config.trials * config.steps / speed
-        return max(1, min(int(seconds / self.team_slice_s), config.population, TEAM_MAX))
+        return max(1, min(int(seconds / slice_s), config.population, TEAM_MAX))
 
     def zenoh_config(self) -> zenoh.Config:
         conf = zenoh.Config()
@@ -312,6 +323,8 @@ class Dispatcher:
         """Jobs sent as spans (protocol 5)."""
         self.teams_served = 0
         """Spans split with other workers (protocol 7)."""
+        self.shared_teams_served = 0
+        """Of those, split in shared memory (protocol 8)."""
         self._invites: dict[str, tuple[Job, float]] = {}
         """Team places for workers that were between requests, with their expiry."""
         self.malformed = 0
@@ -569,7 +582,9 @@ class Dispatcher:
                 job.key.label(),
                 worker,
                 job.span,
-                f" with {', '.join(job.team[1:])}" if job.team else "",
+                f" {'in shared memory ' if job.shared else ''}with {', '.join(job.team[1:])}"
+                if job.team
+                else "",
             )
         else:
             _job_log(job.key, worker).debug(
@@ -581,9 +596,12 @@ class Dispatcher:
 
     def _teamed(self, job: Job, worker: str) -> Job:
         """The span `job` of `worker` split with idle workers if its generations are long
-        enough (`team_size`): the held ones get their place now, the others are invited."""
-        size = self.settings.team_size(job.config, self._workers[worker].speed)
-        if size < 2:
+        enough (`team_size`), in shared memory if enough share its host: the held ones get
+        their place now, the others are invited."""
+        host, speed = self._workers[worker].host, self._workers[worker].speed
+        size = self.settings.team_size(job.config, speed)
+        local_size = self.settings.team_size(job.config, speed, shared=True) if host else 1
+        if max(size, local_size) < 2:
             return job
         leasing = {lease.worker for lease in self._leases.values()}
         with self._lock:
@@ -600,13 +618,18 @@ class Dispatcher:
         held = [h for h in self._held if h.worker in free]
         names = list(dict.fromkeys(h.worker for h in held))
         names += sorted(free - set(names))
-        names = names[: size - 1]
+        with self._lock:
+            local = [name for name in names if self._workers[name].host == host]
+        shared = local_size >= 2 and len(local) >= min(size - 1, len(names))
+        names = local[: local_size - 1] if shared else names[: size - 1]
         if not names:
             return job
         team, team_id = (worker, *names), secrets.token_hex(8)
         expires = self._clock() + INVITE_S
         for member, name in enumerate(names, start=1):
-            place = replace(job, team=team, member=member, team_id=team_id, more=False)
+            place = replace(
+                job, team=team, member=member, team_id=team_id, more=False, shared=shared
+            )
             with self._lock:
                 self._workers[name].team = team_id
             request = next((h for h in self._held if h.worker == name), None)
@@ -617,7 +640,8 @@ class Dispatcher:
                 with request.query as query:
                     self._join(query, KEY_JOB_NEXT, name, place)
         self.teams_served += 1
-        return replace(job, team=team, member=0, team_id=team_id)
+        self.shared_teams_served += shared
+        return replace(job, team=team, member=0, team_id=team_id, shared=shared)
 
     def _invited(self, worker: str, holding: Collection[JobKey]) -> Job | None:
         """The team place `worker` was invited to, if still open and it holds no job."""

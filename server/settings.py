@@ -60,6 +60,12 @@ class Settings(BaseSettings):
         description="idle workers split a span, each evaluating at least this much of a "
         "generation (0: never)",
     )
+    shared_slice_seconds: float = Field(
+        0.001,
+        ge=0.0,
+        description="idle workers on the span worker's host split a span in shared memory, "
+        "each evaluating at least this much of a generation (0: never)",
+    )
     lease_seconds: float = Field(300.0, gt=0.0, description="a leased job returns after this")
     lease_min_seconds: float = Field(
         10.0, gt=0.0, description="shortest zenoh lease (lease = max(this, 10 x job time))"
@@ -163,5 +169,6 @@ class Settings(BaseSettings):
             span_below_s=self.span_below_seconds,
             span_s=self.span_seconds,
             team_slice_s=self.team_slice_seconds,
+            shared_slice_s=self.shared_slice_seconds,
             auth=self.zenoh_router_auth(),
         )

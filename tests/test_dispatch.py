@@ -560,10 +560,12 @@ def test_quick_generations_go_out_as_spans_that_pause_resume_and_match_evolve(
     assert sha == evolve(config).best.sha256
 
 
-def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path) -> None:
-    """With teams on, the span's worker splits every generation with the idle one (each
-    evaluates its slice, both tell and ask): the run is `evolve`'s bit for bit and only the
-    leader's results reach the server."""
+@pytest.mark.parametrize("kind", ["zenoh", "shared"])
+def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path, kind: str) -> None:
+    """With teams on, the span's worker splits every generation with the idle one (over
+    zenoh: each evaluates its slice, both tell and ask; in shared memory: both take chunks of
+    what the leader asked): the run is `evolve`'s bit for bit and only the leader's results
+    reach the server."""
     from evorobotics.evolution import evolve
     from worker.main import evaluate_slice
 
@@ -574,7 +576,10 @@ def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path) -> None
         def status() -> str:
             return str(stored_run(manager, run_id).status)
 
-        settings = dispatch_settings(port, span_below_s=10.0, team_slice_s=1e-9)
+        slices = {"team_slice_s": 1e-9, "shared_slice_s": 0.0}
+        if kind == "shared":
+            slices = {"team_slice_s": 0.0, "shared_slice_s": 1e-9}
+        settings = dispatch_settings(port, span_below_s=10.0, **slices)
         with Dispatcher(settings, QueueSource(manager.queue)) as dispatcher:
             manager.queue.set_job_sizer(dispatcher.job_size)
             with (
@@ -596,12 +601,51 @@ def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path) -> None
                 assert eventually(lambda: status() == "completed", timeout=60.0), status()
                 served = {w.name: w.jobs_done - before[w.name] for w in dispatcher.workers()}
             assert dispatcher.teams_served >= 1
+            shared = dispatcher.shared_teams_served
+            assert shared == (dispatcher.teams_served if kind == "shared" else 0)
             # the server counted the leader's generations (generation 0 may go out in two
             # slices); the member evaluated its half of them too, but reported none
             assert config.generations <= sum(served.values()) <= config.generations + 1
             assert min(one.jobs_done, two.jobs_done) > min(served.values()) + 10
         sha = manager.best(run_id)
     assert sha == evolve(config).best.sha256
+
+
+@pytest.mark.parametrize(("hosts", "shared"), [(("h1", "h1"), True), (("h1", "h2"), False)])
+def test_a_span_is_split_in_shared_memory_only_by_workers_of_one_host(
+    tmp_path: Path, hosts: tuple[str, str], shared: bool
+) -> None:
+    """Two measured workers wait on held requests when a run starts: its span goes to one,
+    with the other as member; in shared memory only if both named the same host."""
+    config = RunConfig(population=6, generations=50, trials=1, steps=5, seed=2)
+    port = free_port()
+    replies: dict[str, object] = {}
+    with (
+        started_manager(tmp_path) as manager,
+        Dispatcher(
+            dispatch_settings(port, span_below_s=10.0, long_poll_s=4.0),
+            QueueSource(manager.queue),
+        ) as dispatcher,
+        zenoh.open(client_config(port)) as session,
+    ):
+        manager.queue.set_job_sizer(dispatcher.job_size)
+
+        def request(name: str, host: str) -> None:
+            payload = encode_message(JobRequest(worker=name, host=host, robot_steps_per_s=1e3))
+            replies[name] = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, payload)))
+
+        threads = [
+            threading.Thread(target=request, args=(f"w{i}", host)) for i, host in enumerate(hosts)
+        ]
+        for thread in threads:
+            thread.start()
+        assert eventually(lambda: len(dispatcher.workers()) == 2, timeout=WAIT)
+        manager.create_run(config)
+        for thread in threads:
+            thread.join(WAIT)
+    jobs = sorted((j for j in replies.values() if isinstance(j, Job)), key=lambda j: j.member)
+    assert [(j.member, j.shared, len(j.team)) for j in jobs] == [(0, shared, 2), (1, shared, 2)]
+    assert dispatcher.shared_teams_served == int(shared)
 
 
 def test_a_worker_whose_ga_differs_has_its_span_refused_and_gets_no_more(

@@ -51,11 +51,11 @@ class Colony:
         self.server: subprocess.Popen[bytes] | None = None
 
     def start_server(
-        self, workers: int = 0, *, spans: bool = False, teams: bool = False, **env: str
+        self, workers: int = 0, *, spans: bool = False, teams: str = "", **env: str
     ) -> subprocess.Popen[bytes]:
         """`spans`: every generation with a measured worker speed goes out as a span of the
-        rest of the run, evolved by one worker or (`teams`) split with every idle one;
-        otherwise generations are cut into parallel slices."""
+        rest of the run, evolved by one worker or split with every idle one in a team
+        (`teams`: "zenoh" or "shared"); otherwise generations are cut into parallel slices."""
         argv = [
             *COLONY,
             "server",
@@ -71,7 +71,8 @@ class Colony:
         spanning = {
             "COLONY_SPAN_BELOW_SECONDS": "10",
             "COLONY_SPAN_SECONDS": "600",
-            "COLONY_TEAM_SLICE_SECONDS": "0.000001" if teams else "0",
+            "COLONY_TEAM_SLICE_SECONDS": "0.000001" if teams == "zenoh" else "0",
+            "COLONY_SHARED_SLICE_SECONDS": "0.000001" if teams == "shared" else "0",
         }
         off = {"COLONY_SPAN_BELOW_SECONDS": "0"}
         env = {"COLONY_HOUSEKEEPING_SECONDS": "0.2", **(spanning if spans else off), **env}
@@ -346,14 +347,16 @@ def test_a_server_sigkilled_mid_span_resumes_it_with_the_same_workers(
     assert {"one", "two"} <= set(colony.workers())
 
 
+@pytest.mark.parametrize("kind", ["zenoh", "shared"])
 @pytest.mark.parametrize("killed", ["member", "leader"])
 def test_a_team_loses_nothing_when_its_member_or_its_leader_is_sigkilled(
-    colony: Colony, span_sha: str, killed: str
+    colony: Colony, span_sha: str, killed: str, kind: str
 ) -> None:
-    """Two workers split a span. Killing the member: the leader evaluates its slice after
-    half a second and goes on alone. Killing the leader: the server re-leases its span, which
-    the member takes once it stops waiting for the leader. Either way `evolve`'s result."""
-    colony.start_server(spans=True, teams=True)
+    """Two workers split a span, over zenoh or in shared memory. Killing the member: the
+    leader evaluates its slice (or the chunk it had claimed) after half a second and goes on
+    alone. Killing the leader: the server re-leases its span, which the member takes once it
+    stops waiting for the leader. Either way `evolve`'s result."""
+    colony.start_server(spans=True, teams=kind)
     procs = {name: colony.start_worker(name) for name in ("a", "b")}
     wait_until(lambda: len(colony.workers()) == 2, "two workers")
     # only a worker that has evaluated (its kernels compiled) joins a team: one generation
@@ -380,6 +383,12 @@ def test_a_team_loses_nothing_when_its_member_or_its_leader_is_sigkilled(
     assert after[victim]["state"] == "gone"
     survivor = member if killed == "leader" else leader
     assert after[survivor]["jobs_done"] > before[survivor]["jobs_done"]
-    assert f"with {member}" in (colony.tmp / "server.log").read_text()  # it was a team
-    told = "dropped at generation" if killed == "member" else "leaving the team"
+    memory = "in shared memory " if kind == "shared" else ""
+    assert f"{memory}with {member}" in (colony.tmp / "server.log").read_text()  # a team
+    told = {
+        ("zenoh", "member"): "dropped at generation",
+        ("zenoh", "leader"): "leaving the team",
+        ("shared", "member"): "",  # a wait only if it died holding a chunk
+        ("shared", "leader"): "leaving the shared team",
+    }[kind, killed]
     assert told in (colony.tmp / f"{survivor}.log").read_text()
