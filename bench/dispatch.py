@@ -9,14 +9,15 @@
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
         [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS] [--team-slice SECONDS]
-        [--only throughput|paper]
+        [--shared-slice SECONDS] [--only throughput|paper]
 
 `--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
 generation: the coordination cost per generation weighs a tenth as much. `--sweep` also times
 100 to 1,600 steps (generations scaled to the same robot-steps) on the same server and
 prints where the distributed run catches up with `colony evolve`. `--span-below` sets the
 server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no spans),
-`--team-slice` its COLONY_TEAM_SLICE_SECONDS (0: every span evolved by one worker alone).
+`--team-slice` its COLONY_TEAM_SLICE_SECONDS (0: no zenoh teams), `--shared-slice` its
+COLONY_SHARED_SLICE_SECONDS (0: no shared teams; both 0: every span evolved by one worker alone).
 """
 
 from __future__ import annotations
@@ -171,6 +172,7 @@ def bench_paper(
     repeats: int,
     span_below: float | None,
     team_slice: float | None,
+    shared_slice: float | None,
 ) -> None:
     """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve for each
     (generations, steps) shape on one server, each timed `repeats` times, alternately (figures
@@ -196,11 +198,15 @@ def bench_paper(
             env["COLONY_SPAN_BELOW_SECONDS"] = str(span_below)
         if team_slice is not None:
             env["COLONY_TEAM_SLICE_SECONDS"] = str(team_slice)
+        if shared_slice is not None:
+            env["COLONY_SHARED_SLICE_SECONDS"] = str(shared_slice)
         below = DispatchSettings().span_below_s if span_below is None else span_below
         team = DispatchSettings().team_slice_s if team_slice is None else team_slice
+        shared = DispatchSettings().shared_slice_s if shared_slice is None else shared_slice
         mode = f"spans below {below * 1e3:g} ms a generation" if below else "slices only"
         if below:
-            mode += f", teams of {team * 1e3:g} ms slices" if team else ", no teams"
+            mode += f", shared teams of {shared * 1e3:g} ms" if shared else ", no shared teams"
+            mode += f", zenoh teams of {team * 1e3:g} ms slices" if team else ", no zenoh teams"
         server = subprocess.Popen(
             argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
         )
@@ -277,6 +283,7 @@ def main() -> None:
     parser.add_argument("--sweep", action="store_true")
     parser.add_argument("--span-below", type=float, default=None)
     parser.add_argument("--team-slice", type=float, default=None)
+    parser.add_argument("--shared-slice", type=float, default=None)
     parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
     shapes = [(args.generations, args.steps)]
@@ -289,7 +296,9 @@ def main() -> None:
         bench_throughput(args.seconds, args.workers)
     if args.only != "throughput":
         bench_capacity(RunConfig(generations=args.generations, steps=args.steps))
-        bench_paper(args.workers, shapes, args.repeats, args.span_below, args.team_slice)
+        bench_paper(
+            args.workers, shapes, args.repeats, args.span_below, args.team_slice, args.shared_slice
+        )
 
 
 if __name__ == "__main__":
