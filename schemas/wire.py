@@ -204,6 +204,9 @@ class JobRequest(_Model):
     protocol: int = PROTOCOL
     worker: str
     host: str = Field("", max_length=255)
+    machine: str = Field("", max_length=255)
+    """What shares memory with the worker (protocol 8; empty: no shared teams): workers of
+    the same `machine` may split a span in shared memory."""
     robot_steps_per_s: float | None = Field(None, ge=0.0, allow_inf_nan=False)
     holding: tuple[JobKey, ...] = Field((), max_length=16)
     """Jobs the worker has in hand: non-empty makes this a prefetch (answered at once, never

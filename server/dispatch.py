@@ -29,8 +29,8 @@ results. Idle means waiting on a held request, or between requests (invited: the
 out with its next request, within `INVITE_S`): a worker whose span just ended asks again a
 moment after the one that gets the next span.
 
-Shared teams (protocol 8): idle workers on the span worker's own host split the span in shared
-memory instead (`worker.shared`), up to one per `shared_slice_s` of a generation: without
+Shared teams (protocol 8): idle workers on the span worker's own machine (`JobRequest.machine`:
+host, boot and namespaces) split the span in shared memory instead (`worker.shared`), up to one per `shared_slice_s` of a generation: without
 messages between them, a second core pays from a few milliseconds a generation. A span goes to
 a shared team whenever one can be at least as large as the zenoh team it would get.
 """
@@ -160,8 +160,8 @@ class DispatchSettings:
     generation (0: never): on a shared 2-core machine the exchange costs a generation 1-2 ms,
     and one worker alone was faster below about 10 ms a generation (bench/dispatch.py)."""
     shared_slice_s: float = 0.001
-    """A span is split among idle workers of its worker's host, each evaluating at least this
-    much of a generation, in shared memory (0: never)."""
+    """A span is split among idle workers of its worker's machine, each evaluating at least
+    this much of a generation, in shared memory (0: never)."""
     auth: ZenohRouterAuth = field(default_factory=ZenohRouterAuth)
     """usrpwd dictionary, TLS certificate and message-size limit of the router (security.md)."""
 
@@ -246,6 +246,8 @@ class _Lease:
 class _WorkerRecord:
     name: str
     host: str = ""
+    machine: str = ""
+    """What the worker shares memory with (protocol 8): equal ones may form shared teams."""
     state: str = "idle"
     jobs_done: int = 0
     speed: float | None = None
@@ -479,7 +481,7 @@ class Dispatcher:
             record.speed = request.robot_steps_per_s
         self._release_lost(request.worker, keep=request.holding)
         with self._lock:
-            record.protocol = request.protocol
+            record.protocol, record.machine = request.protocol, request.machine
             if not request.holding:
                 record.team, record.state = None, "idle"
         held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s)
@@ -598,9 +600,9 @@ class Dispatcher:
         """The span `job` of `worker` split with idle workers if its generations are long
         enough (`team_size`), in shared memory if enough share its host: the held ones get
         their place now, the others are invited."""
-        host, speed = self._workers[worker].host, self._workers[worker].speed
+        machine, speed = self._workers[worker].machine, self._workers[worker].speed
         size = self.settings.team_size(job.config, speed)
-        local_size = self.settings.team_size(job.config, speed, shared=True) if host else 1
+        local_size = self.settings.team_size(job.config, speed, shared=True) if machine else 1
         if max(size, local_size) < 2:
             return job
         leasing = {lease.worker for lease in self._leases.values()}
@@ -619,8 +621,9 @@ class Dispatcher:
         names = list(dict.fromkeys(h.worker for h in held))
         names += sorted(free - set(names))
         with self._lock:
-            local = [name for name in names if self._workers[name].host == host]
-        shared = local_size >= 2 and len(local) >= min(size - 1, len(names))
+            local = [name for name in names if self._workers[name].machine == machine]
+        helpers = min(local_size - 1, len(local))
+        shared = helpers >= 1 and helpers >= min(size - 1, len(names))
         names = local[: local_size - 1] if shared else names[: size - 1]
         if not names:
             return job

@@ -63,7 +63,7 @@ class Settings(BaseSettings):
     shared_slice_seconds: float = Field(
         0.001,
         ge=0.0,
-        description="idle workers on the span worker's host split a span in shared memory, "
+        description="idle workers on the span worker's machine split a span in shared memory, "
         "each evaluating at least this much of a generation (0: never)",
     )
     lease_seconds: float = Field(300.0, gt=0.0, description="a leased job returns after this")

@@ -611,31 +611,36 @@ def test_a_span_split_with_an_idle_worker_matches_evolve(tmp_path: Path, kind: s
     assert sha == evolve(config).best.sha256
 
 
-@pytest.mark.parametrize(("hosts", "shared"), [(("h1", "h1"), True), (("h1", "h2"), False)])
-def test_a_span_is_split_in_shared_memory_only_by_workers_of_one_host(
-    tmp_path: Path, hosts: tuple[str, str], shared: bool
+@pytest.mark.parametrize(("machines", "shared"), [(("m1", "m1"), True), (("m1", "m2"), False)])
+def test_a_span_is_split_in_shared_memory_only_by_workers_of_one_machine(
+    tmp_path: Path, machines: tuple[str, str], shared: bool
 ) -> None:
     """Two measured workers wait on held requests when a run starts: its span goes to one,
-    with the other as member; in shared memory only if both named the same host."""
+    with the other as member; in shared memory only if both named the same machine."""
     config = RunConfig(population=6, generations=50, trials=1, steps=5, seed=2)
     port = free_port()
     replies: dict[str, object] = {}
     with (
         started_manager(tmp_path) as manager,
         Dispatcher(
-            dispatch_settings(port, span_below_s=10.0, long_poll_s=4.0),
+            dispatch_settings(
+                port, span_below_s=10.0, long_poll_s=4.0, team_slice_s=0.005, shared_slice_s=0.001
+            ),
             QueueSource(manager.queue),
         ) as dispatcher,
         zenoh.open(client_config(port)) as session,
     ):
         manager.queue.set_job_sizer(dispatcher.job_size)
 
-        def request(name: str, host: str) -> None:
-            payload = encode_message(JobRequest(worker=name, host=host, robot_steps_per_s=1e3))
-            replies[name] = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, payload)))
+        def request(name: str, machine: str) -> None:
+            asking = JobRequest(worker=name, host="h", machine=machine, robot_steps_per_s=1e3)
+            replies[name] = decode_next_reply(
+                _ok(ask(session, KEY_JOB_NEXT, encode_message(asking)))
+            )
 
         threads = [
-            threading.Thread(target=request, args=(f"w{i}", host)) for i, host in enumerate(hosts)
+            threading.Thread(target=request, args=(f"w{i}", machine))
+            for i, machine in enumerate(machines)
         ]
         for thread in threads:
             thread.start()

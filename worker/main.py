@@ -217,6 +217,7 @@ def _serve(
             request = JobRequest(
                 worker=settings.name,
                 host=host[:255],
+                machine=shared.machine(),
                 robot_steps_per_s=stats.robot_steps_per_s,
                 holding=(job.key,),
             )
@@ -552,7 +553,10 @@ def _next_job(
 ) -> Job | None:
     """One `get` on jobs/next: a job, or None (idle, no server, or a job it reported invalid)."""
     request = JobRequest(
-        worker=settings.name, host=host[:255], robot_steps_per_s=stats.robot_steps_per_s
+        worker=settings.name,
+        host=host[:255],
+        machine=shared.machine(),
+        robot_steps_per_s=stats.robot_steps_per_s,
     )
     reply = _ask(session, KEY_JOB_NEXT, encode_message(request), settings.request_timeout_s)
     if reply is None:

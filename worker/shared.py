@@ -27,6 +27,7 @@ abstract namespace, so elsewhere the same team splits its generations over zenoh
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import mmap
 import os
@@ -57,6 +58,12 @@ PATIENCE = 2.0
 its own last chunk's time: the member is descheduled (by the server's recording on a shared
 core), hangs or died. Both copies are the same; the first one read counts."""
 
+JOIN_GRACE_S = 1.0
+"""Beyond MEMBER_WAIT_S, how long after the span went out a member may still map the file
+(its place came within the server's 0.25 s invitation)."""
+STOP_POLL_S = 0.1
+"""A waiting member looks at its stop request at least this often."""
+
 _MAGIC = 0x45564331_53484D32  # "EVC1SHM2"
 _HEADER = 4
 """int64 words: magic, layout fingerprint, stamp of the generation to evaluate, over flag."""
@@ -66,6 +73,21 @@ _MAGIC_AT, _SHAPE_AT, _PUBLISHED_AT, _OVER_AT = range(_HEADER)
 def supported() -> bool:
     """Shared teams need total store order (x86-64) and Linux (/dev/shm, abstract sockets)."""
     return sys.platform == "linux" and platform.machine().lower() in ("x86_64", "amd64")
+
+
+@functools.cache
+def machine() -> str:
+    """What this process shares memory with: the host name, the kernel's boot id and the
+    inodes of its IPC and network namespaces (a container with the host's name but its own
+    /dev/shm differs); empty where shared teams are not `supported`."""
+    if not supported():
+        return ""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        spaces = [os.stat(f"/proc/self/ns/{ns}").st_ino for ns in ("ipc", "net")]
+    except OSError:
+        return ""
+    return f"{socket.gethostname()}/{boot}/{spaces[0]}/{spaces[1]}"[:255]
 
 
 def segment_path(team_id: str) -> Path:
@@ -103,11 +125,15 @@ class _Segment:
         self.shape = zlib.crc32(f"{members},{p},{t},{w},{self.chunks},{RING}".encode())
         fd = os.open(path, os.O_RDWR | (os.O_CREAT | os.O_EXCL if create else 0), 0o600)
         try:
-            if create:
-                os.ftruncate(fd, size)
+            if create:  # reserved now: a full /dev/shm is an OSError here, not a SIGBUS later
+                os.posix_fallocate(fd, 0, size)
             elif os.fstat(fd).st_size != size:
                 raise ValueError(f"{path} has {os.fstat(fd).st_size} bytes, expected {size}")
             self.map = mmap.mmap(fd, size)
+        except BaseException:
+            if create:
+                path.unlink(missing_ok=True)
+            raise
         finally:
             os.close(fd)
         ints = np.frombuffer(self.map, dtype=np.int64, count=words)
@@ -129,7 +155,8 @@ class _Segment:
     def close(self) -> None:
         del self.header, self.joined, self.claims, self.begin, self.end, self.genomes
         del self.fitness, self.components
-        self.map.close()
+        with contextlib.suppress(BufferError):  # a view still held elsewhere: the GC unmaps
+            self.map.close()
 
 
 class SharedTeam:
@@ -160,7 +187,9 @@ class SharedTeam:
         """Chunks of members the leader evaluated too (they were late)."""
         segment.joined[self.me] = 1
         self._linked = True
-        """The file still has its name: the leader removes it once every member mapped it."""
+        """The file still has its name: the leader removes it once every member mapped it,
+        or once a member given its place when the span went out has stopped trying."""
+        self._unlink_at = time.monotonic() + MEMBER_WAIT_S + JOIN_GRACE_S
 
     @classmethod
     def join(cls, job: Job, evaluator: Evaluator) -> SharedTeam | None:
@@ -220,8 +249,8 @@ class SharedTeam:
         chunks until none is left, then wait for the members' ones; fitness (n,), components
         (n, trials, 4), and the seconds and individuals evaluated here."""
         seg, slot, key = self._segment, generation % RING, stamp(generation, digest)
-        if self._linked and seg.joined.all():
-            self._unlink()  # nobody else needs the name: nothing is left behind if killed
+        if self._linked and (seg.joined.all() or time.monotonic() >= self._unlink_at):
+            self._unlink()  # nobody else maps it now: nothing is left behind if killed
         seg.genomes[slot] = genomes
         seg.header[_PUBLISHED_AT] = key
         self._wake(range(1, len(self.job.team)))
@@ -284,20 +313,22 @@ class SharedTeam:
             if seg.header[_OVER_AT]:
                 return
             if key == done_key or key == 0:
-                if not self._sleep(deadline - time.monotonic()):
+                if time.monotonic() >= deadline:
                     log.info("leaving the shared team of %s: nothing heard", self.job.key.label())
                     return
+                self._sleep(min(deadline - time.monotonic(), STOP_POLL_S))
                 continue
             generation, slot = (key >> 32) - 1, ((key >> 32) - 1) % RING
             seconds, individuals = 0.0, 0
             for chunk in self._order:
-                if stop.is_set() or seg.header[_PUBLISHED_AT] != key:
-                    break  # the leader has moved on: what is left is its own now
+                if stop.is_set() or seg.header[_OVER_AT] or seg.header[_PUBLISHED_AT] != key:
+                    break  # the leader has moved on (or left): what is left is its own now
                 if seg.claims[slot, chunk] == key:
                     continue
                 seg.claims[slot, chunk] = key
                 a, b = self._bounds(chunk)
-                f, c, s = self._evaluate(generation, seg.genomes[slot, a:b], chunk, whole=False)
+                rows = np.array(seg.genomes[slot, a:b])  # its own: the slot is rewritten later
+                f, c, s = self._evaluate(generation, rows, chunk, whole=False)
                 region = self.me - 1
                 seg.begin[region, slot, chunk] = key
                 seg.fitness[region, slot, a:b] = f
