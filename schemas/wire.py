@@ -49,8 +49,9 @@ each accepted generation moves the lease to the next.
 7: a span may go to a team (`team`, `member`, `team_id`): idle workers split each of its
 generations, exchange their slices' fitness on `evocolony/teams/NAME` (`TeamMessage`) and each
 tells and asks itself; only the team's leader (member 0) holds the lease and sends results.
-8: a team whose members share their leader's machine may be `shared`: they split each
-generation in chunks through a file in shared memory instead (`worker.shared`), no messages.
+8: a team whose members share their leader's machine (the `machine` of their requests) may be
+`shared`: they split each generation in chunks through a file in shared memory instead
+(`worker.shared`), no messages.
 """
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
