@@ -30,9 +30,10 @@ out with its next request, within `INVITE_S`): a worker whose span just ended as
 moment after the one that gets the next span.
 
 Shared teams (protocol 8): idle workers on the span worker's own machine (`JobRequest.machine`:
-host, boot and namespaces) split the span in shared memory instead (`worker.shared`), up to one per `shared_slice_s` of a generation: without
-messages between them, a second core pays from a few milliseconds a generation. A span goes to
-a shared team whenever one can be at least as large as the zenoh team it would get.
+host, boot and namespaces) split the span in shared memory instead (`worker.shared`), up to one
+per `shared_slice_s` of a generation: without messages between them, a second core pays from a
+few milliseconds a generation. A span goes to a shared team whenever one can be at least as
+large as the zenoh team it would get.
 """
 
 from __future__ import annotations
@@ -598,7 +599,7 @@ class Dispatcher:
 
     def _teamed(self, job: Job, worker: str) -> Job:
         """The span `job` of `worker` split with idle workers if its generations are long
-        enough (`team_size`), in shared memory if enough share its host: the held ones get
+        enough (`team_size`), in shared memory if enough share its machine: the held ones get
         their place now, the others are invited."""
         machine, speed = self._workers[worker].machine, self._workers[worker].speed
         size = self.settings.team_size(job.config, speed)
