@@ -102,7 +102,7 @@ def chunk_count(population: int, members: int) -> int:
 
 def stamp(generation: int, digest: str) -> int:
     """A generation's stamp: the generation (+1, so that 0 is never one) and its genome
-    digest, so that two spans of a run from the same generation never share one."""
+    digest. Each span has its own file, so a stamp only tells its generations apart."""
     return ((generation + 1) << 32) | int(digest, 16)
 
 
@@ -235,8 +235,7 @@ class SharedTeam:
             segment.close()
             break
         log.warning(
-            "cannot join the shared team of %s: %s (is its leader on another machine of the "
-            "same host name?)",
+            "cannot join the shared team of %s: %s; its leader evaluates everything",
             job.key.label(),
             problem,
         )
