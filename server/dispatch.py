@@ -354,23 +354,31 @@ class Dispatcher:
         """New jobs may be leasable: answer held requests now instead of at the next poll."""
         self._inbox.put(_WAKE)
 
-    def job_size(self, config: RunConfig, *, local: int = 0) -> int:
-        """Individuals per job of `config`'s next generation (a `JobSizer` for the job queue):
+    def job_size(self, config: RunConfig, generation: int, *, local: int = 0) -> int:
+        """Individuals per job of `config`'s `generation` (a `JobSizer` for the job queue):
         `jobs_per_worker` jobs per live worker (of this protocol) and per `local` evaluator
         leasing from the same queue (in-process executor threads), never smaller than the
         run's `job_size`, which also applies while none is known. Each message and each
         `evaluate` call has a fixed cost: fewer, larger jobs are cheaper; more of them balance
-        unequal workers."""
+        unequal workers.
+
+        The whole generation is one job when it will be a span, whoever leases it: it is not
+        the run's last, and every live worker's speed puts it under the span threshold. A
+        whole generation leased to a worker that gets no span would keep the others idle."""
         if local < 0:
             raise ValueError(f"local must be >= 0, got {local}")
         with self._lock:
-            live = local + sum(1 for w in self._workers.values() if w.serving)
-            speeds = sorted(w.speed for w in self._workers.values() if w.serving and w.speed)
+            speeds = [w.speed for w in self._workers.values() if w.serving]
+        live = local + len(speeds)
         if live == 0:
             return config.job_size
-        median = speeds[len(speeds) // 2] if speeds else None
-        if local == 0 and self.settings.span_generations(config, median) > 1:
-            return config.population  # a span needs the whole generation in one job
+        if (
+            local == 0
+            and generation + 1 < config.generations
+            and all(speeds)
+            and self.settings.span_generations(config, min(s for s in speeds if s)) > 1
+        ):
+            return config.population
         jobs = live * self.settings.jobs_per_worker
         return max(config.job_size, -(-config.population // jobs))
 

@@ -117,8 +117,9 @@ GenerationDone = Callable[[GenerationResults], Advance]
 """Tells the GA a generation's fitness (in memory, no I/O): the next genomes and the write."""
 RunFailed = Callable[[Session, int, str], None]
 """Fails a run (by id) inside the given transaction, after a job exhausted its attempts."""
-JobSizer = Callable[[RunConfig], int]
-"""Individuals per job for a generation about to be cut (see `JobQueue.set_job_sizer`)."""
+JobSizer = Callable[[RunConfig, int], int]
+"""Individuals per job for a run's generation (by number) about to be cut (see
+`JobQueue.set_job_sizer`)."""
 
 
 @dataclass
@@ -203,7 +204,7 @@ class JobQueue:
         self._listeners: list[Callable[[], None]] = []
         self._totals = dict.fromkeys(TOTALS, 0)
         """Running totals since construction (see `totals`)."""
-        self._job_size: JobSizer = lambda config: config.job_size
+        self._job_size: JobSizer = lambda config, _generation: config.job_size
 
     def set_job_sizer(self, sizer: JobSizer) -> None:
         """How generations are cut from now on (default: the run's `job_size`).
@@ -247,8 +248,10 @@ class JobQueue:
         genomes: np.ndarray,
         running: bool,
         state: GAState | None = None,
+        whole: bool = False,
     ) -> None:
-        """Cut a committed run's generation into jobs (replacing any older generation).
+        """Cut a committed run's generation into jobs (replacing any older generation), or
+        into one job if `whole` (a span goes on whatever the sizer would say now).
 
         Call it after the transaction that made the generation askable has committed.
         """
@@ -257,7 +260,8 @@ class JobQueue:
         frozen = np.array(genomes, dtype=np.float64, order="C")
         frozen.flags.writeable = False
         with self._lock:
-            slots = [_Slot(a, b) for a, b in job_slices(config.population, self._job_size(config))]
+            size = config.population if whole else self._job_size(config, generation)
+            slots = [_Slot(a, b) for a, b in job_slices(config.population, size)]
             self._runs[run_id] = _RunJobs(
                 run_id=run_id,
                 generation=generation,
@@ -437,6 +441,10 @@ class JobQueue:
         if advance.following is None:
             self.forget(jobs.run_id)
         else:
+            # A span granted goes on in one job even if the sizer would now cut slices (its
+            # workers' speeds moved across the span threshold): cut otherwise, it would end,
+            # and the generations its worker evaluated ahead would be dropped.
+            span = jobs.span if jobs.span is not None and jobs.span.left > 0 else None
             self.add(
                 run_id=jobs.run_id,
                 config=jobs.config,
@@ -444,9 +452,10 @@ class JobQueue:
                 genomes=advance.following,
                 running=jobs.running,
                 state=advance.state,
+                whole=span is not None and now is not None and jobs.running,
             )
-            if jobs.span is not None and jobs.span.left > 0 and now is not None:
-                self._go_on(self._runs[jobs.run_id], jobs.span, now)
+            if span is not None and now is not None:
+                self._go_on(self._runs[jobs.run_id], span, now)
 
     def _go_on(self, jobs: _RunJobs, span: _Span, now: float) -> None:
         """Lease the new generation's only job to the span's worker (as `lease` would)."""

@@ -403,21 +403,52 @@ def test_job_size_gives_each_live_worker_one_job() -> None:
         Dispatcher(dispatch_settings(port), MemorySource()) as dispatcher,
         zenoh.open(client_config(port)) as session,
     ):
-        assert dispatcher.job_size(config) == 3  # nobody yet: the run's own size
+        assert dispatcher.job_size(config, 0) == 3  # nobody yet: the run's own size
         tokens = [session.liveliness().declare_token(worker_key(n)) for n in ("a", "b", "c")]
-        assert eventually(lambda: dispatcher.job_size(config) == 4)
-        assert dispatcher.job_size(config.model_copy(update={"job_size": 5})) == 5
-        assert dispatcher.job_size(config, local=1) == 3  # + an in-process executor thread
+        assert eventually(lambda: dispatcher.job_size(config, 0) == 4)
+        assert dispatcher.job_size(config.model_copy(update={"job_size": 5}), 0) == 5
+        assert dispatcher.job_size(config, 0, local=1) == 3  # + an in-process executor thread
         tokens.pop().undeclare()  # type: ignore[no-untyped-call]
-        assert eventually(lambda: dispatcher.job_size(config) == 6)
+        assert eventually(lambda: dispatcher.job_size(config, 0) == 6)
         for token in tokens:
             token.undeclare()  # type: ignore[no-untyped-call]
-        assert eventually(lambda: dispatcher.job_size(config) == 3)
+        assert eventually(lambda: dispatcher.job_size(config, 0) == 3)
     finer = Dispatcher(dispatch_settings(free_port(), jobs_per_worker=2), MemorySource())
     with finer, zenoh.open(client_config(int(finer.settings.listen[0].rsplit(":", 1)[1]))) as s:
         token = s.liveliness().declare_token(worker_key("a"))
-        assert eventually(lambda: finer.job_size(config) == 6)
+        assert eventually(lambda: finer.job_size(config, 0) == 6)
         token.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_generation_is_one_job_only_if_whoever_leases_it_gets_a_span() -> None:
+    """The span threshold must hold for every live worker's speed (the slowest decides, an
+    unknown one means slices) and a generation must follow: else a whole generation leased to
+    a worker that gets no span keeps the others idle."""
+    port = free_port()
+    config = CONFIG.model_copy(update={"population": 12, "job_size": 1, "generations": 5})
+    robot_steps = config.population * config.trials * config.steps
+    settings = dispatch_settings(port, span_below_s=1.0, long_poll_s=0.1)
+    with (
+        Dispatcher(settings, MemorySource(config)) as dispatcher,
+        zenoh.open(client_config(port)) as session,
+    ):
+
+        def asks(name: str, generation_s: float) -> None:
+            request = JobRequest(worker=name, robot_steps_per_s=robot_steps / generation_s)
+            ask(session, KEY_JOB_NEXT, encode_message(request))
+
+        asks("a", 0.5)
+        asks("b", 0.5)
+        assert dispatcher.job_size(config, 0) == 12
+        assert dispatcher.job_size(config, 3) == 12
+        assert dispatcher.job_size(config, 4) == 6  # the last one: no span can follow
+        assert dispatcher.job_size(config, 0, local=1) == 4  # executor threads never span
+        token = session.liveliness().declare_token(worker_key("new"))
+        assert eventually(lambda: dispatcher.job_size(config, 0) == 4)  # its speed is unknown
+        token.undeclare()  # type: ignore[no-untyped-call]
+        assert eventually(lambda: dispatcher.job_size(config, 0) == 12)
+        asks("b", 2.0)  # now slower than the threshold
+        assert dispatcher.job_size(config, 0) == 6
 
 
 def test_a_worker_of_another_protocol_waits_out_the_long_poll_and_is_not_counted() -> None:
@@ -429,13 +460,13 @@ def test_a_worker_of_another_protocol_waits_out_the_long_poll_and_is_not_counted
     settings = dispatch_settings(port, long_poll_s=0.3)
     with Dispatcher(settings, source) as dispatcher, zenoh.open(client_config(port)) as session:
         tokens = [session.liveliness().declare_token(worker_key(n)) for n in ("old", "new")]
-        assert eventually(lambda: dispatcher.job_size(config) == 6)
+        assert eventually(lambda: dispatcher.job_size(config, 0) == 6)
         old = JobRequest(worker="old", protocol=PROTOCOL - 1)
         began = time.monotonic()
         reply = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, encode_message(old))))
         assert isinstance(reply, Idle) and f"protocol {PROTOCOL}" in reply.reason
         assert time.monotonic() - began >= settings.long_poll_s * 0.9
-        assert dispatcher.job_size(config) == 12  # only "new" takes jobs
+        assert dispatcher.job_size(config, 0) == 12  # only "new" takes jobs
         assert not source.leased_by
         for token in tokens:
             token.undeclare()  # type: ignore[no-untyped-call]
@@ -670,7 +701,7 @@ def test_a_worker_whose_ga_differs_has_its_span_refused_and_gets_no_more(
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
     manager = RunManager(engine, Settings(executors=0, max_attempts=3))
-    manager.queue.set_job_sizer(lambda c: c.population)
+    manager.queue.set_job_sizer(lambda c, _g: c.population)
     port = free_port()
     run_id = manager.create_run(config)
     settings = dispatch_settings(port, span_below_s=10.0)

@@ -177,7 +177,7 @@ def test_a_job_sizer_cuts_later_generations_and_the_run_matches_evolve(
             jobs.append(job)
         cuts.append([(j.start, j.stop) for j in jobs])
         if g == 0:  # generation 0 is cut already; its last result cuts generation 1
-            manager.queue.set_job_sizer(lambda config: config.population)
+            manager.queue.set_job_sizer(lambda config, _generation: config.population)
         for job in jobs:
             ev = evaluate(job.config, job.key.generation, job.genomes)
             manager.queue.complete(job.key, JobResult(ev.fitness, ev.components))
@@ -473,7 +473,7 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
                 ev = evaluate(TINY, following.generation, genomes)
                 held.append((following, JobResult(ev.fitness, ev.components), worker))
         elif kind == "whole":
-            manager.queue.set_job_sizer(lambda config: config.population)
+            manager.queue.set_job_sizer(lambda config, _generation: config.population)
         elif kind == "span" and held:
             key, _, worker = held[n % len(held)]
             manager.queue.grant_span(key, worker, n % 3 + 2)
@@ -520,7 +520,7 @@ def test_a_failed_evaluation_is_stored_as_null_ranks_last_and_the_run_goes_on(
 
 
 def _whole(manager: RunManager, config: RunConfig) -> int:
-    manager.queue.set_job_sizer(lambda c: c.population)
+    manager.queue.set_job_sizer(lambda c, _g: c.population)
     return manager.create_run(config)
 
 
@@ -554,6 +554,39 @@ def test_a_span_leases_each_next_generation_to_its_worker_until_used_up(
     while (job := manager.queue.lease("x", 4.0)) is not None:
         manager.queue.complete(job.key, _result(SPANNED, job.key.generation, job.genomes))
     assert manager.best(run_id) == evolve(SPANNED).best.sha256
+
+
+def test_a_span_goes_on_in_one_job_when_the_sizer_would_now_cut_slices(
+    manager: RunManager,
+) -> None:
+    """Workers' speeds move across the span threshold mid-span: the span still gets its
+    generations whole (cut, it would end and its worker's generations evaluated ahead would be
+    dropped); once it is used up, the sizer cuts again."""
+    run_id = _whole(manager, SPANNED)
+    job = manager.queue.lease("w", 0.0)
+    assert job is not None
+    assert manager.queue.grant_span(job.key, "w", 3)[0] == 3
+    cut_for: list[int] = []
+
+    def slices(config: RunConfig, generation: int) -> int:
+        cut_for.append(generation)
+        return 2
+
+    manager.queue.set_job_sizer(slices)
+    key, genomes = job.key, job.genomes
+    for g in (1, 2):
+        assert manager.queue.complete(key, _result(SPANNED, g - 1, genomes), now=float(g))
+        key = JobKey(run_id, g, 0)
+        assert manager.queue.leased_to(key) == "w"
+        leased = manager.queue.genomes(key)
+        assert leased is not None and leased.shape[0] == SPANNED.population
+        genomes = leased
+    assert cut_for == []
+    assert manager.queue.complete(key, _result(SPANNED, 2, genomes), now=3.0)
+    assert cut_for == [3]
+    assert manager.queue.leased_to(JobKey(run_id, 3, 0)) is None
+    sliced = manager.queue.genomes(JobKey(run_id, 3, 0))
+    assert sliced is not None and sliced.shape[0] == 2
 
 
 def test_a_span_is_only_granted_for_a_whole_generation_to_its_holder(
