@@ -3,6 +3,7 @@ in /dev/shm and real wake-up sockets; no server, no zenoh."""
 
 from __future__ import annotations
 
+import os
 import secrets
 import socket
 import threading
@@ -233,3 +234,28 @@ def test_a_member_without_its_leaders_file_does_not_join(
     finally:
         leader.close()
     assert not segment_path(team_id).exists()
+
+
+def test_a_worker_sweeps_only_old_team_files_whose_leader_is_gone(tmp_path: Any) -> None:
+    """A leader SIGKILLed before its members mapped the file leaves its name behind: swept once
+    old, unless a process still holds the leader's socket; fresh files are a span starting."""
+
+    def team_file(name: str, age_s: float) -> Any:
+        path = tmp_path / f"evocolony-team-{name}"
+        path.write_bytes(b"x")
+        old = time.time() - age_s
+        os.utime(path, (old, old))
+        return path
+
+    dead = team_file(secrets.token_hex(8), 2 * shared.STALE_AFTER_S)
+    draft = team_file(f"{secrets.token_hex(8)}.draft", 2 * shared.STALE_AFTER_S)
+    fresh = team_file(secrets.token_hex(8), 1.0)
+    alive_id = secrets.token_hex(8)
+    alive = team_file(alive_id, 2 * shared.STALE_AFTER_S)
+    other = tmp_path / "unrelated"
+    other.write_bytes(b"x")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as leader:
+        leader.bind(f"\0evocolony-team-{alive_id}-0")
+        assert sorted(shared.sweep(tmp_path)) == sorted([dead, draft])
+    assert fresh.exists() and alive.exists() and other.exists()
+    assert shared.sweep(tmp_path) == [alive]  # its leader's socket is gone now

@@ -147,6 +147,8 @@ def run_worker(
     stats = WorkerStats()
     backoff = _Backoff(settings)
     host = socket.gethostname()
+    if shared.supported():
+        shared.sweep()
     while not stop.is_set():
         try:
             session = zenoh.open(settings.zenoh_config())

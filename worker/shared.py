@@ -90,9 +90,53 @@ def machine() -> str:
     return f"{socket.gethostname()}/{boot}/{spaces[0]}/{spaces[1]}"[:255]
 
 
+SHM = Path("/dev/shm")
+STALE_AFTER_S = 60.0
+"""A team file this old whose leader is gone is left over (a live leader removes the name
+within MEMBER_WAIT_S + JOIN_GRACE_S of its span's start, or at its first generation after)."""
+
+
 def segment_path(team_id: str) -> Path:
     """The team's file, in memory only."""
-    return Path("/dev/shm") / f"evocolony-team-{team_id}"
+    return SHM / f"evocolony-team-{team_id}"
+
+
+def sweep(directory: Path = SHM) -> list[Path]:
+    """Remove the team files that leaders killed in their span's first seconds left behind
+    (a member invited but never joined kept the name): older than STALE_AFTER_S, with no
+    process bound to the leader's wake-up socket. Returns what it removed.
+
+    A worker sweeps when it starts, so a host's /dev/shm does not fill up over months."""
+    removed: list[Path] = []
+    prefix = "evocolony-team-"
+    for path in directory.glob(f"{prefix}*"):
+        team_id = path.name[len(prefix) :].removesuffix(".draft")
+        try:
+            age = time.time() - path.stat().st_mtime
+        except FileNotFoundError:
+            continue
+        if age < STALE_AFTER_S or _bound(_address(team_id, 0)):
+            continue
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            continue
+        except OSError as exc:  # another user's file (/dev/shm is sticky): theirs to sweep
+            log.debug("cannot remove %s: %s", path, exc)
+            continue
+        removed.append(path)
+        log.info("removed %s: its leader is gone", path)
+    return removed
+
+
+def _bound(address: str) -> bool:
+    """Whether a process holds the datagram socket `address` (connecting sends nothing)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect(address)
+        except (ConnectionRefusedError, FileNotFoundError):
+            return False
+    return True
 
 
 def chunk_count(population: int, members: int) -> int:
