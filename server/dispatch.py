@@ -363,12 +363,14 @@ class Dispatcher:
         unequal workers.
 
         The whole generation is one job when it will be a span, whoever leases it: it is not
-        the run's last, and every live worker's speed puts it under the span threshold. A
-        whole generation leased to a worker that gets no span would keep the others idle."""
+        the run's last, and every live worker may span (it never sent a wrong digest) and has
+        a speed under the span threshold. A whole generation leased to a worker that gets no
+        span (or as a prefetch, never a span) would keep the others idle. So one slow worker
+        means slices for every run near the threshold."""
         if local < 0:
             raise ValueError(f"local must be >= 0, got {local}")
         with self._lock:
-            speeds = [w.speed for w in self._workers.values() if w.serving]
+            speeds = [w.speed if w.spans else None for w in self._workers.values() if w.serving]
         live = local + len(speeds)
         if live == 0:
             return config.job_size

@@ -2,7 +2,8 @@
 
 A job is a contiguous slice of one generation (evorobotics.evolution.job_slices), cut when the
 generation is asked: by the run's `job_size`, or by a `JobSizer` (the zenoh dispatcher's one
-job per live worker); the cut cannot change a result. Jobs, leases and
+job per live worker, or one job for a generation that will be a span); a span's next
+generation is always one job. The cut cannot change a result. Jobs, leases and
 job results live in memory, one generation per run; the database holds only committed
 generations. `lease` hands the next pending job of the running run served least recently to a
 worker with a deadline; `complete` stores its result once (duplicates and late results are
@@ -209,8 +210,9 @@ class JobQueue:
     def set_job_sizer(self, sizer: JobSizer) -> None:
         """How generations are cut from now on (default: the run's `job_size`).
 
-        The zenoh dispatcher cuts a generation into one job per live worker: every message and
-        every `evaluate` call has a fixed cost, so fewer, larger jobs are cheaper. Results cannot
+        The zenoh dispatcher cuts a generation into one job per live worker (one job if it will
+        be a span): every message and every `evaluate` call has a fixed cost, so fewer, larger
+        jobs are cheaper. A span's next generation bypasses the sizer. Results cannot
         change (an individual's fitness does not depend on the slice it is evaluated in), and a
         generation keeps its cut while in flight, so within one server's life a job key names one
         slice (across a restart it may not: results carry their slice, see schemas.wire).

@@ -148,7 +148,10 @@ def run_worker(
     backoff = _Backoff(settings)
     host = socket.gethostname()
     if shared.supported():
-        shared.sweep()
+        try:
+            shared.sweep()
+        except OSError as exc:  # housekeeping: never a reason not to serve
+            log.warning("could not sweep /dev/shm for left-over team files: %s", exc)
     while not stop.is_set():
         try:
             session = zenoh.open(settings.zenoh_config())

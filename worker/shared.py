@@ -102,9 +102,11 @@ def segment_path(team_id: str) -> Path:
 
 
 def sweep(directory: Path = SHM) -> list[Path]:
-    """Remove the team files that leaders killed in their span's first seconds left behind
-    (a member invited but never joined kept the name): older than STALE_AFTER_S, with no
-    process bound to the leader's wake-up socket. Returns what it removed.
+    """Remove the team files (drafts too) that leaders killed in their span's first seconds
+    left behind (a member invited but never joined kept the name): older than STALE_AFTER_S,
+    with no process in this network namespace bound to the leader's wake-up socket (from
+    another namespace a live leader looks gone, but its name is gone by then anyway, and
+    mappings outlive names). Returns what it removed.
 
     A worker sweeps when it starts, so a host's /dev/shm does not fill up over months."""
     removed: list[Path] = []
