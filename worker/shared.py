@@ -91,6 +91,8 @@ def machine() -> str:
 
 
 SHM = Path("/dev/shm")
+_PREFIX = "evocolony-team-"
+"""Of every team's file (after it, the team id) and wake-up socket (the team id, a member)."""
 STALE_AFTER_S = 60.0
 """A team file this old whose leader is gone is left over (a live leader removes the name
 within MEMBER_WAIT_S + JOIN_GRACE_S of its span's start, or at its first generation after)."""
@@ -98,7 +100,7 @@ within MEMBER_WAIT_S + JOIN_GRACE_S of its span's start, or at its first generat
 
 def segment_path(team_id: str) -> Path:
     """The team's file, in memory only."""
-    return SHM / f"evocolony-team-{team_id}"
+    return SHM / f"{_PREFIX}{team_id}"
 
 
 def sweep(directory: Path = SHM) -> list[Path]:
@@ -110,9 +112,8 @@ def sweep(directory: Path = SHM) -> list[Path]:
 
     A worker sweeps when it starts, so a host's /dev/shm does not fill up over months."""
     removed: list[Path] = []
-    prefix = "evocolony-team-"
-    for path in directory.glob(f"{prefix}*"):
-        team_id = path.name[len(prefix) :].removesuffix(".draft")
+    for path in directory.glob(f"{_PREFIX}*"):
+        team_id = path.name[len(_PREFIX) :].removesuffix(".draft")
         try:
             age = time.time() - path.stat().st_mtime
         except FileNotFoundError:
@@ -154,7 +155,7 @@ def stamp(generation: int, digest: str) -> int:
 
 def _address(team_id: str, member: int) -> str:
     """A member's wake-up socket, in the abstract namespace (gone with its process)."""
-    return f"\0evocolony-team-{team_id}-{member}"
+    return f"\0{_PREFIX}{team_id}-{member}"
 
 
 class _Segment:
