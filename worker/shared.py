@@ -50,9 +50,11 @@ log = logging.getLogger(__name__)
 RING = 2
 """Generations whose genomes and chunks the file holds: the one being evaluated, and the one
 before for a member that finishes a chunk of it late (its write is then ignored)."""
-CHUNKS_PER_MEMBER = 4
+CHUNKS_PER_MEMBER = 2
 """A generation is cut into this many chunks per member: fewer leave the leader waiting
-longer on the last one; more cost each its call of the evaluator (about 0.03 ms)."""
+longer on the last one; more cost each its call of the evaluator (about 0.03 ms) and a
+narrower batch (25 individuals evaluate 7 % slower per individual than 100, 13 of them 15 %).
+At the paper's scale 2 took the workers 0.17-0.27 s less CPU a run than 4 (docs/protocol.md)."""
 PATIENCE = 2.0
 """The leader evaluates a member's chunk itself once no chunk has come for this many times
 its own last chunk's time: the member is descheduled (by the server's recording on a shared
