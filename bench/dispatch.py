@@ -5,7 +5,8 @@
 2. `colony evolve` alone and two side by side: how much two processes get from the cores.
 3. The paper's experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
    zenoh on loopback, two local worker processes), against `evolve` in this process, with the
-   best controllers compared.
+   best controllers compared, and the CPU seconds each side used: what the machine's cores
+   must run for the distributed run, against what `colony evolve` runs on one.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
         [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS] [--team-slice SECONDS]
@@ -23,6 +24,7 @@ COLONY_SHARED_SLICE_SECONDS (0: no shared teams; both 0: every span evolved by o
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing as mp
 import os
 import socket
@@ -125,6 +127,26 @@ def bench_throughput(seconds: float, workers: int) -> None:
         f"empty jobs: {done / elapsed:8.0f} jobs/s ({done} jobs in {elapsed:.2f} s, "
         f"{workers} worker processes, load average {os.getloadavg()[0]:.2f})"
     )
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User and system CPU seconds of process `pid` so far (Linux /proc; 0 once it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children(pid: int) -> list[int]:
+    """The processes `pid` started (the server's local workers), from /proc."""
+    found: list[int] = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                if int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    found.append(int(entry.name))
+    return found
 
 
 def _timed_evolve(config: RunConfig, go: threading.Event, seconds: Any) -> None:
@@ -233,12 +255,21 @@ def bench_paper(
                 config = RunConfig(generations=generations, steps=steps)
                 local_s: list[float] = []
                 dist_s: list[float] = []
+                local_cpu: list[float] = []
+                server_cpu: list[float] = []
+                workers_cpu: list[float] = []
                 shas: set[str] = set()
+                worker_pids = _children(server.pid)
                 for _ in range(repeats):
-                    began = time.perf_counter()
+                    began, cpu = time.perf_counter(), time.process_time()
                     shas.add(evolve(config).best.sha256)
                     local_s.append(time.perf_counter() - began)
+                    local_cpu.append(time.process_time() - cpu)
+                    server_before = _cpu_seconds(server.pid)
+                    workers_before = sum(_cpu_seconds(w) for w in worker_pids)
                     run = finish(config.model_dump(mode="json"))
+                    server_cpu.append(_cpu_seconds(server.pid) - server_before)
+                    workers_cpu.append(sum(_cpu_seconds(w) for w in worker_pids) - workers_before)
                     started = datetime.fromisoformat(run["started_at"])
                     dist_s.append(
                         (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
@@ -260,6 +291,15 @@ def bench_paper(
                     f"{workers} {_spread(dist_s)} (run started to finished, server clock; {mode}), "
                     f"{ratio:.2f}x; best controllers {same}; "
                     f"load average {os.getloadavg()[0]:.2f}"
+                )
+                cpu_total = statistics.median(server_cpu) + statistics.median(workers_cpu)
+                cores = os.cpu_count() or 1
+                print(
+                    f"  CPU seconds per run (medians): colony evolve {statistics.median(local_cpu):.2f}; "
+                    f"distributed: server {statistics.median(server_cpu):.2f} (store, dispatch, "
+                    f"GA check, REST) + workers {statistics.median(workers_cpu):.2f} = "
+                    f"{cpu_total:.2f}, which {cores} cores cannot run in less than "
+                    f"{cpu_total / cores:.2f} s ({cpu_total / cores / statistics.median(local_s):.2f}x)"
                 )
         finally:
             server.terminate()
