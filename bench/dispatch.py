@@ -129,22 +129,28 @@ def bench_throughput(seconds: float, workers: int) -> None:
     )
 
 
-def _cpu_seconds(pid: int) -> float:
-    """User and system CPU seconds of process `pid` so far (Linux /proc; 0 once it is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def _stat(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command name (Linux); OSError once it is gone."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
+def _cpu_seconds(pids: list[int]) -> float:
+    """User and system CPU seconds of the processes `pids` so far (0 for one that is gone)."""
+    total = 0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            fields = _stat(pid)
+            total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 def _children(pid: int) -> list[int]:
-    """The processes `pid` started (the server's local workers), from /proc."""
+    """The processes `pid` started (the server's local workers)."""
     found: list[int] = []
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             with contextlib.suppress(OSError):
-                if int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                if int(_stat(int(entry.name))[1]) == pid:
                     found.append(int(entry.name))
     return found
 
@@ -265,11 +271,11 @@ def bench_paper(
                     shas.add(evolve(config).best.sha256)
                     local_s.append(time.perf_counter() - began)
                     local_cpu.append(time.process_time() - cpu)
-                    server_before = _cpu_seconds(server.pid)
-                    workers_before = sum(_cpu_seconds(w) for w in worker_pids)
+                    server_before = _cpu_seconds([server.pid])
+                    workers_before = _cpu_seconds(worker_pids)
                     run = finish(config.model_dump(mode="json"))
-                    server_cpu.append(_cpu_seconds(server.pid) - server_before)
-                    workers_cpu.append(sum(_cpu_seconds(w) for w in worker_pids) - workers_before)
+                    server_cpu.append(_cpu_seconds([server.pid]) - server_before)
+                    workers_cpu.append(_cpu_seconds(worker_pids) - workers_before)
                     started = datetime.fromisoformat(run["started_at"])
                     dist_s.append(
                         (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
@@ -292,14 +298,18 @@ def bench_paper(
                     f"{ratio:.2f}x; best controllers {same}; "
                     f"load average {os.getloadavg()[0]:.2f}"
                 )
-                cpu_total = statistics.median(server_cpu) + statistics.median(workers_cpu)
+                on_server, on_workers = (
+                    statistics.median(server_cpu),
+                    statistics.median(workers_cpu),
+                )
                 cores = os.cpu_count() or 1
+                least = (on_server + on_workers) / cores
                 print(
-                    f"  CPU seconds per run (medians): colony evolve {statistics.median(local_cpu):.2f}; "
-                    f"distributed: server {statistics.median(server_cpu):.2f} (store, dispatch, "
-                    f"GA check, REST) + workers {statistics.median(workers_cpu):.2f} = "
-                    f"{cpu_total:.2f}, which {cores} cores cannot run in less than "
-                    f"{cpu_total / cores:.2f} s ({cpu_total / cores / statistics.median(local_s):.2f}x)"
+                    "  CPU seconds per run (medians): colony evolve "
+                    f"{statistics.median(local_cpu):.2f}; distributed: server {on_server:.2f} "
+                    f"(store, dispatch, GA check, REST) + workers {on_workers:.2f} = "
+                    f"{on_server + on_workers:.2f}, which {cores} cores cannot run in less than "
+                    f"{least:.2f} s ({least / statistics.median(local_s):.2f}x)"
                 )
         finally:
             server.terminate()
