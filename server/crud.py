@@ -5,28 +5,17 @@ The run loop's writes (generation commits) live in `server.manager`; jobs in `se
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
-from sqlalchemy import and_, func, outerjoin, select
-from sqlalchemy.orm import Session, aliased, defer
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
-from server.errors import ServerError
+from server import population
+from server.errors import NotFoundError, ServerError
 from server.jobs import JobQueue
-from server.models import Controller, Generation, Individual, Robot, Run, Worker
-
-_ORIGIN = aliased(Individual, name="origin")
-WITH_ORIGIN = outerjoin(
-    Individual,
-    _ORIGIN,
-    and_(
-        _ORIGIN.run_id == Individual.run_id,
-        _ORIGIN.generation == Individual.origin_generation,
-        _ORIGIN.rank == Individual.origin_rank,
-    ),
-)
-"""`individuals` LEFT JOIN the row holding a copy's genome bytes (select from it with GENOME)."""
-GENOME = func.coalesce(Individual.genome, _ORIGIN.genome)
-"""An individual's genome bytes: its own, or a copy's origin's (one hop: origins hold bytes)."""
+from server.models import Controller, Generation, Robot, Run, Worker
+from server.population import Population
 
 
 def get_run(session: Session, *, run_id: int) -> Run | None:
@@ -69,39 +58,31 @@ def latest_generation(session: Session, *, run_id: int) -> Generation | None:
     return session.scalars(query).first()
 
 
-def list_individuals(session: Session, *, run_id: int, generation: int) -> list[Individual]:
-    """Ranked, fittest first."""
-    query = (
-        select(Individual)
-        .where(Individual.run_id == run_id, Individual.generation == generation)
-        .order_by(Individual.rank)
+def populations(
+    session: Session, *, run_id: int, generations: Iterable[int]
+) -> dict[int, Population]:
+    """The stored populations of some committed generations, by generation number."""
+    query = select(Generation.generation, Generation.population).where(
+        Generation.run_id == run_id, Generation.generation.in_(list(generations))
     )
-    return list(session.scalars(query))
+    return {g: population.decode(data) for g, data in session.execute(query)}
 
 
-def individuals_with_genomes(
-    session: Session, *, run_id: int, generation: int, rank: int | None = None
-) -> list[tuple[Individual, bytes]]:
-    """Ranked, fittest first (only `rank` if given), each with its genome bytes: read them
-    here, not from `Individual.genome`, which is NULL for a copy."""
-    query = (
-        select(Individual, GENOME)
-        .select_from(WITH_ORIGIN)
-        .options(defer(Individual.genome, raiseload=True))
-        .where(Individual.run_id == run_id, Individual.generation == generation)
-        .order_by(Individual.rank)
-    )
-    if rank is not None:
-        query = query.where(Individual.rank == rank)
-    out = []
-    for row, genome in session.execute(query):
-        if genome is None:
-            raise ServerError(
-                f"run {run_id} generation {generation} rank {row.rank}: no genome bytes at its "
-                f"origin ({row.origin_generation}, {row.origin_rank})"
-            )
-        out.append((row, bytes(genome)))
-    return out
+def ranked(session: Session, *, run_id: int, generation: int) -> tuple[Population, np.ndarray]:
+    """A committed generation by rank, fittest first, with its (n, weights) genomes in rank
+    order (a copy's bytes read from the generation that holds them)."""
+    found = populations(session, run_id=run_id, generations=[generation]).get(generation)
+    if found is None:
+        raise NotFoundError(f"run {run_id} has no committed generation {generation}")
+    if not len(found):
+        raise NotFoundError(f"run {run_id} generation {generation} has no individuals")
+    try:
+        genomes = population.resolve(
+            generation, found, lambda gs: populations(session, run_id=run_id, generations=gs)
+        )
+    except population.PopulationError as exc:
+        raise ServerError(f"run {run_id}: {exc}") from exc
+    return found, genomes
 
 
 def get_controller(session: Session, *, sha256: str) -> Controller | None:

@@ -8,8 +8,9 @@ restarted server re-asks whatever generation was in flight and resumes exactly.
 
 The hot path (one commit per generation) uses SQLAlchemy Core statements and per-run caches of
 the parsed config, GA params, layout, latest GA state and where the last generation's genome
-bytes are; lifecycle changes use the ORM. Eq 11 copies three quarters of each generation from
-the two before it: a copy stores no bytes but the (generation, rank) of the row holding them. A
+bytes are; lifecycle changes use the ORM. A generation is one row, its individuals one frame
+(`server.population`). Eq 11 copies three quarters of each generation from the two before it:
+a copy stores no bytes but the (generation, row) of the genome bytes it repeats. A
 finished generation is told and the next asked in memory (`_advance`), and written by the job
 queue afterwards (see `server.jobs`), so the zenoh dispatcher can send generation g + 1 before
 g's transaction; lifecycle changes flush unwritten generations first.
@@ -28,10 +29,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
-from sqlalchemy import Connection, Engine, Table, and_, bindparam, func, insert, or_, select, update
+from sqlalchemy import Engine, Table, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import best_document
@@ -40,19 +41,19 @@ from evorobotics.layout import Layout, layout
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from schemas.wire import MAGIC, decode_frame, encode_frame
-from server import crud
+from server import crud, population
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
 from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
 from server.logs import context
-from server.models import Generation, Individual, Run, utcnow
+from server.models import Generation, Run, utcnow
+from server.population import Population
 from server.settings import Settings
 
 log = logging.getLogger(__name__)
 
 _RUNS = cast(Table, Run.__table__)
 _GENERATIONS = cast(Table, Generation.__table__)
-_INDIVIDUALS = cast(Table, Individual.__table__)
 """The tables behind the hot path's Core statements."""
 _ADVANCE_RUN = (
     update(_RUNS)
@@ -76,9 +77,9 @@ def encode_state(state: GAState, *, with_ranked: bool = True) -> bytes:
     """GAState as a frame of raw arrays (schemas.wire: self-describing dtype and shape, no
     pickle; a tenth of the time of the .npz that servers before 0.2 wrote).
 
-    The store passes `with_ranked=False`: `ranked` is the generation's individuals in rank
-    order, already stored bit for bit in `individuals`, so keeping it twice would double the
-    bytes each commit writes.
+    The store passes `with_ranked=False`: `ranked` is the generation's genomes in rank order,
+    already stored bit for bit in its population, so keeping it twice would double the bytes
+    each commit writes.
     """
     arrays = state.to_arrays()
     if not with_ranked:
@@ -101,11 +102,8 @@ def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None)
 
 def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarray:
     """The committed generation's genomes in rank order (the GA state's `ranked`), a copy's
-    bytes read from its origin."""
-    found = crud.individuals_with_genomes(session, run_id=run_id, generation=generation)
-    if not found:
-        raise NotFoundError(f"run {run_id} generation {generation} has no individuals")
-    return np.stack([np.frombuffer(genome, dtype=np.dtype(row.dtype)) for row, genome in found])
+    bytes read from the generation that holds them."""
+    return crud.ranked(session, run_id=run_id, generation=generation)[1]
 
 
 @dataclass(frozen=True)
@@ -130,50 +128,20 @@ class _Asked:
     """The GA state the generation's `tell` starts from."""
 
 
-_INDIVIDUAL_COLUMNS = (
-    "run_id",
-    "generation",
-    "rank",
-    "index",
-    "parent",
-    "fitness",
-    "components",
-    "genome",
-    "dtype",
-    "shape",
-    "origin_generation",
-    "origin_rank",
-)
-_MARKERS = {"qmark": "?", "format": "%s", "pyformat": "%s"}
-"""Positional placeholders of the drivers the server supports (sqlite3, psycopg)."""
 LOG_EVERY_S = 1.0
 """A run's "generation written" lines go out at INFO at most this often (and for its first and
 last generation), the others at DEBUG: a span writes hundreds of generations a second."""
 
 
-def _insert_rows(
-    conn: Connection, table: Table, columns: tuple[str, ...], rows: list[tuple[Any, ...]]
-) -> None:
-    """One executemany straight to the driver: for the 100 rows of a generation, SQLAlchemy's
-    per-row parameter processing cost half as much again as SQLite's own insert."""
-    marker = _MARKERS.get(conn.dialect.paramstyle)
-    if marker is None:
-        raise ValueError(f"unsupported driver paramstyle {conn.dialect.paramstyle!r}")
-    quote = conn.dialect.identifier_preparer.quote
-    names = ", ".join(quote(c) for c in columns)
-    places = ", ".join([marker] * len(columns))
-    conn.exec_driver_sql(f"INSERT INTO {quote(table.name)} ({names}) VALUES ({places})", rows)
-
-
 @dataclass(frozen=True)
 class _Origins:
     """Where the genome bytes of a run's last written generation are, by rank: the (generation,
-    rank) of the row that holds them (the row itself unless it is a copy); -1 when unknown."""
+    row of that generation's `genomes`) holding them; -1 when unknown."""
 
     generation: int
     generations: np.ndarray
     """(n,) int64"""
-    ranks: np.ndarray
+    rows: np.ndarray
     """(n,) int64"""
     elite: tuple[int, int]
     """The same for rank 0 of `generation - 1` (the next generation's k-2 elite); (-1, -1)
@@ -187,8 +155,8 @@ _NO_ORIGIN = (-1, -1)
 class _Lineage:
     """`lineage` of a generation as the write uses it (the same for every generation >= 2)."""
 
-    parents: list[int | None]
-    """By index: the parent rank in the previous generation, None for none."""
+    parents: np.ndarray
+    """(n,) by index: the parent rank in the previous generation, -1 for none."""
     copies: np.ndarray
     """Indices of Eq 11's copies of the previous generation (elites and fill)."""
     copied: np.ndarray
@@ -202,35 +170,24 @@ def _lineage(params: GAParams, generation: int) -> _Lineage:
     kinds = lineage(params, generation)
     copies = [(i, p) for i, (kind, p) in enumerate(kinds) if kind in ("elite", "fill")]
     return _Lineage(
-        parents=[p if p >= 0 else None for _, p in kinds],
+        parents=np.array([max(p, -1) for _, p in kinds], dtype=np.int64),
         copies=np.array([i for i, _ in copies], dtype=np.int64),
         copied=np.array([p for _, p in copies], dtype=np.int64),
         elite_k2=next((i for i, (kind, _) in enumerate(kinds) if kind == "elite_k2"), -1),
     )
 
 
-def _read_origins(conn: Connection, run_id: int, generation: int, population: int) -> _Origins:
+def _read_origins(session: Session, run_id: int, generation: int, n: int) -> _Origins:
     """The origins of a written generation, from the store (one query; after a restart)."""
-    c = _INDIVIDUALS.c
-    rows = conn.execute(
-        select(c.generation, c.rank, c.origin_generation, c.origin_rank).where(
-            c.run_id == run_id,
-            or_(
-                c.generation == generation,
-                and_(c.generation == generation - 1, c.rank == 0),
-            ),
-        )
-    ).all()
-    generations = np.full(population, -1, dtype=np.int64)
-    ranks = np.full(population, -1, dtype=np.int64)
-    elite = _NO_ORIGIN
-    for g, r, origin_g, origin_r in rows:
-        at = (g, r) if origin_g is None or origin_r is None else (origin_g, origin_r)
-        if g == generation and 0 <= r < population:
-            generations[r], ranks[r] = at
-        elif g == generation - 1:
-            elite = at
-    return _Origins(generation, generations, ranks, elite)
+    found = crud.populations(session, run_id=run_id, generations=[generation - 1, generation])
+    generations = np.full(n, -1, dtype=np.int64)
+    rows = np.full(n, -1, dtype=np.int64)
+    mine = found.get(generation)
+    if mine is not None and len(mine) == n:
+        generations[:], rows[:] = mine.genome_at[:, 0], mine.genome_at[:, 1]
+    before = found.get(generation - 1)
+    elite = _NO_ORIGIN if before is None or not len(before) else tuple(before.genome_at[0].tolist())
+    return _Origins(generation, generations, rows, (int(elite[0]), int(elite[1])))
 
 
 def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -538,10 +495,11 @@ class RunManager:
         state: GAState,
         metrics: TellMetrics,
     ) -> None:
-        """Store generation g (statistics, GA state, individuals) and move the run to g + 1.
+        """Store generation g (statistics, GA state, its population as one frame) and move
+        the run to g + 1.
 
         `before` is the state g was asked from (`tell` of g starts from it). A copy's genome
-        bytes are stored once, at its origin (see `_genome_origins`).
+        bytes are stored once, at its origin (see `_genome_at`).
         """
         run_id, g = results.run_id, results.generation
         genomes, fitness, components = results.genomes, results.fitness, results.components
@@ -560,6 +518,16 @@ class RunManager:
         )
         if moved.rowcount != 1:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
+        kin = _lineage(plan.params, min(g, 2))  # every generation from 2 on has the same
+        genome_at = self._genome_at(session, run_id, g, kin, genomes, before, order)
+        ranked = Population(
+            index=order,
+            parent=kin.parents[order],
+            fitness=fitness[order],
+            components=components[order],
+            genome_at=genome_at,
+            genomes=genomes[order[genome_at[:, 0] == g]],
+        )
         conn.execute(
             _INSERT_GENERATION,
             {
@@ -570,35 +538,9 @@ class RunManager:
                 "worst": metrics.worst,
                 "nan_count": metrics.nan_count,
                 "state": encode_state(state, with_ranked=False),
+                "population": population.encode(ranked),
                 "committed_at": utcnow(),
             },
-        )
-        kin = _lineage(plan.params, min(g, 2))  # every generation from 2 on has the same
-        parents = kin.parents
-        values = [v if math.isfinite(v) else None for v in fitness.tolist()]
-        dtype, shape = genomes.dtype.str, str(genomes.shape[1])
-        origin_g, origin_r = self._genome_origins(conn, run_id, g, kin, genomes, before, order)
-        _insert_rows(
-            conn,
-            _INDIVIDUALS,
-            _INDIVIDUAL_COLUMNS,
-            [
-                (
-                    run_id,
-                    g,
-                    r,
-                    i,
-                    parents[i],
-                    values[i],
-                    components[i].tobytes(),
-                    None if origin_g[i] >= 0 else genomes[i].tobytes(),
-                    dtype,
-                    shape,
-                    None if origin_g[i] < 0 else origin_g[i],
-                    None if origin_g[i] < 0 else origin_r[i],
-                )
-                for r, i in enumerate(order.tolist())
-            ],
         )
         now = time.monotonic()
         loud = g == 0 or g + 1 >= plan.config.generations
@@ -616,19 +558,19 @@ class RunManager:
             metrics.mean,
         )
 
-    def _genome_origins(
+    def _genome_at(
         self,
-        conn: Connection,
+        session: Session,
         run_id: int,
         g: int,
         kin: _Lineage,
         genomes: np.ndarray,
         before: GAState,
         order: np.ndarray,
-    ) -> tuple[list[int], list[int]]:
-        """By index as asked: the (generation, rank) of the row that holds the individual's
-        genome bytes, or -1 where it stores its own (generation 0, mutants, and anything whose
-        bytes differ from its origin's).
+    ) -> np.ndarray:
+        """(n, 2) by rank: the (generation, row of its `genomes`) holding each individual's
+        genome bytes. Generation 0, mutants, and anything whose bytes differ from its origin's
+        store their own, at (g, k) for the k-th of them in rank order.
 
         Eq 11 copies genomes: an elite or fill of parent rank p is rank p of g - 1
         (`before.ranked[p]`), the k-2 elite rank 0 of g - 2 (`before.elite_k2`). Their origins
@@ -642,8 +584,8 @@ class RunManager:
         if g >= 1 and before.ranked is not None and before.ranked.shape == genomes.shape:
             previous = self._origins.get(run_id)
             if previous is None or previous.generation != g - 1:
-                previous = _read_origins(conn, run_id, g - 1, n)
-            at_g, at_r = previous.generations[kin.copied], previous.ranks[kin.copied]
+                previous = _read_origins(session, run_id, g - 1, n)
+            at_g, at_r = previous.generations[kin.copied], previous.rows[kin.copied]
             same = _same_rows(genomes[kin.copies], before.ranked[kin.copied]) & (at_g >= 0)
             origin_g[kin.copies[same]], origin_r[kin.copies[same]] = at_g[same], at_r[same]
             k2 = kin.elite_k2
@@ -654,16 +596,18 @@ class RunManager:
                 and _same_rows(genomes[k2 : k2 + 1], before.elite_k2[np.newaxis, :])[0]
             ):
                 origin_g[k2], origin_r[k2] = previous.elite
-        copy = origin_g[order] >= 0
+        at = np.stack([origin_g[order], origin_r[order]], axis=1)
+        own = at[:, 0] < 0
+        at[own, 0], at[own, 1] = g, np.arange(int(own.sum()))
         self._origins[run_id] = _Origins(
             generation=g,
-            generations=np.where(copy, origin_g[order], g),
-            ranks=np.where(copy, origin_r[order], np.arange(n)),
+            generations=at[:, 0],
+            rows=at[:, 1],
             elite=_NO_ORIGIN
             if previous is None
-            else (int(previous.generations[0]), int(previous.ranks[0])),
+            else (int(previous.generations[0]), int(previous.rows[0])),
         )
-        return origin_g.tolist(), origin_r.tolist()
+        return at
 
     def _finish(self, session: Session, run: Run, config: RunConfig) -> None:
         run.status, run.finished_at = "completed", utcnow()
@@ -688,17 +632,11 @@ class RunManager:
         latest = crud.latest_generation(session, run_id=run.id)
         if latest is None:
             return None
-        found = crud.individuals_with_genomes(
-            session, run_id=run.id, generation=latest.generation, rank=0
-        )
-        if not found:
-            raise NotFoundError(f"run {run.id} generation {latest.generation} has no rank 0")
-        top, data = found[0]
-        genome = np.frombuffer(data, dtype=np.dtype(top.dtype))
+        found, genomes = crud.ranked(session, run_id=run.id, generation=latest.generation)
         document = best_document(
             config,
-            genome[np.newaxis, :],
-            np.array([np.nan if top.fitness is None else top.fitness]),
+            genomes[:1],
+            found.fitness[:1],
             np.array([0]),
             generation=latest.generation,
             run=run.id,

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from datetime import UTC, datetime
 
-import numpy as np
 from sqlalchemy import (
     BigInteger,
     DateTime,
@@ -65,37 +64,13 @@ class Generation(Base):
     worst: Mapped[float] = mapped_column(Float)
     nan_count: Mapped[int] = mapped_column(Integer, default=0)
     state: Mapped[bytes] = mapped_column(LargeBinary)
-    """GAState.to_arrays() as an uncompressed .npz (loaded with allow_pickle=False), without
-    `ranked` (this generation's individuals in rank order) since it is read back from there."""
+    """The GA state after `tell` (`server.manager.encode_state`), without `ranked` (this
+    generation's genomes in rank order) since `population` holds them."""
+    population: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)
+    """The generation's individuals by rank as one frame (`server.population`): fitness,
+    components, lineage, and the genome bytes first stored here (a copy points to its own).
+    Deferred: listing generations reads only their statistics."""
     committed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-
-
-class Individual(Base):
-    """One evaluated controller of a committed generation, by rank (0 = fittest)."""
-
-    __tablename__ = "individuals"
-
-    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), primary_key=True)
-    generation: Mapped[int] = mapped_column(Integer, primary_key=True)
-    rank: Mapped[int] = mapped_column(Integer, primary_key=True)
-    index: Mapped[int] = mapped_column(Integer)
-    """Position in the population as asked (the job slices cut this order)."""
-    parent: Mapped[int | None] = mapped_column(Integer, nullable=True)
-    """Rank in the previous generation of the individual this one descends from."""
-    fitness: Mapped[float | None] = mapped_column(Float, nullable=True)
-    """Eq 12 averaged over trials; NULL for a failed (NaN) evaluation, which ranks last."""
-    components: Mapped[bytes] = mapped_column(LargeBinary)
-    """(trials, 4) float64: Eq 12's curve length, net offset, max offset, stuck per trial."""
-    genome: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
-    """Raw genome bytes; NULL for a copy (Eq 11's elites, fill and k-2 elite repeat genomes
-    already stored: three quarters of a generation), whose bytes are those of its origin. Read
-    it through `crud.GENOME`, which resolves the origin."""
-    dtype: Mapped[str] = mapped_column(String(16))
-    shape: Mapped[str] = mapped_column(String(64))
-    origin_generation: Mapped[int | None] = mapped_column(Integer, nullable=True)
-    """With `origin_rank`, the row of the same run that holds a copy's genome bytes (always
-    one with bytes: one hop, never a chain); NULL when the row has its own bytes."""
-    origin_rank: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class Controller(Base):
@@ -135,17 +110,3 @@ class Robot(Base):
     controller_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
     first_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     last_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-
-
-def pack(array: np.ndarray) -> tuple[bytes, str, str]:
-    """Raw little-endian C-order bytes, dtype name and shape ("100,222") of an array."""
-    arr = np.ascontiguousarray(array)
-    if arr.dtype.byteorder == ">":
-        arr = arr.astype(arr.dtype.newbyteorder("<"))
-    return arr.tobytes(), arr.dtype.str, ",".join(str(n) for n in arr.shape)
-
-
-def unpack(data: bytes, dtype: str, shape: str) -> np.ndarray:
-    """Inverse of `pack` (a read-only view over `data`)."""
-    dims = tuple(int(n) for n in shape.split(",")) if shape else ()
-    return np.frombuffer(data, dtype=np.dtype(dtype)).reshape(dims)

@@ -596,18 +596,14 @@ def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
     latest = crud.latest_generation(db, run_id=run_id)
     if run is None or latest is None:
         raise NotFoundError(f"run {run_id} has no completed generation yet")
-    found = crud.individuals_with_genomes(
-        db, run_id=run_id, generation=latest.generation, rank=rank
-    )
-    if not found:
+    found, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation)
+    if not 0 <= rank < len(found):
         raise NotFoundError(f"run {run_id} has no individual of rank {rank}")
-    ind, genome = found[0]
     config = RunConfig.model_validate_json(run.config)
-    fitness = np.nan if ind.fitness is None else float(ind.fitness)
     doc = ControllerDocument(
         spec=config.network_spec,
-        weights=np.frombuffer(genome, dtype=np.dtype(ind.dtype)),
-        fitness=fitness if np.isfinite(fitness) else None,
+        weights=genomes[rank],
+        fitness=found.fitness_of(rank),
         provenance={
             "seed": config.seed,
             "generation": latest.generation,
@@ -630,7 +626,8 @@ def _population(db: Session, run_id: int) -> int:
     latest = crud.latest_generation(db, run_id=run_id)
     if latest is None:
         return 0
-    return len(crud.list_individuals(db, run_id=run_id, generation=latest.generation))
+    found = crud.populations(db, run_id=run_id, generations=[latest.generation])
+    return sum(len(p) for p in found.values())
 
 
 def _field_row(db: Session, sha256: str) -> FieldStatsRow:

@@ -73,9 +73,9 @@ def population_hash(db: Path, run_id: int, generation: int) -> str:
     """sha256 of the generation's genome bytes in rank order (a copy's read from its origin)."""
     engine = sa.create_engine(f"sqlite:///{db}")
     with Session(engine) as session:
-        rows = crud.individuals_with_genomes(session, run_id=run_id, generation=generation)
+        genomes = crud.ranked(session, run_id=run_id, generation=generation)[1]
     engine.dispose()
-    return hashlib.sha256(b"".join(genome for _, genome in rows)).hexdigest()
+    return hashlib.sha256(genomes.tobytes()).hexdigest()
 
 
 @pytest.mark.slow

@@ -1,5 +1,5 @@
-"""The store: migrations, array packing, GA state round trip, the job queue's contract, and
-genomes stored once per run (Eq 11's copies point to the row holding their bytes)."""
+"""The store: migrations, population frames, GA state round trip, the job queue's contract,
+and genomes stored once per run (Eq 11's copies point to the generation holding their bytes)."""
 
 from __future__ import annotations
 
@@ -36,12 +36,12 @@ from server.manager import (
     encode_state,
     stored_ranked,
 )
-from server.models import pack, unpack
+from server.population import Population, PopulationError, decode, encode, resolve
 from server.robots import ranked_document
 from server.settings import Settings
 from tests.helpers import eventually
 
-TABLES = {"runs", "generations", "individuals", "controllers", "workers", "robots"}
+TABLES = {"runs", "generations", "controllers", "workers", "robots"}
 SMALL = RunConfig(population=12, generations=3, steps=10, trials=2, job_size=5)
 
 
@@ -70,11 +70,11 @@ def test_upgrade_drops_the_jobs_table_of_older_servers_with_its_rows(tmp_path: P
             'INSERT INTO jobs (run_id, generation, "index", start, stop, status, attempts,'
             " genomes, dtype, shape) VALUES (1, 0, 0, 0, 4, 'leased', 1, x'00', '<f8', '1')"
         )
-    upgrade(engine)
+    command.upgrade(cfg, "0005_genome_origin")
     assert "jobs" not in sa.inspect(engine).get_table_names()
     lay, params = layout(SMALL.network_spec), GAParams.from_config(SMALL)
     state = init(lay, params)
-    with engine.begin() as conn:  # a generation written by this release: a frame
+    with engine.begin() as conn:  # a GA state written by this release: a frame
         conn.exec_driver_sql(
             "INSERT INTO generations (run_id, generation, best, mean, worst, nan_count, state,"
             " committed_at) VALUES (1, 0, 1.0, 0.5, 0.0, 0, ?, '2026-01-01')",
@@ -113,18 +113,61 @@ def test_memory_sqlite_is_refused() -> None:
 
 @settings(max_examples=50, deadline=None)
 @given(
-    hnp.arrays(
-        dtype=st.sampled_from([np.dtype(t) for t in ("<f8", "<f4", "<i8", ">f8")]),
-        shape=hnp.array_shapes(min_dims=1, max_dims=3, min_side=0, max_side=5),
-    )
+    n=st.integers(0, 6),
+    trials=st.integers(1, 3),
+    width=st.integers(1, 5),
+    data=st.data(),
 )
-def test_pack_unpack_round_trips_bits(array: np.ndarray) -> None:
-    data, dtype, shape = pack(array)
-    back = unpack(data, dtype, shape)
-    assert back.shape == array.shape
-    assert np.array_equal(
-        back.view(np.uint8), np.ascontiguousarray(array, back.dtype).view(np.uint8)
+def test_a_population_frame_round_trips_bits_and_resolves_copies(
+    n: int, trials: int, width: int, data: st.DataObject
+) -> None:
+    """Any mix of own genomes and copies of an earlier generation's rows reads back bit for
+    bit: NaN fitness (a failed evaluation), NaN payloads and -0.0 in genomes included."""
+    own = data.draw(st.lists(st.booleans(), min_size=n, max_size=n))
+    earlier = data.draw(hnp.arrays(np.float64, (3, width), elements=st.floats(width=64)))
+    genomes = data.draw(hnp.arrays(np.float64, (sum(own), width), elements=st.floats(width=64)))
+    rows = iter(range(sum(own)))
+    genome_at = np.array(
+        [(5, next(rows)) if mine else (2, data.draw(st.integers(0, 2))) for mine in own],
+        dtype=np.int64,
+    ).reshape(n, 2)
+    stored = Population(
+        index=np.array(data.draw(st.permutations(range(n))), dtype=np.int64),
+        parent=np.array(data.draw(st.lists(st.integers(-1, 99), min_size=n, max_size=n))),
+        fitness=data.draw(hnp.arrays(np.float64, n, elements=st.floats(width=64))),
+        components=data.draw(hnp.arrays(np.float64, (n, trials, 4), elements=st.floats())),
+        genome_at=genome_at,
+        genomes=genomes,
     )
+    back = decode(encode(stored))
+    for name in ("index", "parent", "fitness", "components", "genome_at", "genomes"):
+        assert (
+            getattr(back, name).tobytes()
+            == getattr(stored, name).astype(getattr(back, name).dtype).tobytes()
+        ), name
+    holders = {2: dataclasses.replace(stored, genomes=earlier)}
+    resolved = resolve(5, back, lambda gs: {g: holders[g] for g in gs if g in holders})
+    for rank, (g, row) in enumerate(genome_at.tolist()):
+        source = genomes if g == 5 else earlier
+        assert resolved[rank].tobytes() == source[row].tobytes()
+    if n and not all(own):
+        with pytest.raises(PopulationError, match="not stored"):
+            resolve(5, back, lambda gs: {})
+
+
+def test_a_frame_of_another_kind_or_shape_is_refused() -> None:
+    with pytest.raises(PopulationError, match="kind"):
+        decode(encode_state(init(layout(SMALL.network_spec), GAParams.from_config(SMALL))))
+    bad = Population(
+        index=np.arange(3),
+        parent=np.arange(2),
+        fitness=np.zeros(3),
+        components=np.zeros((3, 1, 4)),
+        genome_at=np.zeros((3, 2)),
+        genomes=np.zeros((0, 2)),
+    )
+    with pytest.raises(PopulationError, match="3 individuals"):
+        decode(encode(bad))
 
 
 @settings(max_examples=10, deadline=None)
@@ -226,10 +269,10 @@ def test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once(manager: RunMa
         run = crud.get_run(session, run_id=run_id)
         assert run is not None
         assert (run.generation, run.evaluations) == (1, SMALL.population)
-        ranked = crud.list_individuals(session, run_id=run_id, generation=0)
-    assert [i.rank for i in ranked] == list(range(SMALL.population))
-    values = [i.fitness for i in ranked if i.fitness is not None]
-    assert len(values) == len(ranked) and values == sorted(values, reverse=True)
+        ranked = crud.ranked(session, run_id=run_id, generation=0)[0]
+    assert sorted(ranked.index.tolist()) == list(range(SMALL.population))
+    values = ranked.fitness.tolist()
+    assert np.isfinite(values).all() and values == sorted(values, reverse=True)
 
 
 def test_result_of_wrong_shape_is_refused(manager: RunManager) -> None:
@@ -302,7 +345,7 @@ def test_generations_commit_whole_under_concurrent_completion(manager: RunManage
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and run.status == "completed"
         for g in range(SMALL.generations):
-            assert len(crud.list_individuals(session, run_id=run_id, generation=g)) == 12
+            assert len(crud.ranked(session, run_id=run_id, generation=g)[0]) == 12
 
 
 def test_release_returns_a_lease_at_once_and_counts_follow_the_jobs(manager: RunManager) -> None:
@@ -393,7 +436,7 @@ def test_deferred_write_installs_the_next_generation_first(manager: RunManager) 
     with manager.sessions() as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.generation, run.evaluations) == (1, SMALL.population)
-        assert len(crud.list_individuals(session, run_id=run_id, generation=0)) == 12
+        assert len(crud.ranked(session, run_id=run_id, generation=0)[0]) == 12
 
 
 def test_cancel_writes_the_told_generation_before_cancelling(manager: RunManager) -> None:
@@ -513,9 +556,9 @@ def test_a_failed_evaluation_is_stored_as_null_ranks_last_and_the_run_goes_on(
             )
         assert manager.queue.complete(key, result) is True
     with manager.sessions() as session:
-        ranked = crud.list_individuals(session, run_id=run_id, generation=0)
-    assert [i.index for i in ranked if i.fitness is None] == [2]
-    assert ranked[-1].index == 2  # NaN never wins: it ranks last
+        ranked = crud.ranked(session, run_id=run_id, generation=0)[0]
+    assert [int(ranked.index[r]) for r in range(12) if ranked.fitness_of(r) is None] == [2]
+    assert ranked.index[-1] == 2  # NaN never wins: it ranks last
     assert _evaluate(manager, "w", 0.0) is not None  # generation 1 was asked
 
 
@@ -660,32 +703,22 @@ def _assert_stored_once(
     engine: sa.Engine, run_id: int, config: RunConfig, expected: list[np.ndarray], *, old: int = 0
 ) -> None:
     """Bytes only for generation 0, the mutants of later generations (and the first `old`
-    generations, written before the origins existed); every copy resolves in one hop to
-    exactly `evolve`'s genome."""
+    generations, written before the origins existed); every copy points to bytes stored by an
+    earlier generation, and resolves to exactly `evolve`'s genome."""
     m = config.replacement_count
-    with engine.connect() as conn:
-        counts: dict[int, int] = dict(
-            conn.exec_driver_sql(
-                "SELECT generation, count(genome) FROM individuals WHERE run_id = ?"
-                " GROUP BY generation",
-                (run_id,),
-            ).all()
-        )
-        broken = conn.exec_driver_sql(
-            "SELECT count(*) FROM individuals AS c LEFT JOIN individuals AS o"
-            " ON o.run_id = c.run_id AND o.generation = c.origin_generation"
-            " AND o.rank = c.origin_rank"
-            " WHERE (c.genome IS NULL) = (c.origin_generation IS NULL)"
-            " OR (c.genome IS NULL AND (o.genome IS NULL OR o.origin_generation IS NOT NULL))"
-        ).scalar()
-    assert broken == 0
-    want = {g: config.population if g == 0 or g < old else m for g in range(len(expected))}
-    assert counts == want
     with Session(engine) as session:
+        stored = crud.populations(session, run_id=run_id, generations=range(len(expected)))
+        assert sorted(stored) == list(range(len(expected)))
+        for g, population in stored.items():
+            want = config.population if g == 0 or g < old else m
+            assert len(population.genomes) == want
+            at_g, at_row = population.genome_at[:, 0], population.genome_at[:, 1]
+            assert (at_row[at_g == g] == np.arange(want)).all()  # own bytes, in rank order
+            for holder, row in population.genome_at[at_g != g].tolist():
+                assert holder < g and row < len(stored[holder].genomes)
         for g, ranked in enumerate(expected):
-            rows = crud.individuals_with_genomes(session, run_id=run_id, generation=g)
-            assert [r.rank for r, _ in rows] == list(range(config.population))
-            assert b"".join(genome for _, genome in rows) == ranked.tobytes()
+            population, genomes = crud.ranked(session, run_id=run_id, generation=g)
+            assert genomes.tobytes() == ranked.tobytes()
             assert stored_ranked(session, run_id=run_id, generation=g).tobytes() == ranked.tobytes()
         for rank in (0, m, 2 * m, config.population - 1):  # elite, mutant, fill, k-2 elite
             document = ranked_document(session, run_id, rank)
@@ -746,14 +779,14 @@ def test_a_copy_whose_bytes_differ_from_its_origin_keeps_them(manager: RunManage
     before = dataclasses.replace(before, ranked=ranked)
     manager._origins[1] = _Origins(1, np.full(12, 1), np.arange(12), (0, 0))
     with manager.sessions() as session:  # the origins are in memory: no query
-        origin_g, origin_r = manager._genome_origins(
-            session.connection(), 1, 2, _lineage(params, 2), genomes, before, np.arange(12)
-        )
+        at = manager._genome_at(session, 1, 2, _lineage(params, 2), genomes, before, np.arange(12))
     m = COPIES.replacement_count
     copies = [i for i in range(12) if not m <= i < 2 * m and i != 2]
-    assert [i for i in range(12) if origin_g[i] >= 0] == copies
-    assert [(origin_g[i], origin_r[i]) for i in copies[:2]] == [(1, 0), (1, 1)]
-    assert (origin_g[11], origin_r[11]) == (0, 0)  # the k-2 elite: rank 0 two generations back
+    assert [i for i in range(12) if at[i, 0] != 2] == copies
+    assert at[[0, 1]].tolist() == [[1, 0], [1, 1]]
+    assert at[11].tolist() == [0, 0]  # the k-2 elite: rank 0 two generations back
+    own = [i for i in range(12) if i not in copies]
+    assert at[own].tolist() == [[2, k] for k in range(len(own))]  # stored here, in rank order
 
 
 def _write_old_layout(engine: sa.Engine, config: RunConfig, generations: int) -> None:
@@ -823,3 +856,67 @@ def test_a_database_of_the_old_layout_upgrades_reads_back_and_resumes(tmp_path: 
             ).all()
             assert b"".join(row[0] for row in rows) == ranked.tobytes()
     engine.dispose()
+
+
+def test_populations_go_back_to_0005_rows_and_return_bit_for_bit(tmp_path: Path) -> None:
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    populations_round_trip(engine)
+    engine.dispose()
+
+
+def populations_round_trip(engine: sa.Engine) -> None:
+    """Downgrading to 0005 writes a row per individual, copies pointing to the row with their
+    bytes (one hop); upgrading again rebuilds the same frames, and a failed evaluation stays
+    NULL / NaN both ways. On a store at head (tests/test_postgres.py runs it on PostgreSQL)."""
+    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
+    run_id = manager.create_run(COPIES)
+    _drive(manager)
+    at = {"run": run_id}
+    with engine.begin() as conn:  # as if rank 3 of generation 1 had failed its evaluation
+        frame = conn.execute(
+            sa.text("SELECT population FROM generations WHERE run_id = :run AND generation = 1"),
+            at,
+        ).scalar_one()
+        failed = decode(frame)
+        failed.fitness[3] = np.nan
+        conn.execute(
+            sa.text(
+                "UPDATE generations SET population = :p WHERE run_id = :run AND generation = 1"
+            ),
+            {**at, "p": encode(failed)},
+        )
+    with Session(engine) as session:
+        before = crud.populations(session, run_id=run_id, generations=range(COPIES.generations))
+    cfg = alembic_config(engine)
+    command.downgrade(cfg, "0005_genome_origin")
+    with engine.connect() as conn:
+        counts = conn.execute(
+            sa.text(
+                "SELECT count(*), count(genome), count(fitness) FROM individuals"
+                " WHERE run_id = :run"
+            ),
+            at,
+        ).one()
+        broken = conn.execute(
+            sa.text(
+                "SELECT count(*) FROM individuals AS c LEFT JOIN individuals AS o"
+                " ON o.run_id = c.run_id AND o.generation = c.origin_generation"
+                " AND o.rank = c.origin_rank"
+                " WHERE (c.genome IS NULL) = (c.origin_generation IS NULL)"
+                " OR (c.genome IS NULL AND (o.genome IS NULL OR o.origin_generation IS NOT NULL))"
+            )
+        ).scalar()
+    n, g = COPIES.population, COPIES.generations
+    assert tuple(counts) == (n * g, n + (g - 1) * COPIES.replacement_count, n * g - 1)
+    assert broken == 0
+    upgrade(engine)
+    with Session(engine) as session:
+        after = crud.populations(session, run_id=run_id, generations=range(g))
+    assert after.keys() == before.keys()
+    for generation, population in before.items():
+        for name in ("index", "parent", "fitness", "components", "genome_at", "genomes"):
+            assert (
+                getattr(after[generation], name).tobytes() == getattr(population, name).tobytes()
+            ), (generation, name)
+    _assert_stored_once(engine, run_id, COPIES, _local_ranked(COPIES))

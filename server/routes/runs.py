@@ -6,7 +6,6 @@ import hashlib
 from datetime import UTC, datetime
 from typing import Annotated
 
-import numpy as np
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
 
 from schemas.api import GenerationOut, IndividualOut, IndividualsOut, RunOut, RunStatus
@@ -123,20 +122,20 @@ def list_individuals(
         raise HTTPException(
             404, detail=f"run {run_id} has committed generations 0..{run.generation - 1} only"
         )
-    rows = crud.individuals_with_genomes(session, run_id=run_id, generation=generation)
+    found, genomes = crud.ranked(session, run_id=run_id, generation=generation)
     return IndividualsOut(
         run_id=run_id,
         generation=generation,
         individuals=[
             IndividualOut(
-                rank=i.rank,
-                index=i.index,
-                parent=i.parent,
-                fitness=i.fitness,
-                components=np.frombuffer(i.components, np.float64).reshape(-1, 4).tolist(),
-                genome_sha256=hashlib.sha256(genome).hexdigest(),
+                rank=rank,
+                index=int(found.index[rank]),
+                parent=found.parent_of(rank),
+                fitness=found.fitness_of(rank),
+                components=found.components[rank].tolist(),
+                genome_sha256=hashlib.sha256(genomes[rank].tobytes()).hexdigest(),
             )
-            for i, genome in rows
+            for rank in range(len(found))
         ],
     )
 
