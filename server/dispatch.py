@@ -12,7 +12,8 @@ thread blocks on that one queue for everything (requests, results, liveliness, `
 new jobs exist) with a timeout of the next deadline (a lease, a long-poll, a gone worker's
 expiry): nothing is polled. Once the queue is empty (or `FLUSH_EVERY_S` after the last flush,
 should messages never stop) it calls `JobSource.flush`, so slow bookkeeping (writing a
-finished generation) runs after the next generation's jobs are sent.
+finished generation) runs after the next generation's jobs are sent; the source may put it
+off (told generations are written together, `WRITE_AFTER_S`) and say when to call again.
 
 Spans: a generation that one worker evaluates in less than `span_below_s` costs less than
 the round trip through this server that parallel slices would add to it (docs/protocol.md,
@@ -81,6 +82,10 @@ log = logging.getLogger(__name__)
 
 FLUSH_EVERY_S = 0.5
 """The longest a busy dispatcher puts off `JobSource.flush` (writing told generations)."""
+WRITE_AFTER_S = 0.1
+"""How long told generations wait to be written together (`QueueSource.flush`): a span tells
+hundreds a second, and a transaction per generation cost the server more than the rows in
+it. A crash loses at most these, which a restart recomputes bit for bit."""
 INVITE_S = 0.25
 """How long a team's place waits for a worker that was between requests (worker.team: the
 leader evaluates the slice itself after LEADER_WAIT_S)."""
@@ -107,9 +112,10 @@ class JobSource(Protocol):
     def release(self, key: JobKey) -> None:
         """The lease is over without a result (worker gone or late): the job is pending again."""
 
-    def flush(self) -> None:
+    def flush(self) -> float | None:
         """Do deferred work now that every reply is out (called when no message is waiting);
-        if it raises, it is called again within a second."""
+        if it raises, it is called again within a second. Returns when to call it again for
+        work it put off (a clock time), None when none waits."""
 
 
 @runtime_checkable
@@ -434,7 +440,7 @@ class Dispatcher:
             self._flush_at = None
             self._flushed_at = self._clock()
             try:
-                self._source.flush()
+                self._flush_at = self._source.flush()
             except Exception:  # e.g. the database is down: retried within a second
                 log.exception("deferred job-source work failed; retrying later")
                 self._flush_at = self._clock() + 1.0
@@ -920,6 +926,8 @@ class QueueSource:
     def __init__(self, queue: JobQueue, *, clock: Callable[[], float] = time.time) -> None:
         self._queue = queue
         self._clock = clock
+        self._told_at: float | None = None
+        """When `flush` first found generations unwritten (the oldest waits from then)."""
 
     def lease(self, worker: str) -> Job | None:
         job = self._queue.lease(worker, self._clock())
@@ -961,10 +969,22 @@ class QueueSource:
     def release(self, key: JobKey) -> None:
         self._queue.release(_queue_key(key))
 
-    def flush(self) -> None:
-        """Write the generations completed since the last call (after their successors' jobs
-        went out: workers evaluate g + 1 while g is written)."""
+    def flush(self) -> float | None:
+        """Write the generations told since the last write (after their successors' jobs went
+        out: workers evaluate g + 1 while g is written) once the oldest has waited
+        `WRITE_AFTER_S`, or at once if one finishes its run; else when that falls due."""
+        if not self._queue.unwritten():  # none, or written meanwhile (housekeeping, lifecycle)
+            self._told_at = None
+            return None
+        now = self._clock()
+        if self._told_at is None:
+            self._told_at = now
+        due = self._told_at + WRITE_AFTER_S
+        if due > now and not self._queue.finishing():
+            return due
+        self._told_at = None
         self._queue.flush()
+        return None
 
 
 def _queue_key(key: JobKey) -> QueueKey:

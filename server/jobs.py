@@ -169,6 +169,8 @@ class _Unwritten:
 
     results: GenerationResults
     write: Callable[[Session], None]
+    last: bool
+    """The run's last generation: writing it finishes the run."""
 
 
 class JobQueue:
@@ -439,7 +441,7 @@ class JobQueue:
             components=jobs.components,
         )
         advance = self._on_generation_done(results)
-        self._unwritten.append(_Unwritten(results, advance.write))
+        self._unwritten.append(_Unwritten(results, advance.write, advance.following is None))
         if advance.following is None:
             self.forget(jobs.run_id)
         else:
@@ -541,6 +543,11 @@ class JobQueue:
         """Generations told but not yet written (0 after a successful `flush`)."""
         with self._lock:
             return len(self._unwritten)
+
+    def finishing(self) -> bool:
+        """Whether an unwritten generation is its run's last (its write completes the run)."""
+        with self._lock:
+            return any(item.last for item in self._unwritten)
 
     def fail(self, key: JobKey, message: str) -> bool:
         """An evaluation raised: retry the job, or fail its run after `max_attempts` leases."""

@@ -239,10 +239,17 @@ class RunManager:
         self._housekeeper.start()
 
     def stop(self) -> None:
+        """Stop housekeeping and write the generations told but not yet written (a restart
+        would recompute them, bit for bit, but need not)."""
         self._stop.set()
         if self._housekeeper is not None:
             self._housekeeper.join(timeout=10.0)
             self._housekeeper = None
+        with self._lock:
+            try:
+                self.queue.flush()
+            except Exception as exc:
+                log.warning("generations told but not written at shutdown: %s", exc)
 
     def _housekeep(self) -> None:
         while not self._stop.wait(self.settings.housekeeping_seconds):

@@ -27,6 +27,7 @@ from schemas.run import GAConfig, RunConfig
 from schemas.wire import decode_frame
 from server import crud
 from server.db import Checkpointer, alembic_config, make_engine, upgrade
+from server.dispatch import WRITE_AFTER_S, QueueSource
 from server.jobs import JobKey, JobResult
 from server.manager import (
     RunManager,
@@ -437,6 +438,46 @@ def test_deferred_write_installs_the_next_generation_first(manager: RunManager) 
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.generation, run.evaluations) == (1, SMALL.population)
         assert len(crud.ranked(session, run_id=run_id, generation=0)[0]) == 12
+
+
+def test_the_dispatcher_source_writes_told_generations_together(manager: RunManager) -> None:
+    """`QueueSource.flush` puts a told generation's write off until the oldest has waited
+    `WRITE_AFTER_S` (one transaction for all), but writes a run's last generation at once;
+    `RunManager.stop` writes whatever is left."""
+    clock = [10.0]
+    source = QueueSource(manager.queue, clock=lambda: clock[0])
+    whole = SMALL.model_copy(update={"job_size": SMALL.population, "generations": 4})
+    run_id = manager.create_run(whole)
+
+    def tell_one() -> None:
+        done = _evaluate(manager, "w", 0.0)
+        assert done is not None
+        assert manager.queue.complete(*done, defer=True) is True
+
+    def written() -> int:
+        with manager.sessions() as session:
+            run = crud.get_run(session, run_id=run_id)
+            assert run is not None
+            return run.generation
+
+    tell_one()
+    assert source.flush() == pytest.approx(10.0 + WRITE_AFTER_S)
+    clock[0] += WRITE_AFTER_S / 2
+    tell_one()
+    assert source.flush() == pytest.approx(10.0 + WRITE_AFTER_S)  # the oldest sets the time
+    assert (manager.queue.unwritten(), written()) == (2, 0)
+    clock[0] = 10.0 + WRITE_AFTER_S
+    assert source.flush() is None
+    assert (manager.queue.unwritten(), written()) == (0, 2)
+    tell_one()
+    assert source.flush() is not None
+    manager.stop()
+    assert (manager.queue.unwritten(), written()) == (0, 3)
+    tell_one()  # the last generation: written at once, the run completes
+    assert source.flush() is None
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.generation) == ("completed", 4)
 
 
 def test_cancel_writes_the_told_generation_before_cancelling(manager: RunManager) -> None:
