@@ -581,7 +581,7 @@ class Dispatcher:
         # behind: its worker is busy for the whole span.
         more = job.more and job.span == 1 and self._may_prefetch(worker)
         try:
-            query.reply(key, encode_job(replace(job, lease_s=lease_s, more=more), ack))
+            query.reply(key, encode_job(job.leased(lease_s, more), ack))
         except zenoh.ZError:
             _job_log(job.key, worker).warning(
                 "could not send %s to %s; releasing it", job.key.label(), worker
@@ -605,7 +605,7 @@ class Dispatcher:
                 if job.team
                 else "",
             )
-        else:
+        elif log.isEnabledFor(logging.DEBUG):  # every job: not even the adapter otherwise
             _job_log(job.key, worker).debug(
                 "leased %s to %s for %.0f s", job.key.label(), worker, lease_s
             )
@@ -804,9 +804,10 @@ class Dispatcher:
             self.results_accepted += 1
             with self._lock:
                 self._workers[result.worker].jobs_done += 1
-            _job_log(result.key, result.worker).debug(
-                "%s completed %s", result.worker, result.key.label()
-            )
+            if log.isEnabledFor(logging.DEBUG):
+                _job_log(result.key, result.worker).debug(
+                    "%s completed %s", result.worker, result.key.label()
+                )
         else:
             self.results_dropped += 1
             _job_log(result.key, result.worker).debug(
