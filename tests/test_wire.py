@@ -82,6 +82,18 @@ def test_job_round_trip_is_bit_exact() -> None:
     assert isinstance(last, Job) and not last.more
 
 
+def test_a_leased_job_differs_only_in_its_lease_and_more() -> None:
+    job = make_job()
+    leased = job.leased(3.0, False)
+    assert (leased.lease_s, leased.more, job.lease_s, job.more) == (3.0, False, 12.5, True)
+    assert replace(leased, lease_s=job.lease_s, more=job.more) == job
+    back = decode_next_reply(encode_job(leased))
+    assert isinstance(back, Job) and (back.lease_s, back.more) == (3.0, False)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="lease_s"):
+            job.leased(bad, True)
+
+
 def test_result_and_control_round_trips() -> None:
     fitness = np.array([1.5, -2.0, 0.0])
     components = np.arange(3 * 3 * 4, dtype=np.float64).reshape(3, 3, 4)
