@@ -133,13 +133,17 @@ class GAState:
                 raise ValueError(f"elite_k2 has shape {elite.shape}, expected ({self.n_weights},)")
             object.__setattr__(self, "elite_k2", elite)
 
-    def to_arrays(self) -> dict[str, np.ndarray]:
-        """Plain arrays (0-d int64 for the integers), for storage as raw bytes; None is omitted."""
+    def to_arrays(self, *, ranked: bool = True) -> dict[str, np.ndarray]:
+        """Plain arrays (0-d int64 for the integers), for storage as raw bytes; None is omitted.
+        Without `ranked` (a store that keeps the population elsewhere: no copy of it is made)."""
         arrays = {
             "generation": np.array(self.generation, dtype=np.int64),
             "n_weights": np.array(self.n_weights, dtype=np.int64),
         }
-        for name in ("ranked", "ranked_fitness", "elite_k2"):
+        names = (
+            ("ranked", "ranked_fitness", "elite_k2") if ranked else ("ranked_fitness", "elite_k2")
+        )
+        for name in names:
             value = getattr(self, name)
             if value is not None:
                 arrays[name] = np.array(value, copy=True)

@@ -81,10 +81,7 @@ def encode_state(state: GAState, *, with_ranked: bool = True) -> bytes:
     already stored bit for bit in its population, so keeping it twice would double the bytes
     each commit writes.
     """
-    arrays = state.to_arrays()
-    if not with_ranked:
-        arrays.pop("ranked", None)
-    return encode_frame({"kind": "ga-state"}, arrays)
+    return encode_frame({"kind": "ga-state"}, state.to_arrays(ranked=with_ranked))
 
 
 def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None) -> GAState:

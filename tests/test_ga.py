@@ -213,6 +213,9 @@ def test_state_arrays_are_read_only_copies() -> None:
     arrays = state.to_arrays()
     assert arrays["generation"].shape == () and arrays["generation"].dtype == np.int64
     assert set(arrays) == {"generation", "n_weights", "ranked", "ranked_fitness"}
+    without = state.to_arrays(ranked=False)
+    assert set(without) == set(arrays) - {"ranked"}
+    assert all(without[name].tobytes() == arrays[name].tobytes() for name in without)
 
 
 def test_eq7_uniform_case_is_uniform_on_plus_minus_init_scale() -> None:
