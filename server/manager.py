@@ -191,9 +191,10 @@ def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(k,) whether row i of `a` and of `b` hold the same bytes (NaN payloads and -0.0 too)."""
     if a.shape != b.shape or a.dtype != b.dtype or a.ndim != 2:
         return np.zeros(len(a), dtype=bool)
-    bytes_a = np.ascontiguousarray(a).view(np.uint8).reshape(len(a), -1)
-    bytes_b = np.ascontiguousarray(b).view(np.uint8).reshape(len(b), -1)
-    same: np.ndarray = (bytes_a == bytes_b).all(axis=1)
+    word = np.dtype(f"u{a.itemsize}") if a.itemsize in (1, 2, 4, 8) else np.dtype(np.uint8)
+    bits_a = np.ascontiguousarray(a).view(word).reshape(len(a), -1)  # whole items at once
+    bits_b = np.ascontiguousarray(b).view(word).reshape(len(b), -1)
+    same: np.ndarray = (bits_a == bits_b).all(axis=1)
     return same
 
 
