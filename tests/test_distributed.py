@@ -256,18 +256,24 @@ def test_stopped_worker_past_its_lease_is_replaced_and_its_late_result_dropped(
     assert colony.run(run_id)["evaluations"] == EVALUATIONS
 
 
-def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(
-    colony: Colony, expected_sha: str
-) -> None:
+LONG_CONFIG = {**CONFIG, "generations": 30}
+"""Long enough that the server is still evolving it when killed: told generations are
+written a tenth of a second at a time (server.dispatch.WRITE_AFTER_S), several at once."""
+
+
+def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(colony: Colony) -> None:
+    expected = evolve(RunConfig(**LONG_CONFIG)).best.sha256
     server = colony.start_server()
     colony.start_worker("one")
     colony.start_worker("two")
-    run_id = colony.post("/api/runs", CONFIG)["id"]
+    run_id = colony.post("/api/runs", LONG_CONFIG)["id"]
     wait_until(lambda: colony.run(run_id)["generation"] >= 2, "generation 2")
     server.kill()
     server.wait(timeout=10)
     colony.start_server()
-    colony.finish(run_id, expected_sha)
+    resumed = colony.run(run_id)
+    assert resumed["status"] == "running" and resumed["generation"] < 30, resumed
+    colony.finish(run_id, expected, evaluations=16 * 30)
     assert {"one", "two"} <= set(colony.workers())
 
 
