@@ -163,15 +163,38 @@ def run_worker(
         try:
             inbox = Inbox(session, settings.name)
             token = session.liveliness().declare_token(worker_key(settings.name))
+            link = _Link(session, settings.request_timeout_s)
             try:
                 log.info("worker %s connected to %s", settings.name, settings.connect)
-                _serve(session, settings, host, stop, evaluator, stats, backoff, inbox)
+                _serve(link, settings, host, stop, evaluator, stats, backoff, inbox)
             finally:
+                link.close()
                 token.undeclare()  # type: ignore[no-untyped-call]
                 inbox.close()
         finally:
             session.close()  # type: ignore[no-untyped-call]
     return stats
+
+
+class _Link:
+    """The worker's session with a querier declared once per key it asks the server on: a
+    querier's `get` costs less than the session's (a job and a result every round trip: about
+    7 % more empty jobs a second, measured)."""
+
+    def __init__(self, session: zenoh.Session, timeout_s: float) -> None:
+        self.session = session
+        self._queriers = {
+            key: session.declare_querier(key, timeout=timeout_s)
+            for key in (KEY_JOB_NEXT, KEY_JOB_RESULT)
+        }
+
+    def get(self, key: str, payload: bytes) -> zenoh.Handler[zenoh.Reply]:
+        """Send a query now; its replies are read later."""
+        return self._queriers[key].get(payload=payload)
+
+    def close(self) -> None:
+        for querier in self._queriers.values():
+            querier.undeclare()  # type: ignore[no-untyped-call]
 
 
 @dataclass
@@ -184,7 +207,7 @@ class _Ahead:
 
 
 def _serve(
-    session: zenoh.Session,
+    link: _Link,
     settings: WorkerSettings,
     host: str,
     stop: threading.Event,
@@ -205,16 +228,16 @@ def _serve(
     ahead: _Ahead | None = None
     while not stop.is_set():
         if not in_hand:
-            job = _next_job(session, settings, host, stop, stats, backoff)
+            job = _next_job(link, settings, host, stop, stats, backoff)
             if job is None:
                 continue
             in_hand.append(job)
         job = in_hand.popleft()
         if job.span > 1:
             if ahead is not None:
-                in_hand.extend(_collect(session, settings, stop, stats, ahead, in_hand))
+                in_hand.extend(_collect(link, settings, stop, stats, ahead, in_hand))
                 ahead = None
-            following = _evolve_span(session, settings, stop, job, evaluator, stats, inbox)
+            following = _evolve_span(link, settings, stop, job, evaluator, stats, inbox)
             if following is not None:
                 in_hand.append(following)
             continue
@@ -226,25 +249,25 @@ def _serve(
                 robot_steps_per_s=stats.robot_steps_per_s,
                 holding=(job.key,),
             )
-            ahead = _Ahead(_send(session, KEY_JOB_NEXT, encode_message(request), settings), None)
+            ahead = _Ahead(link.get(KEY_JOB_NEXT, encode_message(request)), None)
         result = _evaluate(job, settings.name, evaluator, stats)
         if ahead is not None:
-            in_hand.extend(_collect(session, settings, stop, stats, ahead, in_hand))
+            in_hand.extend(_collect(link, settings, stop, stats, ahead, in_hand))
             ahead = None
         holding = tuple(j.key for j in in_hand)
         if in_hand and not stop.is_set():  # deliver in the background, start the next now
             payload = encode_result(replace(result, want_next=True, holding=holding))
-            ahead = _Ahead(_send(session, KEY_JOB_RESULT, payload, settings), result)
+            ahead = _Ahead(link.get(KEY_JOB_RESULT, payload), result)
             continue
-        following = _deliver(session, settings, stop, result, stats, holding)
+        following = _deliver(link, settings, stop, result, stats, holding)
         if following is not None:
             in_hand.append(following)
     if ahead is not None:
-        _collect(session, settings, stop, stats, ahead, in_hand)
+        _collect(link, settings, stop, stats, ahead, in_hand)
 
 
 def _evolve_span(
-    session: zenoh.Session,
+    link: _Link,
     settings: WorkerSettings,
     stop: threading.Event,
     job: Job,
@@ -267,7 +290,7 @@ def _evolve_span(
     generation evolved twice still counts once.
     """
     config = job.config
-    team = _join_team(session, inbox, job, evaluator)
+    team = _join_team(link.session, inbox, job, evaluator)
     if job.member > 0 and team is None:
         return None  # the leader evaluates this worker's slice itself
     try:
@@ -292,12 +315,12 @@ def _evolve_span(
                 log.warning("%s; leaving its team", error)
                 return None
             failed = Result(job.key, settings.name, error=error, start=job.start, stop=job.stop)
-            return _deliver(session, settings, stop, failed, stats)
+            return _deliver(link, settings, stop, failed, stats)
         ga = _GA(params, spec_layout, state)
         if isinstance(team, Team) and not team.leader:
             _follow(team, job, ga, stop, stats)
             return None
-        return _lead(session, settings, stop, job, evaluator, stats, ga, team)
+        return _lead(link, settings, stop, job, evaluator, stats, ga, team)
     finally:
         if team is not None:
             team.close()
@@ -332,7 +355,7 @@ class _GA:
 
 
 def _lead(
-    session: zenoh.Session,
+    link: _Link,
     settings: WorkerSettings,
     stop: threading.Event,
     job: Job,
@@ -347,7 +370,7 @@ def _lead(
 
     def send(batch: list[Result]) -> None:
         payload = encode_span_results(batch)
-        in_flight.append((batch[0].key, _send(session, KEY_JOB_RESULT, payload, settings)))
+        in_flight.append((batch[0].key, link.get(KEY_JOB_RESULT, payload)))
 
     batch: list[Result] = []
     sent_at = time.monotonic()
@@ -368,7 +391,7 @@ def _lead(
                 if batch:  # the generations before it count (their reply is not needed: the
                     # error's own acknowledgement comes after it); the failed one is retried
                     send(batch)
-                return _deliver(session, settings, stop, result, stats)
+                return _deliver(link, settings, stop, result, stats)
             batch.append(replace(result, digest=digest))
             last = stop.is_set() or offset + 1 == job.span
             if last or len(batch) == SPAN_BATCH_MAX or time.monotonic() - sent_at >= SPAN_SEND_S:
@@ -498,15 +521,8 @@ def _span_acks(in_flight: deque[tuple[JobKey, zenoh.Handler[zenoh.Reply]]], keep
     return True
 
 
-def _send(
-    session: zenoh.Session, key: str, payload: bytes, settings: WorkerSettings
-) -> zenoh.Handler[zenoh.Reply]:
-    """Send a query now; its replies are read later."""
-    return session.get(key, payload=payload, timeout=settings.request_timeout_s)
-
-
 def _collect(
-    session: zenoh.Session,
+    link: _Link,
     settings: WorkerSettings,
     stop: threading.Event,
     stats: WorkerStats,
@@ -521,7 +537,7 @@ def _collect(
         try:
             prefetched = decode_next_reply(reply)
         except InvalidJobError as exc:
-            _reject_job(session, settings, stop, stats, exc)
+            _reject_job(link, settings, stop, stats, exc)
             return []
         except WireError as exc:
             log.warning("dropping malformed reply to a prefetch: %s", exc)
@@ -533,7 +549,7 @@ def _collect(
             ack, job = decode_result_reply(reply)
         except InvalidJobError as exc:
             if exc.ack is not None and exc.ack.key == result.key:
-                _reject_job(session, settings, stop, stats, exc)
+                _reject_job(link, settings, stop, stats, exc)
                 return []
         except WireError:
             pass
@@ -544,12 +560,12 @@ def _collect(
                 return [] if job is None else [job]
     log.info("no acknowledgement for %s; delivering it again", result.key.label())
     holding = tuple(j.key for j in in_hand)
-    following = _deliver(session, settings, stop, result, stats, holding)
+    following = _deliver(link, settings, stop, result, stats, holding)
     return [] if following is None else [following]
 
 
 def _next_job(
-    session: zenoh.Session,
+    link: _Link,
     settings: WorkerSettings,
     host: str,
     stop: threading.Event,
@@ -563,7 +579,7 @@ def _next_job(
         machine=shared.machine(),
         robot_steps_per_s=stats.robot_steps_per_s,
     )
-    reply = _ask(session, KEY_JOB_NEXT, encode_message(request), settings.request_timeout_s)
+    reply = _ask(link, KEY_JOB_NEXT, encode_message(request))
     if reply is None:
         stop.wait(backoff.next())
         return None
@@ -571,7 +587,7 @@ def _next_job(
     try:
         job = decode_next_reply(reply)
     except InvalidJobError as exc:
-        _reject_job(session, settings, stop, stats, exc)
+        _reject_job(link, settings, stop, stats, exc)
         return None
     except WireError as exc:
         log.warning("dropping malformed reply: %s", exc)
@@ -581,7 +597,7 @@ def _next_job(
 
 
 def _reject_job(
-    session: zenoh.Session,
+    link: _Link,
     settings: WorkerSettings,
     stop: threading.Event,
     stats: WorkerStats,
@@ -589,7 +605,7 @@ def _reject_job(
 ) -> None:
     log.warning("rejecting invalid job: %s", exc)
     stats.errors += 1
-    _deliver(session, settings, stop, Result(exc.key, settings.name, error=exc.reason), stats)
+    _deliver(link, settings, stop, Result(exc.key, settings.name, error=exc.reason), stats)
 
 
 def _evaluate(job: Job, name: str, evaluator: Evaluator, stats: WorkerStats) -> Result:
@@ -613,7 +629,7 @@ def _evaluate(job: Job, name: str, evaluator: Evaluator, stats: WorkerStats) -> 
 
 
 def _deliver(
-    session: zenoh.Session,
+    link: _Link,
     settings: WorkerSettings,
     stop: threading.Event,
     result: Result,
@@ -630,7 +646,7 @@ def _deliver(
     while tries_after_stop < 2:
         want_next = not stop.is_set() and not holding
         payload = encode_result(replace(result, want_next=want_next, holding=holding))
-        reply = _ask(session, KEY_JOB_RESULT, payload, settings.request_timeout_s)
+        reply = _ask(link, KEY_JOB_RESULT, payload)
         if reply is not None:
             try:
                 ack, job = decode_result_reply(reply)
@@ -638,7 +654,7 @@ def _deliver(
                 if exc.ack is None or exc.ack.key != result.key:
                     log.warning("malformed acknowledgement for %s: %s", result.key.label(), exc)
                 else:
-                    _reject_job(session, settings, stop, stats, exc)
+                    _reject_job(link, settings, stop, stats, exc)
                     return None
             except WireError as exc:
                 log.warning("malformed acknowledgement for %s: %s", result.key.label(), exc)
@@ -654,9 +670,9 @@ def _deliver(
     return None
 
 
-def _ask(session: zenoh.Session, key: str, payload: bytes, timeout: float) -> bytes | None:
+def _ask(link: _Link, key: str, payload: bytes) -> bytes | None:
     """The first successful reply's payload, or None (no server, timeout, or error reply)."""
-    return _first_ok(session.get(key, payload=payload, timeout=timeout), key)
+    return _first_ok(link.get(key, payload), key)
 
 
 def _first_ok(replies: zenoh.Handler[zenoh.Reply], key: str) -> bytes | None:
