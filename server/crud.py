@@ -65,20 +65,36 @@ def populations(
     query = select(Generation.generation, Generation.population).where(
         Generation.run_id == run_id, Generation.generation.in_(list(generations))
     )
-    return {g: population.decode(data) for g, data in session.execute(query)}
+    found = {}
+    for g, data in session.execute(query):
+        try:
+            found[g] = population.decode(data)
+        except population.PopulationError as exc:
+            raise ServerError(f"run {run_id} generation {g}: stored population: {exc}") from exc
+    return found
 
 
-def ranked(session: Session, *, run_id: int, generation: int) -> tuple[Population, np.ndarray]:
+def ranked(
+    session: Session, *, run_id: int, generation: int, rank: int | None = None
+) -> tuple[Population, np.ndarray]:
     """A committed generation by rank, fittest first, with its (n, weights) genomes in rank
-    order (a copy's bytes read from the generation that holds them)."""
+    order (a copy's bytes read from the generation that holds them); with `rank`, (1, weights)
+    that rank's genome only (NotFoundError if the generation has no such rank)."""
     found = populations(session, run_id=run_id, generations=[generation]).get(generation)
     if found is None:
         raise NotFoundError(f"run {run_id} has no committed generation {generation}")
     if not len(found):
         raise NotFoundError(f"run {run_id} generation {generation} has no individuals")
+    if rank is not None and not 0 <= rank < len(found):
+        raise NotFoundError(
+            f"run {run_id} generation {generation} has no individual of rank {rank}"
+        )
     try:
         genomes = population.resolve(
-            generation, found, lambda gs: populations(session, run_id=run_id, generations=gs)
+            generation,
+            found,
+            lambda gs: populations(session, run_id=run_id, generations=gs),
+            None if rank is None else [rank],
         )
     except population.PopulationError as exc:
         raise ServerError(f"run {run_id}: {exc}") from exc

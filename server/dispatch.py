@@ -114,8 +114,8 @@ class JobSource(Protocol):
 
     def flush(self) -> float | None:
         """Do deferred work now that every reply is out (called when no message is waiting);
-        if it raises, it is called again within a second. Returns when to call it again for
-        work it put off (a clock time), None when none waits."""
+        if it raises, it is called again within a second. Returns in how many seconds to call
+        it again for work it put off (None: none waits), so the source keeps its own clock."""
 
 
 @runtime_checkable
@@ -440,7 +440,8 @@ class Dispatcher:
             self._flush_at = None
             self._flushed_at = self._clock()
             try:
-                self._flush_at = self._source.flush()
+                delay = self._source.flush()
+                self._flush_at = None if delay is None else self._clock() + delay
             except Exception:  # e.g. the database is down: retried within a second
                 log.exception("deferred job-source work failed; retrying later")
                 self._flush_at = self._clock() + 1.0
@@ -972,8 +973,9 @@ class QueueSource:
 
     def flush(self) -> float | None:
         """Write the generations told since the last write (after their successors' jobs went
-        out: workers evaluate g + 1 while g is written) once the oldest has waited
-        `WRITE_AFTER_S`, or at once if one finishes its run; else when that falls due."""
+        out: workers evaluate g + 1 while g is written) once they have waited `WRITE_AFTER_S`
+        since the first call that found them, or at once if one finishes its run; else the
+        seconds until then."""
         if not self._queue.unwritten():  # none, or written meanwhile (housekeeping, lifecycle)
             self._told_at = None
             return None
@@ -982,7 +984,7 @@ class QueueSource:
             self._told_at = now
         due = self._told_at + WRITE_AFTER_S
         if due > now and not self._queue.finishing():
-            return due
+            return due - now
         self._told_at = None
         self._queue.flush()
         return None

@@ -637,10 +637,10 @@ class RunManager:
         latest = crud.latest_generation(session, run_id=run.id)
         if latest is None:
             return None
-        found, genomes = crud.ranked(session, run_id=run.id, generation=latest.generation)
+        found, genomes = crud.ranked(session, run_id=run.id, generation=latest.generation, rank=0)
         document = best_document(
             config,
-            genomes[:1],
+            genomes,
             found.fitness[:1],
             np.array([0]),
             generation=latest.generation,

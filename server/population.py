@@ -2,7 +2,7 @@
 
 One row per generation instead of one per individual: at the paper's scale the store's
 per-row work, not its bytes, was most of the server's recording (docs/protocol.md, "Ninth
-session"). The frame (`schemas.wire`: raw arrays, self-describing, no pickle) holds, by rank
+session" and "Tenth session"). The frame (`schemas.wire`: raw arrays, self-describing, no pickle) holds, by rank
 (0 = fittest):
 
 - `index` (n,) int32: position in the population as asked (the job slices cut this order);
@@ -17,16 +17,25 @@ session"). The frame (`schemas.wire`: raw arrays, self-describing, no pickle) ho
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.wire import decode_frame, encode_frame
+from schemas.wire import WireError, decode_frame, encode_frame
 
 KIND = "population"
 _INT = np.dtype("<i4")
 _FLOAT = np.dtype("<f8")
+_KINDS = {
+    "index": "i",
+    "parent": "i",
+    "fitness": "f",
+    "components": "f",
+    "genome_at": "i",
+    "genomes": "f",
+}
+"""numpy dtype kind of each array (integers, floats)."""
 
 
 class PopulationError(ValueError):
@@ -72,8 +81,12 @@ def encode(population: Population) -> bytes:
 
 
 def decode(data: bytes) -> Population:
-    """Inverse of `encode`; PopulationError if the frame is not a population."""
-    header, arrays = decode_frame(bytes(data))
+    """Inverse of `encode`; PopulationError if the frame is not a population this module
+    wrote (kind, names, dtypes and shapes)."""
+    try:
+        header, arrays = decode_frame(bytes(data))
+    except WireError as exc:
+        raise PopulationError(f"not a frame: {exc}") from None
     if header.get("kind") != KIND:
         raise PopulationError(f"frame of kind {header.get('kind')!r}, expected {KIND!r}")
     try:
@@ -87,19 +100,32 @@ def decode(data: bytes) -> Population:
         )
     except KeyError as exc:
         raise PopulationError(f"population frame lacks array {exc}") from None
-    n = len(population.index)
-    shapes = (population.parent.shape, population.fitness.shape, population.genome_at.shape)
-    if shapes != ((n,), (n,), (n, 2)) or population.components.shape[:1] != (n,):
-        raise PopulationError(f"population frame of {n} individuals has arrays {shapes}")
+    n = len(population.index) if population.index.ndim == 1 else -1
+    shapes = {name: getattr(population, name).shape for name in _KINDS}
+    expected = {"index": (n,), "parent": (n,), "fitness": (n,), "genome_at": (n, 2)}
+    if (
+        any(shapes[name] != shape for name, shape in expected.items())
+        or population.components.ndim != 3
+        or population.components.shape[::2] != (n, 4)
+        or population.genomes.ndim != 2
+    ):
+        raise PopulationError(f"population frame has arrays of shapes {shapes}")
+    for name, kind in _KINDS.items():
+        if getattr(population, name).dtype.kind != kind:
+            raise PopulationError(f"population array {name!r} is not of kind {kind!r}")
     return population
 
 
 def resolve(
-    generation: int, population: Population, load: Callable[[Iterable[int]], dict[int, Population]]
+    generation: int,
+    population: Population,
+    load: Callable[[Iterable[int]], dict[int, Population]],
+    ranks: Sequence[int] | None = None,
 ) -> np.ndarray:
-    """(n, weights) the genomes of `population` (generation `generation`) in rank order,
-    a copy's bytes read from the generation that holds them (`load` gives those by number)."""
-    at = population.genome_at
+    """(k, weights) the genomes of `population` (generation `generation`) of `ranks` (all, in
+    rank order, by default), a copy's bytes read from the generation that holds them (`load`
+    gives those by number; only the generations the ranks need are loaded)."""
+    at = population.genome_at if ranks is None else population.genome_at[np.asarray(ranks, int)]
     wanted = {int(g) for g in np.unique(at[:, 0])} - {generation}
     holders = {generation: population, **(load(sorted(wanted)) if wanted else {})}
     missing = wanted - holders.keys()
@@ -108,11 +134,17 @@ def resolve(
             f"generation {generation} points to genome bytes in generations {sorted(missing)}, "
             "which are not stored"
         )
-    out = np.empty((len(population), population.genomes.shape[1]), dtype=population.genomes.dtype)
+    width, dtype = population.genomes.shape[1], population.genomes.dtype
+    out = np.empty((len(at), width), dtype=dtype)
     for g in holders:
         mine = at[:, 0] == g
         rows = at[mine, 1]
         source = holders[g].genomes
+        if source.shape[1] != width or source.dtype != dtype:
+            raise PopulationError(
+                f"generation {generation}'s genomes are {width} x {dtype}, generation {g}'s "
+                f"{source.shape[1]} x {source.dtype}"
+            )
         if len(rows) and (rows.max() >= len(source) or rows.min() < 0):
             raise PopulationError(f"generation {generation} points past generation {g}'s genomes")
         out[mine] = source[rows]

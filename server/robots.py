@@ -596,13 +596,11 @@ def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
     latest = crud.latest_generation(db, run_id=run_id)
     if run is None or latest is None:
         raise NotFoundError(f"run {run_id} has no completed generation yet")
-    found, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation)
-    if not 0 <= rank < len(found):
-        raise NotFoundError(f"run {run_id} has no individual of rank {rank}")
+    found, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation, rank=rank)
     config = RunConfig.model_validate_json(run.config)
     doc = ControllerDocument(
         spec=config.network_spec,
-        weights=genomes[rank],
+        weights=genomes[0],
         fitness=found.fitness_of(rank),
         provenance={
             "seed": config.seed,

@@ -111,9 +111,10 @@ class MemorySource:
         self.pending.insert(0, key.index)
         self._changed()
 
-    def flush(self) -> None:
+    def flush(self) -> float | None:
         self.flushes += 1
         self._changed()
+        return None
 
     def _changed(self) -> None:
         with self.changed:
@@ -205,6 +206,30 @@ def test_two_workers_finish_a_generation_exactly_once() -> None:
     assert set(statuses) == {"alpha", "beta"}
     assert all(w.state in ("idle", "busy") and w.host for w in statuses.values())
     assert all(w.robot_steps_per_s for w in statuses.values() if w.jobs_done)
+
+
+class PuttingOff(MemorySource):
+    """Puts its deferred work off once, by `delay` seconds; records when flush is called."""
+
+    def __init__(self, delay: float) -> None:
+        super().__init__()
+        self.delay: float | None = delay
+        self.calls: list[float] = []
+
+    def flush(self) -> float | None:
+        self.calls.append(time.monotonic())
+        delay, self.delay = self.delay, None
+        self._changed()
+        return delay
+
+
+def test_work_a_source_puts_off_is_done_when_it_says_with_no_message_meanwhile() -> None:
+    """`flush` returns seconds on the source's own clock; the dispatcher wakes up for it."""
+    source = PuttingOff(0.2)
+    with Dispatcher(dispatch_settings(free_port()), source) as dispatcher:
+        dispatcher.notify()  # one event, then none: only the deadline wakes it again
+        assert source.wait_for(lambda: len(source.calls) >= 2)
+    assert 0.2 <= source.calls[1] - source.calls[0] <= 2.0
 
 
 def test_malformed_messages_are_dropped_and_serving_goes_on() -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +24,11 @@ from evorobotics.evolution import evaluate_population, evolve
 from evorobotics.ga import GAParams, ask, ga_rng, init, lineage, tell
 from evorobotics.layout import layout
 from schemas.run import GAConfig, RunConfig
-from schemas.wire import decode_frame
+from schemas.wire import decode_frame, encode_frame
 from server import crud
 from server.db import Checkpointer, alembic_config, make_engine, upgrade
 from server.dispatch import WRITE_AFTER_S, QueueSource
+from server.errors import NotFoundError, ServerError
 from server.jobs import JobKey, JobResult
 from server.manager import (
     RunManager,
@@ -37,6 +38,7 @@ from server.manager import (
     encode_state,
     stored_ranked,
 )
+from server.models import Generation
 from server.population import Population, PopulationError, decode, encode, resolve
 from server.robots import ranked_document
 from server.settings import Settings
@@ -154,21 +156,68 @@ def test_a_population_frame_round_trips_bits_and_resolves_copies(
     if n and not all(own):
         with pytest.raises(PopulationError, match="not stored"):
             resolve(5, back, lambda gs: {})
+    some = data.draw(st.lists(st.integers(0, max(n - 1, 0)), max_size=n))
+    asked: list[list[int]] = []
+
+    def load(gs: Iterable[int]) -> dict[int, Population]:
+        asked.append(list(gs))
+        return {g: holders[g] for g in gs if g in holders}
+
+    assert resolve(5, back, load, some).tobytes() == resolved[some].tobytes()
+    assert asked == ([[2]] if any(not own[r] for r in some) else [])  # only what they need
 
 
-def test_a_frame_of_another_kind_or_shape_is_refused() -> None:
+def test_a_frame_of_another_kind_shape_or_dtype_is_refused() -> None:
     with pytest.raises(PopulationError, match="kind"):
         decode(encode_state(init(layout(SMALL.network_spec), GAParams.from_config(SMALL))))
-    bad = Population(
+    with pytest.raises(PopulationError, match="not a frame"):
+        decode(b"EVC1 garbage")
+    good = Population(
         index=np.arange(3),
-        parent=np.arange(2),
+        parent=np.arange(3),
         fitness=np.zeros(3),
         components=np.zeros((3, 1, 4)),
-        genome_at=np.zeros((3, 2)),
-        genomes=np.zeros((0, 2)),
+        genome_at=np.zeros((3, 2), dtype=np.int64),
+        genomes=np.zeros((1, 2)),
     )
-    with pytest.raises(PopulationError, match="3 individuals"):
-        decode(encode(bad))
+    assert len(decode(encode(good))) == 3
+    for name, value in [
+        ("parent", np.arange(2)),
+        ("components", np.zeros((3, 4))),
+        ("genome_at", np.zeros(3, dtype=np.int64)),
+        ("genomes", np.zeros(2)),
+    ]:
+        with pytest.raises(PopulationError, match="shapes"):
+            decode(encode(dataclasses.replace(good, **{name: value})))
+    arrays = {name: getattr(good, name) for name in ("index", "parent", "fitness", "components")}
+    floats = encode_frame(  # `encode` casts: a frame written otherwise
+        {"kind": "population"}, {**arrays, "genome_at": np.zeros((3, 2)), "genomes": good.genomes}
+    )
+    with pytest.raises(PopulationError, match="'genome_at' is not of kind 'i'"):
+        decode(floats)
+    narrow = dataclasses.replace(good, genome_at=np.array([[1, 0], [1, 0], [0, 0]]))
+    with pytest.raises(PopulationError, match="2 x float64, generation 0's 3 x float64"):
+        resolve(1, narrow, lambda gs: {0: dataclasses.replace(good, genomes=np.zeros((1, 3)))})
+
+
+def test_a_damaged_stored_population_is_a_server_error_with_its_place(
+    manager: RunManager,
+) -> None:
+    run_id = manager.create_run(SMALL)
+    for _ in range(3):
+        done = _evaluate(manager, "w", 0.0)
+        assert done is not None
+        manager.queue.complete(*done)
+    with manager.sessions.begin() as session:
+        session.execute(
+            sa.update(Generation)
+            .where(Generation.run_id == run_id, Generation.generation == 0)
+            .values(population=b"EVC1 truncated")
+        )
+    with manager.sessions() as session, pytest.raises(ServerError) as caught:
+        crud.ranked(session, run_id=run_id, generation=0)
+    assert "run 1 generation 0: stored population: not a frame" in str(caught.value)
+    assert not isinstance(caught.value, NotFoundError)
 
 
 @settings(max_examples=10, deadline=None)
@@ -461,10 +510,10 @@ def test_the_dispatcher_source_writes_told_generations_together(manager: RunMana
             return run.generation
 
     tell_one()
-    assert source.flush() == pytest.approx(10.0 + WRITE_AFTER_S)
+    assert source.flush() == pytest.approx(WRITE_AFTER_S)  # seconds to wait
     clock[0] += WRITE_AFTER_S / 2
     tell_one()
-    assert source.flush() == pytest.approx(10.0 + WRITE_AFTER_S)  # the oldest sets the time
+    assert source.flush() == pytest.approx(WRITE_AFTER_S / 2)  # the oldest sets the time
     assert (manager.queue.unwritten(), written()) == (2, 0)
     clock[0] = 10.0 + WRITE_AFTER_S
     assert source.flush() is None
@@ -896,6 +945,38 @@ def test_a_database_of_the_old_layout_upgrades_reads_back_and_resumes(tmp_path: 
                 (g,),
             ).all()
             assert b"".join(row[0] for row in rows) == ranked.tobytes()
+    engine.dispose()
+
+
+def test_the_upgrade_names_a_copy_without_bytes_and_runs_again_once_it_is_repaired(
+    tmp_path: Path,
+) -> None:
+    """A damaged 0005 store (a copy whose origin holds no bytes) stops the upgrade with the
+    run, generation and rank; once repaired, the upgrade runs again (SQLite kept the column
+    it added) and a generation left without individuals converts to an empty population."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
+    cfg = alembic_config(engine)
+    command.upgrade(cfg, "0004_drop_jobs")
+    _write_old_layout(engine, COPIES, generations=3)
+    command.upgrade(cfg, "0005_genome_origin")
+    with engine.begin() as conn:
+        conn.exec_driver_sql(
+            "UPDATE individuals SET genome = NULL, origin_generation = 0, origin_rank = 99"
+            " WHERE run_id = 1 AND generation = 2 AND rank = 5"
+        )
+    with pytest.raises(RuntimeError, match="run 1 generation 2 rank 5: no genome bytes"):
+        upgrade(engine)
+    with engine.begin() as conn:  # the repair: that generation's rows go
+        conn.exec_driver_sql("DELETE FROM individuals WHERE run_id = 1 AND generation = 2")
+    upgrade(engine)
+    expected = _local_ranked(COPIES)
+    with Session(engine) as session:
+        stored = crud.populations(session, run_id=1, generations=range(3))
+        assert len(stored[2]) == 0 and stored[2].genomes.shape == (0, 0)
+        for g in (0, 1):
+            assert stored_ranked(session, run_id=1, generation=g).tobytes() == expected[g].tobytes()
+        with pytest.raises(NotFoundError, match="generation 2 has no individuals"):
+            crud.ranked(session, run_id=1, generation=2)
     engine.dispose()
 
 

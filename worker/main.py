@@ -163,12 +163,14 @@ def run_worker(
         try:
             inbox = Inbox(session, settings.name)
             token = session.liveliness().declare_token(worker_key(settings.name))
-            link = _Link(session, settings.request_timeout_s)
             try:
-                log.info("worker %s connected to %s", settings.name, settings.connect)
-                _serve(link, settings, host, stop, evaluator, stats, backoff, inbox)
+                link = _Link(session, settings.request_timeout_s)
+                try:
+                    log.info("worker %s connected to %s", settings.name, settings.connect)
+                    _serve(link, settings, host, stop, evaluator, stats, backoff, inbox)
+                finally:
+                    link.close()
             finally:
-                link.close()
                 token.undeclare()  # type: ignore[no-untyped-call]
                 inbox.close()
         finally:

@@ -43,9 +43,11 @@ def _generations(conn: sa.Connection) -> list[tuple[int, int]]:
 
 
 def upgrade() -> None:
-    with op.batch_alter_table("generations") as batch:
-        batch.add_column(sa.Column("population", sa.LargeBinary(), nullable=True))
     conn = op.get_bind()
+    columns = {c["name"] for c in sa.inspect(conn).get_columns("generations")}
+    if "population" not in columns:  # present if an earlier attempt stopped after adding it
+        with op.batch_alter_table("generations") as batch:
+            batch.add_column(sa.Column("population", sa.LargeBinary(), nullable=True))
     read = sa.text(
         'SELECT rank, "index", parent, fitness, components, genome, dtype, shape,'
         " origin_generation, origin_rank FROM individuals"
@@ -70,8 +72,15 @@ def upgrade() -> None:
                 slots[(g, row.rank)] = (g, len(genomes))
                 genome_at.append((g, len(genomes)))
                 genomes.append(bytes(row.genome))
-            else:
-                genome_at.append(slots[(row.origin_generation, row.origin_rank)])
+                continue
+            origin = slots.get((row.origin_generation, row.origin_rank))
+            if origin is None:
+                raise RuntimeError(
+                    f"run {run} generation {g} rank {row.rank}: no genome bytes, and its origin "
+                    f"(generation {row.origin_generation}, rank {row.origin_rank}) holds none; "
+                    "the individuals table is damaged; repair it and upgrade again"
+                )
+            genome_at.append(origin)
         frame = encode_frame(
             {"kind": "population"},
             {
@@ -88,13 +97,15 @@ def upgrade() -> None:
                 if rows
                 else np.zeros((0, 0, 4), _F8),
                 "genome_at": np.array(genome_at, dtype=_I4).reshape(-1, 2),
-                "genomes": np.frombuffer(b"".join(genomes), np.dtype(dtype)).reshape(-1, width),
+                "genomes": np.frombuffer(b"".join(genomes), np.dtype(dtype)).reshape(
+                    len(genomes), width
+                ),
             },
         )
         conn.execute(write, {"population": frame, "run": run, "g": g})
+    op.drop_table("individuals")  # first: SQLite's batch below copies `generations` whole
     with op.batch_alter_table("generations") as batch:
         batch.alter_column("population", existing_type=sa.LargeBinary(), nullable=False)
-    op.drop_table("individuals")
 
 
 def downgrade() -> None:
