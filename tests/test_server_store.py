@@ -203,11 +203,7 @@ def test_a_frame_of_another_kind_shape_or_dtype_is_refused() -> None:
 def test_a_damaged_stored_population_is_a_server_error_with_its_place(
     manager: RunManager,
 ) -> None:
-    run_id = manager.create_run(SMALL)
-    for _ in range(3):
-        done = _evaluate(manager, "w", 0.0)
-        assert done is not None
-        manager.queue.complete(*done)
+    run_id = _first_generation_written(manager)
     with manager.sessions.begin() as session:
         session.execute(
             sa.update(Generation)
@@ -255,6 +251,16 @@ def _evaluate(manager: RunManager, worker: str, now: float) -> tuple[JobKey, Job
         return None
     ev = evaluate(job.config, job.key.generation, job.genomes)
     return job.key, JobResult(ev.fitness, ev.components)
+
+
+def _first_generation_written(manager: RunManager) -> int:
+    """A SMALL run with its generation 0 evaluated (its 3 jobs) and written; its id."""
+    run_id = manager.create_run(SMALL)
+    for _ in range(3):
+        done = _evaluate(manager, "w", 0.0)
+        assert done is not None
+        manager.queue.complete(*done)
+    return run_id
 
 
 def test_a_job_sizer_cuts_later_generations_and_the_run_matches_evolve(
@@ -444,11 +450,7 @@ def test_results_after_cancel_are_dropped(manager: RunManager) -> None:
 def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(
     manager: RunManager,
 ) -> None:
-    run_id = manager.create_run(SMALL)
-    for _ in range(3):
-        item = _evaluate(manager, "w", 0.0)
-        assert item is not None
-        manager.queue.complete(*item)
+    run_id = _first_generation_written(manager)
     with manager.sessions() as session:
         stored = crud.get_generation(session, run_id=run_id, generation=0)
         assert stored is not None
