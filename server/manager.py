@@ -183,8 +183,12 @@ def _read_origins(session: Session, run_id: int, generation: int, n: int) -> _Or
     if mine is not None and len(mine) == n:
         generations[:], rows[:] = mine.genome_at[:, 0], mine.genome_at[:, 1]
     before = found.get(generation - 1)
-    elite = _NO_ORIGIN if before is None or not len(before) else tuple(before.genome_at[0].tolist())
-    return _Origins(generation, generations, rows, (int(elite[0]), int(elite[1])))
+    elite = (
+        (int(before.genome_at[0, 0]), int(before.genome_at[0, 1]))
+        if before is not None and len(before)
+        else _NO_ORIGIN
+    )
+    return _Origins(generation, generations, rows, elite)
 
 
 def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -149,7 +149,13 @@ def test_a_population_frame_round_trips_bits_and_resolves_copies(
             == getattr(stored, name).astype(getattr(back, name).dtype).tobytes()
         ), name
     holders = {2: dataclasses.replace(stored, genomes=earlier)}
-    resolved = resolve(5, back, lambda gs: {g: holders[g] for g in gs if g in holders})
+    asked: list[list[int]] = []
+
+    def load(gs: Iterable[int]) -> dict[int, Population]:
+        asked.append(list(gs))
+        return {g: holders[g] for g in gs if g in holders}
+
+    resolved = resolve(5, back, load)
     for rank, (g, row) in enumerate(genome_at.tolist()):
         source = genomes if g == 5 else earlier
         assert resolved[rank].tobytes() == source[row].tobytes()
@@ -157,12 +163,7 @@ def test_a_population_frame_round_trips_bits_and_resolves_copies(
         with pytest.raises(PopulationError, match="not stored"):
             resolve(5, back, lambda gs: {})
     some = data.draw(st.lists(st.integers(0, max(n - 1, 0)), max_size=n))
-    asked: list[list[int]] = []
-
-    def load(gs: Iterable[int]) -> dict[int, Population]:
-        asked.append(list(gs))
-        return {g: holders[g] for g in gs if g in holders}
-
+    asked.clear()
     assert resolve(5, back, load, some).tobytes() == resolved[some].tobytes()
     assert asked == ([[2]] if any(not own[r] for r in some) else [])  # only what they need
 
