@@ -346,7 +346,8 @@ def test_bad_robot_liveliness_names_are_ignored(
 @settings(max_examples=3, deadline=None)
 @given(junk=st.lists(garbage, min_size=1, max_size=6))
 def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) -> None:
-    """A hand-made server answers the worker's requests and results with garbage first."""
+    """A hand-made server answers the worker's requests and results with garbage first. A
+    mutated job that still parses as one is reported back as an invalid job, not evaluated."""
     port = free_port()
     job = _job()
     next_junk, result_junk = list(junk), list(junk)
@@ -372,6 +373,11 @@ def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) ->
         try:
             with worker_thread(port, "fuzzed", fake_evaluator):
                 result = delivered.get(timeout=WAIT)
+                rejected = 0
+                while result.error is not None:  # a mutated job that kept its key: reported
+                    rejected += 1
+                    assert rejected <= len(junk)
+                    result = delivered.get(timeout=WAIT)
         finally:
             nxt.undeclare()  # type: ignore[no-untyped-call]
             res.undeclare()  # type: ignore[no-untyped-call]
