@@ -14,12 +14,32 @@ follow the paper with two documented shifts (see docs/science.md):
 
 from __future__ import annotations
 
+import functools
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 MAX_WEIGHTS = 1_000_000
 """Upper bound on a network's weight count, so no config can exhaust memory."""
+
+
+def _source(layers: int, m: int, s: int) -> int | None:
+    src = m - 1 + s
+    return src if src <= layers else None
+
+
+@functools.lru_cache(maxsize=256)
+def _weight_count(sizes: tuple[int, ...], recurrence: int, delays: int) -> int:
+    """Computed once per shape (every job's genomes are checked against it); not a cached
+    property, which `model_copy(update=...)` would carry over to another shape."""
+    layers = len(sizes) - 1
+    per_lag = 0
+    for m in range(1, layers + 1):
+        for s in range(recurrence + 1):
+            src = _source(layers, m, s)
+            if src is not None:
+                per_lag += sizes[m] * (sizes[src] + 1)
+    return per_lag * (delays + 1)
 
 
 class NetworkSpec(BaseModel):
@@ -63,20 +83,12 @@ class NetworkSpec(BaseModel):
 
     def source(self, m: int, s: int) -> int | None:
         """Layer feeding layer m at source level s, or None where it does not exist."""
-        src = m - 1 + s
-        return src if src <= self.layers else None
+        return _source(self.layers, m, s)
 
     @property
     def weight_count(self) -> int:
         """Length of the chromosome: every sub-matrix W[m,t,s] with its bias column."""
-        sizes = self.sizes
-        per_lag = 0
-        for m in range(1, self.layers + 1):
-            for s in range(self.recurrence + 1):
-                src = self.source(m, s)
-                if src is not None:
-                    per_lag += sizes[m] * (sizes[src] + 1)
-        return per_lag * (self.delays + 1)
+        return _weight_count(self.sizes, self.recurrence, self.delays)
 
 
 PRESETS: dict[str, NetworkSpec] = {

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import struct
 from dataclasses import replace
 
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 
 from schemas.run import RunConfig
 from schemas.wire import (
+    ERROR_MAX,
     Ack,
     Idle,
     InvalidJobError,
@@ -116,6 +118,19 @@ def test_result_and_control_round_trips() -> None:
     ack = Ack(key=KEY, accepted=False, reason="late")
     assert decode_ack(encode_message(ack)) == ack
     assert decode_next_reply(encode_message(Idle())) == Idle()
+    asking = decode_result(encode_result(held.asking(True, (KEY,))))
+    assert asking.want_next and asking.holding == (KEY,) and asking.fitness is not None
+
+
+def test_a_result_cuts_a_huge_error_and_refuses_non_finite_timings() -> None:
+    """An exception's text of any length still reaches the server (cut to what it accepts);
+    a NaN speed or time would be written as null, which the server refuses: caught here."""
+    huge = decode_result(encode_result(Result(KEY, "w-1", error="x" * (ERROR_MAX + 10))))
+    assert huge.error is not None and len(huge.error) == ERROR_MAX
+    assert huge.error.startswith("x" * 100) and huge.error.endswith("\u2026")
+    for speed, seconds in ((math.nan, 0.0), (0.0, math.inf), (-1.0, 0.0)):
+        with pytest.raises(WireError, match="finite"):
+            Result(KEY, "w-1", error="boom", robot_steps_per_s=speed, seconds=seconds)
 
 
 @pytest.mark.parametrize(

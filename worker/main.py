@@ -258,7 +258,7 @@ def _serve(
             ahead = None
         holding = tuple(j.key for j in in_hand)
         if in_hand and not stop.is_set():  # deliver in the background, start the next now
-            payload = encode_result(replace(result, want_next=True, holding=holding))
+            payload = encode_result(result.asking(True, holding))
             ahead = _Ahead(link.get(KEY_JOB_RESULT, payload), result)
             continue
         following = _deliver(link, settings, stop, result, stats, holding)
@@ -647,7 +647,7 @@ def _deliver(
     tries_after_stop = 0
     while tries_after_stop < 2:
         want_next = not stop.is_set() and not holding
-        payload = encode_result(replace(result, want_next=want_next, holding=holding))
+        payload = encode_result(result.asking(want_next, holding))
         reply = _ask(link, KEY_JOB_RESULT, payload)
         if reply is not None:
             try:
