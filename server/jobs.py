@@ -513,6 +513,11 @@ class JobQueue:
             if jobs is not None:
                 jobs.running = False
 
+    def stalled(self) -> bool:
+        """Whether a refused write stopped a run (the housekeeper retries it until it is in)."""
+        with self._lock:
+            return bool(self._write_failures)
+
     def write_failures(self) -> dict[int, str]:
         """Runs stopped by a refused write (run id -> why), once every generation is written;
         empty while a write is still outstanding."""

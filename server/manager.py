@@ -262,6 +262,8 @@ class RunManager:
     def settle_write_failures(self) -> None:
         """Retry the writes the store refused; once they are in, pause the runs they stopped
         with the reason in `error`, so an operator sees it and resumes (nothing is lost)."""
+        if not self.queue.stalled():  # told generations wait for the dispatcher's batch
+            return
         with self._lock:
             if self.queue.unwritten():
                 try:
