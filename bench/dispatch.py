@@ -1,7 +1,9 @@
 """Dispatch throughput and distributed wall time (prints figures; no assertions).
 
 1. jobs/s through a real Dispatcher with empty jobs (an endless in-memory source, workers in
-   spawned processes whose evaluator returns zeros): the transport's ceiling.
+   spawned processes whose evaluator returns zeros): the transport's ceiling; and what one
+   such job's messages cost to build and read on each side, in one process, caches warm (the
+   part of the per-job CPU that is this project's Python, not zenoh's).
 2. `colony evolve` alone and two side by side: how much two processes get from the cores.
 3. The paper's experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
    zenoh on loopback, two local worker processes), against `evolve` in this process, with the
@@ -39,7 +41,16 @@ from typing import Any
 import numpy as np
 
 from schemas.run import RunConfig
-from schemas.wire import Job, JobKey, Result
+from schemas.wire import (
+    Ack,
+    Job,
+    JobKey,
+    Result,
+    decode_result_reply,
+    decode_results,
+    encode_job,
+    encode_result,
+)
 from server.dispatch import Dispatcher, DispatchSettings
 from worker.main import WorkerSettings, run_worker
 
@@ -126,6 +137,41 @@ def bench_throughput(seconds: float, workers: int) -> None:
     print(
         f"empty jobs: {done / elapsed:8.0f} jobs/s ({done} jobs in {elapsed:.2f} s, "
         f"{workers} worker processes, load average {os.getloadavg()[0]:.2f})"
+    )
+
+
+def bench_codec(rounds: int = 20_000) -> None:
+    """Build and read one empty job's messages `rounds` times on each side (best of three)."""
+    source = EndlessSource()
+    job = source.lease("bench-0")
+    fitness, components = zeros(job.config, 0, job.genomes)
+
+    def server_side() -> None:  # read a result, lease the next job, send it with the Ack
+        decode_results(delivered)
+        following = source.lease("bench-0")
+        encode_job(following.leased(10.0, True), Ack(key=following.key, accepted=True))
+
+    def worker_side() -> None:  # read the job, report its result asking for the next
+        decode_result_reply(reply)
+        result = Result(job.key, "bench-0", fitness, components, 1e5, 1e-4, start=0, stop=4)
+        encode_result(result.asking(True, ()))
+
+    delivered = encode_result(
+        Result(job.key, "bench-0", fitness, components, 1e5, 1e-4, want_next=True, start=0, stop=4)
+    )
+    reply = encode_job(job.leased(10.0, True), Ack(key=job.key, accepted=True))
+    costs = []
+    for side in (server_side, worker_side):
+        best = float("inf")
+        for _ in range(3):
+            began = time.perf_counter()
+            for _ in range(rounds):
+                side()
+            best = min(best, (time.perf_counter() - began) / rounds)
+        costs.append(best * 1e6)
+    print(
+        f"  codec per empty job, one process, caches warm: server {costs[0]:.1f} us (read the "
+        f"result, lease, write the job), worker {costs[1]:.1f} us (read the job, write the result)"
     )
 
 
@@ -344,6 +390,7 @@ def main() -> None:
         ]
     if args.only != "paper":
         bench_throughput(args.seconds, args.workers)
+        bench_codec()
     if args.only != "throughput":
         bench_capacity(RunConfig(generations=args.generations, steps=args.steps))
         bench_paper(

@@ -19,7 +19,6 @@ Hierarchy:
 
 from __future__ import annotations
 
-import copy
 import math
 import re
 import struct
@@ -306,15 +305,23 @@ class Job:
         validated again (the server sends every job this way; its genomes were checked once)."""
         if not (lease_s > 0.0 and math.isfinite(lease_s)):
             raise ValueError(f"lease_s must be a finite number > 0, got {lease_s}")
-        job = copy.copy(self)
-        object.__setattr__(job, "lease_s", lease_s)
-        object.__setattr__(job, "more", more)
-        return job
+        return _altered(self, lease_s=lease_s, more=more)
 
     @property
     def robot_steps(self) -> int:
         """Robot-steps this job simulates: individuals x trials x steps."""
         return (self.stop - self.start) * self.config.trials * self.config.steps
+
+
+_T = TypeVar("_T")
+
+
+def _altered(item: _T, **changes: Any) -> _T:
+    """A copy of the frozen dataclass `item` with `changes`, not validated again (a sixth of
+    `dataclasses.replace`'s time, two thirds of `copy.copy`'s): for fields that need no check."""
+    altered = object.__new__(type(item))
+    altered.__dict__.update(item.__dict__, **changes)
+    return altered
 
 
 def check_job(key: JobKey, start: int, stop: int, config: RunConfig, genomes: np.ndarray) -> None:
@@ -554,10 +561,7 @@ class Result:
     def asking(self, want_next: bool, holding: tuple[JobKey, ...]) -> Result:
         """This result as delivered: only `want_next` and `holding` differ, so it is not
         validated again (a worker sends every result this way; its arrays were checked once)."""
-        result = copy.copy(self)
-        object.__setattr__(result, "want_next", want_next)
-        object.__setattr__(result, "holding", holding)
-        return result
+        return _altered(self, want_next=want_next, holding=holding)
 
 
 def encode_result(result: Result) -> bytes:
