@@ -10,7 +10,7 @@
    best controllers compared, and the CPU seconds each side used: what the machine's cores
    must run for the distributed run, against what `colony evolve` runs on one.
 
-    .venv/bin/python bench/dispatch.py [--seconds 5] [--workers 2] [--generations 350]
+    .venv/bin/python bench/dispatch.py [--seconds 5] [--windows 3] [--workers 2] [--generations 350]
         [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS] [--team-slice SECONDS]
         [--shared-slice SECONDS] [--only throughput|paper]
 
@@ -121,22 +121,35 @@ def stop_workers(procs: list[mp.process.BaseProcess], stop: threading.Event) -> 
         p.join(timeout=30)
 
 
-def bench_throughput(seconds: float, workers: int) -> None:
+def bench_throughput(seconds: float, workers: int, windows: int) -> None:
+    """Empty jobs through the dispatcher over `windows` consecutive windows of `seconds` on the
+    same workers (this VM's speed moves by 15 % within a minute), with each side's CPU."""
     ctx = mp.get_context("spawn")
     port = free_port()
     source = EndlessSource()
+    rates: list[float] = []
+    server_us: list[float] = []
+    workers_us: list[float] = []
     with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), source):
         procs, stop = start_workers(ctx, port, workers, empty=True)
+        pids = [p.pid for p in procs if p.pid is not None]
         warm = threading.Event()
         while source.completed < 50:
             warm.wait(0.05)
-        before, began = source.completed, time.perf_counter()
-        warm.wait(seconds)
-        done, elapsed = source.completed - before, time.perf_counter() - began
+        for _ in range(windows):
+            before, began = source.completed, time.perf_counter()
+            server_before, workers_before = time.process_time(), _cpu_seconds(pids)
+            warm.wait(seconds)
+            done, elapsed = source.completed - before, time.perf_counter() - began
+            rates.append(done / elapsed)
+            server_us.append((time.process_time() - server_before) / done * 1e6)
+            workers_us.append((_cpu_seconds(pids) - workers_before) / done * 1e6)
         stop_workers(procs, stop)
     print(
-        f"empty jobs: {done / elapsed:8.0f} jobs/s ({done} jobs in {elapsed:.2f} s, "
-        f"{workers} worker processes, load average {os.getloadavg()[0]:.2f})"
+        f"empty jobs: {statistics.median(rates):8.0f} jobs/s, median of {windows} windows of "
+        f"{seconds:g} s [{min(rates):.0f}-{max(rates):.0f}] ({workers} worker processes, load "
+        f"average {os.getloadavg()[0]:.2f}); CPU per job: server {statistics.median(server_us):.0f}"
+        f" us, workers {statistics.median(workers_us):.0f} us"
     )
 
 
@@ -372,6 +385,7 @@ def _spread(seconds: list[float]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--windows", type=int, default=3)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--generations", type=int, default=350)
     parser.add_argument("--steps", type=int, default=40)
@@ -389,7 +403,7 @@ def main() -> None:
             (max(1, robot_steps // s), s) for s in (100, 200, 400, 800, 1600) if s > args.steps
         ]
     if args.only != "paper":
-        bench_throughput(args.seconds, args.workers)
+        bench_throughput(args.seconds, args.workers, args.windows)
         bench_codec()
     if args.only != "throughput":
         bench_capacity(RunConfig(generations=args.generations, steps=args.steps))
