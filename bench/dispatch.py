@@ -66,8 +66,17 @@ def zeros(config: RunConfig, generation: int, genomes: np.ndarray) -> tuple[np.n
     return np.zeros(n), np.zeros((n, config.trials, 4))
 
 
-def worker_process(port: int, name: str, empty: bool, stop: threading.Event) -> None:
+def worker_process(port: int, name: str, empty: bool, stopping: threading.Event) -> None:
+    """`run_worker` as `colony worker` runs it: on a threading.Event (the loop checks it a few
+    times a job; a multiprocessing.Event costs a semaphore round each), set from `stopping`."""
     settings = WorkerSettings(connect=(f"tcp/127.0.0.1:{port}",), name=name, backoff_max_s=0.2)
+    stop = threading.Event()
+
+    def relay() -> None:
+        stopping.wait()
+        stop.set()
+
+    threading.Thread(target=relay, name="stop-relay", daemon=True).start()
     if empty:
         run_worker(settings, stop, evaluator=zeros)
     else:
