@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import multiprocessing as mp
 import os
 import socket
@@ -153,6 +154,8 @@ def bench_throughput(seconds: float, workers: int, windows: int) -> None:
             rates.append(done / elapsed)
             server_us.append((time.process_time() - server_before) / done * 1e6)
             workers_us.append((_cpu_seconds(pids) - workers_before) / done * 1e6)
+        # Stopped workers leave holding the jobs they prefetched: expected, not worth a warning.
+        logging.getLogger("server.dispatch").setLevel(logging.ERROR)
         stop_workers(procs, stop)
     print(
         f"empty jobs: {statistics.median(rates):8.0f} jobs/s, median of {windows} windows of "
