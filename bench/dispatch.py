@@ -152,16 +152,22 @@ def bench_throughput(seconds: float, workers: int, windows: int) -> None:
             warm.wait(seconds)
             done, elapsed = source.completed - before, time.perf_counter() - began
             rates.append(done / elapsed)
-            server_us.append((time.process_time() - server_before) / done * 1e6)
-            workers_us.append((_cpu_seconds(pids) - workers_before) / done * 1e6)
+            if done:  # a window without a job (workers stalled) has no CPU per job
+                server_us.append((time.process_time() - server_before) / done * 1e6)
+                workers_us.append((_cpu_seconds(pids) - workers_before) / done * 1e6)
         # Stopped workers leave holding the jobs they prefetched: expected, not worth a warning.
         logging.getLogger("server.dispatch").setLevel(logging.ERROR)
         stop_workers(procs, stop)
     print(
         f"empty jobs: {statistics.median(rates):8.0f} jobs/s, median of {windows} windows of "
         f"{seconds:g} s [{min(rates):.0f}-{max(rates):.0f}] ({workers} worker processes, load "
-        f"average {os.getloadavg()[0]:.2f}); CPU per job: server {statistics.median(server_us):.0f}"
-        f" us, workers {statistics.median(workers_us):.0f} us"
+        f"average {os.getloadavg()[0]:.2f}); CPU per job: "
+        + (
+            f"server {statistics.median(server_us):.0f} us, workers "
+            f"{statistics.median(workers_us):.0f} us"
+            if server_us
+            else "no job done"
+        )
     )
 
 

@@ -64,6 +64,8 @@ TEAM_MAX = 64
 """Most workers in one team."""
 ERROR_MAX = 65536
 """Longest error message a result carries (`Result` cuts longer ones)."""
+HOLDING_MAX = 16
+"""Most jobs a request or result names as held."""
 
 MAGIC = b"EVC1"
 _HEADER = struct.Struct("<4sI")
@@ -180,7 +182,9 @@ def _array_entry(entry: object) -> tuple[str, np.dtype[Any], tuple[int, ...]]:
     if not isinstance(entry, dict):
         raise WireError("array index entries must be objects")
     name, dtype, shape = entry.get("name"), entry.get("dtype"), entry.get("shape")
-    if not isinstance(name, str) or dtype not in _DTYPES or not isinstance(shape, list):
+    if not (isinstance(name, str) and isinstance(dtype, str) and isinstance(shape, list)):
+        raise WireError(f"bad array index entry {entry!r}")
+    if dtype not in _DTYPES:
         raise WireError(f"bad array index entry {entry!r}")
     if len(shape) > 8:
         raise WireError(f"array {name!r} has {len(shape)} dimensions; at most 8")
@@ -218,7 +222,7 @@ class JobRequest(_Model):
     """What shares memory with the worker (protocol 8; empty: no shared teams): workers of
     the same `machine` may split a span in shared memory."""
     robot_steps_per_s: float | None = Field(None, ge=0.0, allow_inf_nan=False)
-    holding: tuple[JobKey, ...] = Field((), max_length=16)
+    holding: tuple[JobKey, ...] = Field((), max_length=HOLDING_MAX)
     """Jobs the worker has in hand: non-empty makes this a prefetch (answered at once, never
     held); any other lease of the worker lost its reply and is released."""
 
@@ -435,8 +439,12 @@ def _config_json(config: RunConfig) -> dict[str, Any]:
 
 
 def _parse_config(data: object) -> RunConfig:
-    """A RunConfig from its JSON object, parsed once per distinct config."""
-    text = orjson.dumps(data, option=orjson.OPT_SORT_KEYS)
+    """A RunConfig from its JSON object, parsed once per distinct config; ValueError if it is
+    not one (pydantic's ValidationError is a ValueError)."""
+    try:
+        text = orjson.dumps(data, option=orjson.OPT_SORT_KEYS)
+    except orjson.JSONEncodeError as exc:  # nested deeper than orjson goes
+        raise ValueError(f"config: {exc}") from exc
     config = _CONFIGS.get(text)
     if config is None:
         config = RunConfig.model_validate(data)
@@ -456,7 +464,7 @@ def _job_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Job:
         raise WireError(f"expected a job, got kind {header.get('kind')!r}")
     try:  # the key once, with the rest: a bad one is found below, for the error
         parsed = JobHeader.model_validate({**header, "config": _parse_config(header.get("config"))})
-    except ValidationError as exc:
+    except ValueError as exc:
         try:
             key = JobKey.model_validate(header.get("key"))
         except ValidationError as key_exc:
@@ -497,7 +505,7 @@ class ResultHeader(_Model):
     error: str | None = Field(None, max_length=ERROR_MAX)
     want_next: bool = False
     """Answer with the worker's next job (carrying the Ack) if one is ready now."""
-    holding: tuple[JobKey, ...] = Field((), max_length=16)
+    holding: tuple[JobKey, ...] = Field((), max_length=HOLDING_MAX)
     """Other jobs the worker has in hand (a prefetched one): their leases are kept."""
     start: int | None = Field(None, ge=0)
     stop: int | None = Field(None, ge=1)
@@ -538,8 +546,14 @@ class Result:
                 f"result {self.key.label()}: speed {self.robot_steps_per_s} and seconds "
                 f"{self.seconds} must be finite and >= 0"
             )
-        if self.error is not None and len(self.error) > ERROR_MAX:  # a huge exception text
-            object.__setattr__(self, "error", self.error[: ERROR_MAX - 1] + "\u2026")
+        if self.error is not None:  # any exception's text: valid UTF-8, at most ERROR_MAX
+            error = self.error.encode("utf-8", "replace").decode("utf-8")
+            if len(error) > ERROR_MAX:
+                error = error[: ERROR_MAX - 1] + "\u2026"
+            object.__setattr__(self, "error", error)
+        if self.digest is not None and not re.match(_DIGEST, self.digest):
+            raise WireError(f"result {self.key.label()}: digest {self.digest!r} is not CRC-32 hex")
+        _check_holding(self.key, self.holding)
         if (self.start is None) != (self.stop is None) or (
             self.start is not None and self.stop is not None and not 0 <= self.start < self.stop
         ):
@@ -561,7 +575,13 @@ class Result:
     def asking(self, want_next: bool, holding: tuple[JobKey, ...]) -> Result:
         """This result as delivered: only `want_next` and `holding` differ, so it is not
         validated again (a worker sends every result this way; its arrays were checked once)."""
+        _check_holding(self.key, holding)
         return _altered(self, want_next=want_next, holding=holding)
+
+
+def _check_holding(key: JobKey, holding: tuple[JobKey, ...]) -> None:
+    if len(holding) > HOLDING_MAX:
+        raise WireError(f"result {key.label()} holds {len(holding)} jobs; at most {HOLDING_MAX}")
 
 
 def encode_result(result: Result) -> bytes:
@@ -571,13 +591,13 @@ def encode_result(result: Result) -> bytes:
         "kind": "result",
         "key": _key_json(result.key),
         "worker": result.worker,
-        "robot_steps_per_s": result.robot_steps_per_s,
-        "seconds": result.seconds,
+        "robot_steps_per_s": float(result.robot_steps_per_s),
+        "seconds": float(result.seconds),
         "error": result.error,
-        "want_next": result.want_next,
+        "want_next": bool(result.want_next),
         "holding": [_key_json(key) for key in result.holding],
-        "start": result.start,
-        "stop": result.stop,
+        "start": None if result.start is None else int(result.start),
+        "stop": None if result.stop is None else int(result.stop),
         "digest": result.digest,
     }
     arrays: dict[str, np.ndarray] = {}

@@ -6,6 +6,7 @@ import contextlib
 import math
 import struct
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -122,15 +123,37 @@ def test_result_and_control_round_trips() -> None:
     assert asking.want_next and asking.holding == (KEY,) and asking.fitness is not None
 
 
-def test_a_result_cuts_a_huge_error_and_refuses_non_finite_timings() -> None:
-    """An exception's text of any length still reaches the server (cut to what it accepts);
-    a NaN speed or time would be written as null, which the server refuses: caught here."""
+def test_a_result_reaches_the_server_whatever_its_error_text_or_number_types() -> None:
+    """An exception's text of any length or encoding still reaches the server (cut to what it
+    accepts, made UTF-8); numpy scalars are written as JSON numbers."""
     huge = decode_result(encode_result(Result(KEY, "w-1", error="x" * (ERROR_MAX + 10))))
     assert huge.error is not None and len(huge.error) == ERROR_MAX
     assert huge.error.startswith("x" * 100) and huge.error.endswith("\u2026")
+    odd = decode_result(encode_result(Result(KEY, "w-1", error="bad name \udcff here")))
+    assert odd.error == "bad name ? here"
+    numbers: dict[str, Any] = {  # as numpy computes them
+        "robot_steps_per_s": np.float64(3.5),
+        "seconds": np.float32(0.25),
+        "start": np.int64(0),
+        "stop": np.int64(2),
+    }
+    back = decode_result(encode_result(Result(KEY, "w-1", np.zeros(2), **numbers)))
+    assert (back.robot_steps_per_s, back.seconds, back.start, back.stop) == (3.5, 0.25, 0, 2)
+
+
+def test_a_result_refuses_what_the_server_would_refuse() -> None:
+    """Caught where the result is built, not in a retry loop against the server's refusal: a
+    NaN speed or time (written as null), a digest that is not CRC-32, too many held jobs."""
     for speed, seconds in ((math.nan, 0.0), (0.0, math.inf), (-1.0, 0.0)):
         with pytest.raises(WireError, match="finite"):
             Result(KEY, "w-1", error="boom", robot_steps_per_s=speed, seconds=seconds)
+    with pytest.raises(WireError, match="digest"):
+        Result(KEY, "w-1", np.zeros(2), start=0, stop=2, digest="0" * 64)
+    many = tuple(KEY.model_copy(update={"index": i}) for i in range(17))
+    with pytest.raises(WireError, match="holds 17"):
+        Result(KEY, "w-1", error="boom", holding=many)
+    with pytest.raises(WireError, match="holds 17"):
+        Result(KEY, "w-1", error="boom").asking(True, many)
 
 
 @pytest.mark.parametrize(
@@ -149,6 +172,7 @@ def test_a_result_cuts_a_huge_error_and_refuses_non_finite_timings() -> None:
         + b'{"arrays":[{"name":"a","dtype":"|O","shape":[1]}]}        ',
         b"EVC1" + struct.pack("<I", 50) + b'{"arrays":[{"name":"a","dtype":"<f8","shape":[9]}]}',
         b"EVC1" + struct.pack("<I", 51) + b'{"arrays":[{"name":"a","dtype":"<f8","shape":[-1]}]}',
+        b"EVC1" + struct.pack("<I", 51) + b'{"arrays":[{"name":"a","dtype":["<f8"],"shape":[]}]}',
     ],
 )
 def test_malformed_frames_raise_wire_error(payload: bytes) -> None:
@@ -187,6 +211,16 @@ def test_invalid_job_content_carries_its_key() -> None:
     )  # fmt: skip
     with pytest.raises(InvalidJobError) as caught:
         decode_job(bad_config)
+    assert caught.value.key == KEY
+    genomes = np.zeros((4, W))
+    head = (  # valid JSON, a config nested deeper than orjson writes back
+        b'{"kind":"job","key":{"run_id":3,"generation":7,"index":1},"start":0,"stop":4,'
+        b'"lease_s":1.0,"config":' + b"[" * 300 + b"0" + b"]" * 300 + b',"arrays":[{"name":'
+        b'"genomes","dtype":"<f8","shape":[4,' + str(W).encode() + b"]}]}"
+    )
+    deep = b"EVC1" + struct.pack("<I", len(head)) + head + genomes.tobytes()
+    with pytest.raises(InvalidJobError, match="config") as caught:
+        decode_job(deep)
     assert caught.value.key == KEY
     with pytest.raises(InvalidJobError, match="outside population"):
         make_job(rows=4, start=8)
