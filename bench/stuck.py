@@ -54,7 +54,7 @@ def traces(
     """Whiskers (B, T, 5), motors (B, T, 2), positions (B, T + 1, 2); half random, half evolved-like."""
     maze = load_maze(maze_name)
     params = WorldParams()
-    poses = start_poses(maze, seed, 0, robots, params)
+    poses = start_poses(maze, seed, 0, robots, params).copy()  # the cached draw is read-only
     gap = draw_gap(seed, 0, robots)
     spec = PRESETS["paper-best"]
     n_random = robots // 2
