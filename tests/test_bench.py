@@ -1,0 +1,31 @@
+"""The bench scripts that take a size still run on a tiny one (`make bench` stops at the first
+that fails; figures are not checked here, only that each script gets to print them)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.mark.parametrize(
+    ("script", "args", "printed"),
+    [
+        ("stuck.py", ["--robots", "4", "--steps", "100", "--window", "20"], "evolved-like"),
+        ("explore.py", ["--generations", "2"], "generation"),
+    ],
+)
+def test_a_bench_script_runs_on_a_tiny_size(script: str, args: list[str], printed: str) -> None:
+    done = subprocess.run(
+        [sys.executable, str(BENCH / script), *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=BENCH.parent,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert printed in done.stdout
