@@ -182,14 +182,14 @@ def bench_codec(rounds: int = 20_000) -> None:
         following = source.lease("bench-0")
         encode_job(following.leased(10.0, True), Ack(key=following.key, accepted=True))
 
+    def evaluated() -> Result:
+        return Result(job.key, "bench-0", fitness, components, 1e5, 1e-4, start=0, stop=4)
+
     def worker_side() -> None:  # read the job, report its result asking for the next
         decode_result_reply(reply)
-        result = Result(job.key, "bench-0", fitness, components, 1e5, 1e-4, start=0, stop=4)
-        encode_result(result.asking(True, ()))
+        encode_result(evaluated().asking(True, ()))
 
-    delivered = encode_result(
-        Result(job.key, "bench-0", fitness, components, 1e5, 1e-4, want_next=True, start=0, stop=4)
-    )
+    delivered = encode_result(evaluated().asking(True, ()))
     reply = encode_job(job.leased(10.0, True), Ack(key=job.key, accepted=True))
     costs = []
     for side in (server_side, worker_side):

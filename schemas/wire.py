@@ -182,9 +182,9 @@ def _array_entry(entry: object) -> tuple[str, np.dtype[Any], tuple[int, ...]]:
     if not isinstance(entry, dict):
         raise WireError("array index entries must be objects")
     name, dtype, shape = entry.get("name"), entry.get("dtype"), entry.get("shape")
-    if not (isinstance(name, str) and isinstance(dtype, str) and isinstance(shape, list)):
-        raise WireError(f"bad array index entry {entry!r}")
-    if dtype not in _DTYPES:
+    if not (isinstance(name, str) and isinstance(dtype, str) and isinstance(shape, list)) or (
+        dtype not in _DTYPES  # a str by then: a list or dict is unhashable
+    ):
         raise WireError(f"bad array index entry {entry!r}")
     if len(shape) > 8:
         raise WireError(f"array {name!r} has {len(shape)} dimensions; at most 8")
