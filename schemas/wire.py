@@ -24,7 +24,7 @@ import re
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 import orjson
@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 8
+PROTOCOL = 9
 """Wire protocol version, sent in every job request; the server idles other versions.
 
 2: a result may ask for the next job (`want_next`); the server then answers with that job,
@@ -52,6 +52,10 @@ tells and asks itself; only the team's leader (member 0) holds the lease and sen
 8: a team whose members share their leader's machine (the `machine` of their requests) may be
 `shared`: they split each generation in chunks through a file in shared memory instead
 (`worker.shared`), no messages.
+9: requests and results are numbered (`seq`) and name the worker's earlier ones whose replies
+it has not read yet (`awaiting`): the jobs those replies carry keep their leases, so a worker
+may send a result asking for the next job before it reads the reply to its previous request
+(two requests in flight instead of one).
 """
 
 KEY_JOB_NEXT = "evocolony/jobs/next"
@@ -65,7 +69,8 @@ TEAM_MAX = 64
 ERROR_MAX = 65536
 """Longest error message a result carries (`Result` cuts longer ones)."""
 HOLDING_MAX = 16
-"""Most jobs a request or result names as held."""
+"""Most jobs a request or result names as held, and most earlier requests it names as
+awaited."""
 
 MAGIC = b"EVC1"
 _HEADER = struct.Struct("<4sI")
@@ -211,6 +216,10 @@ class JobKey(_Model):
         return f"run {self.run_id} gen {self.generation} job {self.index}"
 
 
+Seq = Annotated[int, Field(ge=1)]
+"""The number of a worker's request (protocol 9)."""
+
+
 class JobRequest(_Model):
     """Worker -> server on KEY_JOB_NEXT: who asks, and how fast it last ran."""
 
@@ -224,7 +233,13 @@ class JobRequest(_Model):
     robot_steps_per_s: float | None = Field(None, ge=0.0, allow_inf_nan=False)
     holding: tuple[JobKey, ...] = Field((), max_length=HOLDING_MAX)
     """Jobs the worker has in hand: non-empty makes this a prefetch (answered at once, never
-    held); any other lease of the worker lost its reply and is released."""
+    held); any other lease of the worker lost its reply and is released, but for those of
+    `awaiting`."""
+    seq: int = Field(0, ge=0)
+    """This request's number among its worker's (protocol 9; 0: unnumbered)."""
+    awaiting: tuple[Seq, ...] = Field((), max_length=HOLDING_MAX)
+    """Numbers of the worker's earlier requests whose replies it has not read yet: a job one
+    of them carries is in flight, its lease kept, and this request is a prefetch."""
 
     @field_validator("worker")
     @classmethod
@@ -507,6 +522,9 @@ class ResultHeader(_Model):
     """Answer with the worker's next job (carrying the Ack) if one is ready now."""
     holding: tuple[JobKey, ...] = Field((), max_length=HOLDING_MAX)
     """Other jobs the worker has in hand (a prefetched one): their leases are kept."""
+    seq: int = Field(0, ge=0)
+    awaiting: tuple[Seq, ...] = Field((), max_length=HOLDING_MAX)
+    """As in `JobRequest` (protocol 9)."""
     start: int | None = Field(None, ge=0)
     stop: int | None = Field(None, ge=1)
     """The evaluated slice (protocol 4): a key names one slice only within a server's life
@@ -533,6 +551,8 @@ class Result:
     error: str | None = None
     want_next: bool = False
     holding: tuple[JobKey, ...] = ()
+    seq: int = 0
+    awaiting: tuple[int, ...] = ()
     start: int | None = None
     stop: int | None = None
     """The job's slice; None only for an error about a job whose slice did not parse."""
@@ -553,7 +573,7 @@ class Result:
             object.__setattr__(self, "error", error)
         if self.digest is not None and not re.match(_DIGEST, self.digest):
             raise WireError(f"result {self.key.label()}: digest {self.digest!r} is not CRC-32 hex")
-        _check_holding(self.key, self.holding)
+        _check_asking(self.key, self.holding, self.seq, self.awaiting)
         if (self.start is None) != (self.stop is None) or (
             self.start is not None and self.stop is not None and not 0 <= self.start < self.stop
         ):
@@ -572,16 +592,29 @@ class Result:
             if self.fitness.shape[0] != self.stop - self.start:
                 raise WireError(f"result {self.key.label()}: fitness does not match its slice")
 
-    def asking(self, want_next: bool, holding: tuple[JobKey, ...]) -> Result:
-        """This result as delivered: only `want_next` and `holding` differ, so it is not
+    def asking(
+        self,
+        want_next: bool,
+        holding: tuple[JobKey, ...],
+        seq: int = 0,
+        awaiting: tuple[int, ...] = (),
+    ) -> Result:
+        """This result as delivered: only what it asks and names differs, so it is not
         validated again (a worker sends every result this way; its arrays were checked once)."""
-        _check_holding(self.key, holding)
-        return _altered(self, want_next=want_next, holding=holding)
+        _check_asking(self.key, holding, seq, awaiting)
+        return _altered(self, want_next=want_next, holding=holding, seq=seq, awaiting=awaiting)
 
 
-def _check_holding(key: JobKey, holding: tuple[JobKey, ...]) -> None:
-    if len(holding) > HOLDING_MAX:
-        raise WireError(f"result {key.label()} holds {len(holding)} jobs; at most {HOLDING_MAX}")
+def _check_asking(
+    key: JobKey, holding: tuple[JobKey, ...], seq: int, awaiting: tuple[int, ...]
+) -> None:
+    if len(holding) > HOLDING_MAX or len(awaiting) > HOLDING_MAX:
+        raise WireError(
+            f"result {key.label()} holds {len(holding)} jobs and awaits {len(awaiting)} "
+            f"requests; at most {HOLDING_MAX} each"
+        )
+    if seq < 0 or not all(number >= 1 for number in awaiting):
+        raise WireError(f"result {key.label()}: bad request numbers {seq} and {awaiting}")
 
 
 def encode_result(result: Result) -> bytes:
@@ -596,6 +629,8 @@ def encode_result(result: Result) -> bytes:
         "error": result.error,
         "want_next": bool(result.want_next),
         "holding": [_key_json(key) for key in result.holding],
+        "seq": int(result.seq),
+        "awaiting": [int(number) for number in result.awaiting],
         "start": None if result.start is None else int(result.start),
         "stop": None if result.stop is None else int(result.stop),
         "digest": result.digest,
@@ -634,6 +669,8 @@ def _result_from(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Resul
         error=parsed.error,
         want_next=parsed.want_next,
         holding=parsed.holding,
+        seq=parsed.seq,
+        awaiting=parsed.awaiting,
         start=parsed.start,
         stop=parsed.stop,
         digest=parsed.digest,

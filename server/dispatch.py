@@ -45,7 +45,7 @@ import queue
 import secrets
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol, runtime_checkable
 
@@ -247,6 +247,8 @@ class _Lease:
     """Generations of a span after this one."""
     continued: bool = False
     """Leased by a span going on: the worker asked these genomes itself (digest required)."""
+    seq: int = 0
+    """The worker's request whose reply carried it (protocol 9; 0: unnumbered)."""
 
 
 @dataclass
@@ -290,6 +292,7 @@ class _Held:
     query: zenoh.Query
     worker: str
     until: float
+    seq: int = 0
 
 
 _WAKE = object()
@@ -328,6 +331,8 @@ class Dispatcher:
         self.results_dropped = 0
         self.prefetches = 0
         """Requests of workers already holding a job (protocol 3 prefetches)."""
+        self.pipelined = 0
+        """Requests of workers with a job in flight to them (protocol 9)."""
         self.spans_served = 0
         """Jobs sent as spans (protocol 5)."""
         self.teams_served = 0
@@ -497,36 +502,50 @@ class Dispatcher:
         record = self._touch(request.worker, request.host)
         if request.robot_steps_per_s:
             record.speed = request.robot_steps_per_s
-        self._release_lost(request.worker, keep=request.holding)
+        self._release_lost(request)
+        prefetch = self._holds(request)
         with self._lock:
             record.protocol, record.machine = request.protocol, request.machine
-            if not request.holding:
+            if not prefetch:
                 record.team, record.state = None, "idle"
-        held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s)
-        place = self._invited(request.worker, request.holding)
+        until = self._clock() + self.settings.long_poll_s
+        held = _Held(query, request.worker, until, request.seq)
+        place = self._invited(request.worker, prefetch)
         if place is not None:
             with query:
                 self._join(query, KEY_JOB_NEXT, held.worker, place)
         elif request.protocol != PROTOCOL:
             self._other_protocol.append(held)
-        elif request.holding:  # a prefetch: a job now or idle now, never held
+        elif prefetch:  # a job now or idle now, never held
             self.prefetches += 1
             if not (self._may_prefetch(request.worker) and self._try_serve(held, prefetch=True)):
                 self._answer_idle(held, "no job to prefetch")
         elif not self._try_serve(held):
             self._held.append(held)
 
-    def _release_lost(self, worker: str, keep: Collection[JobKey] = ()) -> None:
-        """The worker asks for work while leasing jobs it does not hold (not in `keep`): their
-        replies got lost; put them back."""
+    def _release_lost(self, asks: _Asks) -> None:
+        """The worker asks for work while leasing jobs it neither holds nor awaits: the replies
+        that carried them got lost; put the jobs back."""
         for key in [
-            k for k, lease in self._leases.items() if lease.worker == worker and k not in keep
+            k
+            for k, lease in self._leases.items()
+            if lease.worker == asks.worker and k not in asks.holding and not _unread(lease, asks)
         ]:
-            _job_log(key, worker).warning(
-                "%s asked for work while leasing %s; releasing it", worker, key.label()
+            _job_log(key, asks.worker).warning(
+                "%s asked for work while leasing %s; releasing it", asks.worker, key.label()
             )
             del self._leases[key]
             self._source.release(key)
+
+    def _holds(self, asks: _Asks) -> bool:
+        """Whether the worker has a job in hand or one in flight to it (counted in
+        `pipelined`): then it asks for a job ahead, as a prefetch does."""
+        if any(
+            lease.worker == asks.worker and _unread(lease, asks) for lease in self._leases.values()
+        ):
+            self.pipelined += 1
+            return True
+        return bool(asks.holding)
 
     def _may_prefetch(self, worker: str) -> bool:
         """A second job for a busy worker only while no other live worker is without one: a
@@ -542,7 +561,7 @@ class Dispatcher:
         if job is None:
             return False
         with held.query as query:
-            self._send(query, KEY_JOB_NEXT, job, held.worker, None, may_span=not prefetch)
+            self._send(query, KEY_JOB_NEXT, job, held.worker, None, held.seq, may_span=not prefetch)
         return True
 
     def _spanned(self, job: Job, worker: str) -> Job:
@@ -566,11 +585,13 @@ class Dispatcher:
         job: Job,
         worker: str,
         ack: Ack | None,
+        seq: int,
         *,
         may_span: bool = True,
     ) -> None:
-        """Reply `job` (with `ack` if it answers a result) and record its lease; a job for a
-        worker holding no other (`may_span`) may go out as a span."""
+        """Reply `job` (with `ack` if it answers a result, to the worker's request `seq`) and
+        record its lease; a job for a worker holding no other (`may_span`) may go out as a
+        span."""
         record = self._workers[worker]
         if may_span:
             job = self._spanned(job, worker)
@@ -593,7 +614,7 @@ class Dispatcher:
             return
         deadline = self._clock() + lease_s
         self._leases[job.key] = _Lease(
-            job.key, worker, deadline, job.robot_steps, job.start, job.stop, job.span - 1
+            job.key, worker, deadline, job.robot_steps, job.start, job.stop, job.span - 1, seq=seq
         )
         if job.span > 1:
             self.spans_served += 1
@@ -664,12 +685,12 @@ class Dispatcher:
         self.shared_teams_served += shared
         return replace(job, team=team, member=0, team_id=team_id, shared=shared)
 
-    def _invited(self, worker: str, holding: Collection[JobKey]) -> Job | None:
-        """The team place `worker` was invited to, if still open and it holds no job."""
+    def _invited(self, worker: str, holds: bool) -> Job | None:
+        """The team place `worker` was invited to, if still open and it `holds` no job."""
         invite = self._invites.pop(worker, None)
         if invite is None:
             return None
-        if invite[1] <= self._clock() or holding:
+        if invite[1] <= self._clock() or holds:
             self._uninvite(worker, invite[0].team_id)
             return None
         return invite[0]
@@ -738,16 +759,24 @@ class Dispatcher:
         if result.want_next:
             # Pipelined request (protocol 2): the next job rides on the acknowledgement.
             # Requests already held waited longer: they are served first (a span among them
-            # may invite this worker into its team).
+            # may invite this worker into its team). A worker with a job in hand or in flight
+            # gets one as a prefetch would.
             self._serve_held()
-            place = self._invited(result.worker, result.holding)
+            holds = self._holds(result)
+            place = self._invited(result.worker, holds)
             if place is not None:
                 self._join(query, KEY_JOB_RESULT, result.worker, place, ack)
                 return
-            job = None if self._held else self._lease_for(result.worker, result.holding)
+            self._release_lost(result)
+            job = (
+                None
+                if self._held or (holds and not self._may_prefetch(result.worker))
+                else self._source.lease(result.worker)
+            )
             if job is not None:
-                may_span = not result.holding
-                self._send(query, KEY_JOB_RESULT, job, result.worker, ack, may_span=may_span)
+                self._send(
+                    query, KEY_JOB_RESULT, job, result.worker, ack, result.seq, may_span=not holds
+                )
                 return
         query.reply(KEY_JOB_RESULT, encode_message(ack))
 
@@ -772,11 +801,6 @@ class Dispatcher:
             if result.robot_steps_per_s:
                 record.speed = result.robot_steps_per_s
         return ack
-
-    def _lease_for(self, worker: str, holding: Collection[JobKey]) -> Job | None:
-        """A job for a worker that holds `holding` (any other lease of it lost its reply)."""
-        self._release_lost(worker, keep=holding)
-        return self._source.lease(worker)
 
     def _go_on(self, key: JobKey, lease: _Lease) -> None:
         """The span's next generation is leased to the same worker (if the source went on)."""
@@ -902,6 +926,27 @@ class Dispatcher:
         log.warning("dropping malformed message on %s: %s", query.key_expr, exc)
         with contextlib.suppress(zenoh.ZError), query:
             query.reply_err(f"malformed: {exc}".encode())
+
+
+class _Asks(Protocol):
+    """What a request for a job says of its worker: a `JobRequest`, or a `Result` that wants
+    the next job."""
+
+    @property
+    def worker(self) -> str: ...
+    @property
+    def holding(self) -> tuple[JobKey, ...]: ...
+    @property
+    def seq(self) -> int: ...
+    @property
+    def awaiting(self) -> tuple[int, ...]: ...
+
+
+def _unread(lease: _Lease, asks: _Asks) -> bool:
+    """Whether the reply that carried `lease` was still unread when the worker sent `asks`
+    (protocol 9): it names that reply's request as awaited, or sent it after `asks` (requests
+    on the two keys may arrive out of order)."""
+    return lease.seq in asks.awaiting or 0 < asks.seq < lease.seq
 
 
 def _other_slice(result: Result, lease: _Lease) -> bool:

@@ -27,6 +27,7 @@ from schemas.wire import (
     Result,
     decode_ack,
     decode_next_reply,
+    decode_result_reply,
     encode_message,
     encode_result,
     encode_span_results,
@@ -355,7 +356,40 @@ def test_a_worker_prefetches_only_while_other_jobs_are_pending(more: bool) -> No
         with worker_thread(port, "solo"):
             assert source.done.wait(WAIT)
         assert (dispatcher.prefetches > 0) is more
+        assert (dispatcher.pipelined > 0) is more  # protocol 9: results sent ahead too
     assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
+    assert not source.released and sorted(i for i, _ in source.leased_by) == [0, 1, 2, 3]
+
+
+def test_a_request_awaiting_the_reply_that_carried_a_job_keeps_its_lease() -> None:
+    """Protocol 9: a worker may ask again before reading the reply to its last request; the
+    job that reply carries is in flight, not lost, and the request is served as a prefetch.
+    A request releases the leases it neither holds nor awaits, but for those carried by
+    replies to requests the worker sent after it."""
+    port = free_port()
+    source = MemorySource()
+    settings = dispatch_settings(port, long_poll_s=30.0)
+    with Dispatcher(settings, source) as dispatcher, zenoh.open(client_config(port)) as session:
+
+        def next_job(seq: int, awaiting: tuple[int, ...]) -> Job | Idle:
+            request = JobRequest(worker="p", seq=seq, awaiting=awaiting)
+            return decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, encode_message(request))))
+
+        first = next_job(1, ())
+        second = next_job(2, (1,))  # not held: a prefetch
+        assert isinstance(first, Job) and isinstance(second, Job) and not source.released
+        fitness = fake_fitness(first.genomes)
+        done = Result(first.key, "p", fitness, start=first.start, stop=first.stop)
+        done = done.asking(True, (), seq=3, awaiting=(2,))
+        ack, third = decode_result_reply(_ok(ask(session, KEY_JOB_RESULT, encode_result(done))))
+        assert ack.accepted and isinstance(third, Job) and not source.released
+        assert dispatcher.pipelined == 2
+        fourth = next_job(4, (1,))  # awaits a reply already answered: the others were lost
+        assert isinstance(fourth, Job)
+        assert sorted(source.released) == [second.key.index, third.key.index]
+        crossed = next_job(3, ())  # sent before the fourth (on the other key, say): keeps it
+        assert isinstance(crossed, Job) and crossed.key != fourth.key
+        assert sorted(source.released) == [second.key.index, third.key.index]
 
 
 def test_expired_lease_returns_the_job_and_late_result_is_dropped() -> None:

@@ -121,6 +121,11 @@ def test_result_and_control_round_trips() -> None:
     assert decode_next_reply(encode_message(Idle())) == Idle()
     asking = decode_result(encode_result(held.asking(True, (KEY,))))
     assert asking.want_next and asking.holding == (KEY,) and asking.fitness is not None
+    assert (asking.seq, asking.awaiting) == (0, ())  # unnumbered: as before protocol 9
+    ahead = decode_result(encode_result(held.asking(True, (), seq=7, awaiting=(5, 6))))
+    assert (ahead.seq, ahead.awaiting, ahead.holding) == (7, (5, 6), ())
+    numbered = JobRequest(worker="w-1", seq=3, awaiting=(2,))
+    assert decode_request(encode_message(numbered)) == numbered
 
 
 def test_a_result_reaches_the_server_whatever_its_error_text_or_number_types() -> None:
@@ -154,6 +159,18 @@ def test_a_result_refuses_what_the_server_would_refuse() -> None:
         Result(KEY, "w-1", error="boom", holding=many)
     with pytest.raises(WireError, match="holds 17"):
         Result(KEY, "w-1", error="boom").asking(True, many)
+    with pytest.raises(WireError, match="awaits 17"):
+        Result(KEY, "w-1", error="boom").asking(True, (), seq=18, awaiting=tuple(range(1, 18)))
+    with pytest.raises(WireError, match="request numbers"):
+        Result(KEY, "w-1", error="boom").asking(True, (), seq=2, awaiting=(0,))
+
+
+def test_a_request_refuses_bad_numbers() -> None:
+    """Protocol 9: request numbers start at 1 (0 is an unnumbered request's), at most 16
+    awaited; the server drops such a request as malformed."""
+    for fields in ({"seq": -1}, {"awaiting": (0,)}, {"awaiting": tuple(range(1, 18))}):
+        with pytest.raises(WireError):
+            decode_request(encode_frame({"kind": "next", "worker": "w-1", **fields}, {}))
 
 
 @pytest.mark.parametrize(
