@@ -24,8 +24,10 @@ from schemas.run import RunConfig
 from server import crud
 from tests.helpers import free_port
 
-CONFIG = {"population": 12, "generations": 400, "steps": 20, "job_size": 5, "seed": 3}
-"""Generations of about a millisecond: with spans, enough of them to be killed mid-run."""
+CONFIG = {"population": 12, "generations": 1200, "steps": 20, "job_size": 5, "seed": 3}
+"""Generations of about a millisecond: with spans, enough of them to be killed mid-run (the
+progress the server shows moves over about a second; with 400 it finished once under the
+whole suite's load before a poll saw it running past generation 2)."""
 TIMEOUT_S = 90.0
 
 
