@@ -24,11 +24,18 @@ import re
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import orjson
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from schemas.run import RunConfig
 
@@ -216,8 +223,12 @@ class JobKey(_Model):
         return f"run {self.run_id} gen {self.generation} job {self.index}"
 
 
-Seq = Annotated[int, Field(ge=1)]
-"""The number of a worker's request (protocol 9)."""
+def check_numbers(seq: int, awaiting: tuple[int, ...]) -> tuple[int, ...]:
+    """`awaiting` unless it fails to name earlier requests than `seq` (ValueError): numbers
+    from 1, ascending, each once, and none for an unnumbered request (`seq` 0)."""
+    if seq < 0 or any(not 0 < a < b for a, b in zip(awaiting, (*awaiting[1:], seq), strict=False)):
+        raise ValueError(f"request {seq} cannot await {list(awaiting)}")
+    return awaiting
 
 
 class JobRequest(_Model):
@@ -237,7 +248,7 @@ class JobRequest(_Model):
     `awaiting`."""
     seq: int = Field(0, ge=0)
     """This request's number among its worker's (protocol 9; 0: unnumbered)."""
-    awaiting: tuple[Seq, ...] = Field((), max_length=HOLDING_MAX)
+    awaiting: tuple[int, ...] = Field((), max_length=HOLDING_MAX)
     """Numbers of the worker's earlier requests whose replies it has not read yet: a job one
     of them carries is in flight, its lease kept, and this request is a prefetch."""
 
@@ -245,6 +256,11 @@ class JobRequest(_Model):
     @classmethod
     def _check_name(cls, value: str) -> str:
         return check_worker_name(value)
+
+    @field_validator("awaiting")
+    @classmethod
+    def _check_awaiting(cls, value: tuple[int, ...], info: ValidationInfo) -> tuple[int, ...]:
+        return check_numbers(info.data.get("seq", 0), value)
 
 
 class Idle(_Model):
@@ -523,7 +539,7 @@ class ResultHeader(_Model):
     holding: tuple[JobKey, ...] = Field((), max_length=HOLDING_MAX)
     """Other jobs the worker has in hand (a prefetched one): their leases are kept."""
     seq: int = Field(0, ge=0)
-    awaiting: tuple[Seq, ...] = Field((), max_length=HOLDING_MAX)
+    awaiting: tuple[int, ...] = Field((), max_length=HOLDING_MAX)
     """As in `JobRequest` (protocol 9)."""
     start: int | None = Field(None, ge=0)
     stop: int | None = Field(None, ge=1)
@@ -536,6 +552,11 @@ class ResultHeader(_Model):
     @classmethod
     def _check_name(cls, value: str) -> str:
         return check_worker_name(value)
+
+    @field_validator("awaiting")
+    @classmethod
+    def _check_awaiting(cls, value: tuple[int, ...], info: ValidationInfo) -> tuple[int, ...]:
+        return check_numbers(info.data.get("seq", 0), value)
 
 
 @dataclass(frozen=True)
@@ -613,8 +634,10 @@ def _check_asking(
             f"result {key.label()} holds {len(holding)} jobs and awaits {len(awaiting)} "
             f"requests; at most {HOLDING_MAX} each"
         )
-    if seq < 0 or not all(number >= 1 for number in awaiting):
-        raise WireError(f"result {key.label()}: bad request numbers {seq} and {awaiting}")
+    try:
+        check_numbers(seq, awaiting)
+    except ValueError as exc:
+        raise WireError(f"result {key.label()}: {exc}") from exc
 
 
 def encode_result(result: Result) -> bytes:

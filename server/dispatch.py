@@ -269,6 +269,8 @@ class _WorkerRecord:
     """False once it evaluated genomes other than the server asked: its GA differs."""
     team: str | None = None
     """The team it was sent into as a member (until it asks again)."""
+    seq: int = 0
+    """The highest request number seen from it (protocol 9)."""
 
     @property
     def serving(self) -> bool:
@@ -332,7 +334,7 @@ class Dispatcher:
         self.prefetches = 0
         """Requests of workers already holding a job (protocol 3 prefetches)."""
         self.pipelined = 0
-        """Requests of workers with a job in flight to them (protocol 9)."""
+        """Requests and results of workers with a job in flight to them (protocol 9)."""
         self.spans_served = 0
         """Jobs sent as spans (protocol 5)."""
         self.teams_served = 0
@@ -503,7 +505,7 @@ class Dispatcher:
         if request.robot_steps_per_s:
             record.speed = request.robot_steps_per_s
         self._release_lost(request)
-        prefetch = self._holds(request)
+        prefetch = self._holds(request, record)
         with self._lock:
             record.protocol, record.machine = request.protocol, request.machine
             if not prefetch:
@@ -537,10 +539,15 @@ class Dispatcher:
             del self._leases[key]
             self._source.release(key)
 
-    def _holds(self, asks: _Asks) -> bool:
-        """Whether the worker has a job in hand or one in flight to it (counted in
-        `pipelined`): then it asks for a job ahead, as a prefetch does."""
-        if any(
+    def _holds(self, asks: _Asks, record: _WorkerRecord) -> bool:
+        """Whether the worker has a job in hand or may have one in flight to it (counted in
+        `pipelined`): a reply it had not read carried one, or it awaits a request not seen
+        here yet (overtaken by this one), whose reply may carry one. Then it asks for a job
+        ahead, as a prefetch does: never held, never a span nor a team place. Notes the
+        request's number as seen."""
+        unseen = bool(asks.awaiting) and asks.awaiting[-1] > record.seq
+        record.seq = max(record.seq, asks.seq)
+        if unseen or any(
             lease.worker == asks.worker and _unread(lease, asks) for lease in self._leases.values()
         ):
             self.pipelined += 1
@@ -750,6 +757,7 @@ class Dispatcher:
             return
         result = results[0]
         record = self._touch(result.worker, None)
+        holds = self._holds(result, record)
         for each in results:
             ack = self._take(each, record)
             if not ack.accepted:
@@ -762,7 +770,6 @@ class Dispatcher:
             # may invite this worker into its team). A worker with a job in hand or in flight
             # gets one as a prefetch would.
             self._serve_held()
-            holds = self._holds(result)
             place = self._invited(result.worker, holds)
             if place is not None:
                 self._join(query, KEY_JOB_RESULT, result.worker, place, ack)

@@ -392,6 +392,60 @@ def test_a_request_awaiting_the_reply_that_carried_a_job_keeps_its_lease() -> No
         assert sorted(source.released) == [second.key.index, third.key.index]
 
 
+def test_a_request_awaiting_one_not_seen_yet_is_a_prefetch() -> None:
+    """Protocol 9: a request that overtook one it awaits may be about to get a job through
+    the other's reply: it is answered at once (never held), like a prefetch, and gets no span
+    or team place."""
+    port = free_port()
+    source = MemorySource()
+    source.pending.clear()
+    settings = dispatch_settings(port, long_poll_s=30.0)
+    with Dispatcher(settings, source) as dispatcher, zenoh.open(client_config(port)) as session:
+        began = time.monotonic()
+        request = JobRequest(worker="p", seq=10, awaiting=(9,))
+        idle = decode_next_reply(_ok(ask(session, KEY_JOB_NEXT, encode_message(request))))
+        assert isinstance(idle, Idle) and time.monotonic() - began < settings.long_poll_s
+        assert dispatcher.pipelined == 1 and dispatcher.prefetches == 1
+
+
+class LosingDispatcher(Dispatcher):
+    """Loses the reply carrying its `lose`-th job sent with an Ack: the lease stands, the
+    worker gets no answer (a network fault, injected where zenoh cannot be made to drop)."""
+
+    def __init__(self, *args: Any, lose: int, **kwargs: Any) -> None:
+        self.lose = lose
+        self.lost_key: JobKey | None = None
+        super().__init__(*args, **kwargs)
+
+    def _send(self, query: zenoh.Query, key: str, job: Job, *args: Any, **kwargs: Any) -> None:
+        if key == KEY_JOB_RESULT and job.key.index == self.lose and self.lost_key is None:
+            self.lost_key = job.key
+            query = _Silent()  # type: ignore[assignment]
+        super()._send(query, key, job, *args, **kwargs)
+
+
+class _Silent:
+    def reply(self, *_args: Any, **_kwargs: Any) -> None:
+        return None
+
+
+def test_a_lost_reply_with_two_requests_in_flight_is_run_again_once() -> None:
+    """The job a lost reply carried is released by the worker's next request for work (which
+    neither holds nor awaits it) and done once; the result that reply acknowledged is
+    delivered again and dropped as a duplicate."""
+    port = free_port()
+    source = MemorySource(CONFIG.model_copy(update={"population": 24}))
+    settings = dispatch_settings(port)
+    dispatcher = LosingDispatcher(settings, source, lose=3)
+    with dispatcher:
+        with worker_thread(port, "solo"):
+            assert source.done.wait(WAIT)
+        assert dispatcher.lost_key is not None and dispatcher.pipelined > 0
+        assert source.released == [3] and dispatcher.results_dropped == 1
+    assert sorted(i for i, _ in source.leased_by) == sorted([*range(8), 3])
+    assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
+
+
 def test_expired_lease_returns_the_job_and_late_result_is_dropped() -> None:
     port = free_port()
     source = MemorySource()

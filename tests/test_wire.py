@@ -161,14 +161,23 @@ def test_a_result_refuses_what_the_server_would_refuse() -> None:
         Result(KEY, "w-1", error="boom").asking(True, many)
     with pytest.raises(WireError, match="awaits 17"):
         Result(KEY, "w-1", error="boom").asking(True, (), seq=18, awaiting=tuple(range(1, 18)))
-    with pytest.raises(WireError, match="request numbers"):
-        Result(KEY, "w-1", error="boom").asking(True, (), seq=2, awaiting=(0,))
+    for seq, awaiting in ((2, (0,)), (2, (3,)), (5, (3, 3)), (0, (1,)), (-1, ())):
+        with pytest.raises(WireError, match="cannot await"):
+            Result(KEY, "w-1", error="boom").asking(True, (), seq=seq, awaiting=awaiting)
 
 
 def test_a_request_refuses_bad_numbers() -> None:
-    """Protocol 9: request numbers start at 1 (0 is an unnumbered request's), at most 16
-    awaited; the server drops such a request as malformed."""
-    for fields in ({"seq": -1}, {"awaiting": (0,)}, {"awaiting": tuple(range(1, 18))}):
+    """Protocol 9: a request awaits earlier ones, numbered from 1 (0 is an unnumbered
+    request's), ascending, at most 16; the server drops any other as malformed."""
+    bad: list[dict[str, Any]] = [
+        {"seq": -1},
+        {"seq": 5, "awaiting": (0,)},
+        {"seq": 5, "awaiting": (5,)},
+        {"seq": 5, "awaiting": (3, 2)},
+        {"awaiting": (1,)},
+        {"seq": 20, "awaiting": tuple(range(1, 18))},
+    ]
+    for fields in bad:
         with pytest.raises(WireError):
             decode_request(encode_frame({"kind": "next", "worker": "w-1", **fields}, {}))
 
