@@ -861,3 +861,33 @@ def test_a_worker_whose_ga_differs_has_its_span_refused_and_gets_no_more(
             assert [g.generation for g in generations] == [0]
     finally:
         engine.dispose()
+
+
+def test_a_worker_stopped_with_requests_in_flight_delivers_its_job_and_loses_none() -> None:
+    """Protocol 9, stopping (SIGTERM): the job in evaluation is delivered once the replies in
+    flight are read; the jobs those replies carried lapse with the worker's token and another
+    worker finishes the generation, every job counted once."""
+    port = free_port()
+    source = MemorySource(CONFIG.model_copy(update={"population": 60}))  # 20 jobs
+    stop = threading.Event()
+    calls: list[int] = []
+
+    def quits_at_the_fifth(
+        config: RunConfig, generation: int, genomes: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        calls.append(generation)
+        if len(calls) == 5:
+            stop.set()
+        return fake_evaluator(config, generation, genomes)
+
+    settings = WorkerSettings(
+        connect=(f"tcp/127.0.0.1:{port}",), name="quitter", backoff_max_s=0.2, request_timeout_s=5.0
+    )
+    with Dispatcher(dispatch_settings(port), source) as dispatcher:
+        stats = run_worker(settings, stop, evaluator=quits_at_the_fifth)
+        assert stats.jobs_done == 5 and len(source.fitness) == 5 and dispatcher.pipelined > 0
+        assert source.wait_for(lambda: len(source.pending) == 15)  # released: token gone
+        with worker_thread(port, "finisher"):
+            assert source.done.wait(WAIT)
+        assert dispatcher.results_accepted == 20 and dispatcher.results_dropped == 0
+    assert np.array_equal(source.all_fitness(), fake_fitness(source.genomes))
