@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 from server import population
 from server.errors import NotFoundError, ServerError
 from server.jobs import JobQueue
-from server.models import Controller, Generation, Robot, Run, Worker
+from server.models import Controller, Generation, Robot, Run
 from server.population import Population
 
 
@@ -136,10 +136,6 @@ def job_counts(session: Session) -> dict[str, int]:
     if isinstance(queue, JobQueue):
         return queue.counts()
     return {"pending": 0, "leased": 0, "done": 0}
-
-
-def list_workers(session: Session) -> list[Worker]:
-    return list(session.scalars(select(Worker).order_by(Worker.id)))
 
 
 def list_robots(session: Session) -> list[Robot]:

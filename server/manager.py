@@ -22,7 +22,6 @@ running -> completed | failed. Terminal: completed, failed, cancelled.
 from __future__ import annotations
 
 import functools
-import io
 import logging
 import math
 import threading
@@ -40,7 +39,7 @@ from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, li
 from evorobotics.layout import Layout, layout
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
-from schemas.wire import MAGIC, decode_frame, encode_frame
+from schemas.wire import decode_frame, encode_frame
 from server import crud, population
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
@@ -85,13 +84,9 @@ def encode_state(state: GAState, *, with_ranked: bool = True) -> bytes:
 
 
 def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None) -> GAState:
-    """Inverse of `encode_state` (and reads the .npz of older servers); `ranked` loads the
+    """Inverse of `encode_state` (WireError on anything but its frame); `ranked` loads the
     population a compact encoding left out."""
-    if data.startswith(MAGIC):
-        arrays = decode_frame(data)[1]
-    else:
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
+    arrays = decode_frame(data)[1]
     if "ranked" not in arrays and "ranked_fitness" in arrays and ranked is not None:
         arrays["ranked"] = ranked()
     return GAState.from_arrays(arrays)
@@ -324,7 +319,6 @@ class RunManager:
                 status="queued",
                 generation=0,
                 evaluations=0,
-                served=0,
             )
             session.add(run)
             session.flush()

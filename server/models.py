@@ -45,8 +45,6 @@ class Run(Base):
     """Controllers evaluated (each over `trials` trials), counted once per job result."""
     best_fitness: Mapped[float | None] = mapped_column(Float, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
-    served: Mapped[int] = mapped_column(BigInteger, default=0)
-    """Unused since fair sharing moved to the in-memory job queue (server.jobs); always 0."""
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
@@ -86,18 +84,6 @@ class Controller(Base):
     generation: Mapped[int | None] = mapped_column(Integer, nullable=True)
     fitness: Mapped[float | None] = mapped_column(Float, nullable=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-
-
-class Worker(Base):
-    """A simulation worker seen by the server (filled by the zenoh dispatcher, issue 5)."""
-
-    __tablename__ = "workers"
-
-    id: Mapped[str] = mapped_column(String(128), primary_key=True)
-    status: Mapped[str] = mapped_column(String(16))
-    jobs_done: Mapped[int] = mapped_column(BigInteger, default=0)
-    first_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-    last_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
 class Robot(Base):

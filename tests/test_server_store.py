@@ -4,7 +4,6 @@ and genomes stored once per run (Eq 11's copies point to the generation holding 
 from __future__ import annotations
 
 import dataclasses
-import io
 import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -12,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sqlalchemy as sa
-from alembic import command
 from alembic.script import ScriptDirectory
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -21,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from evorobotics.evaluate import evaluate
 from evorobotics.evolution import evaluate_population, evolve
-from evorobotics.ga import GAParams, ask, ga_rng, init, lineage, tell
+from evorobotics.ga import GAParams, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from schemas.run import GAConfig, RunConfig
 from schemas.wire import decode_frame, encode_frame
@@ -44,7 +42,7 @@ from server.robots import ranked_document
 from server.settings import Settings
 from tests.helpers import eventually
 
-TABLES = {"runs", "generations", "controllers", "workers", "robots"}
+TABLES = {"runs", "generations", "controllers", "robots"}
 SMALL = RunConfig(population=12, generations=3, steps=10, trials=2, job_size=5)
 
 
@@ -54,43 +52,6 @@ def manager(tmp_path: Path) -> Iterator[RunManager]:
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
     yield RunManager(engine, Settings(db_url="unused", lease_seconds=10.0, max_attempts=2))
-    engine.dispose()
-
-
-def test_upgrade_drops_the_jobs_table_of_older_servers_with_its_rows(tmp_path: Path) -> None:
-    """Servers before 0004 kept jobs in a table (rows may be left by a crash); jobs live in
-    memory now, so the upgrade drops it. The downgrade brings back an empty table and turns
-    GA states back into the .npz older servers read."""
-    engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
-    cfg = alembic_config(engine)
-    command.upgrade(cfg, "0003_nullable_fitness")
-    with engine.begin() as conn:
-        conn.exec_driver_sql(
-            "INSERT INTO runs (id, config, seed, status, generation, evaluations, served,"
-            " created_at) VALUES (1, '{}', 0, 'running', 0, 0, 0, '2026-01-01')"
-        )
-        conn.exec_driver_sql(
-            'INSERT INTO jobs (run_id, generation, "index", start, stop, status, attempts,'
-            " genomes, dtype, shape) VALUES (1, 0, 0, 0, 4, 'leased', 1, x'00', '<f8', '1')"
-        )
-    command.upgrade(cfg, "0005_genome_origin")
-    assert "jobs" not in sa.inspect(engine).get_table_names()
-    lay, params = layout(SMALL.network_spec), GAParams.from_config(SMALL)
-    state = init(lay, params)
-    with engine.begin() as conn:  # a GA state written by this release: a frame
-        conn.exec_driver_sql(
-            "INSERT INTO generations (run_id, generation, best, mean, worst, nan_count, state,"
-            " committed_at) VALUES (1, 0, 1.0, 0.5, 0.0, 0, ?, '2026-01-01')",
-            (encode_state(state),),
-        )
-    command.downgrade(cfg, "0003_nullable_fitness")
-    with engine.connect() as conn:
-        assert conn.exec_driver_sql("SELECT count(*) FROM jobs").scalar() == 0
-        stored = conn.exec_driver_sql("SELECT state FROM generations").scalar_one()
-    with np.load(io.BytesIO(stored), allow_pickle=False) as npz:  # what older servers read
-        assert {name: npz[name].tobytes() for name in npz.files} == {
-            name: value.tobytes() for name, value in state.to_arrays().items()
-        }
     engine.dispose()
 
 
@@ -233,17 +194,6 @@ def test_ga_state_round_trips_through_the_store_encoding(seed: int, generations:
     a, _ = ask(ga_rng(seed, generations), state, params, lay)
     b, _ = ask(ga_rng(seed, generations), back, params, lay)
     assert a.tobytes() == b.tobytes()
-
-
-def test_ga_state_of_an_older_server_still_decodes() -> None:
-    """Servers before the frame encoding stored the state as .npz: a database they wrote resumes."""
-    lay, params = layout(SMALL.network_spec), GAParams.from_config(SMALL)
-    genomes, state = ask(ga_rng(1, 0), init(lay, params), params, lay)
-    state, _ = tell(genomes, np.arange(SMALL.population, dtype=np.float64), state, params)
-    buffer = io.BytesIO()
-    np.savez(buffer, allow_pickle=False, **state.to_arrays())
-    back = decode_state(buffer.getvalue())
-    assert encode_state(back) == encode_state(state)
 
 
 def _evaluate(manager: RunManager, worker: str, now: float) -> tuple[JobKey, JobResult] | None:
@@ -796,17 +746,16 @@ def _drive(manager: RunManager, *, until: int | None = None) -> None:
 
 
 def _assert_stored_once(
-    engine: sa.Engine, run_id: int, config: RunConfig, expected: list[np.ndarray], *, old: int = 0
+    engine: sa.Engine, run_id: int, config: RunConfig, expected: list[np.ndarray]
 ) -> None:
-    """Bytes only for generation 0, the mutants of later generations (and the first `old`
-    generations, written before the origins existed); every copy points to bytes stored by an
-    earlier generation, and resolves to exactly `evolve`'s genome."""
+    """Bytes only for generation 0 and the mutants of later generations; every copy points to
+    bytes stored by an earlier generation, and resolves to exactly `evolve`'s genome."""
     m = config.replacement_count
     with Session(engine) as session:
         stored = crud.populations(session, run_id=run_id, generations=range(len(expected)))
         assert sorted(stored) == list(range(len(expected)))
         for g, population in stored.items():
-            want = config.population if g == 0 or g < old else m
+            want = config.population if g == 0 else m
             assert len(population.genomes) == want
             at_g, at_row = population.genome_at[:, 0], population.genome_at[:, 1]
             assert (at_row[at_g == g] == np.arange(want)).all()  # own bytes, in rank order
@@ -883,168 +832,3 @@ def test_a_copy_whose_bytes_differ_from_its_origin_keeps_them(manager: RunManage
     assert at[11].tolist() == [0, 0]  # the k-2 elite: rank 0 two generations back
     own = [i for i in range(12) if i not in copies]
     assert at[own].tolist() == [[2, k] for k in range(len(own))]  # stored here, in rank order
-
-
-def _write_old_layout(engine: sa.Engine, config: RunConfig, generations: int) -> None:
-    """Run 1 as a server before revision 0005 left it: `generations` committed, every
-    individual with its genome bytes, the next generation in flight."""
-    lay, params = layout(config.network_spec), GAParams.from_config(config)
-    state = init(lay, params)
-    with engine.begin() as conn:
-        conn.exec_driver_sql(
-            "INSERT INTO runs (id, config, seed, status, generation, evaluations, served,"
-            " created_at, started_at) VALUES (1, ?, ?, 'running', ?, ?, 0, '2026-01-01',"
-            " '2026-01-01')",
-            (config.model_dump_json(), config.seed, generations, generations * config.population),
-        )
-        for g in range(generations):
-            genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
-            fitness, components = evaluate_population(config, g, genomes)
-            state, metrics = tell(genomes, fitness, state, params)
-            conn.exec_driver_sql(
-                "INSERT INTO generations (run_id, generation, best, mean, worst, nan_count,"
-                " state, committed_at) VALUES (1, ?, ?, ?, ?, 0, ?, '2026-01-01')",
-                (
-                    g,
-                    metrics.best,
-                    metrics.mean,
-                    metrics.worst,
-                    encode_state(state, with_ranked=False),
-                ),
-            )
-            parents = [p if p >= 0 else None for _, p in lineage(params, g)]
-            conn.exec_driver_sql(
-                'INSERT INTO individuals (run_id, generation, rank, "index", parent, fitness,'
-                " components, genome, dtype, shape) VALUES (1, ?, ?, ?, ?, ?, ?, ?, '<f8', ?)",
-                [
-                    (g, r, i, parents[i], float(fitness[i]), components[i].tobytes(),
-                     genomes[i].tobytes(), str(lay.n_weights))
-                    for r, i in enumerate(metrics.order.tolist())
-                ],
-            )  # fmt: skip
-
-
-def test_a_database_of_the_old_layout_upgrades_reads_back_and_resumes(tmp_path: Path) -> None:
-    """Rows written before 0005 all hold bytes: they read back unchanged, the run resumes to
-    `evolve`'s result with new copies pointing at old rows, and the downgrade gives every copy
-    its bytes back."""
-    engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
-    cfg = alembic_config(engine)
-    command.upgrade(cfg, "0004_drop_jobs")
-    _write_old_layout(engine, COPIES, generations=3)
-    expected = _local_ranked(COPIES)
-    upgrade(engine)
-    with Session(engine) as session:
-        for g in range(3):
-            ranked = stored_ranked(session, run_id=1, generation=g)
-            assert ranked.tobytes() == expected[g].tobytes()
-    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
-    manager.recover()
-    _drive(manager)
-    _assert_stored_once(engine, 1, COPIES, expected, old=3)
-    assert manager.best(1) == evolve(COPIES).best.sha256
-    command.downgrade(cfg, "0004_drop_jobs")
-    with engine.connect() as conn:
-        for g, ranked in enumerate(expected):
-            rows = conn.exec_driver_sql(
-                "SELECT genome FROM individuals WHERE run_id = 1 AND generation = ? ORDER BY rank",
-                (g,),
-            ).all()
-            assert b"".join(row[0] for row in rows) == ranked.tobytes()
-    engine.dispose()
-
-
-def test_the_upgrade_names_a_copy_without_bytes_and_runs_again_once_it_is_repaired(
-    tmp_path: Path,
-) -> None:
-    """A damaged 0005 store (a copy whose origin holds no bytes) stops the upgrade with the
-    run, generation and rank; once repaired, the upgrade runs again (SQLite kept the column
-    it added) and a generation left without individuals converts to an empty population."""
-    engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
-    cfg = alembic_config(engine)
-    command.upgrade(cfg, "0004_drop_jobs")
-    _write_old_layout(engine, COPIES, generations=3)
-    command.upgrade(cfg, "0005_genome_origin")
-    with engine.begin() as conn:
-        conn.exec_driver_sql(
-            "UPDATE individuals SET genome = NULL, origin_generation = 0, origin_rank = 99"
-            " WHERE run_id = 1 AND generation = 2 AND rank = 5"
-        )
-    with pytest.raises(RuntimeError, match="run 1 generation 2 rank 5: no genome bytes"):
-        upgrade(engine)
-    with engine.begin() as conn:  # the repair: that generation's rows go
-        conn.exec_driver_sql("DELETE FROM individuals WHERE run_id = 1 AND generation = 2")
-    upgrade(engine)
-    expected = _local_ranked(COPIES)
-    with Session(engine) as session:
-        stored = crud.populations(session, run_id=1, generations=range(3))
-        assert len(stored[2]) == 0 and stored[2].genomes.shape == (0, 0)
-        for g in (0, 1):
-            assert stored_ranked(session, run_id=1, generation=g).tobytes() == expected[g].tobytes()
-        with pytest.raises(NotFoundError, match="generation 2 has no individuals"):
-            crud.ranked(session, run_id=1, generation=2)
-    engine.dispose()
-
-
-def test_populations_go_back_to_0005_rows_and_return_bit_for_bit(tmp_path: Path) -> None:
-    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
-    upgrade(engine)
-    populations_round_trip(engine)
-    engine.dispose()
-
-
-def populations_round_trip(engine: sa.Engine) -> None:
-    """Downgrading to 0005 writes a row per individual, copies pointing to the row with their
-    bytes (one hop); upgrading again rebuilds the same frames, and a failed evaluation stays
-    NULL / NaN both ways. On a store at head (tests/test_postgres.py runs it on PostgreSQL)."""
-    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
-    run_id = manager.create_run(COPIES)
-    _drive(manager)
-    at = {"run": run_id}
-    with engine.begin() as conn:  # as if rank 3 of generation 1 had failed its evaluation
-        frame = conn.execute(
-            sa.text("SELECT population FROM generations WHERE run_id = :run AND generation = 1"),
-            at,
-        ).scalar_one()
-        failed = decode(frame)
-        failed.fitness[3] = np.nan
-        conn.execute(
-            sa.text(
-                "UPDATE generations SET population = :p WHERE run_id = :run AND generation = 1"
-            ),
-            {**at, "p": encode(failed)},
-        )
-    with Session(engine) as session:
-        before = crud.populations(session, run_id=run_id, generations=range(COPIES.generations))
-    cfg = alembic_config(engine)
-    command.downgrade(cfg, "0005_genome_origin")
-    with engine.connect() as conn:
-        counts = conn.execute(
-            sa.text(
-                "SELECT count(*), count(genome), count(fitness) FROM individuals"
-                " WHERE run_id = :run"
-            ),
-            at,
-        ).one()
-        broken = conn.execute(
-            sa.text(
-                "SELECT count(*) FROM individuals AS c LEFT JOIN individuals AS o"
-                " ON o.run_id = c.run_id AND o.generation = c.origin_generation"
-                " AND o.rank = c.origin_rank"
-                " WHERE (c.genome IS NULL) = (c.origin_generation IS NULL)"
-                " OR (c.genome IS NULL AND (o.genome IS NULL OR o.origin_generation IS NOT NULL))"
-            )
-        ).scalar()
-    n, g = COPIES.population, COPIES.generations
-    assert tuple(counts) == (n * g, n + (g - 1) * COPIES.replacement_count, n * g - 1)
-    assert broken == 0
-    upgrade(engine)
-    with Session(engine) as session:
-        after = crud.populations(session, run_id=run_id, generations=range(g))
-    assert after.keys() == before.keys()
-    for generation, population in before.items():
-        for name in ("index", "parent", "fitness", "components", "genome_at", "genomes"):
-            assert (
-                getattr(after[generation], name).tobytes() == getattr(population, name).tobytes()
-            ), (generation, name)
-    _assert_stored_once(engine, run_id, COPIES, _local_ranked(COPIES))

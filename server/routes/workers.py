@@ -1,7 +1,7 @@
 """/api/workers: the simulation workers the dispatcher knows, departed ones for a while.
 
-Served from the dispatcher's memory, not the `workers` table: that table has no host or speed
-column, and a worker's state only means something while this server runs.
+Served from the dispatcher's memory, not a table: a worker's state only means something while
+this server runs.
 """
 
 from __future__ import annotations
