@@ -7,31 +7,12 @@ fitness is the mean of Eq 12 over its trials.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from schemas.run import FitnessWeights
 
 COMPONENTS = ("curve_length", "net_offset", "max_offset", "stuck")
 """Order of the last axis of every components array."""
-
-
-@dataclass(frozen=True)
-class FitnessComponents:
-    """The four Eq-12 terms of a batch of trials, each (...,) float64 (stuck is 0.0/1.0)."""
-
-    curve_length: np.ndarray
-    net_offset: np.ndarray
-    max_offset: np.ndarray
-    stuck: np.ndarray
-
-    def as_array(self) -> np.ndarray:
-        """(..., 4) in COMPONENTS order."""
-        return np.stack(
-            [self.curve_length, self.net_offset, self.max_offset, self.stuck.astype(np.float64)],
-            axis=-1,
-        )
 
 
 def fitness(components: np.ndarray, weights: FitnessWeights) -> np.ndarray:

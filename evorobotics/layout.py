@@ -31,10 +31,6 @@ class Block:
     def size(self) -> int:
         return self.rows * self.cols
 
-    @property
-    def recurrent(self) -> bool:
-        return self.s > 0
-
 
 @dataclass(frozen=True)
 class Layout:

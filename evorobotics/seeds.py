@@ -21,7 +21,6 @@ class Purpose(IntEnum):
     REALITY_GAP = 4
     MAZE = 5
     EVALUATION = 6
-    AGENT = 7
 
 
 def rng(seed: int, generation: int, purpose: Purpose, index: int = 0) -> np.random.Generator:

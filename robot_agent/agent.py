@@ -246,7 +246,6 @@ class Agent:
         """Set while the zenoh session is open."""
         self.delivered = 0
         """Trace samples the server acknowledged."""
-        self.last_whiskers: tuple[int, ...] = (0,) * WHISKERS
         self.boot = self._next_boot()
         if settings.server_key is not None:
             pin_key(settings.state_path, settings.server_key)
@@ -383,7 +382,6 @@ class Agent:
             ok = False
         with self._lock:
             self.serial_ok = ok
-            self.last_whiskers = bits
             sample = _Sample(self.steps, bits, motors, sha, fresh)
             if len(self._buffer) >= self.settings.buffer_samples:
                 self._buffer.popleft()
