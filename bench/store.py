@@ -16,10 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from evorobotics.evaluate import evaluate
 from schemas.run import RunConfig
 from server.db import make_engine, upgrade
-from server.jobs import JobResult
+from server.executor import run_job
 from server.manager import RunManager
 from server.settings import Settings
 
@@ -40,27 +39,24 @@ def main() -> None:
         upgrade(engine)
         manager = RunManager(engine, Settings(db_url="unused"))
         manager.create_run(config)
-        queue = manager.queue
+        scheduler = manager.scheduler
         totals: list[float] = []
         advances: list[float] = []
         writes: list[float] = []
         for _ in range(GENERATIONS):
             t0 = time.perf_counter()
             jobs = []
-            while (job := queue.lease("bench", 0.0)) is not None:
+            while (job := scheduler.lease(f"bench-{len(jobs)}")) is not None:
                 jobs.append(job)
             lease_s = time.perf_counter() - t0
-            results = []
-            for job in jobs:  # evaluation: not timed
-                ev = evaluate(job.config, job.key.generation, job.genomes)
-                results.append(JobResult(ev.fitness, ev.components))
+            results = [run_job(job, f"bench-{i}") for i, job in enumerate(jobs)]  # not timed
             t0 = time.perf_counter()
-            for job, result in zip(jobs[:-1], results[:-1], strict=True):
-                queue.complete(job.key, result)
+            for result in results[:-1]:
+                scheduler.settle(result)
             t1 = time.perf_counter()
-            queue.complete(jobs[-1].key, results[-1], defer=True)
+            scheduler.settle(results[-1])
             t2 = time.perf_counter()
-            queue.flush()
+            manager.flush()
             t3 = time.perf_counter()
             totals.append(lease_s + t3 - t0)
             advances.append(t2 - t1)

@@ -19,7 +19,7 @@ import numpy as np
 
 from evorobotics.document import ControllerDocument
 from evorobotics.evaluate import evaluate
-from evorobotics.ga import GAParams, GAState, ask, ga_rng, init, tell
+from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from schemas.run import RunConfig
 
@@ -111,27 +111,99 @@ def evaluate_population(
     return result.fitness, result.components
 
 
+class RunLoop:
+    """The run loop every role drives: ask, evaluate (the caller's part), tell, over one GA state.
+
+    `colony evolve`, the server's scheduler and a worker evolving a span all step a run through
+    this object, so a strategy or an end-of-run step is added here once. Its whole state is
+    `state` (a GAState, persisted by the server after every generation); `ask` is a pure
+    function of it and the seed, so a loop rebuilt from a stored state goes on bit for bit.
+    """
+
+    def __init__(self, config: RunConfig, state: GAState | None = None) -> None:
+        self.config = config
+        self.params = GAParams.from_config(config)
+        self.layout = layout(config.network_spec)
+        self.state = init(self.layout, self.params) if state is None else state
+        if self.state.n_weights != self.layout.n_weights:
+            raise ValueError(
+                f"GA state of {self.state.n_weights} weights for a "
+                f"{self.layout.n_weights}-weight network"
+            )
+        self._asked: np.ndarray | None = None
+
+    @property
+    def generation(self) -> int:
+        """The generation `ask` gives and `tell` expects."""
+        return self.state.generation
+
+    @property
+    def done(self) -> bool:
+        return self.state.generation >= self.config.generations
+
+    def ask(self) -> np.ndarray:
+        """(population, n_weights) genomes of the current generation, read-only (asked once)."""
+        if self.done:
+            raise ValueError(f"the run is over after {self.config.generations} generations")
+        if self._asked is None:
+            genomes, _ = ask(
+                ga_rng(self.config.seed, self.generation), self.state, self.params, self.layout
+            )
+            genomes.flags.writeable = False
+            self._asked = genomes
+        return self._asked
+
+    def tell(self, fitness: np.ndarray, components: np.ndarray | None = None) -> Told:
+        """Rank the current generation by `fitness` and move on to the next."""
+        genomes = self.ask()
+        before = self.state
+        self.state, metrics = tell(genomes, fitness, before, self.params)
+        self._asked = None
+        return Told(
+            before.generation, genomes, np.asarray(fitness), components, before, self.state, metrics
+        )
+
+
+@dataclass(frozen=True)
+class Told:
+    """One generation evaluated and told: what a store writes of it."""
+
+    generation: int
+    genomes: np.ndarray
+    """(population, n_weights) in ask() order."""
+    fitness: np.ndarray
+    components: np.ndarray | None
+    """(population, trials, 4), when the evaluator reported them."""
+    before: GAState
+    """The state the generation was asked from."""
+    after: GAState
+    """The state its `tell` gave (the next generation is asked from it)."""
+    metrics: TellMetrics
+
+    def summary(self) -> GenerationSummary:
+        m = self.metrics
+        return GenerationSummary(self.generation, m.best, m.mean, m.worst, m.nan_count)
+
+
 def evolve(
     config: RunConfig,
     *,
     on_generation: Callable[[GenerationSummary], None] | None = None,
 ) -> EvolutionResult:
     """Run the whole experiment of `config` in this process; a pure function of the config."""
-    lay = layout(config.network_spec)
-    params = GAParams.from_config(config)
-    state = init(lay, params)
+    loop = RunLoop(config)
     history: list[GenerationSummary] = []
-    genomes = fitness = components = order = np.empty(0)
-    for g in range(config.generations):
-        genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
-        fitness, components = evaluate_population(config, g, genomes)
-        state, metrics = tell(genomes, fitness, state, params)
-        order = metrics.order
-        summary = GenerationSummary(g, metrics.best, metrics.mean, metrics.worst, metrics.nan_count)
-        history.append(summary)
+    told: Told | None = None
+    components = np.empty(0)
+    while not loop.done:
+        fitness, components = evaluate_population(config, loop.generation, loop.ask())
+        told = loop.tell(fitness, components)
+        history.append(told.summary())
         if on_generation is not None:
-            on_generation(summary)
+            on_generation(history[-1])
+    if told is None:
+        raise ValueError("a run needs at least one generation")
     best = best_document(
-        config, genomes, fitness, order, generation=config.generations - 1, run="local"
+        config, told.genomes, told.fitness, told.metrics.order, generation=told.generation
     )
-    return EvolutionResult(state, tuple(history), best, genomes, fitness, components)
+    return EvolutionResult(loop.state, tuple(history), best, told.genomes, told.fitness, components)

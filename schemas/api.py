@@ -114,8 +114,11 @@ class ColonyOut(BaseModel):
 
 
 class HealthOut(BaseModel):
-    status: Literal["ok"] = "ok"
+    """`ok`, or (with HTTP 503) `unhealthy` and the server loops that stopped."""
+
+    status: Literal["ok", "unhealthy"] = "ok"
     version: str
+    stopped: list[str] = Field(default_factory=list, description="loops that no longer run")
 
 
 class ErrorOut(BaseModel):

@@ -12,7 +12,6 @@ import logging
 import os
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import AsyncExitStack, asynccontextmanager
-from functools import partial
 from typing import Any
 
 import zenoh
@@ -24,7 +23,7 @@ from schemas.api import ErrorOut
 from server import metrics, signing
 from server.auth import SecurityMiddleware
 from server.db import Checkpointer, is_sqlite, make_engine, upgrade
-from server.dispatch import Dispatcher, QueueSource
+from server.dispatch import Dispatcher, DispatchSettings
 from server.errors import ServerError
 from server.executor import InProcessExecutor
 from server.manager import RunManager
@@ -80,7 +79,7 @@ def create_app(
     """
     settings = settings or Settings()
     services = (robot_service(),) if services is None else tuple(services)
-    dispatch = settings.dispatch_settings() if settings.zenoh else None
+    dispatch = DispatchSettings.from_settings(settings) if settings.zenoh else None
     endpoint = (
         local_endpoint(dispatch.listen, dispatch.connect)
         if dispatch is not None and settings.local_workers()
@@ -112,24 +111,19 @@ def create_app(
             if dispatch is not None:
                 session = zenoh.open(dispatch.zenoh_config())
                 stack.callback(session.close)
-                source = QueueSource(manager.queue)
-                dispatcher = Dispatcher(dispatch, source, session=session)
-                threads = settings.executor_threads()  # they lease from the same queue
-                manager.queue.set_job_sizer(partial(dispatcher.job_size, local=threads))
+                dispatcher = Dispatcher(dispatch, manager.scheduler, session=session)
                 closers = [service(app, session) for service in services]
                 for close in closers:
                     stack.callback(close)
                 stack.callback(dispatcher.close)
-                # New jobs (a run started or resumed, a lease returned) wake held requests at
-                # once; a generation's successor is installed by the dispatcher thread itself.
-                stack.callback(manager.queue.add_listener(dispatcher.notify))
                 app.state.zenoh = session
                 app.state.dispatcher = dispatcher
                 if endpoint is not None:
                     stack.callback(LocalWorkers(settings.local_workers(), endpoint).stop)
-            executor = InProcessExecutor(manager, threads=settings.executor_threads())
+            executor = InProcessExecutor(manager.scheduler, threads=settings.executor_threads())
             executor.start()
             stack.callback(executor.stop)
+            app.state.executor = executor
             yield
 
     app = FastAPI(

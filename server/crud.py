@@ -1,6 +1,6 @@
 """Reads and small writes of the store, keyword-only so call sites name what they pass.
 
-The run loop's writes (generation commits) live in `server.manager`; jobs in `server.jobs`.
+The run loop's writes (generation commits) live in `server.manager`; jobs in `server.scheduler`.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from sqlalchemy.orm import Session
 
 from server import population
 from server.errors import NotFoundError, ServerError
-from server.jobs import JobQueue
 from server.models import Controller, Generation, Robot, Run
 from server.population import Population
+from server.scheduler import Scheduler
 
 
 def get_run(session: Session, *, run_id: int) -> Run | None:
@@ -128,13 +128,13 @@ def put_controller(
 def job_counts(session: Session) -> dict[str, int]:
     """Jobs of the generations in flight by status (pending, leased, done).
 
-    Jobs live in the run manager's memory (`server.jobs.JobQueue`), not in a table; the
-    manager's sessions carry its queue as `session.info["job_queue"]`. A session without one
-    (e.g. a read-only tool on the database file) sees no jobs.
+    Jobs live in the scheduler's memory (`server.scheduler`), not in a table; the manager's
+    sessions carry it as `session.info["scheduler"]`. A session without one (e.g. a read-only
+    tool on the database file) sees no jobs.
     """
-    queue = session.info.get("job_queue")
-    if isinstance(queue, JobQueue):
-        return queue.counts()
+    scheduler = session.info.get("scheduler")
+    if isinstance(scheduler, Scheduler):
+        return scheduler.counts()
     return {"pending": 0, "leased": 0, "done": 0}
 
 

@@ -10,7 +10,6 @@ from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 
 from schemas.api import WorkerOut
-from server.dispatch import Dispatcher
 from server.manager import RunManager
 
 
@@ -30,10 +29,8 @@ SessionDep = Annotated[Session, Depends(get_session)]
 
 
 def get_workers(request: Request) -> list[WorkerOut]:
-    """The dispatcher's worker table (empty without zenoh), oldest name first."""
-    dispatcher: Dispatcher | None = getattr(request.app.state, "dispatcher", None)
-    if dispatcher is None:
-        return []
+    """The scheduler's worker table (zenoh workers and in-process evaluators), by name."""
+    manager: RunManager = request.app.state.manager
     return [
         WorkerOut(
             name=w.name,
@@ -43,7 +40,7 @@ def get_workers(request: Request) -> list[WorkerOut]:
             robot_steps_per_s=w.robot_steps_per_s,
             last_seen=datetime.fromtimestamp(w.last_seen, UTC),
         )
-        for w in dispatcher.workers()
+        for w in manager.scheduler.workers()
     ]
 
 

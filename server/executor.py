@@ -1,33 +1,53 @@
-"""In-process evaluation: threads that lease jobs, evaluate them here, and complete them.
-
-It uses only the queue's public seam (lease / complete / fail), exactly as a remote worker
-does through the zenoh dispatcher, so swapping executors changes no run logic.
-"""
+"""In-process evaluation: threads that lease jobs from the scheduler, evaluate them here, and
+settle their results, as a remote worker does through the zenoh dispatcher (never spans)."""
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 
 from evorobotics.evaluate import evaluate
-from server.jobs import JobQueue, JobResult
-from server.manager import RunManager
+from schemas.wire import Job, Result
+from server.scheduler import Scheduler
+
+
+def run_job(job: Job, worker: str) -> Result:
+    """Evaluate `job` (one generation of its slice) as a Result; an error becomes one."""
+    began = time.perf_counter()
+    try:
+        evaluation = evaluate(job.config, job.key.generation, job.genomes)
+    except Exception as exc:  # an evaluation error is the run's problem, not the thread's
+        return Result(
+            key=job.key,
+            worker=worker,
+            start=job.start,
+            stop=job.stop,
+            error=f"{type(exc).__name__}: {exc}",
+        )
+    seconds = time.perf_counter() - began
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=job.start,
+        stop=job.stop,
+        robot_steps_per_s=job.robot_steps / seconds if seconds > 0 else 0.0,
+        seconds=seconds,
+        fitness=evaluation.fitness[None],
+        components=evaluation.components[None],
+    )
 
 
 class InProcessExecutor:
-    """`threads` evaluation threads named `{name}-{i}` (their worker ids in leases)."""
+    """`threads` evaluation threads named `{name}-{i}` (their worker names in leases)."""
 
-    def __init__(self, manager: RunManager, *, threads: int = 1, name: str = "local") -> None:
+    def __init__(self, scheduler: Scheduler, *, threads: int = 1, name: str = "local") -> None:
         if threads < 0:
             raise ValueError(f"threads must be >= 0, got {threads}")
-        self._manager = manager
-        self._queue: JobQueue = manager.queue
+        self._scheduler = scheduler
         self._names = [f"{name}-{i}" for i in range(threads)]
         self._stop = threading.Event()
         self._wakes = {n: threading.Event() for n in self._names}
         """One per thread, so one thread clearing its event never hides a wake-up from another."""
-        self._remove_listener: Callable[[], None] | None = None
         self._threads: list[threading.Thread] = []
 
     def _wake_all(self) -> None:
@@ -35,10 +55,13 @@ class InProcessExecutor:
             wake.set()
 
     def start(self) -> None:
-        """Start the threads; an idle thread sleeps until the queue announces leasable jobs."""
+        """Start the threads; an idle thread sleeps until the scheduler has leasable jobs."""
         self._stop.clear()
-        if self._remove_listener is None:
-            self._remove_listener = self._queue.add_listener(self._wake_all)
+        if not self._names:
+            return
+        self._scheduler.add_listener(self._wake_all)
+        for worker in self._names:
+            self._scheduler.join(worker, spans=False)
         self._threads = [
             threading.Thread(target=self._loop, args=(n,), name=f"colony-{n}", daemon=True)
             for n in self._names
@@ -46,33 +69,27 @@ class InProcessExecutor:
         for thread in self._threads:
             thread.start()
 
+    def alive(self) -> bool:
+        """Whether every thread started still runs (`/healthz`)."""
+        return all(thread.is_alive() for thread in self._threads)
+
     def stop(self, timeout: float = 30.0) -> None:
-        """Finish the job in hand, then stop (its result is stored)."""
+        """Finish the job in hand, then stop (its result is settled)."""
         self._stop.set()
         self._wake_all()
         for thread in self._threads:
             thread.join(timeout=timeout)
         self._threads = []
-        if self._remove_listener is not None:
-            self._remove_listener()
-            self._remove_listener = None
+        self._scheduler.remove_listener(self._wake_all)
+        for worker in self._names:
+            self._scheduler.leave(worker)
 
     def _loop(self, worker: str) -> None:
-        queue, wake = self._queue, self._wakes[worker]
+        wake = self._wakes[worker]
         while not self._stop.is_set():
             wake.clear()  # before leasing: an announcement from now on is not lost
-            job = queue.lease(worker, time.time())
+            job = self._scheduler.lease(worker)
             if job is None:
                 wake.wait()
                 continue
-            try:
-                evaluation = evaluate(job.config, job.key.generation, job.genomes)
-            except Exception as exc:  # an evaluation error is the run's problem, not the thread's
-                queue.fail(job.key, f"{type(exc).__name__}: {exc}")
-                continue
-            try:
-                queue.complete(job.key, JobResult(evaluation.fitness, evaluation.components))
-            except Exception as exc:  # the generation could not be committed: fail that run
-                self._manager.fail_run(
-                    job.key.run_id, f"generation {job.key.generation}: {type(exc).__name__}: {exc}"
-                )
+            self._scheduler.settle(run_job(job, worker))

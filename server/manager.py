@@ -1,19 +1,16 @@
-"""The run manager: lifecycle of runs and the generation loop over the job queue.
+"""The run manager: lifecycle of runs in the store, and the writer of told generations.
 
-Each run composes the GA exactly as `evorobotics.evolution.evolve` does (ask with
-`ga_rng(seed, g)`, fixed job slices, results concatenated in slice order, tell), so a server
-run and `colony evolve` give the same populations bit for bit. The GA state after each `tell`
-is committed with its generation; `ask` is a pure function of that state and the seed, so a
-restarted server re-asks whatever generation was in flight and resumes exactly.
+Each live run is a `RunLoop` (evorobotics) served by the scheduler (`server.scheduler`), which
+tells and asks it as results come. The manager builds a run's loop from its last committed GA
+state (`ask` is a pure function of that state and the seed, so a restarted server resumes
+exactly), and its one thread writes what the scheduler told: every `WRITE_AFTER_S` the told
+generations go into one transaction, so workers evaluate generation g + 1 while g is written.
+A crash loses at most those, which a restart recomputes bit for bit.
 
-The hot path (one commit per generation) uses SQLAlchemy Core statements and per-run caches of
-the parsed config, GA params, layout, latest GA state and where the last generation's genome
-bytes are; lifecycle changes use the ORM. A generation is one row, its individuals one frame
+The write path uses SQLAlchemy Core statements; lifecycle changes use the ORM and write the
+told generations first. A generation is one row, its individuals one frame
 (`server.population`). Eq 11 copies three quarters of each generation from the two before it:
-a copy stores no bytes but the (generation, row) of the genome bytes it repeats. A
-finished generation is told and the next asked in memory (`_advance`), and written by the job
-queue afterwards (see `server.jobs`), so the zenoh dispatcher can send generation g + 1 before
-g's transaction; lifecycle changes flush unwritten generations first.
+a copy stores no bytes but the (generation, row) of the genome bytes it repeats.
 
 Lifecycle: queued -> running <-> paused; queued/running/paused -> cancelled;
 running -> completed | failed. Terminal: completed, failed, cancelled.
@@ -34,19 +31,18 @@ import numpy as np
 from sqlalchemy import Engine, Table, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
-from evorobotics.evolution import best_document
-from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, lineage, tell
-from evorobotics.layout import Layout, layout
+from evorobotics.evolution import RunLoop, best_document
+from evorobotics.ga import GAParams, GAState, lineage
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from schemas.wire import decode_frame, encode_frame
 from server import crud, population
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
-from server.jobs import Advance, GenerationResults, JobQueue, RunOverError
 from server.logs import context
 from server.models import Generation, Run, utcnow
 from server.population import Population
+from server.scheduler import Scheduler, Written
 from server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -98,26 +94,14 @@ def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarr
     return crud.ranked(session, run_id=run_id, generation=generation)[1]
 
 
-@dataclass(frozen=True)
-class _Plan:
-    """What a run's config determines, parsed once per run instead of once per generation."""
-
-    config: RunConfig
-    params: GAParams
-    layout: Layout
+WRITE_AFTER_S = 0.1
+"""How long told generations wait to be written together: a span tells hundreds a second,
+and a transaction per generation cost more than the rows in it."""
 
 
-@dataclass(frozen=True)
-class _Asked:
-    """A generation asked inside a transaction, to hand to the queue once it has committed."""
-
-    run_id: int
-    config: RunConfig
-    generation: int
-    genomes: np.ndarray
-    running: bool
-    state: GAState
-    """The GA state the generation's `tell` starts from."""
+class RunOverError(Exception):
+    """A generation's write found its run no longer live (cancelled or failed meanwhile):
+    nothing was written and nothing needs to be."""
 
 
 LOG_EVERY_S = 1.0
@@ -198,115 +182,158 @@ def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class RunManager:
-    """Owns the store's writes: runs, generations and individuals; drives the job queue."""
+    """Owns the store's writes: runs, generations and individuals; feeds the scheduler."""
 
     def __init__(self, engine: Engine, settings: Settings) -> None:
         self.settings = settings
         self.sessions = session_factory(engine)
         self._lock = threading.RLock()
-        self.queue = JobQueue(
-            self.sessions,
-            lock=self._lock,
-            lease_seconds=settings.lease_seconds,
-            max_attempts=settings.max_attempts,
-            on_generation_done=self._advance,
-            on_run_failed=self._fail_id,
-        )
-        self.sessions.configure(info={"job_queue": self.queue})  # read by crud.job_counts
-        self._plans: dict[int, _Plan] = {}
-        self._states: dict[int, tuple[int, GAState]] = {}
-        """run id -> (generation g, GA state after tell of g - 1): saves a decode per generation."""
+        """Held by lifecycle changes and writes (never by the scheduler's callers)."""
+        self.scheduler = Scheduler(settings.policy())
+        self.sessions.configure(info={"scheduler": self.scheduler})  # read by crud.job_counts
+        self._write_failures: dict[int, str] = {}
+        """run id -> why its generation could not be written: stopped until it is."""
         self._logged_at: dict[int, float] = {}
         """run id -> when a "generation written" line last went out at INFO (LOG_EVERY_S)."""
         self._origins: dict[int, _Origins] = {}
         """run id -> where the genome bytes of its last written generation are: saves a query
-        per generation (see `_genome_origins`)."""
+        per generation (see `_genome_at`)."""
         self._stop = threading.Event()
-        self._housekeeper: threading.Thread | None = None
+        self._thread: threading.Thread | None = None
 
     # lifecycle of the manager -------------------------------------------------------------
 
     def start(self) -> None:
-        """Resume the runs of a previous life, then expire leases and promote queued runs."""
+        """Resume the runs of a previous life, then write, expire and promote in a thread."""
         self.recover()
         self._stop.clear()
-        self._housekeeper = threading.Thread(
-            target=self._housekeep, name="colony-housekeeper", daemon=True
-        )
-        self._housekeeper.start()
+        self._thread = threading.Thread(target=self._work, name="colony-writer", daemon=True)
+        self._thread.start()
+
+    def alive(self) -> bool:
+        """Whether the writer thread runs (`/healthz`)."""
+        return self._thread is not None and self._thread.is_alive()
 
     def stop(self) -> None:
-        """Stop housekeeping and write the generations told but not yet written (a restart
+        """Stop the thread and write the generations told but not yet written (a restart
         would recompute them, bit for bit, but need not)."""
         self._stop.set()
-        if self._housekeeper is not None:
-            self._housekeeper.join(timeout=10.0)
-            self._housekeeper = None
-        with self._lock:
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            self._thread = None
+        try:
+            self.flush()
+        except Exception as exc:
+            log.warning("generations told but not written at shutdown: %s", exc)
+
+    def _work(self) -> None:
+        """Every WRITE_AFTER_S write what was told; every housekeeping period expire leases
+        and promote queued runs. Survives any error (logged), e.g. a database that is down."""
+        housekept = time.monotonic()
+        while not self._stop.wait(WRITE_AFTER_S):
             try:
-                self.queue.flush()
+                self.flush()
+                if time.monotonic() - housekept >= self.settings.housekeeping_seconds:
+                    housekept = time.monotonic()
+                    self.scheduler.expire()
+                    self.promote()
+            except Exception:
+                log.exception("writer step failed; retrying")
+
+    def flush(self) -> None:
+        """Write the told generations, oldest first, in one transaction; then fail the runs
+        whose jobs failed. If the store refuses, the runs concerned stop leasing (what is
+        leased may still complete) and the write is retried at the next call; once it is in,
+        they are paused with the reason in `error`, so an operator sees it and resumes."""
+        with self._lock:
+            told = self.scheduler.take_told()
+            try:
+                self._write(told)
             except Exception as exc:
-                log.warning("generations told but not written at shutdown: %s", exc)
-
-    def _housekeep(self) -> None:
-        while not self._stop.wait(self.settings.housekeeping_seconds):
-            self.queue.expire(time.time())
-            self.settle_write_failures()
-            self.promote()
-
-    def settle_write_failures(self) -> None:
-        """Retry the writes the store refused; once they are in, pause the runs they stopped
-        with the reason in `error`, so an operator sees it and resumes (nothing is lost)."""
-        if not self.queue.stalled():  # told generations wait for the dispatcher's batch
-            return
-        with self._lock:
-            if self.queue.unwritten():
-                try:
-                    self.queue.flush()
-                except Exception as exc:
-                    log.warning("store still refuses writes: %s", exc)
-                    return
-            failures = self.queue.write_failures()
-            if not failures:
-                return
-            try:
+                self.scheduler.put_back(told)
+                self._stall(told, exc)
+                raise
+            self._settle_write_failures()
+            failed = self.scheduler.take_failed()
+            if failed:
                 with self.sessions.begin() as session:
-                    for run_id, message in failures.items():
-                        run = session.get(Run, run_id)
-                        if run is not None and run.status == "running":
-                            run.status, run.error = "paused", message
-                            context(log, run=run_id).warning(
-                                "run %d paused after a refused write; resume it", run_id
-                            )
-            except Exception as exc:
-                log.warning("could not pause the runs a refused write stopped: %s", exc)
-                return
-            self.queue.clear_write_failures(failures)
+                    for run_id, message in failed.items():
+                        self._fail_id(session, run_id, message)
+                self.promote()
+
+    def _write(self, told: list[Written]) -> None:
+        if not told:
+            return
+        try:
+            with self.sessions.begin() as session:
+                for item in told:
+                    self._write_generation(session, item)
+        except RunOverError:  # some run ended meanwhile: one transaction each instead
+            for item in told:
+                try:
+                    with self.sessions.begin() as session:
+                        self._write_generation(session, item)
+                except RunOverError as exc:
+                    context(log, run=item.run_id).info(
+                        "run %d generation %d not written: %s",
+                        item.run_id,
+                        item.told.generation,
+                        exc,
+                    )
+
+    def _stall(self, told: list[Written], exc: Exception) -> None:
+        message = f"database write failed: {type(exc).__name__}: {exc}"[:500]
+        for item in told:
+            if item.run_id not in self._write_failures:
+                context(log, run=item.run_id).error(
+                    "run %d stops leasing: generation %d not written: %s",
+                    item.run_id,
+                    item.told.generation,
+                    message,
+                )
+                self._write_failures[item.run_id] = message
+            self.scheduler.set_running(item.run_id, False)
+
+    def _settle_write_failures(self) -> None:
+        if not self._write_failures:
+            return
+        with self.sessions.begin() as session:
+            for run_id, message in self._write_failures.items():
+                run = session.get(Run, run_id)
+                if run is not None and run.status == "running":
+                    run.status, run.error = "paused", message
+                    context(log, run=run_id).warning(
+                        "run %d paused after a refused write; resume it", run_id
+                    )
+        self._write_failures.clear()
 
     def recover(self) -> None:
-        """Re-ask the generation in flight of every live run (its results died with the process)."""
-        asked: list[_Asked] = []
+        """Serve again the generation in flight of every live run (its results died with the
+        process)."""
         with self._lock, self.sessions.begin() as session:
             runs = session.scalars(select(Run).where(Run.status.in_(("running", "paused"))))
             for run in runs:
-                plan = self._plan(run)
-                if run.generation >= plan.config.generations:
-                    self._finish(session, run, plan.config)
+                config = RunConfig.model_validate_json(run.config)
+                if run.generation >= config.generations:
+                    self._finish(session, run, config)
                 else:
-                    asked.append(self._ask(session, run))
-        self._hand_over(asked)
+                    self._serve(session, run)
         self.promote()
 
-    def _hand_over(self, asked: list[_Asked]) -> None:
-        for a in asked:
-            self.queue.add(
-                run_id=a.run_id,
-                config=a.config,
-                generation=a.generation,
-                genomes=a.genomes,
-                running=a.running,
-                state=a.state,
+    def _serve(self, session: Session, run: Run) -> None:
+        """Hand the run's loop, from its last committed state, to the scheduler."""
+        config = RunConfig.model_validate_json(run.config)
+        g = run.generation
+        state = None
+        if g > 0:
+            previous = crud.get_generation(session, run_id=run.id, generation=g - 1)
+            if previous is None:
+                raise NotFoundError(f"run {run.id} has no committed generation {g - 1} to resume")
+            state = decode_state(
+                previous.state,
+                ranked=lambda: stored_ranked(session, run_id=run.id, generation=g - 1),
             )
+        self.scheduler.add(run.id, RunLoop(config, state), running=run.status == "running")
 
     # run lifecycle ---------------------------------------------------------------------------
 
@@ -335,37 +362,32 @@ class RunManager:
 
     def promote(self) -> None:
         """Start queued runs, oldest first, up to `max_active_runs` running at once."""
-        asked: list[_Asked] = []
-        with self._lock:
-            with self.sessions.begin() as session:
-                running = session.scalar(
-                    select(func.count()).select_from(Run).where(Run.status == "running")
-                )
-                free = self.settings.max_active_runs - int(running or 0)
-                if free <= 0:
-                    return
-                queued = session.scalars(
-                    select(Run).where(Run.status == "queued").order_by(Run.id).limit(free)
-                )
-                for run in queued:
-                    try:
-                        with session.begin_nested():
-                            run.status = "running"
-                            run.started_at = run.started_at or utcnow()
-                            asked.append(self._ask(session, run))
-                        context(log, run=run.id).info(
-                            "run %d running from generation %d", run.id, run.generation
-                        )
-                    except (
-                        Exception
-                    ) as exc:  # a config the GA rejects fails its run, not the server
-                        self._fail(session, run, f"cannot start: {exc}")
-            self._hand_over(asked)
+        with self._lock, self.sessions.begin() as session:
+            running = session.scalar(
+                select(func.count()).select_from(Run).where(Run.status == "running")
+            )
+            free = self.settings.max_active_runs - int(running or 0)
+            if free <= 0:
+                return
+            queued = session.scalars(
+                select(Run).where(Run.status == "queued").order_by(Run.id).limit(free)
+            )
+            for run in queued:
+                try:
+                    with session.begin_nested():
+                        run.status = "running"
+                        run.started_at = run.started_at or utcnow()
+                        self._serve(session, run)
+                    context(log, run=run.id).info(
+                        "run %d running from generation %d", run.id, run.generation
+                    )
+                except Exception as exc:  # a config the GA rejects fails its run, not the server
+                    self._fail(session, run, f"cannot start: {exc}")
 
     def pause(self, run_id: int) -> None:
         with self._lock:
             self._transition(run_id, {"queued", "running"}, "paused")
-            self.queue.set_running(run_id, False)
+            self.scheduler.set_running(run_id, False)
         context(log, run=run_id).info("run %d paused", run_id)
 
     def resume(self, run_id: int) -> None:
@@ -378,13 +400,14 @@ class RunManager:
                     )
                 run.status = "running" if run.started_at is not None else "queued"
                 run.error = None  # e.g. a refused write that paused it
-            self.queue.set_running(run_id, run.status == "running")
-        context(log, run=run_id).info("run %d resumed (%s)", run_id, run.status)
+                status = run.status
+            self.scheduler.set_running(run_id, status == "running")
+        context(log, run=run_id).info("run %d resumed (%s)", run_id, status)
         self.promote()
 
     def cancel(self, run_id: int) -> None:
         with self._lock:
-            self.queue.flush()
+            self.flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
                 if run.status in TERMINAL:
@@ -394,27 +417,17 @@ class RunManager:
         context(log, run=run_id).info("run %d cancelled", run_id)
         self.promote()
 
-    def fail_run(self, run_id: int, message: str) -> None:
-        """Fail a run from outside a transaction (e.g. its generation could not be committed)."""
-        with self._lock:
-            self.queue.flush()
-        with self._lock, self.sessions.begin() as session:
-            run = session.get(Run, run_id)
-            if run is not None and run.status not in TERMINAL:
-                self._fail(session, run, message)
-        self.promote()
-
     def _transition(self, run_id: int, allowed: set[str], target: str) -> None:
         with self._lock:
-            self.queue.flush()
-        with self._lock, self.sessions.begin() as session:
-            run = self._get(session, run_id)
-            if run.status not in allowed:
-                raise TransitionError(
-                    f"run {run_id} is {run.status}; cannot change to {target} "
-                    f"(allowed from {', '.join(sorted(allowed))})"
-                )
-            run.status = target
+            self.flush()
+            with self.sessions.begin() as session:
+                run = self._get(session, run_id)
+                if run.status not in allowed:
+                    raise TransitionError(
+                        f"run {run_id} is {run.status}; cannot change to {target} "
+                        f"(allowed from {', '.join(sorted(allowed))})"
+                    )
+                run.status = target
 
     def _get(self, session: Session, run_id: int) -> Run:
         run = crud.get_run(session, run_id=run_id)
@@ -424,90 +437,24 @@ class RunManager:
 
     def _forget(self, run_id: int) -> None:
         """Drop a run's jobs and caches (it is over)."""
-        self.queue.forget(run_id)
-        self._states.pop(run_id, None)
+        self.scheduler.forget(run_id)
         self._origins.pop(run_id, None)
         self._logged_at.pop(run_id, None)
-        self._plans.pop(run_id, None)
 
-    # the generation loop ---------------------------------------------------------------------
+    # the store -------------------------------------------------------------------------------
 
-    def _plan(self, run: Run) -> _Plan:
-        plan = self._plans.get(run.id)
-        if plan is None:
-            config = RunConfig.model_validate_json(run.config)
-            plan = _Plan(config, GAParams.from_config(config), layout(config.network_spec))
-            self._plans[run.id] = plan
-        return plan
-
-    def _state_before(self, session: Session, run_id: int, plan: _Plan, g: int) -> GAState:
-        """The GA state `ask`/`tell` of generation g start from."""
-        cached = self._states.get(run_id)
-        if cached is not None and cached[0] == g:
-            return cached[1]
-        if g == 0:
-            return init(plan.layout, plan.params)
-        previous = crud.get_generation(session, run_id=run_id, generation=g - 1)
-        if previous is None:
-            raise NotFoundError(f"run {run_id} has no committed generation {g - 1} to resume")
-        state = decode_state(
-            previous.state,
-            ranked=lambda: stored_ranked(session, run_id=run_id, generation=g - 1),
-        )
-        self._states[run_id] = (g, state)
-        return state
-
-    def _ask(self, session: Session, run: Run) -> _Asked:
-        """The genomes of generation `run.generation`, for the queue once the caller commits."""
-        plan, g = self._plan(run), run.generation
-        state = self._state_before(session, run.id, plan, g)
-        genomes, _ = ask(ga_rng(plan.config.seed, g), state, plan.params, plan.layout)
-        return _Asked(run.id, plan.config, g, genomes, run.status == "running", state)
-
-    def _advance(self, results: GenerationResults) -> Advance:
-        """Tell the GA and ask the next generation in memory; the write stores the generation
-        whole (in the queue's one transaction) and finishes the run after its last one."""
-        run_id, g = results.run_id, results.generation
-        plan = self._plans.get(run_id)
-        cached = self._states.get(run_id)
-        if plan is not None and cached is not None and cached[0] == g:
-            before = cached[1]
-        else:  # a cold cache (after a restart): read the run and its last state
-            with self.sessions() as session:
-                if plan is None:
-                    plan = self._plan(self._get(session, run_id))
-                before = self._state_before(session, run_id, plan, g)
-        state, metrics = tell(results.genomes, results.fitness, before, plan.params)
-        self._states[run_id] = (g + 1, state)
-        last = g + 1 >= plan.config.generations
-        following = None
-        if not last:
-            following, _ = ask(ga_rng(plan.config.seed, g + 1), state, plan.params, plan.layout)
-
-        def write(session: Session) -> None:
-            self._write_generation(session, results, plan, before, state, metrics)
-            if last:
-                self._finish(session, self._get(session, run_id), plan.config)
-
-        return Advance(following, state, write)
-
-    def _write_generation(
-        self,
-        session: Session,
-        results: GenerationResults,
-        plan: _Plan,
-        before: GAState,
-        state: GAState,
-        metrics: TellMetrics,
-    ) -> None:
+    def _write_generation(self, session: Session, item: Written) -> None:
         """Store generation g (statistics, GA state, its population as one frame) and move
-        the run to g + 1.
+        the run to g + 1; complete the run after its last generation.
 
-        `before` is the state g was asked from (`tell` of g starts from it). A copy's genome
-        bytes are stored once, at its origin (see `_genome_at`).
+        A copy's genome bytes are stored once, at its origin (see `_genome_at`).
         """
-        run_id, g = results.run_id, results.generation
-        genomes, fitness, components = results.genomes, results.fitness, results.components
+        run_id, told, config = item.run_id, item.told, item.config
+        g, genomes, fitness, metrics = told.generation, told.genomes, told.fitness, told.metrics
+        components = told.components
+        if components is None:
+            components = np.full((len(genomes), config.trials, 4), np.nan)
+        params = GAParams.from_config(config)
         order = metrics.order
         top = float(fitness[order[0]])
         conn = session.connection()  # Core on the session's transaction: no ORM unit of work
@@ -518,13 +465,13 @@ class RunManager:
                 "at": g,
                 "next": g + 1,
                 "top": top if np.isfinite(top) else None,
-                "evaluated": plan.config.population,
+                "evaluated": config.population,
             },
         )
         if moved.rowcount != 1:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
-        kin = _lineage(plan.params, min(g, 2))  # every generation from 2 on has the same
-        genome_at = self._genome_at(session, run_id, g, kin, genomes, before, order)
+        kin = _lineage(params, min(g, 2))  # every generation from 2 on has the same
+        genome_at = self._genome_at(session, run_id, g, kin, genomes, told.before, order)
         ranked = Population(
             index=order,
             parent=kin.parents[order],
@@ -542,13 +489,13 @@ class RunManager:
                 "mean": metrics.mean,
                 "worst": metrics.worst,
                 "nan_count": metrics.nan_count,
-                "state": encode_state(state, with_ranked=False),
+                "state": encode_state(told.after, with_ranked=False),
                 "population": population.encode(ranked),
                 "committed_at": utcnow(),
             },
         )
         now = time.monotonic()
-        loud = g == 0 or g + 1 >= plan.config.generations
+        loud = g == 0 or item.last
         if loud or now - self._logged_at.get(run_id, -math.inf) >= LOG_EVERY_S:
             self._logged_at[run_id] = now
             level = logging.INFO
@@ -562,6 +509,8 @@ class RunManager:
             metrics.best,
             metrics.mean,
         )
+        if item.last:
+            self._finish(session, self._get(session, run_id), config)
 
     def _genome_at(
         self,
@@ -659,7 +608,7 @@ class RunManager:
     def best(self, run_id: int) -> str:
         """sha256 of the run's best controller so far (stored); NotFoundError before gen 0."""
         with self._lock:
-            self.queue.flush()
+            self.flush()
         with self._lock, self.sessions.begin() as session:
             run = self._get(session, run_id)
             sha = self.store_best(session, run, RunConfig.model_validate_json(run.config))

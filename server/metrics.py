@@ -3,7 +3,7 @@
 One CollectorRegistry per app (tests build many apps in one process). Most figures are read
 from state the server already keeps, so they cannot drift from the REST API: runs, generations
 and evaluations from the store, workers from the dispatcher, robots and trace samples from the
-robot service, job totals from `JobQueue.totals()` (docs/operations.md).
+robot service, job totals from `Scheduler.totals()` (docs/operations.md).
 """
 
 from __future__ import annotations
@@ -68,10 +68,10 @@ class ColonyCollector(Collector):
         pending = GaugeMetricFamily(
             "colony_jobs", "Jobs of the generations in flight by status", labels=["status"]
         )
-        for status, count in manager.queue.counts().items():
+        for status, count in manager.scheduler.counts().items():
             pending.add_metric([status], count)
         yield pending
-        totals = manager.queue.totals()
+        totals = manager.scheduler.totals()
         for name, meaning in (
             ("leased", "Jobs leased"),
             ("done", "Job results accepted"),
@@ -83,7 +83,12 @@ class ColonyCollector(Collector):
         ):
             yield CounterMetricFamily(f"colony_jobs_{name}", meaning, value=totals[name])
         dispatcher = getattr(state, "dispatcher", None)
-        workers = dispatcher.workers() if dispatcher is not None else []
+        yield CounterMetricFamily(
+            "colony_malformed_messages",
+            "Worker messages dropped as malformed",
+            value=dispatcher.malformed if dispatcher is not None else 0,
+        )
+        workers = manager.scheduler.workers()
         alive = GaugeMetricFamily("colony_workers", "Simulation workers by state", labels=["state"])
         for worker_state in ("idle", "busy", "gone"):
             alive.add_metric([worker_state], sum(w.state == worker_state for w in workers))

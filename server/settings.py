@@ -16,11 +16,11 @@ from schemas.security import (
     MAX_ZENOH_MESSAGE,
     ZenohRouterAuth,
 )
-from server.dispatch import DispatchSettings
+from server.scheduler import Policy
 
 
 class Settings(BaseSettings):
-    """Everything an operator may tune; defaults serve a single lab machine."""
+    """What an operator sets (first), then the job path's tuning; defaults serve one lab machine."""
 
     model_config = SettingsConfigDict(env_prefix="COLONY_", extra="ignore")
 
@@ -40,44 +40,7 @@ class Settings(BaseSettings):
     executors: int | None = Field(
         None, ge=0, le=64, description="in-process evaluation threads (default: 0 with zenoh, 1)"
     )
-    jobs_per_worker: int = Field(
-        1,
-        ge=1,
-        le=64,
-        description="zenoh jobs per live worker and generation (more: finer balance)",
-    )
-    span_below_seconds: float = Field(
-        0.1,
-        ge=0.0,
-        description="a generation a worker evaluates faster than this runs in spans (0: never)",
-    )
-    span_seconds: float = Field(
-        5.0, gt=0.0, description="evaluation time of one span, then its worker asks again"
-    )
-    team_slice_seconds: float = Field(
-        0.005,
-        ge=0.0,
-        description="idle workers split a span, each evaluating at least this much of a "
-        "generation (0: never)",
-    )
-    shared_slice_seconds: float = Field(
-        0.001,
-        ge=0.0,
-        description="idle workers on the span worker's machine split a span in shared memory, "
-        "each evaluating at least this much of a generation (0: never)",
-    )
-    lease_seconds: float = Field(300.0, gt=0.0, description="a leased job returns after this")
-    lease_min_seconds: float = Field(
-        10.0, gt=0.0, description="shortest zenoh lease (lease = max(this, 10 x job time))"
-    )
-    lease_unknown_seconds: float = Field(
-        120.0, gt=0.0, description="zenoh lease before a worker's speed is known (compiling)"
-    )
-    max_attempts: int = Field(3, ge=1, description="failed evaluations before a run fails")
     max_active_runs: int = Field(8, ge=1, description="runs evolving at once; the rest queue")
-    housekeeping_seconds: float = Field(
-        1.0, gt=0.0, description="period of lease expiry and queued-run promotion"
-    )
     log_level: str = Field(
         "INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$", description="DEBUG, INFO, WARNING or ERROR"
     )
@@ -112,6 +75,30 @@ class Settings(BaseSettings):
     zenoh_tls_root_ca: Path | None = Field(None, description="CA for tls/ connect endpoints")
     zenoh_max_message: int = Field(
         MAX_ZENOH_MESSAGE, ge=1 << 16, description="largest zenoh message the router accepts"
+    )
+
+    # tuning of the job path (docs/protocol.md); the defaults serve a lab network
+    jobs_per_worker: int = Field(
+        1, ge=1, le=64, description="jobs per live worker and generation (more: finer balance)"
+    )
+    span_below_seconds: float = Field(
+        0.1,
+        ge=0.0,
+        description="a generation a worker evaluates faster than this runs in spans (0: never)",
+    )
+    span_seconds: float = Field(
+        5.0, gt=0.0, description="evaluation time of one span, then its worker asks again"
+    )
+    lease_min_seconds: float = Field(
+        10.0, gt=0.0, description="shortest lease (lease = 10 x the job's time, clamped)"
+    )
+    lease_max_seconds: float = Field(3600.0, gt=0.0, description="longest lease")
+    lease_unknown_seconds: float = Field(
+        120.0, gt=0.0, description="lease before a worker's speed is known (compiling)"
+    )
+    max_attempts: int = Field(3, ge=1, description="failed evaluations before a run fails")
+    housekeeping_seconds: float = Field(
+        1.0, gt=0.0, description="period of lease expiry and queued-run promotion"
     )
 
     @field_validator("api_token", "zenoh_user", "zenoh_password")
@@ -158,17 +145,14 @@ class Settings(BaseSettings):
             return self.executors
         return 0 if self.zenoh else 1
 
-    def dispatch_settings(self) -> DispatchSettings:
-        """ValueError if zenoh has neither a listen nor a connect endpoint."""
-        return DispatchSettings(
-            listen=tuple(self.zenoh_listen),
-            connect=tuple(self.zenoh_connect),
+    def policy(self) -> Policy:
+        """The scheduler's lease, span and retry policy. ValueError if inconsistent."""
+        return Policy(
             lease_min_s=self.lease_min_seconds,
+            lease_max_s=self.lease_max_seconds,
             lease_unknown_s=self.lease_unknown_seconds,
             jobs_per_worker=self.jobs_per_worker,
             span_below_s=self.span_below_seconds,
             span_s=self.span_seconds,
-            team_slice_s=self.team_slice_seconds,
-            shared_slice_s=self.shared_slice_seconds,
-            auth=self.zenoh_router_auth(),
+            max_attempts=self.max_attempts,
         )

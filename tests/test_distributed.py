@@ -54,11 +54,11 @@ class Colony:
         self.client = httpx.Client(base_url=self.url, timeout=10)
 
     def start_server(
-        self, workers: int = 0, *, spans: bool = False, teams: str = "", **env: str
+        self, workers: int = 0, *, spans: bool = False, **env: str
     ) -> subprocess.Popen[bytes]:
         """`spans`: every generation with a measured worker speed goes out as a span of the
-        rest of the run, evolved by one worker or split with every idle one in a team
-        (`teams`: "zenoh" or "shared"); otherwise generations are cut into parallel slices."""
+        rest of the run, evolved by one worker; otherwise generations are cut into parallel
+        slices."""
         argv = [
             *COLONY,
             "server",
@@ -74,8 +74,6 @@ class Colony:
         spanning = {
             "COLONY_SPAN_BELOW_SECONDS": "10",
             "COLONY_SPAN_SECONDS": "600",
-            "COLONY_TEAM_SLICE_SECONDS": "0.000001" if teams == "zenoh" else "0",
-            "COLONY_SHARED_SLICE_SECONDS": "0.000001" if teams == "shared" else "0",
         }
         off = {"COLONY_SPAN_BELOW_SECONDS": "0"}
         env = {"COLONY_HOUSEKEEPING_SECONDS": "0.2", **(spanning if spans else off), **env}
@@ -355,52 +353,3 @@ def test_a_server_sigkilled_mid_span_resumes_it_with_the_same_workers(
     colony.start_server(spans=True)
     colony.finish(run_id, span_sha, evaluations=16 * 300)
     assert {"one", "two"} <= set(colony.workers())
-
-
-@pytest.mark.parametrize("kind", ["zenoh", "shared"])
-@pytest.mark.parametrize("killed", ["member", "leader"])
-def test_a_team_loses_nothing_when_its_member_or_its_leader_is_sigkilled(
-    colony: Colony, span_sha: str, killed: str, kind: str
-) -> None:
-    """Two workers split a span, over zenoh or in shared memory. Killing the member: the
-    leader evaluates its slice (or the chunk it had claimed) after half a second and goes on
-    alone. Killing the leader: the server re-leases its span, which the member takes once it
-    stops waiting for the leader. Either way `evolve`'s result."""
-    colony.start_server(spans=True, teams=kind)
-    procs = {name: colony.start_worker(name) for name in ("a", "b")}
-    wait_until(lambda: len(colony.workers()) == 2, "two workers")
-    # only a worker that has evaluated (its kernels compiled) joins a team: one generation
-    # in slices first, again if one worker happened to take both
-    for _ in range(10):
-        if all(w["robot_steps_per_s"] for w in colony.workers().values()):
-            break
-        warm = colony.post("/api/runs", {**SPAN_CONFIG, "generations": 1})["id"]
-        wait_until(partial(colony.finished, warm), "warm-up run")
-    assert all(w["robot_steps_per_s"] for w in colony.workers().values())
-    base = {name: w["jobs_done"] for name, w in colony.workers().items()}
-    run_id = colony.post("/api/runs", SPAN_CONFIG)["id"]
-    wait_until(lambda: colony.run(run_id)["generation"] >= 5, "generation 5")
-    before = colony.workers()
-    leader = max(before, key=lambda name: before[name]["jobs_done"] - base[name])
-    [member] = set(procs) - {leader}
-    # in the team, though it holds no lease and reports no generation
-    assert before[member]["state"] == "busy"
-    assert before[member]["jobs_done"] <= base[member] + 1
-    victim = leader if killed == "leader" else member
-    procs[victim].kill()
-    colony.finish(run_id, span_sha, evaluations=16 * 300)
-    after = colony.workers()
-    assert after[victim]["state"] == "gone"
-    survivor = member if killed == "leader" else leader
-    assert after[survivor]["jobs_done"] > before[survivor]["jobs_done"]
-    memory = "in shared memory " if kind == "shared" else ""
-    assert f"{memory}with {member}" in (colony.tmp / "server.log").read_text()  # a team
-    if kind == "shared":  # the leader took the file's name away once both had mapped it
-        assert not list(Path("/dev/shm").glob("evocolony-team-*"))
-    if (kind, killed) != ("shared", "member"):  # that one costs a wait only mid-chunk
-        told = {
-            ("zenoh", "member"): "dropped at generation",
-            ("zenoh", "leader"): "leaving the team",
-            ("shared", "leader"): "leaving the shared team",
-        }[kind, killed]
-        assert told in (colony.tmp / f"{survivor}.log").read_text()

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from importlib.metadata import PackageNotFoundError, version
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
 
 from schemas.api import ColonyOut, HealthOut, JobCounts, RobotOut
 from server import crud
@@ -21,9 +22,21 @@ def _version() -> str:
         return "unknown"
 
 
-@router.get("/healthz", response_model=HealthOut)
-def healthz() -> HealthOut:
-    return HealthOut(version=_version())
+@router.get(
+    "/healthz",
+    response_model=HealthOut,
+    responses={503: {"model": HealthOut, "description": "a loop the server needs stopped"}},
+)
+def healthz(request: Request) -> HealthOut | JSONResponse:
+    """ok while every loop the server needs runs: the run manager's writer, the zenoh
+    dispatcher and the in-process evaluators."""
+    state = request.app.state
+    loops = {name: getattr(state, name, None) for name in ("manager", "dispatcher", "executor")}
+    stopped = [name for name, part in loops.items() if part is not None and not part.alive()]
+    health = HealthOut(version=_version(), status="unhealthy" if stopped else "ok", stopped=stopped)
+    if stopped:
+        return JSONResponse(status_code=503, content=health.model_dump())
+    return health
 
 
 @router.get("/api/colony", response_model=ColonyOut)

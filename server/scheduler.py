@@ -1,0 +1,543 @@
+"""The scheduler: every decision of the job path, as a state machine without I/O.
+
+It owns the generations in flight (one `RunLoop` per live run, its generation cut into jobs),
+the one lease table on one injectable clock, spans, the worker table and the generations told
+but not yet written. Inputs are calls (a worker asks, a result arrives, a worker leaves, the
+clock passes a deadline); outputs are jobs, acknowledgements, told generations to store and
+runs to fail. It knows nothing of zenoh, HTTP or the database; the zenoh dispatcher, the
+in-process executor and the run manager drive it, each call under one lock held briefly.
+
+A job is a contiguous slice of a generation. Only its lease holder's result counts: a late or
+duplicate result is acknowledged as dropped. The result of the last job tells the run loop,
+which asks the next generation at once. A span lets the worker holding a generation's only
+job evolve the following ones itself (ask and tell are pure functions of the GA state and the
+seed): each accepted generation moves the lease on to the next, and the worker proves with a
+digest that it evaluated the genomes asked here.
+"""
+
+from __future__ import annotations
+
+import heapq
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from evorobotics.evolution import RunLoop, Told, job_slices
+from schemas.run import RunConfig
+from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus, genome_digest
+
+SPEED_MIN = 1.0
+SPEED_MAX = 1e9
+"""Robot-steps/s a worker may claim: clamped into this range, so no report gives a lease
+beyond `lease_max_s` or a span beyond the run (numba reaches about 1e7 on one core)."""
+TOTALS = ("leased", "done", "requeued", "duplicates_dropped")
+"""Keys of `Scheduler.totals()`."""
+
+
+@dataclass(frozen=True)
+class Policy:
+    """Lease, span and retry policy; the defaults serve a lab network."""
+
+    lease_min_s: float = 10.0
+    lease_max_s: float = 3600.0
+    lease_factor: float = 10.0
+    """lease = lease_factor x the job's robot-steps / the worker's speed, clamped to the range."""
+    lease_unknown_s: float = 120.0
+    """Lease for a worker with no measured speed yet (its first job compiles the kernels)."""
+    jobs_per_worker: int = 1
+    """A generation is cut into this many jobs per live worker."""
+    span_below_s: float = 0.1
+    """A generation a worker evaluates faster than this runs in spans (0: never): below it the
+    round trip per generation costs more than parallel slices save."""
+    span_s: float = 5.0
+    """A span covers about this much evaluation time, then its worker asks again."""
+    max_attempts: int = 3
+    """Leases of a job whose evaluation failed before its run fails."""
+    gone_keep_s: float = 600.0
+    """How long a departed worker stays listed as gone."""
+
+    def __post_init__(self) -> None:
+        for name in ("lease_min_s", "lease_factor", "lease_unknown_s", "span_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not self.lease_max_s >= self.lease_min_s:
+            raise ValueError(f"lease_max_s must be >= lease_min_s, got {self.lease_max_s}")
+        if self.span_below_s < 0 or self.gone_keep_s < 0:
+            raise ValueError("span_below_s and gone_keep_s must be >= 0")
+        if self.jobs_per_worker < 1 or self.max_attempts < 1:
+            raise ValueError("jobs_per_worker and max_attempts must be >= 1")
+
+    def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
+        """The lease of a job of `robot_steps` for a worker of `speed` robot-steps/s."""
+        if speed is None:
+            return self.lease_unknown_s
+        wanted = self.lease_factor * robot_steps / clamp_speed(speed)
+        return min(max(self.lease_min_s, wanted), self.lease_max_s)
+
+    def span_generations(self, config: RunConfig, speed: float | None) -> int:
+        """Generations of `config` a worker of `speed` evolves in one span (1: no span)."""
+        if speed is None:
+            return 1
+        seconds = config.population * config.trials * config.steps / clamp_speed(speed)
+        if seconds >= self.span_below_s:
+            return 1
+        return max(1, int(self.span_s / seconds))
+
+
+def clamp_speed(speed: float) -> float:
+    """A reported speed within [SPEED_MIN, SPEED_MAX] (NaN counts as the minimum)."""
+    return min(max(speed, SPEED_MIN), SPEED_MAX) if speed == speed else SPEED_MIN
+
+
+@dataclass(frozen=True)
+class Written:
+    """A told generation waiting to be stored."""
+
+    run_id: int
+    config: RunConfig
+    told: Told
+    last: bool = False
+    """The run's last generation: storing it completes the run."""
+
+
+@dataclass
+class _Slot:
+    start: int
+    stop: int
+    status: str = "pending"
+    """pending, leased or done."""
+    attempts: int = 0
+
+
+@dataclass
+class _Run:
+    run_id: int
+    loop: RunLoop
+    running: bool
+    slots: list[_Slot]
+    pending: list[int]
+    """Heap of pending slot indices: the lowest is leased first."""
+    fitness: np.ndarray
+    components: np.ndarray
+    remaining: int
+    served: int = 0
+    """Sequence number of its last lease: the run served least recently goes first."""
+
+
+@dataclass
+class _Lease:
+    key: JobKey
+    worker: str
+    deadline: float
+    start: int
+    stop: int
+    span_left: int = 0
+    """Generations of a span after this one."""
+    asked_by_worker: bool = False
+    """A span's generation the worker asked itself: its result must carry the digest."""
+
+
+@dataclass
+class _Worker:
+    name: str
+    host: str = ""
+    speed: float | None = None
+    jobs_done: int = 0
+    last_seen: float = 0.0
+    """Unix time (for display only)."""
+    gone_at: float | None = None
+    serving: bool = True
+    """False while it speaks another protocol: it is answered idle, never counted."""
+    spans: bool = True
+    """False for in-process evaluators, and once it evaluated genomes other than asked."""
+
+
+class Scheduler:
+    """Jobs, leases, spans and workers of every live run; thread-safe, one lock per call."""
+
+    def __init__(
+        self,
+        policy: Policy | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.policy = policy or Policy()
+        self._clock = clock
+        self._wall = wall
+        self._lock = threading.Lock()
+        self._runs: dict[int, _Run] = {}
+        self._leases: dict[JobKey, _Lease] = {}
+        self._workers: dict[str, _Worker] = {}
+        self._told: list[Written] = []
+        self._failed: dict[int, str] = {}
+        self._sequence = 0
+        self._totals = dict.fromkeys(TOTALS, 0)
+        self._listeners: list[Callable[[], None]] = []
+
+    def now(self) -> float:
+        """The scheduler's clock (leases and deadlines are on it)."""
+        return self._clock()
+
+    # runs ------------------------------------------------------------------------------------
+
+    def add_listener(self, listener: Callable[[], None]) -> None:
+        """Call `listener` (it must not block) whenever jobs may have become leasable."""
+        with self._lock:
+            self._listeners.append(listener)
+
+    def remove_listener(self, listener: Callable[[], None]) -> None:
+        with self._lock:
+            if listener in self._listeners:
+                self._listeners.remove(listener)
+
+    def add(self, run_id: int, loop: RunLoop, *, running: bool) -> None:
+        """Serve `loop`'s current generation (replacing anything of the run in flight)."""
+        with self._lock:
+            self._drop_leases(run_id)
+            self._install(run_id, loop, running, served=self._sequence)
+        self._announce()
+
+    def set_running(self, run_id: int, running: bool) -> None:
+        """Pause (no new leases; leased jobs may still complete) or resume a run."""
+        with self._lock:
+            run = self._runs.get(run_id)
+            if run is not None:
+                run.running = running
+        self._announce()
+
+    def forget(self, run_id: int) -> None:
+        """Drop a run (over): its results, if any arrive, are acknowledged as dropped."""
+        with self._lock:
+            self._runs.pop(run_id, None)
+            self._drop_leases(run_id)
+
+    def take_told(self) -> list[Written]:
+        """The generations told since the last call, oldest first, for the store."""
+        with self._lock:
+            told, self._told = self._told, []
+            return told
+
+    def put_back(self, told: list[Written]) -> None:
+        """Told generations the store refused: first in line for the next `take_told`."""
+        with self._lock:
+            self._told[:0] = told
+
+    def take_failed(self) -> dict[int, str]:
+        """Runs (id -> why) a job failed past `max_attempts` since the last call: the store
+        fails them (after writing their told generations)."""
+        with self._lock:
+            failed, self._failed = self._failed, {}
+            return failed
+
+    def has_pending(self) -> bool:
+        with self._lock:
+            return any(run.running and run.pending for run in self._runs.values())
+
+    # workers ---------------------------------------------------------------------------------
+
+    def join(
+        self,
+        worker: str,
+        *,
+        host: str | None = None,
+        speed: float | None = None,
+        serving: bool = True,
+        spans: bool = True,
+    ) -> None:
+        """`worker` is alive (a token, a request): noted with what it says of itself."""
+        with self._lock:
+            record = self._touch(worker)
+            record.serving = serving
+            record.spans = record.spans and spans
+            if host:
+                record.host = host[:255]
+            if speed is not None:
+                record.speed = clamp_speed(speed)
+
+    def leave(self, worker: str) -> list[JobKey]:
+        """`worker` is gone (its token vanished): its leases return at once; their keys."""
+        with self._lock:
+            record = self._workers.setdefault(worker, _Worker(worker))
+            record.gone_at = self._clock()
+            released = self._release_where(lambda lease: lease.worker == worker)
+        self._announce()
+        return released
+
+    def workers(self) -> list[WorkerStatus]:
+        """Every known worker, gone ones too until `gone_keep_s` after they left."""
+        with self._lock:
+            busy = {lease.worker for lease in self._leases.values()}
+            return [
+                WorkerStatus(
+                    name=w.name,
+                    host=w.host,
+                    state="gone" if w.gone_at is not None else "busy" if w.name in busy else "idle",
+                    jobs_done=w.jobs_done,
+                    robot_steps_per_s=w.speed,
+                    last_seen=w.last_seen,
+                )
+                for w in sorted(self._workers.values(), key=lambda w: w.name)
+            ]
+
+    # jobs ------------------------------------------------------------------------------------
+
+    def lease(self, worker: str) -> Job | None:
+        """The next job for `worker`, leased to it, or None. A worker asks only with empty
+        hands, so any lease it still holds lost its reply: that job returns first."""
+        with self._lock:
+            record = self._touch(worker)
+            self._release_where(lambda lease: lease.worker == worker)
+            chosen: _Run | None = None
+            for run in self._runs.values():
+                if (
+                    run.running
+                    and run.pending
+                    and (
+                        chosen is None or (run.served, run.run_id) < (chosen.served, chosen.run_id)
+                    )
+                ):
+                    chosen = run
+            if chosen is None:
+                return None
+            index = heapq.heappop(chosen.pending)
+            slot = chosen.slots[index]
+            loop = chosen.loop
+            key = JobKey(run_id=chosen.run_id, generation=loop.generation, index=index)
+            config = loop.config
+            span = 1
+            if record.spans and len(chosen.slots) == 1:
+                wanted = self.policy.span_generations(config, record.speed)
+                span = max(1, min(wanted, config.generations - loop.generation))
+            robot_steps = (slot.stop - slot.start) * config.trials * config.steps
+            lease_s = self.policy.lease_seconds(robot_steps, record.speed)
+            self._lease(chosen, index, worker, lease_s, span_left=span - 1)
+            return Job(
+                key=key,
+                start=slot.start,
+                stop=slot.stop,
+                config=config,
+                genomes=loop.ask()[slot.start : slot.stop],
+                span=span,
+                state=loop.state.to_arrays() if span > 1 else None,
+                lease_s=lease_s,
+            )
+
+    def settle(self, result: Result) -> Ack:
+        """Take a result: each of its generations in order while the worker holds the lease
+        (a span's lease then moves on); an error is retried or fails the run."""
+        with self._lock:
+            record = self._touch(result.worker)
+            if result.robot_steps_per_s > 0:
+                record.speed = clamp_speed(result.robot_steps_per_s)
+            ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
+            for i in range(result.generations):
+                key = result.key.at(result.key.generation + i)
+                lease = self._leases.get(key)
+                if (
+                    lease is None
+                    or lease.worker != result.worker
+                    or (
+                        result.start is not None
+                        and (result.start, result.stop) != (lease.start, lease.stop)
+                    )
+                ):
+                    self._totals["duplicates_dropped"] += result.generations - i
+                    break
+                del self._leases[key]
+                error = result.error or self._digest_error(result, i, lease, record)
+                if error is not None:
+                    self._fail_job(key, f"{result.worker}: {error}")
+                    ack = Ack(key=result.key, accepted=True, reason="error recorded")
+                    break
+                fitness, components = result.fitness, result.components
+                if fitness is None or components is None:  # an error result: handled above
+                    break
+                self._complete(key, lease, fitness[i], components[i])
+                record.jobs_done += 1
+                ack = Ack(key=result.key, accepted=True)
+        self._announce()
+        return ack
+
+    def expire(self) -> int:
+        """Return every lease past its deadline; forget workers gone long ago. The count."""
+        now = self._clock()
+        with self._lock:
+            released = self._release_where(lambda lease: lease.deadline <= now)
+            for name, w in list(self._workers.items()):
+                if w.gone_at is not None and now - w.gone_at > self.policy.gone_keep_s:
+                    del self._workers[name]
+        if released:
+            self._announce()
+        return len(released)
+
+    def next_deadline(self) -> float | None:
+        """The clock time of the next lease deadline, if any."""
+        with self._lock:
+            return min((lease.deadline for lease in self._leases.values()), default=None)
+
+    def totals(self) -> dict[str, int]:
+        """Since construction: jobs `leased`, results accepted (`done`), leases returned
+        (`requeued`) and results dropped as late or duplicate (`duplicates_dropped`)."""
+        with self._lock:
+            return dict(self._totals)
+
+    def counts(self) -> dict[str, int]:
+        """Jobs of the generations in flight by status: pending, leased, done."""
+        counts = {"pending": 0, "leased": 0, "done": 0}
+        with self._lock:
+            for run in self._runs.values():
+                for slot in run.slots:
+                    counts[slot.status] += 1
+        return counts
+
+    # inside the lock -------------------------------------------------------------------------
+
+    def _announce(self) -> None:
+        with self._lock:
+            listeners = list(self._listeners)
+            ready = any(run.running and run.pending for run in self._runs.values())
+        if ready:
+            for listener in listeners:
+                listener()
+
+    def _touch(self, worker: str) -> _Worker:
+        record = self._workers.get(worker)
+        if record is None:
+            record = self._workers[worker] = _Worker(worker)
+        record.gone_at, record.last_seen = None, self._wall()
+        return record
+
+    def _install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:
+        config = loop.config
+        size = self._job_size(config, loop.generation)
+        slots = [_Slot(a, b) for a, b in job_slices(config.population, size)]
+        self._runs[run_id] = _Run(
+            run_id=run_id,
+            loop=loop,
+            running=running,
+            slots=slots,
+            pending=list(range(len(slots))),
+            fitness=np.full(config.population, np.nan),
+            components=np.full((config.population, config.trials, 4), np.nan),
+            remaining=len(slots),
+            served=served,
+        )
+
+    def _job_size(self, config: RunConfig, generation: int) -> int:
+        """One job per live worker (`jobs_per_worker` each, at least the run's `job_size`), or
+        the whole generation when whoever leases it will get a span: a whole generation
+        leased without one would keep the other workers idle."""
+        live = [w for w in self._workers.values() if w.gone_at is None and w.serving]
+        if not live:
+            return config.job_size
+        speeds = [w.speed if w.spans else None for w in live]
+        if generation + 1 < config.generations and all(s is not None for s in speeds):
+            slowest = min(s for s in speeds if s is not None)
+            if self.policy.span_generations(config, slowest) > 1:
+                return config.population
+        jobs = len(live) * self.policy.jobs_per_worker
+        return max(config.job_size, -(-config.population // jobs))
+
+    def _lease(
+        self,
+        run: _Run,
+        index: int,
+        worker: str,
+        lease_s: float,
+        *,
+        span_left: int = 0,
+        asked_by_worker: bool = False,
+    ) -> None:
+        slot = run.slots[index]
+        slot.status = "leased"
+        slot.attempts += 1
+        self._sequence += 1
+        run.served = self._sequence
+        key = JobKey(run_id=run.run_id, generation=run.loop.generation, index=index)
+        self._leases[key] = _Lease(
+            key, worker, self._clock() + lease_s, slot.start, slot.stop, span_left, asked_by_worker
+        )
+        self._totals["leased"] += 1
+
+    def _digest_error(self, result: Result, i: int, lease: _Lease, record: _Worker) -> str | None:
+        """Why a span's generation cannot count (None if it can): the worker must have
+        evaluated the genomes asked here, else its GA differs and it gets no more spans."""
+        if not result.digests:
+            return "a span's generation without its digest" if lease.asked_by_worker else None
+        run = self._runs[lease.key.run_id]
+        asked = run.loop.ask()[lease.start : lease.stop]
+        if result.digests[i] == genome_digest(asked):
+            return None
+        record.spans = False
+        return "evaluated other genomes than the server asked (its GA differs: another version?)"
+
+    def _complete(
+        self, key: JobKey, lease: _Lease, fitness: np.ndarray, components: np.ndarray
+    ) -> None:
+        run = self._runs[key.run_id]
+        slot = run.slots[key.index]
+        run.fitness[slot.start : slot.stop] = fitness
+        run.components[slot.start : slot.stop] = components
+        slot.status = "done"
+        run.remaining -= 1
+        self._totals["done"] += 1
+        if run.remaining:
+            return
+        loop = run.loop
+        told = loop.tell(run.fitness, run.components)
+        self._told.append(Written(run.run_id, loop.config, told, last=loop.done))
+        if loop.done:
+            del self._runs[run.run_id]
+            return
+        self._install(run.run_id, loop, run.running, served=run.served)
+        following = self._runs[run.run_id]
+        if lease.span_left > 0 and run.running and len(following.slots) == 1:
+            heapq.heappop(following.pending)
+            speed = self._workers[lease.worker].speed
+            lease_s = self.policy.lease_seconds(
+                loop.config.population * loop.config.trials * loop.config.steps, speed
+            )
+            self._lease(
+                following,
+                0,
+                lease.worker,
+                lease_s,
+                span_left=lease.span_left - 1,
+                asked_by_worker=True,
+            )
+
+    def _fail_job(self, key: JobKey, message: str) -> None:
+        run = self._runs.get(key.run_id)
+        if run is None:
+            return
+        if run.slots[key.index].attempts >= self.policy.max_attempts:
+            self._failed[key.run_id] = f"job {key.generation}/{key.index} failed: {message}"
+            self._runs.pop(key.run_id, None)
+            self._drop_leases(key.run_id)
+            return
+        self._make_pending(run, key.index)
+
+    def _drop_leases(self, run_id: int) -> None:
+        for key in [k for k in self._leases if k.run_id == run_id]:
+            del self._leases[key]
+
+    def _release_where(self, condition: Callable[[_Lease], bool]) -> list[JobKey]:
+        released = [lease for lease in self._leases.values() if condition(lease)]
+        for lease in released:
+            del self._leases[lease.key]
+            run = self._runs.get(lease.key.run_id)
+            if run is not None and run.loop.generation == lease.key.generation:
+                self._make_pending(run, lease.key.index)
+        self._totals["requeued"] += len(released)
+        return [lease.key for lease in released]
+
+    @staticmethod
+    def _make_pending(run: _Run, index: int) -> None:
+        slot = run.slots[index]
+        if slot.status != "pending":
+            slot.status = "pending"
+            heapq.heappush(run.pending, index)
