@@ -1,8 +1,7 @@
 """A committed generation's individuals as one value: the `generations.population` frame.
 
 One row per generation instead of one per individual: at the paper's scale the store's
-per-row work, not its bytes, was most of the server's recording (docs/protocol.md, "Ninth
-session" and "Tenth session"). The frame (`schemas.wire`: raw arrays, self-describing, no pickle) holds, by rank
+per-row work, not its bytes, was most of the server's recording. The frame (`schemas.wire`: raw arrays, self-describing, no pickle) holds, by rank
 (0 = fittest):
 
 - `index` (n,) int32: position in the population as asked (the job slices cut this order);

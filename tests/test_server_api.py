@@ -189,3 +189,15 @@ def test_zenoh_worker_errors_are_retried_then_fail_the_run(tmp_path: Path) -> No
     assert listed["name"] == "crashy" and listed["jobs_done"] == 0
     assert listed["state"] in ("idle", "busy")
     assert [w["name"] for w in colony["workers"]] == ["crashy"]
+
+
+def test_healthz_reports_a_stopped_loop(tmp_path: Path) -> None:
+    """ok while the writer and the evaluators run; 503 naming the loop once one stops."""
+    settings = Settings(db_url=f"sqlite:///{tmp_path / 'c.db'}", port=free_port(), zenoh=False)
+    with serving(settings) as (url, app), httpx.Client(base_url=url) as client:
+        healthy = client.get("/healthz")
+        assert healthy.status_code == 200 and healthy.json()["status"] == "ok"
+        app.state.manager.stop()  # its writer thread ends: runs would never be written
+        sick = client.get("/healthz")
+        assert sick.status_code == 503
+        assert sick.json()["status"] == "unhealthy" and sick.json()["stopped"] == ["manager"]
