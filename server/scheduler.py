@@ -153,6 +153,8 @@ class _Worker:
     """False while it speaks another protocol: it is answered idle, never counted."""
     spans: bool = True
     """False for in-process evaluators, and once it evaluated genomes other than asked."""
+    listed: bool = True
+    """False for in-process evaluators: not shown as workers."""
 
 
 class Scheduler:
@@ -247,12 +249,15 @@ class Scheduler:
         speed: float | None = None,
         serving: bool = True,
         spans: bool = True,
+        listed: bool = True,
     ) -> None:
-        """`worker` is alive (a token, a request): noted with what it says of itself."""
+        """`worker` is alive (a token, a request): noted with what it says of itself. An
+        unlisted one (an in-process evaluator) leases like any other but is not in `workers`."""
         with self._lock:
             record = self._touch(worker)
             record.serving = serving
             record.spans = record.spans and spans
+            record.listed = record.listed and listed
             if host:
                 record.host = host[:255]
             if speed is not None:
@@ -281,6 +286,7 @@ class Scheduler:
                     last_seen=w.last_seen,
                 )
                 for w in sorted(self._workers.values(), key=lambda w: w.name)
+                if w.listed
             ]
 
     # jobs ------------------------------------------------------------------------------------
@@ -467,7 +473,10 @@ class Scheduler:
         """Why a span's generation cannot count (None if it can): the worker must have
         evaluated the genomes asked here, else its GA differs and it gets no more spans."""
         if not result.digests:
-            return "a span's generation without its digest" if lease.asked_by_worker else None
+            if not lease.asked_by_worker:
+                return None
+            record.spans = False
+            return "a span's generation without its digest"
         run = self._runs[lease.key.run_id]
         asked = run.loop.ask()[lease.start : lease.stop]
         if result.digests[i] == genome_digest(asked):

@@ -1,0 +1,607 @@
+"""The scheduler as a state machine: calls in, jobs and acknowledgements out, a fake clock, no
+threads and no sockets. Fitness is a deterministic function of each genome (or the real
+evaluation, which is fast at this size), so a run's told generations are comparable bit for bit
+with an undisturbed run and with `evolve`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evorobotics.evolution import RunLoop, Told, evaluate_population, evolve
+from evorobotics.ga import GAState
+from schemas.run import RunConfig
+from schemas.wire import Job, Result, genome_digest
+from server.executor import run_job
+from server.scheduler import SPEED_MAX, SPEED_MIN, Policy, Scheduler, Written, clamp_speed
+
+CONFIG = RunConfig(population=8, generations=4, trials=1, steps=5, job_size=3)
+FAST = 1e9
+"""A speed at which a generation of CONFIG takes far less than span_below_s: spans."""
+SLOW = 10.0
+"""A speed at which it takes seconds: no spans."""
+
+
+class Clock:
+    """A fake monotonic clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def make(policy: Policy | None = None) -> tuple[Scheduler, Clock]:
+    clock = Clock()
+    return Scheduler(policy or Policy(), clock=clock, wall=lambda: 1000.0 + clock.t), clock
+
+
+def fake_fitness(genomes: np.ndarray) -> np.ndarray:
+    """A deterministic function of each genome alone (as the real fitness is)."""
+    return np.asarray(np.sin(genomes).sum(axis=1) + genomes[:, 0] ** 2, dtype=np.float64)
+
+
+def fake_components(config: RunConfig, genomes: np.ndarray) -> np.ndarray:
+    return np.repeat(genomes[:, :4, None].transpose(0, 2, 1), config.trials, axis=1).copy()
+
+
+def result(
+    job: Job, worker: str, genomes: np.ndarray | None = None, *, digest: bool = False
+) -> Result:
+    """The result of one generation of `job` (of `genomes`, a span's own, if given)."""
+    genomes = job.genomes if genomes is None else genomes
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=job.start,
+        stop=job.stop,
+        fitness=fake_fitness(genomes)[None],
+        components=fake_components(job.config, genomes)[None],
+        digests=(genome_digest(genomes),) if digest else (),
+    )
+
+
+def error_result(job: Job, worker: str) -> Result:
+    return Result(key=job.key, worker=worker, start=job.start, stop=job.stop, error="boom")
+
+
+def reference(config: RunConfig) -> list[Told]:
+    """The undisturbed run: the whole generation evaluated at once."""
+    loop = RunLoop(config)
+    told = []
+    while not loop.done:
+        genomes = loop.ask()
+        told.append(loop.tell(fake_fitness(genomes), fake_components(config, genomes)))
+    return told
+
+
+def same_generations(written: list[Written], expected: list[Told]) -> None:
+    """Bit for bit: generation numbers, genomes and fitness, in order."""
+    assert [w.told.generation for w in written] == [t.generation for t in expected]
+    for w, t in zip(written, expected, strict=True):
+        assert w.told.genomes.tobytes() == t.genomes.tobytes()
+        assert w.told.fitness.tobytes() == t.fitness.tobytes()
+    assert [w.last for w in written] == [False] * (len(written) - 1) + [True]
+
+
+# cutting ---------------------------------------------------------------------------------------
+
+
+def test_with_no_worker_known_a_generation_is_cut_by_job_size() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    assert sched.counts() == {"pending": 3, "leased": 0, "done": 0}
+    jobs = [sched.lease(f"w{i}") for i in range(4)]
+    assert [(j.start, j.stop) for j in jobs if j] == [(0, 3), (3, 6), (6, 8)]
+    assert jobs[3] is None
+
+
+@pytest.mark.parametrize(
+    ("workers", "per_worker", "expected"),
+    [
+        (1, 1, [(0, 8)]),
+        (2, 1, [(0, 4), (4, 8)]),
+        (5, 1, [(0, 3), (3, 6), (6, 8)]),  # never below the run's job_size
+        (1, 2, [(0, 4), (4, 8)]),
+    ],
+)
+def test_a_generation_is_cut_per_live_worker(
+    workers: int, per_worker: int, expected: list[tuple[int, int]]
+) -> None:
+    sched, _ = make(Policy(jobs_per_worker=per_worker))
+    for i in range(workers):
+        sched.join(f"w{i}", speed=SLOW)
+    sched.join("other-protocol", serving=False)  # never counted
+    sched.join("departed")
+    sched.leave("departed")  # not live
+    sched.add(1, RunLoop(CONFIG), running=True)
+    jobs: list[Job] = []
+    while (job := sched.lease(f"taker{len(jobs)}")) is not None:
+        jobs.append(job)
+    assert [(j.start, j.stop) for j in jobs] == expected
+    assert all(j.span == 1 and j.state is None for j in jobs)
+
+
+def test_the_next_generation_is_cut_for_the_workers_live_then() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)  # no worker yet: by job_size
+    first = [sched.lease(f"w{i}") for i in range(3)]
+    sched.leave("w2")  # its job returns; two live workers remain
+    for i, job in enumerate(first[:2]):
+        assert job is not None
+        assert sched.settle(result(job, f"w{i}")).accepted
+    last = sched.lease("w0")
+    assert last is not None and (last.start, last.stop) == (6, 8)
+    assert sched.settle(result(last, "w0")).accepted
+    assert [w.told.generation for w in sched.take_told()] == [0]
+    second = [sched.lease("w0"), sched.lease("w1")]
+    assert [(j.start, j.stop) for j in second if j] == [(0, 4), (4, 8)]
+
+
+def test_runs_share_workers_least_recently_served_first() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    sched.add(2, RunLoop(CONFIG.model_copy(update={"seed": 1})), running=True)
+    order: list[int] = []
+    while (job := sched.lease(f"w{len(order)}")) is not None:
+        order.append(job.key.run_id)
+    assert order == [1, 2, 1, 2, 1, 2]
+    assert not sched.has_pending()
+
+
+def test_a_paused_run_is_not_leased_from_until_resumed() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=False)
+    assert not sched.has_pending() and sched.lease("w") is None
+    sched.set_running(1, True)
+    assert sched.has_pending()
+    job = sched.lease("w")
+    assert job is not None and job.key.run_id == 1
+
+
+# leases ----------------------------------------------------------------------------------------
+
+
+def test_a_lease_expires_exactly_at_its_deadline_and_the_job_is_leased_again() -> None:
+    sched, clock = make(Policy(lease_unknown_s=30.0))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    clock.t = 5.0
+    job = sched.lease("a")
+    assert job is not None and job.lease_s == 30.0
+    assert sched.next_deadline() == 35.0
+    clock.t = np.nextafter(35.0, 0.0)
+    assert sched.expire() == 0
+    assert sched.counts()["leased"] == 1
+    clock.t = 35.0
+    assert sched.expire() == 1
+    assert sched.next_deadline() is None
+    again = sched.lease("b")
+    assert again is not None and again.key == job.key
+    late = sched.settle(result(job, "a"))
+    assert not late.accepted and "late or duplicate" in late.reason
+    assert sched.settle(result(again, "b")).accepted
+    assert sched.totals() == {"leased": 2, "done": 1, "requeued": 1, "duplicates_dropped": 1}
+
+
+def test_a_known_speed_sets_the_lease() -> None:
+    policy = Policy(lease_min_s=1.0, lease_factor=10.0)
+    sched, _ = make(policy)
+    sched.join("a", speed=SLOW)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("a")
+    assert job is not None
+    assert job.lease_s == 10.0 * job.robot_steps / SLOW == policy.lease_seconds(40, SLOW)
+
+
+def test_duplicate_results_are_dropped_and_counted() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("a")
+    assert job is not None
+    first = sched.settle(result(job, "a"))
+    assert first.accepted and first.key == job.key
+    for _ in range(2):
+        assert not sched.settle(result(job, "a")).accepted
+    assert sched.totals()["duplicates_dropped"] == 2
+    assert sched.totals()["done"] == 1
+    assert sched.counts() == {"pending": 2, "leased": 0, "done": 1}
+
+
+def test_only_the_lease_holders_result_counts() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("holder")
+    assert job is not None
+    assert not sched.settle(result(job, "stranger")).accepted
+    wrong_slice = result(job, "holder").model_copy(update={"start": 1, "stop": 4})
+    assert not sched.settle(wrong_slice).accepted
+    assert sched.counts()["leased"] == 1  # the holder's lease stands
+    assert sched.settle(result(job, "holder")).accepted
+
+
+def test_a_worker_asking_again_releases_what_it_held() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    first = sched.lease("a")
+    again = sched.lease("a")  # its reply was lost: the same job, leased once
+    assert first is not None and again is not None and again.key == first.key
+    assert sched.counts() == {"pending": 2, "leased": 1, "done": 0}
+    assert sched.totals()["requeued"] == 1
+    assert sched.settle(result(again, "a")).accepted
+
+
+def test_leave_releases_at_once() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("a")
+    assert job is not None
+    assert sched.leave("a") == [job.key]
+    assert sched.counts()["leased"] == 0
+    taken = sched.lease("b")
+    assert taken is not None and taken.key == job.key
+    assert [w.state for w in sched.workers()] == ["gone", "busy"]
+    assert not sched.settle(result(job, "a")).accepted
+
+
+def test_error_results_are_retried_then_the_run_fails() -> None:
+    sched, _ = make(Policy(max_attempts=2))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    sched.add(2, RunLoop(CONFIG), running=True)
+    job = sched.lease("a")
+    assert job is not None and job.key.run_id == 1
+    ack = sched.settle(error_result(job, "a"))
+    assert ack.accepted and ack.reason == "error recorded"
+    assert sched.take_failed() == {}
+    while (retry := sched.lease("a")) is not None and retry.key != job.key:
+        pass
+    assert retry is not None
+    assert sched.settle(error_result(retry, "a")).accepted
+    failed = sched.take_failed()
+    assert list(failed) == [1] and "boom" in failed[1] and "a:" in failed[1]
+    assert sched.take_failed() == {}
+    leased = [sched.lease(f"x{i}") for i in range(10)]
+    assert {j.key.run_id for j in leased if j} == {2}  # run 1 is no longer served
+
+
+def test_worker_statuses_and_gone_workers_are_kept_until_gone_keep_s() -> None:
+    sched, clock = make(Policy(gone_keep_s=60.0))
+    sched.join("a", host="lab-1", speed=SLOW)
+    sched.join("b")
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("b")
+    assert job is not None
+    rows = {w.name: w for w in sched.workers()}
+    assert (rows["a"].state, rows["a"].host, rows["a"].robot_steps_per_s) == ("idle", "lab-1", SLOW)
+    assert rows["b"].state == "busy"
+    sched.settle(result(job, "b"))
+    assert {w.name: w.jobs_done for w in sched.workers()} == {"a": 0, "b": 1}
+    clock.t = 10.0
+    sched.leave("a")
+    clock.t = 70.0
+    sched.expire()
+    assert [(w.name, w.state) for w in sched.workers()] == [("a", "gone"), ("b", "idle")]
+    clock.t = 70.001
+    sched.expire()
+    assert [w.name for w in sched.workers()] == ["b"]
+    sched.join("a")  # back: listed again
+    assert [w.state for w in sched.workers()] == ["idle", "idle"]
+
+
+# told generations ------------------------------------------------------------------------------
+
+
+def test_the_last_result_tells_the_loop_and_the_next_generation_is_installed() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    written: list[Written] = []
+    for generation in range(CONFIG.generations):
+        jobs = [sched.lease(f"w{i}") for i in range(3)]
+        assert all(j is not None and j.key.generation == generation for j in jobs)
+        for i, job in reversed(list(enumerate(jobs))):  # the order results come in is free
+            assert job is not None
+            assert sched.settle(result(job, f"w{i}")).accepted
+            if i:
+                assert sched.take_told() == []
+        written += sched.take_told()
+    same_generations(written, reference(CONFIG))
+    assert all(w.run_id == 1 and w.config == CONFIG for w in written)
+    assert sched.lease("w0") is None and not sched.has_pending()
+
+
+def test_put_back_told_generations_come_first() -> None:
+    sched, _ = make()
+    sched.add(1, RunLoop(CONFIG), running=True)
+    written: list[Written] = []
+    while len(written) < 2:
+        job = sched.lease("w")
+        assert job is not None
+        sched.settle(result(job, "w"))
+        written += sched.take_told()
+    assert [w.told.generation for w in written] == [0, 1]
+    sched.put_back(written)
+    assert [w.told.generation for w in sched.take_told()] == [0, 1]
+
+
+def test_real_evaluation_through_the_scheduler_equals_evolve_bit_for_bit() -> None:
+    config = RunConfig(population=10, generations=3, trials=2, steps=8, job_size=3, seed=7)
+    sched, _ = make()
+    sched.join("a", speed=SLOW)
+    sched.join("b", speed=SLOW)
+    sched.add(1, RunLoop(config), running=True)
+    written: list[Written] = []
+    while not (written and written[-1].last):
+        a, b = sched.lease("a"), sched.lease("b")
+        for job, worker in ((b, "b"), (a, "a")):
+            if job is not None:
+                assert sched.settle(run_job(job, worker)).accepted
+        written += sched.take_told()
+    loop = RunLoop(config)
+    for w in written:
+        fitness, components = evaluate_population(config, loop.generation, loop.ask())
+        assert w.told.genomes.tobytes() == loop.ask().tobytes()
+        assert w.told.fitness.tobytes() == fitness.tobytes()
+        assert w.told.components is not None
+        assert w.told.components.tobytes() == components.tobytes()
+        loop.tell(fitness, components)
+    whole = evolve(config)
+    assert [w.told.summary() for w in written] == list(whole.history)
+    assert written[-1].told.fitness.tobytes() == whole.fitness.tobytes()
+    assert written[-1].told.genomes.tobytes() == whole.genomes.tobytes()
+    final = written[-1].told.after.to_arrays()
+    assert final.keys() == whole.state.to_arrays().keys()
+    for name, array in whole.state.to_arrays().items():
+        assert final[name].tobytes() == array.tobytes()
+
+
+# spans -----------------------------------------------------------------------------------------
+
+
+def span_job(sched: Scheduler, worker: str = "fast") -> tuple[Job, RunLoop]:
+    job = sched.lease(worker)
+    assert job is not None and job.span > 1 and job.state is not None
+    loop = RunLoop(job.config, GAState.from_arrays(job.state))
+    assert loop.generation == job.key.generation
+    return job, loop
+
+
+def span_step(
+    sched: Scheduler, job: Job, loop: RunLoop, worker: str = "fast", *, digest: bool = True
+) -> bool:
+    """The worker evolves one generation of its span and reports it; accepted?"""
+    genomes = loop.ask()
+    current = job.model_copy(update={"key": job.key.at(loop.generation)})
+    ack = sched.settle(result(current, worker, genomes, digest=digest))
+    loop.tell(fake_fitness(genomes))
+    return ack.accepted and ack.reason == ""
+
+
+def test_a_fast_worker_gets_the_whole_generation_as_a_span_that_matches_the_run() -> None:
+    sched, clock = make()
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    assert sched.counts() == {"pending": 1, "leased": 0, "done": 0}
+    job, loop = span_job(sched)
+    assert (job.start, job.stop, job.span, job.key.generation) == (0, 8, CONFIG.generations, 0)
+    assert job.genomes.tobytes() == RunLoop(CONFIG).ask().tobytes()
+    written = []
+    for generation in range(CONFIG.generations):
+        clock.t += 1.0
+        assert span_step(sched, job, loop)
+        written += sched.take_told()
+        if generation + 1 < CONFIG.generations:  # the lease moved on to the next generation
+            assert sched.counts() == {"pending": 0, "leased": 1, "done": 0}
+            assert sched.next_deadline() == clock.t + Policy().lease_min_s
+            assert [w.state for w in sched.workers()] == ["busy"]
+    same_generations(written, reference(CONFIG))
+    assert sched.totals() == {"leased": 4, "done": 4, "requeued": 0, "duplicates_dropped": 0}
+
+
+def test_the_last_generation_is_cut_per_worker_not_spanned() -> None:
+    config = CONFIG.model_copy(update={"generations": 1})
+    sched, _ = make()
+    sched.join("fast", speed=FAST)
+    sched.join("fast2", speed=FAST)
+    sched.add(1, RunLoop(config), running=True)
+    assert sched.counts()["pending"] == 2
+
+
+def test_spans_need_every_live_worker_fast() -> None:
+    sched, _ = make()
+    sched.join("fast", speed=FAST)
+    sched.join("new")  # no speed yet
+    sched.add(1, RunLoop(CONFIG), running=True)
+    assert sched.counts()["pending"] == 2
+    sched.join("local", speed=FAST, spans=False)  # an in-process thread never spans
+    sched.add(2, RunLoop(CONFIG), running=True)
+    assert sched.counts()["pending"] == 2 + 3
+
+
+@pytest.mark.parametrize("bad", ["missing", "wrong"])
+def test_a_span_generation_without_the_right_digest_is_an_error_and_ends_spans(bad: str) -> None:
+    sched, _ = make()
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job, loop = span_job(sched)
+    assert span_step(sched, job, loop)  # generation 0 was asked by the server: counts
+    genomes = loop.ask()
+    current = job.model_copy(update={"key": job.key.at(1)})
+    if bad == "wrong":
+        genomes = genomes + 1.0  # its GA differs
+    ack = sched.settle(result(current, "fast", genomes, digest=bad == "wrong"))
+    assert ack.accepted and ack.reason == "error recorded"
+    assert [w.told.generation for w in sched.take_told()] == [0]
+    again = sched.lease("fast")
+    assert again is not None and again.key.generation == 1
+    assert again.span == 1 and again.state is None  # no more spans for it
+    assert sched.settle(result(again, "fast")).accepted
+    # the next generations are cut per worker for it, as for a slow one
+    assert sched.counts()["pending"] == 1
+    job2 = sched.lease("fast")
+    assert job2 is not None and job2.span == 1
+
+
+def test_pausing_ends_a_span_and_resuming_spans_from_the_recorded_generation() -> None:
+    sched, _ = make()
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job, loop = span_job(sched)
+    assert span_step(sched, job, loop)
+    sched.set_running(1, False)
+    assert span_step(sched, job, loop)  # the generation leased before the pause completes
+    assert not span_step(sched, job, loop)  # then the span ends
+    assert sched.counts() == {"pending": 1, "leased": 0, "done": 0}
+    assert sched.lease("fast") is None
+    sched.set_running(1, True)
+    resumed, loop = span_job(sched)
+    assert (resumed.key.generation, resumed.span) == (2, 2)
+    while not loop.done:
+        assert span_step(sched, resumed, loop)
+    same_generations(sched.take_told(), reference(CONFIG))
+
+
+def test_a_span_result_of_several_generations_settles_each() -> None:
+    sched, _ = make()
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job, loop = span_job(sched)
+    results = []
+    for _ in range(3):
+        genomes = loop.ask()
+        current = job.model_copy(update={"key": job.key.at(loop.generation)})
+        results.append(result(current, "fast", genomes, digest=True))
+        loop.tell(fake_fitness(genomes))
+    batch = results[0].model_copy(
+        update={
+            "fitness": np.concatenate([r.fitness for r in results if r.fitness is not None]),
+            "components": np.concatenate(
+                [r.components for r in results if r.components is not None]
+            ),
+            "digests": tuple(d for r in results for d in r.digests),
+        }
+    )
+    assert sched.settle(batch).accepted
+    assert [w.told.generation for w in sched.take_told()] == [0, 1, 2]
+    assert not sched.settle(batch).accepted  # a duplicate batch counts nowhere
+    assert sched.totals()["duplicates_dropped"] == 3
+    assert span_step(sched, job, loop)
+    assert [w.last for w in sched.take_told()] == [True]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    speed=st.floats(min_value=0.0, allow_nan=False)
+    | st.sampled_from([0.0, 1e-300, 5e-324, 1e300, float("inf")]),
+    robot_steps=st.integers(1, 10**12),
+)
+def test_no_speed_claim_gives_a_lease_outside_the_bounds(speed: float, robot_steps: int) -> None:
+    policy = Policy(lease_min_s=10.0, lease_max_s=3600.0)
+    assert SPEED_MIN <= clamp_speed(speed) <= SPEED_MAX
+    assert policy.lease_min_s <= policy.lease_seconds(robot_steps, speed) <= policy.lease_max_s
+    sched, clock = make(policy)
+    clock.t = 100.0
+    sched.join("w", speed=speed)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("w")
+    assert job is not None
+    assert policy.lease_min_s <= job.lease_s <= policy.lease_max_s
+    deadline = sched.next_deadline()
+    assert deadline is not None
+    assert policy.lease_min_s <= deadline - clock.t <= policy.lease_max_s
+    assert 1 <= job.span <= CONFIG.generations
+    for w in sched.workers():
+        assert w.robot_steps_per_s is not None
+        assert SPEED_MIN <= w.robot_steps_per_s <= SPEED_MAX
+
+
+# determinism under any interleaving --------------------------------------------------------------
+
+
+class FakeWorker:
+    """A worker as the scheduler sees it: asks, evaluates (fake fitness), reports; a span's
+    generations it evolves itself from the GA state it was sent."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.job: Job | None = None
+        self.loop: RunLoop | None = None
+        self.in_span = 0
+        self.last: Result | None = None
+
+    def ask(self, sched: Scheduler) -> None:
+        self.job = sched.lease(self.name)
+        self.loop, self.in_span = None, 0
+        if self.job is not None and self.job.span > 1:
+            assert self.job.state is not None
+            self.loop = RunLoop(self.job.config, GAState.from_arrays(self.job.state))
+
+    def report(self, sched: Scheduler) -> None:
+        job = self.job
+        if job is None:
+            return
+        if self.loop is None:
+            self.last = result(job, self.name)
+            sched.settle(self.last)
+            self.job = None
+            return
+        genomes = self.loop.ask()
+        current = job.model_copy(update={"key": job.key.at(self.loop.generation)})
+        self.last = result(current, self.name, genomes, digest=True)
+        ack = sched.settle(self.last)
+        self.loop.tell(fake_fitness(genomes))
+        self.in_span += 1
+        if not ack.accepted or self.in_span == job.span:
+            self.job = self.loop = None
+
+
+ACTIONS = st.lists(
+    st.tuples(
+        st.sampled_from(["join", "ask", "report", "duplicate", "leave", "tick"]),
+        st.integers(0, 3),
+        st.sampled_from([None, SLOW, FAST]),
+    ),
+    max_size=60,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(actions=ACTIONS)
+def test_any_interleaving_tells_the_same_generations_bit_for_bit(
+    actions: list[tuple[str, int, float | None]],
+) -> None:
+    sched, clock = make(Policy(lease_min_s=10.0, lease_unknown_s=20.0))
+    workers = [FakeWorker(f"w{i}") for i in range(4)]
+    sched.add(1, RunLoop(CONFIG), running=True)
+    written: list[Written] = []
+    for kind, i, speed in actions:
+        worker = workers[i]
+        if kind == "join":
+            sched.join(worker.name, speed=speed)
+        elif kind == "ask":
+            worker.ask(sched)
+        elif kind == "report":
+            worker.report(sched)
+        elif kind == "duplicate" and worker.last is not None:
+            assert not sched.settle(worker.last).accepted
+        elif kind == "leave":
+            sched.leave(worker.name)
+            worker.job = worker.loop = None
+        elif kind == "tick":
+            clock.t += 7.0
+            sched.expire()
+        written += sched.take_told()
+    drain = FakeWorker("drain")
+    for _ in range(1000):
+        if written and written[-1].last:
+            break
+        drain.ask(sched)
+        if drain.job is None:
+            clock.t += 1e4  # whatever the others hold expires
+            sched.expire()
+        while drain.job is not None:
+            drain.report(sched)
+        written += sched.take_told()
+    same_generations(written, reference(CONFIG))
+    assert sched.take_failed() == {}
