@@ -6,6 +6,8 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
+
 from evorobotics.evaluate import evaluate
 from schemas.wire import Job, Result
 from server.scheduler import Scheduler
@@ -16,6 +18,8 @@ def run_job(job: Job, worker: str) -> Result:
     began = time.perf_counter()
     try:
         evaluation = evaluate(job.config, job.key.generation, job.genomes)
+        if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
+            raise ValueError("evaluation returned non-finite fitness")
     except Exception as exc:  # an evaluation error is the run's problem, not the thread's
         return Result(
             key=job.key,
@@ -61,7 +65,7 @@ class InProcessExecutor:
             return
         self._scheduler.add_listener(self._wake_all)
         for worker in self._names:
-            self._scheduler.join(worker, spans=False)
+            self._scheduler.join(worker, spans=False, listed=False)
         self._threads = [
             threading.Thread(target=self._loop, args=(n,), name=f"colony-{n}", daemon=True)
             for n in self._names
