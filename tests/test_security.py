@@ -22,14 +22,15 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
+from evorobotics.evolution import RunLoop
 from robot_agent.verify import Verifier
+from schemas.run import RunConfig
 from schemas.security import ZenohClientAuth, ZenohRouterAuth
 from server.dispatch import Dispatcher
+from server.scheduler import Scheduler, Written
 from server.settings import Settings
 from server.signing import Signer, load_or_create_key
-from tests.helpers import free_port
-from tests.test_dispatch import MemorySource, dispatch_settings
-from tests.test_server_api import serving
+from tests.helpers import dispatch_settings, eventually, fake_evaluator, free_port, serving
 from worker.main import WorkerSettings, WorkerStats, run_worker
 
 TOKEN = "s3cret-token"
@@ -151,11 +152,19 @@ def test_sequence_strictly_increases_when_the_clock_stalls(tmp_path: Path) -> No
 # ------------------------------------------------------------------ zenoh
 
 
-def _run_worker(port: int, auth: ZenohClientAuth, source: MemorySource) -> WorkerStats:
-    """A real worker with `auth` until the source's generation is done (or 10 s)."""
-    import threading
+GENERATION = RunConfig(population=8, generations=1, trials=1, steps=5, job_size=3)
 
-    from tests.test_dispatch import fake_evaluator
+
+def _scheduler() -> Scheduler:
+    """One run of one generation to serve."""
+    scheduler = Scheduler()
+    scheduler.add(1, RunLoop(GENERATION), running=True)
+    return scheduler
+
+
+def _run_worker(port: int, auth: ZenohClientAuth, scheduler: Scheduler) -> list[Written]:
+    """A real worker with `auth` until the generation is told (or 20 s): what was told."""
+    import threading
 
     stop = threading.Event()
     settings = WorkerSettings(
@@ -166,20 +175,27 @@ def _run_worker(port: int, auth: ZenohClientAuth, source: MemorySource) -> Worke
         target=lambda: stats.append(run_worker(settings, stop, evaluator=fake_evaluator))
     )
     thread.start()
-    source.done.wait(10.0)
+    told: list[Written] = []
+
+    def generation_told() -> bool:
+        told.extend(scheduler.take_told())
+        return bool(told)
+
+    eventually(generation_told, timeout=20.0)
     stop.set()
     thread.join(10.0)
     assert not thread.is_alive()
-    return stats[0]
+    assert stats[0].jobs_done >= 1 and stats[0].errors == 0
+    return told
 
 
 def test_zenoh_usrpwd_right_password_gets_jobs_wrong_cannot_connect(tmp_path: Path) -> None:
     users = tmp_path / "users.txt"
     users.write_text("worker:right-pass\n")
     port = free_port()
-    source = MemorySource()
+    scheduler = _scheduler()
     router = ZenohRouterAuth(dictionary_file=users)
-    with Dispatcher(dispatch_settings(port, auth=router), source):
+    with Dispatcher(dispatch_settings(port, auth=router), scheduler) as dispatcher:
         bad = WorkerSettings(
             connect=(f"tcp/127.0.0.1:{port}",), name="bad", auth=ZenohClientAuth("worker", "x")
         )
@@ -188,9 +204,10 @@ def test_zenoh_usrpwd_right_password_gets_jobs_wrong_cannot_connect(tmp_path: Pa
         anonymous = WorkerSettings(connect=(f"tcp/127.0.0.1:{port}",), name="anon")
         with pytest.raises(zenoh.ZError):
             zenoh.open(anonymous.zenoh_config())
-        stats = _run_worker(port, ZenohClientAuth("worker", "right-pass"), source)
-    assert source.done.is_set()
-    assert stats.jobs_done == len(source.jobs)
+        told = _run_worker(port, ZenohClientAuth("worker", "right-pass"), scheduler)
+        assert dispatcher.alive()
+    assert [(w.run_id, w.told.generation, w.last) for w in told] == [(1, 0, True)]
+    assert [w.name for w in scheduler.workers()] == ["w"]
 
 
 def _certificates(tmp_path: Path) -> tuple[Path, Path, Path]:
@@ -239,11 +256,10 @@ def _certificates(tmp_path: Path) -> tuple[Path, Path, Path]:
 def test_zenoh_tls_with_a_test_ca_connects_and_without_it_does_not(tmp_path: Path) -> None:
     ca, cert, key = _certificates(tmp_path)
     port = free_port()
-    source = MemorySource()
     router = ZenohRouterAuth(certificate=cert, private_key=key)
     settings = dispatch_settings(port, auth=router)
     settings = type(settings)(listen=(f"tls/127.0.0.1:{port}",), auth=router)
-    with Dispatcher(settings, source):
+    with Dispatcher(settings, _scheduler()):
         untrusted = WorkerSettings(connect=(f"tls/localhost:{port}",), name="u")
         with pytest.raises(zenoh.ZError):
             zenoh.open(untrusted.zenoh_config())

@@ -9,7 +9,6 @@ queries and replies over real zenoh on 127.0.0.1 and check no shared memory beca
 from __future__ import annotations
 
 import json
-import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import zenoh
 
 from robot_agent.agent import AgentSettings
 from server.dispatch import DispatchSettings
+from tests.helpers import dispatch_settings, free_port
 
 STATUS = Path("/proc/self/status")
 pytestmark = pytest.mark.skipif(
@@ -43,15 +43,18 @@ def worker_config(endpoint: str) -> zenoh.Config:
 
 
 @pytest.fixture
-def endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+def port() -> int:
+    return free_port()
 
 
 @pytest.fixture
-def router(endpoint: str) -> Iterator[zenoh.Session]:
-    session = zenoh.open(DispatchSettings(listen=(endpoint,)).zenoh_config())
+def endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+@pytest.fixture
+def router(port: int) -> Iterator[zenoh.Session]:
+    session = zenoh.open(dispatch_settings(port).zenoh_config())
     queryable = session.declare_queryable("load/echo", lambda q: q.reply("load/echo", b"r" * 8000))
     try:
         yield session
