@@ -31,6 +31,7 @@ import numpy as np
 from sqlalchemy import Engine, Table, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
+from evorobotics.document import ControllerDocument
 from evorobotics.evolution import RunLoop, best_document
 from evorobotics.ga import GAParams, GAState, lineage
 from schemas.api import TERMINAL
@@ -582,19 +583,12 @@ class RunManager:
     # results -----------------------------------------------------------------------------------
 
     def store_best(self, session: Session, run: Run, config: RunConfig) -> str | None:
-        """Store the best controller so far (rank 0 of the latest generation); its sha256."""
+        """Store the best controller of a finished run (rank 0 of its last generation), so
+        it can be fetched and pushed by its sha256; the sha256."""
         latest = crud.latest_generation(session, run_id=run.id)
-        if latest is None:
+        document = self._best(session, run, config)
+        if latest is None or document is None:
             return None
-        found, genomes = crud.ranked(session, run_id=run.id, generation=latest.generation, rank=0)
-        document = best_document(
-            config,
-            genomes,
-            found.fitness[:1],
-            np.array([0]),
-            generation=latest.generation,
-            run=run.id,
-        )
         crud.put_controller(
             session,
             sha256=document.sha256,
@@ -605,13 +599,26 @@ class RunManager:
         )
         return document.sha256
 
-    def best(self, run_id: int) -> str:
-        """sha256 of the run's best controller so far (stored); NotFoundError before gen 0."""
-        with self._lock:
-            self.flush()
-        with self._lock, self.sessions.begin() as session:
+    def _best(self, session: Session, run: Run, config: RunConfig) -> ControllerDocument | None:
+        latest = crud.latest_generation(session, run_id=run.id)
+        if latest is None:
+            return None
+        found, genomes = crud.ranked(session, run_id=run.id, generation=latest.generation, rank=0)
+        return best_document(
+            config,
+            genomes,
+            found.fitness[:1],
+            np.array([0]),
+            generation=latest.generation,
+            run=run.id,
+        )
+
+    def best(self, run_id: int) -> ControllerDocument:
+        """The run's best controller so far, read from the store (a read: nothing is
+        written); NotFoundError before its first committed generation."""
+        with self.sessions() as session:
             run = self._get(session, run_id)
-            sha = self.store_best(session, run, RunConfig.model_validate_json(run.config))
-        if sha is None:
+            document = self._best(session, run, RunConfig.model_validate_json(run.config))
+        if document is None:
             raise NotFoundError(f"run {run_id} has no completed generation yet")
-        return sha
+        return document

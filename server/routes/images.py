@@ -74,15 +74,13 @@ def best_figure(
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
     """`network` or `paths` of the fittest controller so far (rank 0, latest generation)."""
-    sha = manager.best(run_id)
+    document = manager.best(run_id)
     run = crud.get_run(session, run_id=run_id)
-    stored = crud.get_controller(session, sha256=sha)
-    if run is None or stored is None:
-        raise HTTPException(404, detail=f"run {run_id} or its controller {sha} vanished")
-    etag = f'"{figure}-{sha}"'
+    if run is None:
+        raise HTTPException(404, detail=f"run {run_id} vanished")
+    etag = f'"{figure}-{document.sha256}"'
     headers = {"ETag": etag, "Cache-Control": "no-cache"}
     if if_none_match == etag:
         return Response(status_code=304, headers=headers)
-    document = ControllerDocument.from_json(stored.document)
     config = RunConfig.model_validate_json(run.config)
     return Response(cached_png(figure, document, config), media_type="image/png", headers=headers)

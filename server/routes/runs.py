@@ -145,13 +145,9 @@ def list_individuals(
     response_class=Response,
     responses={200: {"content": {"application/json": {}}, "description": "controller document"}},
 )
-def best(manager: ManagerDep, session: SessionDep, run_id: RunId) -> Response:
+def best(manager: ManagerDep, run_id: RunId) -> Response:
     """The controller document of the fittest individual so far (rank 0, latest generation)."""
-    sha = manager.best(run_id)
-    document = crud.get_controller(session, sha256=sha)
-    if document is None:
-        raise HTTPException(404, detail=f"controller {sha} vanished")
-    return Response(content=document.document, media_type="application/json")
+    return Response(content=manager.best(run_id).to_json(), media_type="application/json")
 
 
 def _steer(manager: ManagerDep, session: SessionDep, run_id: RunId, action: str) -> RunOut:
