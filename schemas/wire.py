@@ -196,13 +196,14 @@ def decode(payload: bytes, model: type[_M]) -> _M:
 def _validate(model: type[_M], header: dict[str, Any], arrays: dict[str, np.ndarray]) -> _M:
     fields: dict[str, Any] = dict(header)
     for name, array in arrays.items():
-        group, _, key = name.partition(".")
-        if group not in model.ARRAYS or name in header:
+        group, dot, key = name.partition(".")
+        if group not in model.ARRAYS or group in header:
             raise WireError(f"{model.__name__}: unexpected array {name!r}")
-        if key:
-            fields.setdefault(group, {})[key] = array
-        else:
-            fields[group] = array
+        held = fields.setdefault(group, {} if dot else array)
+        if not (key and isinstance(held, dict)) if dot else held is not array:
+            raise WireError(f"{model.__name__}: array {name!r} clashes with another")
+        if isinstance(held, dict):
+            held[key] = array
     try:
         return model.model_validate(fields)
     except ValidationError as exc:
@@ -220,9 +221,10 @@ class JobKey(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    run_id: int = Field(ge=0)
-    generation: int = Field(ge=0)
-    index: int = Field(ge=0)
+    run_id: int = Field(ge=0, lt=2**63)
+    generation: int = Field(ge=0, lt=2**63)
+    index: int = Field(ge=0, lt=2**63)
+    """Each fits a signed 64-bit integer (the database's, and every JSON header's)."""
 
     def label(self) -> str:
         return f"run {self.run_id} gen {self.generation} job {self.index}"
@@ -363,7 +365,7 @@ class Result(_Message):
         fitness, components = self.fitness, self.components
         if fitness is None or components is None or self.start is None or self.stop is None:
             raise ValueError("a result needs its slice, fitness and components")
-        k, n = len(fitness), self.stop - self.start
+        k, n = len(fitness) if fitness.ndim else 0, self.stop - self.start
         if fitness.dtype != np.float64 or fitness.ndim != 2 or not 1 <= k <= SPAN_BATCH_MAX:
             raise ValueError(f"fitness must be float64 (k <= {SPAN_BATCH_MAX}, n)")
         if fitness.shape[1] != n or not np.isfinite(fitness).all():
