@@ -336,7 +336,7 @@ class Scheduler:
         """Take a result: each of its generations in order while the worker holds the lease
         (a span's lease then moves on); an error is retried or fails the run."""
         with self._lock:
-            record = self._touch(result.worker)
+            record = self._touch(result.worker, revive=False)
             if result.robot_steps_per_s > 0:
                 record.speed = clamp_speed(result.robot_steps_per_s)
             ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
@@ -410,11 +410,15 @@ class Scheduler:
             for listener in listeners:
                 listener()
 
-    def _touch(self, worker: str) -> _Worker:
+    def _touch(self, worker: str, *, revive: bool = True) -> _Worker:
+        """The worker's record, seen now; live again unless `revive` is False (a result
+        arriving after its token vanished does not make it live: no token would end that)."""
         record = self._workers.get(worker)
         if record is None:
             record = self._workers[worker] = _Worker(worker)
-        record.gone_at, record.last_seen = None, self._wall()
+        record.last_seen = self._wall()
+        if revive:
+            record.gone_at = None
         return record
 
     def _install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:

@@ -244,6 +244,11 @@ def test_leave_releases_at_once() -> None:
     assert taken is not None and taken.key == job.key
     assert [w.state for w in sched.workers()] == ["gone", "busy"]
     assert not sched.settle(result(job, "a")).accepted
+    assert [w.state for w in sched.workers()] == ["gone", "busy"]  # a late result revives not
+    sched.add(2, RunLoop(CONFIG), running=True)
+    assert sched.counts()["pending"] == 2 + 1  # run 2 cut for "b" alone: one job, not two
+    sched.join("a")  # its token again
+    assert [w.state for w in sched.workers()] == ["idle", "busy"]
 
 
 def test_error_results_are_retried_then_the_run_fails() -> None:
