@@ -1,26 +1,27 @@
 """Dispatch throughput and distributed wall time (prints figures; no assertions).
 
-1. jobs/s through a real Dispatcher with empty jobs (an endless in-memory source, workers in
-   spawned processes whose evaluator returns zeros): the transport's ceiling; and what one
-   such job's messages cost to build and read on each side, in one process, caches warm (the
-   part of the per-job CPU that is this project's Python, not zenoh's).
+1. jobs/s through a real Dispatcher and Scheduler with empty jobs (endless runs of a tiny
+   population whose generations the scheduler cuts into one job per worker and tells, spans
+   off; workers in spawned processes run `run_worker` with an evaluator that returns zeros):
+   the job path's own ceiling, the GA's ask and tell of a 4-genome population included; and
+   what one such job costs on each side in one process, caches warm (the message codecs and
+   the scheduler's settle and lease: the part of the per-job CPU that is this project's
+   Python, not zenoh's).
 2. `colony evolve` alone and two side by side: how much two processes get from the cores.
 3. The paper's experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
    zenoh on loopback, two local worker processes), against `evolve` in this process, with the
    best controllers compared, and the CPU seconds each side used: what the machine's cores
    must run for the distributed run, against what `colony evolve` runs on one.
 
-    .venv/bin/python bench/dispatch.py [--seconds 5] [--windows 3] [--workers 2] [--generations 350]
-        [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS] [--team-slice SECONDS]
-        [--shared-slice SECONDS] [--only throughput|paper]
+    .venv/bin/python bench/dispatch.py [--seconds 5] [--windows 3] [--rounds 5000] [--workers 2]
+        [--generations 350] [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS]
+        [--only throughput|paper]
 
 `--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
 generation: the coordination cost per generation weighs a tenth as much. `--sweep` also times
 100 to 1,600 steps (generations scaled to the same robot-steps) on the same server and
 prints where the distributed run catches up with `colony evolve`. `--span-below` sets the
-server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no spans),
-`--team-slice` its COLONY_TEAM_SLICE_SECONDS (0: no zenoh teams), `--shared-slice` its
-COLONY_SHARED_SLICE_SECONDS (0: no shared teams; both 0: every span evolved by one worker alone).
+server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no spans).
 """
 
 from __future__ import annotations
@@ -41,19 +42,18 @@ from typing import Any
 
 import numpy as np
 
+from evorobotics.evolution import RunLoop
 from schemas.run import RunConfig
-from schemas.wire import (
-    Ack,
-    Job,
-    JobKey,
-    Result,
-    decode_result_reply,
-    decode_results,
-    encode_job,
-    encode_result,
-)
+from schemas.wire import Ack, Result, decode, decode_result_reply, encode
 from server.dispatch import Dispatcher, DispatchSettings
+from server.scheduler import Policy, Scheduler
+from server.settings import Settings
 from worker.main import WorkerSettings, run_worker
+
+EMPTY = RunConfig(population=4, job_size=1, trials=1, steps=1, generations=100_000)
+"""The empty jobs' run: the smallest population the GA takes, one robot-step per individual."""
+NO_SPANS = Policy(span_below_s=0)
+"""Every generation cut into jobs: spans would keep empty generations off the wire."""
 
 
 def free_port() -> int:
@@ -84,33 +84,40 @@ def worker_process(port: int, name: str, empty: bool, stopping: threading.Event)
         run_worker(settings, stop)
 
 
-class EndlessSource:
-    """Tiny jobs forever; counts completions."""
+class EndlessRuns:
+    """Empty runs on a real scheduler, one after another: a thread takes the told generations
+    every 0.1 s as the run manager's flush does (without storing them) and adds the next run
+    when one ends."""
 
-    def __init__(self) -> None:
-        self.config = RunConfig(population=4, job_size=4, trials=1, steps=1)
-        self.genomes = np.zeros((4, self.config.network_spec.weight_count))
-        self.next_index = 0
-        self.completed = 0
+    def __init__(self, scheduler: Scheduler) -> None:
+        self.scheduler = scheduler
+        self.generations = 0
+        self._runs = 1
+        scheduler.add(self._runs, RunLoop(EMPTY), running=True)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._drain, name="drain", daemon=True)
+        self._thread.start()
 
-    def lease(self, worker: str) -> Job:
-        self.next_index += 1
-        return Job(
-            JobKey(run_id=1, generation=0, index=self.next_index), 0, 4, self.config, self.genomes
-        )
+    @property
+    def jobs(self) -> int:
+        return self.scheduler.totals()["done"]
 
-    def complete(self, result: Result) -> bool:
-        self.completed += 1
-        return True
+    def _drain(self) -> None:
+        while not self._stop.wait(0.1):
+            self._take()
 
-    def fail(self, key: JobKey, error: str) -> None:
-        raise RuntimeError(error)
+    def _take(self) -> None:
+        for written in self.scheduler.take_told():
+            self.generations += 1
+            if written.last:
+                self._runs += 1
+                self.scheduler.add(self._runs, RunLoop(EMPTY), running=True)
 
-    def release(self, key: JobKey) -> None:
-        return None
-
-    def flush(self) -> None:
-        return None
+    def close(self) -> None:
+        """Stop the thread; count what was told since its last round."""
+        self._stop.set()
+        self._thread.join(timeout=10)
+        self._take()
 
 
 def start_workers(
@@ -136,32 +143,42 @@ def bench_throughput(seconds: float, workers: int, windows: int) -> None:
     same workers (this VM's speed moves by 15 % within a minute), with each side's CPU."""
     ctx = mp.get_context("spawn")
     port = free_port()
-    source = EndlessSource()
+    scheduler = Scheduler(NO_SPANS)
+    runs = EndlessRuns(scheduler)
     rates: list[float] = []
     server_us: list[float] = []
     workers_us: list[float] = []
-    with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), source):
-        procs, stop = start_workers(ctx, port, workers, empty=True)
-        pids = [p.pid for p in procs if p.pid is not None]
-        warm = threading.Event()
-        while source.completed < 50:
-            warm.wait(0.05)
-        for _ in range(windows):
-            before, began = source.completed, time.perf_counter()
-            server_before, workers_before = time.process_time(), _cpu_seconds(pids)
-            warm.wait(seconds)
-            done, elapsed = source.completed - before, time.perf_counter() - began
-            rates.append(done / elapsed)
-            if done:  # a window without a job (workers stalled) has no CPU per job
-                server_us.append((time.process_time() - server_before) / done * 1e6)
-                workers_us.append((_cpu_seconds(pids) - workers_before) / done * 1e6)
-        # Stopped workers leave holding the jobs they prefetched: expected, not worth a warning.
-        logging.getLogger("server.dispatch").setLevel(logging.ERROR)
-        stop_workers(procs, stop)
+    try:
+        with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), scheduler):
+            procs, stop = start_workers(ctx, port, workers, empty=True)
+            pids = [p.pid for p in procs if p.pid is not None]
+            warm = threading.Event()
+            deadline = time.monotonic() + 120  # spawned interpreters import numpy and zenoh
+            while runs.jobs < 50:
+                if time.monotonic() > deadline:
+                    stop_workers(procs, stop)
+                    raise TimeoutError(f"{runs.jobs} empty jobs done in 120 s: no workers?")
+                warm.wait(0.05)
+            for _ in range(windows):
+                before, began = runs.jobs, time.perf_counter()
+                server_before, workers_before = time.process_time(), _cpu_seconds(pids)
+                warm.wait(seconds)
+                done, elapsed = runs.jobs - before, time.perf_counter() - began
+                rates.append(done / elapsed)
+                if done:  # a window without a job (workers stalled) has no CPU per job
+                    server_us.append((time.process_time() - server_before) / done * 1e6)
+                    workers_us.append((_cpu_seconds(pids) - workers_before) / done * 1e6)
+            # Stopped workers leave holding the job they were given: expected, not a warning.
+            logging.getLogger("server.dispatch").setLevel(logging.ERROR)
+            stop_workers(procs, stop)
+    finally:
+        runs.close()
+    per_generation = runs.jobs / max(runs.generations, 1)
     print(
         f"empty jobs: {statistics.median(rates):8.0f} jobs/s, median of {windows} windows of "
-        f"{seconds:g} s [{min(rates):.0f}-{max(rates):.0f}] ({workers} worker processes, load "
-        f"average {os.getloadavg()[0]:.2f}); CPU per job: "
+        f"{seconds:g} s [{min(rates):.0f}-{max(rates):.0f}] "
+        f"({per_generation:.2f} jobs a generation of {EMPTY.population} genomes, no spans; "
+        f"{workers} worker processes, load average {os.getloadavg()[0]:.2f}); CPU per job: "
         + (
             f"server {statistics.median(server_us):.0f} us, workers "
             f"{statistics.median(workers_us):.0f} us"
@@ -171,38 +188,58 @@ def bench_throughput(seconds: float, workers: int, windows: int) -> None:
     )
 
 
-def bench_codec(rounds: int = 20_000) -> None:
-    """Build and read one empty job's messages `rounds` times on each side (best of three)."""
-    source = EndlessSource()
-    job = source.lease("bench-0")
-    fitness, components = zeros(job.config, 0, job.genomes)
-
-    def server_side() -> None:  # read a result, lease the next job, send it with the Ack
-        decode_results(delivered)
-        following = source.lease("bench-0")
-        encode_job(following.leased(10.0, True), Ack(key=following.key, accepted=True))
-
-    def evaluated() -> Result:
-        return Result(job.key, "bench-0", fitness, components, 1e5, 1e-4, start=0, stop=4)
-
-    def worker_side() -> None:  # read the job, report its result asking for the next
-        decode_result_reply(reply)
-        encode_result(evaluated().asking(True, ()))
-
-    delivered = encode_result(evaluated().asking(True, ()))
-    reply = encode_job(job.leased(10.0, True), Ack(key=job.key, accepted=True))
-    costs = []
-    for side in (server_side, worker_side):
-        best = float("inf")
-        for _ in range(3):
+def bench_codec(rounds: int = 5_000) -> None:
+    """One worker's empty jobs through a scheduler and the codecs, `rounds` times in one
+    process, each side timed apart (best of three): the server reads a result, settles it
+    (the generation's tell and the next ask), leases the next job and writes it with the Ack;
+    the worker reads that reply and writes its result asking for the next."""
+    costs = [float("inf"), float("inf")]
+    for _ in range(3):
+        scheduler = Scheduler(NO_SPANS)
+        scheduler.join("bench-0")
+        scheduler.add(1, RunLoop(EMPTY), running=True)
+        job = scheduler.lease("bench-0")
+        if job is None:
+            raise RuntimeError("the scheduler leased no job")
+        fitness, components = zeros(job.config, 0, job.genomes)
+        spent = [0.0, 0.0]
+        reply = encode(job.model_copy(update={"ack": Ack(key=job.key, accepted=True)}))
+        for _ in range(rounds):
             began = time.perf_counter()
-            for _ in range(rounds):
-                side()
-            best = min(best, (time.perf_counter() - began) / rounds)
-        costs.append(best * 1e6)
+            _, following = decode_result_reply(reply)  # the worker's side
+            if following is None:
+                raise RuntimeError("the server's reply carried no next job")
+            job = following
+            delivered = encode(
+                Result(
+                    key=job.key,
+                    worker="bench-0",
+                    start=job.start,
+                    stop=job.stop,
+                    robot_steps_per_s=1e5,
+                    seconds=1e-4,
+                    want_next=True,
+                    fitness=fitness[np.newaxis],
+                    components=components[np.newaxis],
+                )
+            )
+            middle = time.perf_counter()
+            result = decode(delivered, Result)  # the server's side
+            ack = scheduler.settle(result)
+            leased = scheduler.lease(result.worker)
+            if leased is None:
+                raise RuntimeError("the scheduler leased no next job")
+            reply = encode(leased.model_copy(update={"ack": ack}))
+            ended = time.perf_counter()
+            spent[0] += ended - middle
+            spent[1] += middle - began
+        if scheduler.totals()["done"] != rounds:
+            raise RuntimeError(f"{scheduler.totals()} after {rounds} results")
+        costs = [min(best, s / rounds * 1e6) for best, s in zip(costs, spent, strict=True)]
     print(
-        f"  codec per empty job, one process, caches warm: server {costs[0]:.1f} us (read the "
-        f"result, lease, write the job), worker {costs[1]:.1f} us (read the job, write the result)"
+        f"  per empty job, one process, caches warm: server {costs[0]:.1f} us (read the result, "
+        f"settle it: tell and ask; lease, write the job), worker {costs[1]:.1f} us (read the "
+        f"job, write the result)"
     )
 
 
@@ -276,8 +313,6 @@ def bench_paper(
     shapes: list[tuple[int, int]],
     repeats: int,
     span_below: float | None,
-    team_slice: float | None,
-    shared_slice: float | None,
 ) -> None:
     """`colony server --workers N` (real processes, REST, zenoh on loopback) vs evolve for each
     (generations, steps) shape on one server, each timed `repeats` times, alternately (figures
@@ -301,17 +336,10 @@ def bench_paper(
         env = {**os.environ, "COLONY_HOUSEKEEPING_SECONDS": "0.2"}
         if span_below is not None:
             env["COLONY_SPAN_BELOW_SECONDS"] = str(span_below)
-        if team_slice is not None:
-            env["COLONY_TEAM_SLICE_SECONDS"] = str(team_slice)
-        if shared_slice is not None:
-            env["COLONY_SHARED_SLICE_SECONDS"] = str(shared_slice)
-        below = DispatchSettings().span_below_s if span_below is None else span_below
-        team = DispatchSettings().team_slice_s if team_slice is None else team_slice
-        shared = DispatchSettings().shared_slice_s if shared_slice is None else shared_slice
+        below = span_below
+        if below is None:
+            below = float(Settings.model_fields["span_below_seconds"].default)
         mode = f"spans below {below * 1e3:g} ms a generation" if below else "slices only"
-        if below:
-            mode += f", shared teams of {shared * 1e3:g} ms" if shared else ", no shared teams"
-            mode += f", zenoh teams of {team * 1e3:g} ms slices" if team else ", no zenoh teams"
         server = subprocess.Popen(
             argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
         )
@@ -408,14 +436,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--windows", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=5_000, help="per-job cost rounds")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--generations", type=int, default=350)
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sweep", action="store_true")
     parser.add_argument("--span-below", type=float, default=None)
-    parser.add_argument("--team-slice", type=float, default=None)
-    parser.add_argument("--shared-slice", type=float, default=None)
     parser.add_argument("--only", choices=("throughput", "paper"), default=None)
     args = parser.parse_args()
     shapes = [(args.generations, args.steps)]
@@ -426,12 +453,10 @@ def main() -> None:
         ]
     if args.only != "paper":
         bench_throughput(args.seconds, args.workers, args.windows)
-        bench_codec()
+        bench_codec(args.rounds)
     if args.only != "throughput":
         bench_capacity(RunConfig(generations=args.generations, steps=args.steps))
-        bench_paper(
-            args.workers, shapes, args.repeats, args.span_below, args.team_slice, args.shared_slice
-        )
+        bench_paper(args.workers, shapes, args.repeats, args.span_below)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,22 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     [
         ("stuck.py", ["--robots", "4", "--steps", "100", "--window", "20"], "evolved-like"),
         ("explore.py", ["--generations", "2"], "generation"),
+        (
+            "dispatch.py",
+            [
+                "--only",
+                "throughput",
+                "--seconds",
+                "0.2",
+                "--windows",
+                "1",
+                "--workers",
+                "1",
+                "--rounds",
+                "20",
+            ],
+            "per empty job",
+        ),
     ],
 )
 def test_a_bench_script_runs_on_a_tiny_size(script: str, args: list[str], printed: str) -> None:
