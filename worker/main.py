@@ -308,6 +308,7 @@ def _evolve_span(link: _Link, job: Job, evaluator: Evaluator) -> Job | None:
         loop = RunLoop(job.config, GAState.from_arrays(job.state or {}))
         if loop.generation != job.key.generation:
             raise ValueError(f"state of generation {loop.generation}")
+        loop.ask()  # a state that does not fit the run (its population) fails here
     except ValueError as exc:
         link.stats.errors += 1
         error = f"span of {job.key.label()} has an unusable GA state: {exc}"
