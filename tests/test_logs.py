@@ -14,10 +14,9 @@ from typing import Any
 
 import pytest
 
-from evorobotics.evaluate import evaluate
 from schemas.run import RunConfig
 from server.db import make_engine, upgrade
-from server.jobs import JobResult
+from server.executor import run_job
 from server.logs import as_format, configure, context
 from server.manager import LOG_EVERY_S, RunManager
 from server.settings import Settings
@@ -47,9 +46,9 @@ def test_a_run_through_the_manager_logs_json_lines_with_its_run_id(
         manager = RunManager(engine, Settings(db_url="unused"))
         config = RunConfig(population=8, generations=2, steps=10, trials=1, job_size=4)
         run_id = manager.create_run(config)
-        while (job := manager.queue.lease("w", 0.0)) is not None:
-            ev = evaluate(job.config, job.key.generation, job.genomes)
-            manager.queue.complete(job.key, JobResult(ev.fitness, ev.components))
+        while (job := manager.scheduler.lease("w")) is not None:
+            assert manager.scheduler.settle(run_job(job, "w")).accepted
+            manager.flush()
     finally:
         engine.dispose()
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
@@ -75,9 +74,9 @@ def test_generation_lines_go_out_at_info_at_most_once_a_second_per_run(
         config = RunConfig(population=8, generations=generations, steps=5, trials=1, job_size=8)
         began = time.monotonic()
         run_id = manager.create_run(config)
-        while (job := manager.queue.lease("w", 0.0)) is not None:
-            ev = evaluate(job.config, job.key.generation, job.genomes)
-            manager.queue.complete(job.key, JobResult(ev.fitness, ev.components))
+        while (job := manager.scheduler.lease("w")) is not None:
+            assert manager.scheduler.settle(run_job(job, "w")).accepted
+            manager.flush()  # one generation a write, each with its line
         elapsed = time.monotonic() - began
     finally:
         engine.dispose()

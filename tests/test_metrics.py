@@ -15,9 +15,9 @@ from fastapi import FastAPI
 from prometheus_client.parser import text_string_to_metric_families
 
 from schemas.run import RunConfig
+from schemas.wire import Result
 from server.app import create_app
 from server.db import make_engine, upgrade
-from server.jobs import JobResult
 from server.manager import RunManager
 from server.settings import Settings
 from tests.helpers import eventually
@@ -56,7 +56,7 @@ def scrape(client: httpx.Client) -> dict[tuple[str, tuple[tuple[str, str], ...]]
 
 
 def test_metrics_names_and_counters_move_after_a_run(tmp_path: Path) -> None:
-    settings = Settings(db_url=f"sqlite:///{tmp_path / 'c.db'}", zenoh=False, executors=1)
+    settings = Settings(db_url=f"sqlite:///{tmp_path / 'c.db'}", zenoh=False, executors=2)
     with serve(create_app(settings)) as client:
         before = scrape(client)
         names = {name for name, _ in before}
@@ -84,7 +84,7 @@ def test_metrics_names_and_counters_move_after_a_run(tmp_path: Path) -> None:
         after = scrape(client)
     assert after[("colony_generations_total", ())] == SMALL["generations"]
     assert after[("colony_evaluations_total", ())] == SMALL["generations"] * SMALL["population"]
-    jobs = SMALL["generations"] * SMALL["population"] // SMALL["job_size"]
+    jobs = SMALL["generations"] * 2  # one job per live worker (two executor threads)
     assert after[("colony_jobs_done_total", ())] == jobs
     assert after[("colony_jobs_leased_total", ())] >= jobs
     assert after[("colony_jobs_duplicates_dropped_total", ())] == 0
@@ -116,23 +116,44 @@ def test_each_app_has_its_own_registry(tmp_path: Path) -> None:
         assert scrape(b)[key] == 1
 
 
-def test_job_queue_totals_count_leases_results_requeues_and_duplicates(tmp_path: Path) -> None:
-    """The queue keeps its own running totals; /metrics reads them at scrape time."""
+def test_scheduler_totals_count_leases_results_requeues_and_duplicates(tmp_path: Path) -> None:
+    """The scheduler keeps its own running totals; /metrics reads them at scrape time."""
     engine = make_engine(f"sqlite:///{tmp_path / 'q.db'}")
     upgrade(engine)
-    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
+    manager = RunManager(engine, Settings(db_url="unused", lease_unknown_seconds=0.5))
     config = RunConfig(population=8, generations=2, steps=10, trials=1, job_size=4)
     try:
         manager.create_run(config)
-        queue = manager.queue
-        assert queue.totals() == {"leased": 0, "done": 0, "requeued": 0, "duplicates_dropped": 0}
-        first, second = queue.lease("a", 0.0), queue.lease("b", 0.0)
+        scheduler = manager.scheduler
+        assert scheduler.totals() == {
+            "leased": 0,
+            "done": 0,
+            "requeued": 0,
+            "duplicates_dropped": 0,
+        }
+        first, second = scheduler.lease("a"), scheduler.lease("b")
         assert first is not None and second is not None
-        assert queue.release(first.key) is True
-        assert queue.expire(100.0) == 1  # second's lease (deadline 10 s) has passed
-        result = JobResult(np.zeros(4), np.zeros((4, 1, 4)))
-        assert queue.complete(second.key, result) is True
-        assert queue.complete(second.key, result) is False  # duplicate
-        assert queue.totals() == {"leased": 2, "done": 1, "requeued": 2, "duplicates_dropped": 1}
+        result = Result(
+            key=second.key,
+            worker="b",
+            start=second.start,
+            stop=second.stop,
+            fitness=np.zeros((1, 4)),
+            components=np.zeros((1, 4, 1, 4)),
+        )
+        assert scheduler.settle(result).accepted is True
+        assert scheduler.settle(result).accepted is False  # duplicate
+        again = scheduler.lease("a")  # asking again returns what "a" held, then leases it
+        assert again is not None and again.key == first.key
+        deadline = scheduler.next_deadline()
+        assert deadline is not None
+        assert eventually(lambda: scheduler.now() >= deadline, timeout=10.0)
+        assert scheduler.expire() == 1
+        assert scheduler.totals() == {
+            "leased": 3,
+            "done": 1,
+            "requeued": 2,
+            "duplicates_dropped": 1,
+        }
     finally:
         engine.dispose()

@@ -1,8 +1,8 @@
 """The store on PostgreSQL as on SQLite: a lab outgrows SQLite by changing one URL.
 
 Every test takes `db_url` (tests/conftest.py), so it runs once on an SQLite file and once on
-the session's throwaway PostgreSQL server. The queue's contract tests of test_server_store.py
-are re-run here on a manager built from that URL; a small run goes to completion through the
+the session's throwaway PostgreSQL server. The job path's contract tests in test_server_store.py
+take `db_url` themselves; here are the migrations, a restart, a refused write, and a small run goes to completion through the
 REST API and must give `evolve`'s best controller bit for bit.
 """
 
@@ -12,7 +12,6 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import httpx
-import numpy as np
 import pytest
 import sqlalchemy as sa
 from alembic import command
@@ -22,18 +21,23 @@ from alembic.script import ScriptDirectory
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import evolve
+from schemas.run import RunConfig
+from schemas.wire import Result
 from server import crud
 from server.db import alembic_config, make_engine, upgrade
-from server.jobs import JobResult
+from server.executor import run_job
 from server.manager import RunManager
 from server.models import Base
 from server.robot_store import StuckEventRow, TraceRow
 from server.settings import Settings
 from tests import test_server_api as api
-from tests import test_server_store as store
 from tests.helpers import free_port
 
-TABLES = store.TABLES | {
+TABLES = {
+    "runs",
+    "generations",
+    "controllers",
+    "robots",
     "robot_traces",
     "robot_state",
     "robot_stuck_events",
@@ -49,9 +53,9 @@ def engine(db_url: str) -> Iterator[sa.Engine]:
     engine.dispose()
 
 
-@pytest.fixture
-def manager(engine: sa.Engine) -> RunManager:
-    return RunManager(engine, Settings(db_url="unused", lease_seconds=10.0, max_attempts=2))
+TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
+BASE: dict[str, Any] = {"db_url": "unused", "max_attempts": 2, "span_below_seconds": 0.0}
+"""No spans: the cut of each generation follows the live workers only (not their speeds)."""
 
 
 def test_migrations_go_up_down_and_up_again(engine: sa.Engine) -> None:
@@ -97,41 +101,32 @@ def test_robot_tables_keep_64_bit_steps_and_bytes(engine: sa.Engine) -> None:
     assert event.step == big and event.id is not None
 
 
-CONTRACT: list[Callable[[RunManager], None]] = [
-    store.test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once,
-    store.test_result_of_wrong_shape_is_refused,
-    store.test_expired_lease_goes_back_and_late_result_is_still_counted_once,
-    store.test_runs_share_the_workers_fairly,
-    store.test_paused_runs_get_no_jobs_and_failures_fail_the_run,
-    store.test_generations_commit_whole_under_concurrent_completion,
-    store.test_release_returns_a_lease_at_once_and_counts_follow_the_jobs,
-    store.test_a_paused_run_commits_what_is_in_hand_but_leases_nothing_new,
-    store.test_results_after_cancel_are_dropped,
-    store.test_stored_state_leaves_out_the_population_and_resume_reads_it_back,
-    store.test_deferred_write_installs_the_next_generation_first,
-    store.test_cancel_writes_the_told_generation_before_cancelling,
-    store.test_a_failed_evaluation_is_stored_as_null_ranks_last_and_the_run_goes_on,
-]
+def _evaluated(manager: RunManager, worker: str) -> Result | None:
+    job = manager.scheduler.lease(worker)
+    return None if job is None else run_job(job, worker)
 
 
-@pytest.mark.parametrize("contract", CONTRACT, ids=lambda f: f.__name__.removeprefix("test_"))
-def test_job_queue_contract(manager: RunManager, contract: Callable[[RunManager], None]) -> None:
-    contract(manager)
+def _drain(manager: RunManager, worker: str = "w") -> None:
+    while (result := _evaluated(manager, worker)) is not None:
+        assert manager.scheduler.settle(result).accepted
+        manager.flush()
 
 
 def test_restart_resumes_from_the_store(engine: sa.Engine) -> None:
     """A second manager on the same database (a restarted server) finishes `evolve`'s run."""
-    settings = Settings(db_url="unused", lease_seconds=10.0, max_attempts=2)
-    first = RunManager(engine, settings)
-    run_id = first.create_run(store.TINY)
-    for _ in range(4):
-        item = store._evaluate(first, "w", 0.0)
-        assert item is not None and first.queue.complete(*item)
-    second = RunManager(engine, settings)
+    first = RunManager(engine, Settings(**BASE))
+    run_id = first.create_run(TINY)
+    for _ in range(4):  # generation 0's three jobs, then generation 1 (one job: one worker)
+        result = _evaluated(first, "w")
+        assert result is not None and first.scheduler.settle(result).accepted
+        first.flush()
+    second = RunManager(engine, Settings(**BASE))
     second.recover()
-    while (item := store._evaluate(second, "w", 0.0)) is not None:
-        assert second.queue.complete(*item) is True
-    assert second.best(run_id) == evolve(store.TINY).best.sha256
+    with Session(engine) as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and (run.status, run.generation) == ("running", 2)
+    _drain(second)
+    assert second.best(run_id).sha256 == evolve(TINY).best.sha256
 
 
 @pytest.mark.slow
@@ -139,24 +134,6 @@ def test_small_run_completes_through_the_rest_api(db_url: str) -> None:
     with api.serving(Settings(db_url=db_url, port=free_port(), zenoh=False)) as (url, _):
         api.test_small_run_completes_and_matches_evolve(url)
         assert httpx.get(f"{url}/healthz", timeout=5).is_success
-
-
-def test_fitness_nan_round_trips_as_null(engine: sa.Engine) -> None:
-    """A failed (NaN) evaluation reads back as None on both stores, and never reaches a float
-    column (PostgreSQL would store NaN there, SQLite NULL)."""
-    manager = RunManager(engine, Settings(db_url="unused"))
-    run_id = manager.create_run(store.SMALL)
-    for _ in range(3):
-        done = store._evaluate(manager, "w", 0.0)
-        assert done is not None
-        key, result = done
-        fitness = np.full_like(result.fitness, np.nan) if key.index == 1 else result.fitness
-        manager.queue.complete(key, JobResult(fitness, result.components))
-    with Session(engine) as session:
-        ranked = crud.ranked(session, run_id=run_id, generation=0)[0]
-        best = crud.get_run(session, run_id=run_id)
-    assert [ranked.fitness_of(r) for r in range(len(ranked))].count(None) == 5
-    assert best is not None and best.best_fitness is not None
 
 
 def _refuse_writes(engine: sa.Engine) -> Callable[[bool], None]:
@@ -184,40 +161,42 @@ def _refuse_writes(engine: sa.Engine) -> Callable[[bool], None]:
 def test_a_store_that_refuses_writes_stops_the_run_and_resume_is_bit_identical(
     engine: sa.Engine,
 ) -> None:
-    """The deferred write must not let a run evolve on in memory while the store is read-only:
-    it stops leasing, is paused with `error` once writable, and resumes to `evolve`'s result."""
+    """Told generations must not let a run evolve on in memory while the store is read-only:
+    a refused write stops its leasing (what is leased still counts), is retried at every
+    flush, and once in, the run is paused with `error`; it resumes to `evolve`'s result."""
     refuse = _refuse_writes(engine)
-    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
-    run_id = manager.create_run(store.TINY)
-    while (item := store._evaluate(manager, "w", 0.0)) is not None and item[0].generation == 0:
-        manager.queue.complete(*item, defer=True)
-    manager.queue.flush()
-    assert item is not None  # generation 1's first job, leased before the store went read-only
+    manager = RunManager(engine, Settings(**BASE))
+    run_id = manager.create_run(TINY)
+    for worker in ("w", "w", "w"):  # generation 0: three jobs (no worker known at its cut)
+        result = _evaluated(manager, worker)
+        assert result is not None and result.key.generation == 0
+        assert manager.scheduler.settle(result).accepted
+    manager.flush()
     refuse(True)
-    manager.queue.complete(*item, defer=True)
-    while (item := store._evaluate(manager, "w", 0.0)) is not None and item[0].generation == 1:
-        manager.queue.complete(*item, defer=True)  # the rest of generation 1
-    assert item is not None  # as the dispatcher does, generation 2 went out before the write
+    result = _evaluated(manager, "a")  # generation 1: one job ("w" was the one live worker)
+    assert result is not None and result.key.generation == 1
+    assert manager.scheduler.settle(result).accepted
+    held = _evaluated(manager, "b")  # generation 2 (cut for w and a) goes out before the write
+    assert held is not None and (held.key.generation, held.start, held.stop) == (2, 0, 3)
     with pytest.raises(sa.exc.DBAPIError):
-        manager.queue.flush()
-    assert manager.queue.lease("w", 0.0) is None  # stopped: no more of generation 2
-    assert manager.queue.complete(*item, defer=True) is True  # what is in hand still counts
-    manager.settle_write_failures()  # still read-only: nothing changes, nothing raises
-    assert manager.queue.unwritten() == 1
-    with manager.sessions() as session:
+        manager.flush()
+    assert manager.scheduler.lease("c") is None  # stopped: no more of generation 2
+    assert manager.scheduler.settle(held).accepted is True  # what is in hand still counts
+    with pytest.raises(sa.exc.DBAPIError):
+        manager.flush()  # still read-only: retried, refused again
+    with Session(engine) as session:
         run = crud.get_run(session, run_id=run_id)
-        assert run is not None and (run.status, run.generation) == ("running", 1)
+        assert run is not None and (run.status, run.generation, run.error) == ("running", 1, None)
     refuse(False)
-    manager.settle_write_failures()
-    with manager.sessions() as session:
+    manager.flush()
+    with Session(engine) as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.status, run.generation) == ("paused", 2)
         assert run.error is not None and "database write failed" in run.error
-    assert manager.queue.lease("w", 0.0) is None
+    assert manager.scheduler.lease("c") is None
     manager.resume(run_id)
-    while (item := store._evaluate(manager, "w", 0.0)) is not None:
-        assert manager.queue.complete(*item) is True
-    with manager.sessions() as session:
+    _drain(manager)
+    with Session(engine) as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.status, run.error) == ("completed", None)
-    assert manager.best(run_id) == evolve(store.TINY).best.sha256
+    assert manager.best(run_id).sha256 == evolve(TINY).best.sha256

@@ -1,12 +1,18 @@
-"""The store: migrations, population frames, GA state round trip, the job queue's contract,
-and genomes stored once per run (Eq 11's copies point to the generation holding their bytes)."""
+"""The store: migrations, population frames, GA state round trip, the job path's contract
+through the run manager (scheduler leases and results, the manager's writes), and genomes
+stored once per run (Eq 11's copies point to the generation holding their bytes).
+
+The manager-driven tests take `db_url` (tests/conftest.py): they run once on an SQLite file and
+once on the session's PostgreSQL. They call `manager.flush()` themselves (no writer thread).
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,16 +24,15 @@ from hypothesis.extra import numpy as hnp
 from sqlalchemy.orm import Session
 
 from evorobotics.evaluate import evaluate
-from evorobotics.evolution import evaluate_population, evolve
-from evorobotics.ga import GAParams, ask, ga_rng, init, tell
+from evorobotics.evolution import RunLoop, evaluate_population, evolve
+from evorobotics.ga import GAParams, GAState, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from schemas.run import GAConfig, RunConfig
-from schemas.wire import decode_frame, encode_frame
+from schemas.wire import Job, JobKey, Result, decode_frame, encode_frame, genome_digest
 from server import crud
 from server.db import Checkpointer, alembic_config, make_engine, upgrade
-from server.dispatch import WRITE_AFTER_S, QueueSource
 from server.errors import NotFoundError, ServerError
-from server.jobs import JobKey, JobResult
+from server.executor import run_job
 from server.manager import (
     RunManager,
     _lineage,
@@ -44,15 +49,37 @@ from tests.helpers import eventually
 
 TABLES = {"runs", "generations", "controllers", "robots"}
 SMALL = RunConfig(population=12, generations=3, steps=10, trials=2, job_size=5)
+BASE: dict[str, Any] = {
+    "db_url": "unused",
+    "max_attempts": 2,
+    "span_below_seconds": 0.0,  # no spans unless a test asks: cuts do not follow measured speeds
+    "lease_min_seconds": 0.05,
+    "lease_unknown_seconds": 0.5,  # leases expire only when a test calls expire()
+}
 
 
 @pytest.fixture
-def manager(tmp_path: Path) -> Iterator[RunManager]:
-    """A manager on a fresh SQLite file, without executors: tests drive the queue by hand."""
-    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+def engine(db_url: str) -> Iterator[sa.Engine]:
+    engine = make_engine(db_url)
     upgrade(engine)
-    yield RunManager(engine, Settings(db_url="unused", lease_seconds=10.0, max_attempts=2))
+    yield engine
     engine.dispose()
+
+
+@pytest.fixture
+def make_manager(engine: sa.Engine) -> Callable[..., RunManager]:
+    """Managers on the test's database, with BASE settings updated by keyword."""
+
+    def make(**overrides: Any) -> RunManager:
+        return RunManager(engine, Settings(**{**BASE, **overrides}))
+
+    return make
+
+
+@pytest.fixture
+def manager(make_manager: Callable[..., RunManager]) -> RunManager:
+    """A manager without executors or writer thread: tests lease, settle and flush by hand."""
+    return make_manager()
 
 
 def test_fresh_database_gets_every_table_and_upgrade_is_idempotent(tmp_path: Path) -> None:
@@ -196,45 +223,6 @@ def test_ga_state_round_trips_through_the_store_encoding(seed: int, generations:
     assert a.tobytes() == b.tobytes()
 
 
-def _evaluate(manager: RunManager, worker: str, now: float) -> tuple[JobKey, JobResult] | None:
-    job = manager.queue.lease(worker, now)
-    if job is None:
-        return None
-    ev = evaluate(job.config, job.key.generation, job.genomes)
-    return job.key, JobResult(ev.fitness, ev.components)
-
-
-def _first_generation_written(manager: RunManager) -> int:
-    """A SMALL run with its generation 0 evaluated (its 3 jobs) and written; its id."""
-    run_id = manager.create_run(SMALL)
-    for _ in range(3):
-        done = _evaluate(manager, "w", 0.0)
-        assert done is not None
-        manager.queue.complete(*done)
-    return run_id
-
-
-def test_a_job_sizer_cuts_later_generations_and_the_run_matches_evolve(
-    manager: RunManager,
-) -> None:
-    """Generation 0 is cut by the run's job_size; from the sizer on, by the sizer (the zenoh
-    dispatcher's one job per worker); fitness does not depend on the cut."""
-    run_id = manager.create_run(SMALL)
-    cuts: list[list[tuple[int, int]]] = []
-    for g in range(SMALL.generations):
-        jobs = []
-        while (job := manager.queue.lease("w", 0.0)) is not None:
-            jobs.append(job)
-        cuts.append([(j.start, j.stop) for j in jobs])
-        if g == 0:  # generation 0 is cut already; its last result cuts generation 1
-            manager.queue.set_job_sizer(lambda config, _generation: config.population)
-        for job in jobs:
-            ev = evaluate(job.config, job.key.generation, job.genomes)
-            manager.queue.complete(job.key, JobResult(ev.fitness, ev.components))
-    assert cuts == [[(0, 5), (5, 10), (10, 12)], [(0, 12)], [(0, 12)]]
-    assert manager.best(run_id) == evolve(SMALL).best.sha256
-
-
 def test_background_checkpoint_copies_the_log_that_writes_no_longer_copy(tmp_path: Path) -> None:
     engine = make_engine(f"sqlite:///{tmp_path / 'c.db'}", background_checkpoint=True)
     upgrade(engine)
@@ -257,21 +245,106 @@ def test_background_checkpoint_copies_the_log_that_writes_no_longer_copy(tmp_pat
         Checkpointer(sa.create_engine("postgresql+psycopg://u@localhost/db"))
 
 
+# the job path: scheduler leases and results, the manager's writes -------------------------------
+
+
+def _lease(manager: RunManager, worker: str) -> Job:
+    job = manager.scheduler.lease(worker)
+    assert job is not None, f"no job for {worker}"
+    return job
+
+
+def _evaluated(manager: RunManager, worker: str) -> Result | None:
+    """`worker` leases a job and evaluates it (not yet settled); None when none is leasable."""
+    job = manager.scheduler.lease(worker)
+    return None if job is None else run_job(job, worker)
+
+
+def _fake(job: Job, worker: str, *, start: int | None = None, stop: int | None = None) -> Result:
+    """A result of zero fitness for `job` (or for another slice of its generation)."""
+    start = job.start if start is None else start
+    stop = job.stop if stop is None else stop
+    n, trials = stop - start, job.config.trials
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=start,
+        stop=stop,
+        fitness=np.zeros((1, n)),
+        components=np.zeros((1, n, trials, 4)),
+    )
+
+
+def _error(job: Job, worker: str, message: str) -> Result:
+    return Result(key=job.key, worker=worker, start=job.start, stop=job.stop, error=message)
+
+
+def _drain(manager: RunManager, worker: str = "w") -> None:
+    """Evaluate, settle and write jobs until none is leasable."""
+    while (result := _evaluated(manager, worker)) is not None:
+        assert manager.scheduler.settle(result).accepted
+        manager.flush()
+
+
+def _run_row(manager: RunManager, run_id: int) -> tuple[str, int]:
+    with manager.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None
+        return run.status, run.generation
+
+
+def _first_generation_written(manager: RunManager) -> int:
+    """A SMALL run with its generation 0 evaluated (its 3 jobs) and written; its id."""
+    run_id = manager.create_run(SMALL)
+    for _ in range(3):
+        result = _evaluated(manager, "w")
+        assert result is not None and result.key.generation == 0
+        assert manager.scheduler.settle(result).accepted
+    manager.flush()
+    return run_id
+
+
+def test_generations_are_cut_per_live_worker_and_the_run_matches_evolve(
+    manager: RunManager,
+) -> None:
+    """Generation 0 (no worker known yet) is cut by the run's job_size; a later generation into
+    one job per live serving worker (at least job_size each), cut when the one before is told;
+    fitness does not depend on the cut."""
+    run_id = manager.create_run(SMALL)
+    manager.scheduler.join("other-protocol", serving=False)  # never counted
+    sched = manager.scheduler
+
+    def settle(job: Job, worker: str) -> tuple[int, int]:
+        assert sched.settle(run_job(job, worker)).accepted
+        return job.start, job.stop
+
+    a, b = _lease(manager, "a"), _lease(manager, "b")  # distinct names: held at once
+    first = [settle(a, "a"), settle(_lease(manager, "a"), "a"), settle(b, "b")]
+    a, b = _lease(manager, "a"), _lease(manager, "b")
+    assert sched.leave("b") == [b.key]  # gone: its job returns, generation 2 is one job
+    second = [settle(a, "a"), settle(_lease(manager, "a"), "a")]
+    third = [settle(_lease(manager, "a"), "a")]
+    manager.flush()
+    cuts = [sorted(first), sorted(second), third]
+    assert cuts == [[(0, 5), (5, 10), (10, 12)], [(0, 6), (6, 12)], [(0, 12)]]
+    assert _run_row(manager, run_id) == ("completed", SMALL.generations)
+    assert manager.best(run_id).sha256 == evolve(SMALL).best.sha256
+
+
 def test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once(manager: RunManager) -> None:
     run_id = manager.create_run(SMALL)
-    leased = [manager.queue.lease("w", 0.0) for _ in range(3)]
-    assert [(j.start, j.stop) for j in leased if j] == [(0, 5), (5, 10), (10, 12)]
-    assert manager.queue.lease("w", 0.0) is None
-    results = []
-    for job in leased:
-        assert job is not None
-        ev = evaluate(job.config, job.key.generation, job.genomes)
-        results.append((job.key, JobResult(ev.fitness, ev.components)))
-    assert manager.queue.complete(*results[0]) is True
-    assert manager.queue.complete(*results[0]) is False  # duplicate: acknowledged, dropped
-    for key, result in results[1:]:
-        assert manager.queue.complete(key, result) is True
-    assert manager.queue.complete(*results[2]) is False  # late: generation already committed
+    workers = ["w0", "w1", "w2"]
+    leased = [_lease(manager, w) for w in workers]
+    assert [(j.start, j.stop) for j in leased] == [(0, 5), (5, 10), (10, 12)]
+    assert manager.scheduler.lease("w3") is None
+    results = [run_job(job, w) for job, w in zip(leased, workers, strict=True)]
+    assert manager.scheduler.settle(results[0]).accepted is True
+    duplicate = manager.scheduler.settle(results[0])  # acknowledged, dropped
+    assert (duplicate.accepted, duplicate.key) == (False, leased[0].key)
+    for result in results[1:]:
+        assert manager.scheduler.settle(result).accepted is True
+    assert manager.scheduler.settle(results[2]).accepted is False  # late: generation told
+    manager.flush()
     with manager.sessions() as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None
@@ -280,65 +353,93 @@ def test_jobs_are_fixed_slices_and_a_duplicate_result_counts_once(manager: RunMa
     assert sorted(ranked.index.tolist()) == list(range(SMALL.population))
     values = ranked.fitness.tolist()
     assert np.isfinite(values).all() and values == sorted(values, reverse=True)
+    assert manager.scheduler.totals()["duplicates_dropped"] == 2
 
 
-def test_result_of_wrong_shape_is_refused(manager: RunManager) -> None:
+def test_a_result_for_another_slice_is_dropped_and_the_lease_stays(manager: RunManager) -> None:
     manager.create_run(SMALL)
-    job = manager.queue.lease("w", 0.0)
-    assert job is not None
-    with pytest.raises(ValueError, match="shapes"):
-        manager.queue.complete(job.key, JobResult(np.zeros(2), np.zeros((2, 2, 4))))
+    job = _lease(manager, "w")
+    assert (job.start, job.stop) == (0, 5)
+    with pytest.raises(ValueError, match="fitness"):  # arrays must fit the slice they name
+        Result(
+            key=job.key,
+            worker="w",
+            start=0,
+            stop=5,
+            fitness=np.zeros((1, 2)),
+            components=np.zeros((1, 2, 2, 4)),
+        )
+    assert manager.scheduler.settle(_fake(job, "w", start=5, stop=10)).accepted is False
+    assert manager.scheduler.settle(_fake(job, "other")).accepted is False  # not its lease
+    assert manager.scheduler.settle(_fake(job, "w")).accepted is True
 
 
-def test_expired_lease_goes_back_and_late_result_is_still_counted_once(
+def test_an_expired_lease_goes_back_and_only_its_new_holder_s_result_counts(
     manager: RunManager,
 ) -> None:
     manager.create_run(SMALL.model_copy(update={"job_size": 12}))
-    first = _evaluate(manager, "slow", now=0.0)
-    assert first is not None and manager.queue.lease("other", 1.0) is None
-    assert manager.queue.expire(now=5.0) == 0  # deadline 10 not yet passed
-    assert manager.queue.expire(now=11.0) == 1
-    second = _evaluate(manager, "fast", now=11.0)
-    assert second is not None and second[0] == first[0]
-    assert manager.queue.complete(*first) is True  # the slow worker's late result is valid
-    assert manager.queue.complete(*second) is False
+    first = _lease(manager, "slow")
+    assert manager.scheduler.lease("other") is None
+    assert manager.scheduler.expire() == 0  # its deadline has not passed
+    deadline = manager.scheduler.next_deadline()
+    assert deadline is not None
+    assert eventually(lambda: manager.scheduler.now() >= deadline, timeout=10.0)
+    assert manager.scheduler.expire() == 1
+    slow = run_job(first, "slow")
+    assert manager.scheduler.settle(slow).accepted is False  # no lease held: dropped
+    second = _lease(manager, "fast")
+    assert second.key == first.key
+    assert manager.scheduler.settle(slow).accepted is False  # the lease is fast's now
+    assert manager.scheduler.settle(run_job(second, "fast")).accepted is True
+    assert manager.scheduler.totals() == {
+        "leased": 2,
+        "done": 1,
+        "requeued": 1,
+        "duplicates_dropped": 2,
+    }
 
 
 def test_runs_share_the_workers_fairly(manager: RunManager) -> None:
     a = manager.create_run(SMALL.model_copy(update={"job_size": 3}))
     b = manager.create_run(SMALL.model_copy(update={"job_size": 3, "seed": 1}))
-    order = []
-    for _ in range(6):
-        job = manager.queue.lease("w", 0.0)
-        assert job is not None
-        order.append(job.key.run_id)
+    order = [_lease(manager, f"w{i}").key.run_id for i in range(6)]
     assert order == [a, b, a, b, a, b]
 
 
 def test_paused_runs_get_no_jobs_and_failures_fail_the_run(manager: RunManager) -> None:
+    """An error result is retried (the same job, leased again) until `max_attempts` (2 here);
+    then the run fails, in the store at the next flush."""
     run_id = manager.create_run(SMALL)
     manager.pause(run_id)
-    assert manager.queue.lease("w", 0.0) is None
+    assert manager.scheduler.lease("w") is None
     manager.resume(run_id)
     for attempt in range(2):
-        job = manager.queue.lease("w", float(attempt))
-        assert job is not None and job.key.index == 0
-        assert manager.queue.fail(job.key, "boom") is True
+        job = _lease(manager, "w")
+        assert job.key.index == 0 and job.key.generation == 0
+        ack = manager.scheduler.settle(_error(job, "w", "boom"))
+        assert (ack.accepted, ack.reason) == (True, "error recorded")
+        assert _run_row(manager, run_id) == ("running", 0)
+        manager.flush()
+        assert _run_row(manager, run_id)[0] == ("running" if attempt == 0 else "failed")
     with manager.sessions() as session:
         run = crud.get_run(session, run_id=run_id)
-        assert run is not None and run.status == "failed" and "boom" in (run.error or "")
+        assert run is not None and "boom" in (run.error or "")
         assert crud.job_counts(session) == {"pending": 0, "leased": 0, "done": 0}
+    assert manager.scheduler.lease("w") is None
 
 
-def test_generations_commit_whole_under_concurrent_completion(manager: RunManager) -> None:
-    """Two threads complete jobs at once; every committed generation is complete."""
+def test_generations_commit_whole_under_concurrent_results_and_writes(
+    manager: RunManager,
+) -> None:
+    """Two threads lease, settle and flush at once; every committed generation is complete."""
     run_id = manager.create_run(SMALL.model_copy(update={"job_size": 2}))
     errors: list[BaseException] = []
 
     def work(name: str) -> None:
         try:
-            while (item := _evaluate(manager, name, 0.0)) is not None:
-                manager.queue.complete(*item)
+            while (result := _evaluated(manager, name)) is not None:
+                manager.scheduler.settle(result)
+                manager.flush()
         except BaseException as exc:
             errors.append(exc)
 
@@ -347,53 +448,55 @@ def test_generations_commit_whole_under_concurrent_completion(manager: RunManage
         t.start()
     for t in threads:
         t.join(timeout=60)
-    assert not errors
+    assert not errors and not any(t.is_alive() for t in threads)
+    assert _run_row(manager, run_id) == ("completed", SMALL.generations)
     with manager.sessions() as session:
-        run = crud.get_run(session, run_id=run_id)
-        assert run is not None and run.status == "completed"
         for g in range(SMALL.generations):
             assert len(crud.ranked(session, run_id=run_id, generation=g)[0]) == 12
+    assert manager.best(run_id).sha256 == evolve(SMALL).best.sha256
 
 
-def test_release_returns_a_lease_at_once_and_counts_follow_the_jobs(manager: RunManager) -> None:
+def test_leases_return_when_a_worker_leaves_or_asks_again_and_counts_follow(
+    manager: RunManager,
+) -> None:
     manager.create_run(SMALL)
-    first = manager.queue.lease("gone", 0.0)
-    second = _evaluate(manager, "w", 0.0)
-    assert first is not None and second is not None
+    first = _lease(manager, "gone")
+    second = _lease(manager, "w")
+    again = _lease(manager, "w")  # asking again: its reply was lost, the same job comes back
+    assert again.key == second.key
     with manager.sessions() as session:
         assert crud.job_counts(session) == {"pending": 1, "leased": 2, "done": 0}
-    assert manager.queue.complete(*second) is True
-    assert manager.queue.release(second[0]) is False  # done: nothing to release
-    assert manager.queue.release(first.key) is True
-    assert manager.queue.release(first.key) is False  # already pending
+    assert manager.scheduler.settle(run_job(again, "w")).accepted is True
+    assert manager.scheduler.leave("gone") == [first.key]
+    assert manager.scheduler.leave("gone") == []
     with manager.sessions() as session:
         assert crud.job_counts(session) == {"pending": 2, "leased": 0, "done": 1}
-    again = manager.queue.lease("w", 0.0)
-    assert again is not None and again.key == first.key and again.attempt == 2
+    assert _lease(manager, "w").key == first.key
+    assert manager.scheduler.totals()["requeued"] == 2
 
 
-def test_a_paused_run_commits_what_is_in_hand_but_leases_nothing_new(manager: RunManager) -> None:
+def test_a_paused_run_settles_what_is_in_hand_but_leases_nothing_new(
+    manager: RunManager,
+) -> None:
     run_id = manager.create_run(SMALL.model_copy(update={"job_size": 12}))
-    item = _evaluate(manager, "w", 0.0)
-    assert item is not None
+    result = _evaluated(manager, "w")
+    assert result is not None
     manager.pause(run_id)
-    assert manager.queue.complete(*item) is True
-    assert manager.queue.lease("w", 0.0) is None
-    with manager.sessions() as session:
-        run = crud.get_run(session, run_id=run_id)
-        assert run is not None and (run.status, run.generation) == ("paused", 1)
+    assert manager.scheduler.settle(result).accepted is True
+    assert manager.scheduler.lease("w") is None
+    manager.flush()
+    assert _run_row(manager, run_id) == ("paused", 1)
     manager.resume(run_id)
-    job = manager.queue.lease("w", 0.0)
-    assert job is not None and job.key.generation == 1
+    assert _lease(manager, "w").key.generation == 1
 
 
 def test_results_after_cancel_are_dropped(manager: RunManager) -> None:
     run_id = manager.create_run(SMALL)
-    item = _evaluate(manager, "w", 0.0)
-    assert item is not None
+    result = _evaluated(manager, "w")
+    assert result is not None
     manager.cancel(run_id)
-    assert manager.queue.complete(*item) is False
-    assert manager.queue.lease("w", 0.0) is None
+    assert manager.scheduler.settle(result).accepted is False
+    assert manager.scheduler.lease("w") is None
     with manager.sessions() as session:
         assert crud.job_counts(session) == {"pending": 0, "leased": 0, "done": 0}
 
@@ -418,109 +521,283 @@ def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(
     assert expected.ranked is not None and ranked.tobytes() == expected.ranked.tobytes()
 
 
-def test_deferred_write_installs_the_next_generation_first(manager: RunManager) -> None:
-    """`complete(defer=True)` hands out generation 1 before generation 0 is written; the
-    write happens at `flush` (or before any later completion), exactly once, not at the
-    housekeeper's tick (which retries only refused writes: it would break the batches)."""
+def test_the_next_generation_is_leased_before_the_told_one_is_written(
+    manager: RunManager,
+) -> None:
+    """Settling a generation's last job asks the next at once; the store gets the told one at
+    `flush`, exactly once."""
     run_id = manager.create_run(SMALL)
-    items = [_evaluate(manager, "w", 0.0) for _ in range(3)]
-    for item in items[:-1]:
-        assert item is not None and manager.queue.complete(*item, defer=True) is True
-    assert items[-1] is not None and manager.queue.complete(*items[-1], defer=True) is True
-    assert manager.queue.unwritten() == 1
-    following = manager.queue.lease("w", 0.0)
-    assert following is not None and following.key.generation == 1
-    manager.settle_write_failures()  # the housekeeper: no write refused, so it waits too
-    assert manager.queue.unwritten() == 1
+    results = [_evaluated(manager, w) for w in ("w0", "w1", "w2")]
+    for result in results:
+        assert result is not None and manager.scheduler.settle(result).accepted
+    assert _lease(manager, "w0").key.generation == 1
     with manager.sessions() as session:
-        run = crud.get_run(session, run_id=run_id)
-        assert run is not None and run.generation == 0
         assert crud.get_generation(session, run_id=run_id, generation=0) is None
-    manager.queue.flush()
-    manager.queue.flush()
-    assert manager.queue.unwritten() == 0
+    assert _run_row(manager, run_id) == ("running", 0)
+    manager.flush()
+    manager.flush()
     with manager.sessions() as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.generation, run.evaluations) == (1, SMALL.population)
         assert len(crud.ranked(session, run_id=run_id, generation=0)[0]) == 12
 
 
-def test_the_dispatcher_source_writes_told_generations_together(manager: RunManager) -> None:
-    """`QueueSource.flush` puts a told generation's write off until the oldest has waited
-    `WRITE_AFTER_S` (one transaction for all), but writes a run's last generation at once;
-    `RunManager.stop` writes whatever is left."""
-    clock = [10.0]
-    source = QueueSource(manager.queue, clock=lambda: clock[0])
+def test_flush_writes_the_told_generations_in_one_transaction(
+    manager: RunManager, engine: sa.Engine
+) -> None:
+    """Generations told between two flushes go into one commit; `stop` writes what is left
+    (no writer thread here); the last generation completes the run."""
     whole = SMALL.model_copy(update={"job_size": SMALL.population, "generations": 4})
     run_id = manager.create_run(whole)
+    commits: list[int] = []
 
     def tell_one() -> None:
-        done = _evaluate(manager, "w", 0.0)
-        assert done is not None
-        assert manager.queue.complete(*done, defer=True) is True
+        result = _evaluated(manager, "w")
+        assert result is not None and manager.scheduler.settle(result).accepted
 
-    def written() -> int:
-        with manager.sessions() as session:
-            run = crud.get_run(session, run_id=run_id)
-            assert run is not None
-            return run.generation
+    def count(_conn: sa.Connection) -> None:
+        commits.append(1)
 
     tell_one()
-    assert source.flush() == pytest.approx(WRITE_AFTER_S)  # seconds to wait
-    clock[0] += WRITE_AFTER_S / 2
     tell_one()
-    assert source.flush() == pytest.approx(WRITE_AFTER_S / 2)  # the oldest sets the time
-    assert (manager.queue.unwritten(), written()) == (2, 0)
-    clock[0] = 10.0 + WRITE_AFTER_S
-    assert source.flush() is None
-    assert (manager.queue.unwritten(), written()) == (0, 2)
+    assert _run_row(manager, run_id) == ("running", 0)
+    sa.event.listen(engine, "commit", count)
+    try:
+        manager.flush()
+        assert len(commits) == 1
+        manager.flush()  # nothing told: no transaction
+        assert len(commits) == 1
+    finally:
+        sa.event.remove(engine, "commit", count)
+    assert _run_row(manager, run_id) == ("running", 2)
     tell_one()
-    assert source.flush() is not None
     manager.stop()
-    assert (manager.queue.unwritten(), written()) == (0, 3)
-    tell_one()  # the last generation: written at once, the run completes
-    assert source.flush() is None
-    with manager.sessions() as session:
-        run = crud.get_run(session, run_id=run_id)
-        assert run is not None and (run.status, run.generation) == ("completed", 4)
+    assert _run_row(manager, run_id) == ("running", 3)
+    tell_one()
+    manager.flush()
+    assert _run_row(manager, run_id) == ("completed", 4)
+    assert manager.best(run_id).sha256 == evolve(whole).best.sha256
 
 
 def test_cancel_writes_the_told_generation_before_cancelling(manager: RunManager) -> None:
     run_id = manager.create_run(SMALL.model_copy(update={"job_size": 12}))
-    item = _evaluate(manager, "w", 0.0)
-    assert item is not None and manager.queue.complete(*item, defer=True) is True
+    result = _evaluated(manager, "w")
+    assert result is not None and manager.scheduler.settle(result).accepted
     manager.cancel(run_id)
-    assert manager.queue.unwritten() == 0
-    with manager.sessions() as session:
-        run = crud.get_run(session, run_id=run_id)
-        assert run is not None and (run.status, run.generation) == ("cancelled", 1)
-    assert manager.queue.lease("w", 0.0) is None
+    assert _run_row(manager, run_id) == ("cancelled", 1)
+    assert manager.scheduler.lease("w") is None
 
 
-def test_listeners_hear_of_new_and_returned_jobs_until_removed(manager: RunManager) -> None:
+def test_listeners_hear_of_leasable_jobs_until_removed(manager: RunManager) -> None:
     calls: list[int] = []
-    remove = manager.queue.add_listener(lambda: calls.append(1))
+
+    def listener() -> None:
+        calls.append(1)
+
+    manager.scheduler.add_listener(listener)
     manager.create_run(SMALL)
     assert len(calls) == 1  # the run's first generation
-    job = manager.queue.lease("w", 0.0)
-    assert job is not None and len(calls) == 1  # leasing announces nothing
-    assert manager.queue.release(job.key) is True and len(calls) == 2
-    remove()
-    again = manager.queue.lease("w", 0.0)
-    assert again is not None and manager.queue.release(again.key) is True
+    job = _lease(manager, "w")
+    assert len(calls) == 1  # leasing announces nothing
+    assert manager.scheduler.leave("w") == [job.key]
+    assert len(calls) == 2  # its job returned
+    manager.scheduler.remove_listener(listener)
+    job = _lease(manager, "w")
+    assert manager.scheduler.leave("w") == [job.key]
     assert len(calls) == 2
 
+
+# spans: a fast worker evolves the following generations itself ----------------------------------
+
+SPANNED = RunConfig(population=6, generations=6, steps=5, trials=1, job_size=2, seed=3)
+FAST = 1000.0
+"""Robot-steps/s: a SPANNED generation (30 robot-steps) in 0.03 s, so with span_seconds 0.1 a
+span of 3 generations."""
+SPANS = {"span_below_seconds": 0.1, "span_seconds": 0.1}
+
+
+def _span_result(loop: RunLoop, job: JobKey, worker: str, k: int = 1) -> Result:
+    """What a span's worker sends for `job`: its loop's next `k` generations evaluated and
+    told, with the digest of each generation's genomes."""
+    key = job.at(loop.generation)
+    fitness, components, digests = [], [], []
+    for _ in range(k):
+        genomes = loop.ask()
+        f, c = evaluate_population(loop.config, loop.generation, genomes)
+        loop.tell(f, c)
+        fitness.append(f)
+        components.append(c)
+        digests.append(genome_digest(genomes))
+    return Result(
+        key=key,
+        worker=worker,
+        start=0,
+        stop=loop.config.population,
+        digests=tuple(digests),
+        fitness=np.stack(fitness),
+        components=np.stack(components),
+    )
+
+
+def _span(manager: RunManager, worker: str) -> tuple[Job, RunLoop]:
+    job = _lease(manager, worker)
+    assert job.span > 1 and job.state is not None and (job.start, job.stop) == (0, 6)
+    loop = RunLoop(job.config, GAState.from_arrays(job.state))
+    assert loop.generation == job.key.generation
+    assert loop.ask().tobytes() == job.genomes.tobytes()
+    return job, loop
+
+
+def test_a_span_moves_its_lease_on_each_generation_until_used_up(
+    make_manager: Callable[..., RunManager],
+) -> None:
+    manager = make_manager(**SPANS)
+    manager.scheduler.join("w", speed=FAST)
+    run_id = manager.create_run(SPANNED)
+    job, loop = _span(manager, "w")
+    assert (job.key.generation, job.span) == (0, 3)
+    for g in range(3):  # one generation a result
+        assert manager.scheduler.settle(_span_result(loop, job.key, "w")).accepted
+        held = {"pending": 0, "leased": 1, "done": 0}
+        assert manager.scheduler.counts() == (
+            held if g < 2 else {**held, "pending": 1, "leased": 0}
+        )
+    manager.flush()
+    assert _run_row(manager, run_id) == ("running", 3)
+    job, loop = _span(manager, "w")
+    assert (job.key.generation, job.span) == (3, 3)  # capped at the run's end
+    assert manager.scheduler.settle(_span_result(loop, job.key, "w", k=2)).accepted  # two at once
+    assert manager.scheduler.settle(_span_result(loop, job.key, "w")).accepted
+    manager.flush()
+    assert _run_row(manager, run_id) == ("completed", 6)
+    assert manager.best(run_id).sha256 == evolve(SPANNED).best.sha256
+
+
+def test_a_span_s_generation_of_other_genomes_is_an_error_and_ends_its_worker_s_spans(
+    make_manager: Callable[..., RunManager],
+) -> None:
+    manager = make_manager(**SPANS)
+    manager.scheduler.join("w", speed=FAST)
+    run_id = manager.create_run(SPANNED)
+    job, loop = _span(manager, "w")
+    assert manager.scheduler.settle(_span_result(loop, job.key, "w")).accepted
+    other = RunLoop(SPANNED.model_copy(update={"seed": 4}))  # another GA: other genomes
+    other.tell(*evaluate_population(SPANNED, other.generation, other.ask()))
+    wrong = _span_result(other, job.key, "w")
+    assert wrong.key.generation == 1
+    ack = manager.scheduler.settle(wrong)
+    assert (ack.accepted, ack.reason) == (True, "error recorded")
+    assert manager.scheduler.counts() == {"pending": 1, "leased": 0, "done": 0}
+    retry = _lease(manager, "w")
+    assert (retry.key.generation, retry.span, retry.state) == (1, 1, None)  # no more spans
+    assert manager.scheduler.settle(run_job(retry, "w")).accepted
+    _drain(manager, "w")
+    assert _run_row(manager, run_id) == ("completed", 6)
+    assert manager.best(run_id).sha256 == evolve(SPANNED).best.sha256
+
+
+def test_a_span_s_generation_without_its_digest_is_an_error(
+    make_manager: Callable[..., RunManager],
+) -> None:
+    manager = make_manager(**SPANS)
+    manager.scheduler.join("w", speed=FAST)
+    manager.create_run(SPANNED)
+    job, loop = _span(manager, "w")
+    first = _span_result(loop, job.key, "w")
+    assert manager.scheduler.settle(first.model_copy(update={"digests": ()})).accepted  # asked here
+    bare = _span_result(loop, job.key, "w").model_copy(update={"digests": ()})
+    ack = manager.scheduler.settle(bare)
+    assert (ack.accepted, ack.reason) == (True, "error recorded")
+    assert manager.scheduler.counts() == {"pending": 1, "leased": 0, "done": 0}
+
+
+def test_a_span_is_only_for_a_whole_generation_and_never_passes_the_run(
+    make_manager: Callable[..., RunManager],
+) -> None:
+    manager = make_manager(**SPANS)
+    manager.create_run(SPANNED)  # no worker known: cut by job_size
+    manager.scheduler.join("w", speed=FAST)
+    job = _lease(manager, "w")
+    assert ((job.start, job.stop), job.span, job.state) == ((0, 2), 1, None)
+    short = SPANNED.model_copy(update={"generations": 2, "seed": 9})
+    run_id = manager.create_run(short)  # cut whole: its only live worker spans
+    while (job := _lease(manager, "w")).key.run_id != run_id:
+        pass
+    assert ((job.start, job.stop), job.span) == ((0, 6), 2)  # 3 wanted, 2 left
+
+
+@pytest.mark.parametrize("how", ["leave", "expire", "pause", "cut"])
+def test_a_span_ends_when_its_lease_returns_its_run_pauses_or_the_cut_changes(
+    make_manager: Callable[..., RunManager], how: str
+) -> None:
+    """Leave, expiry: its generation returns, the worker's result is dropped. Pause: the
+    result in hand counts, the next generation waits. A worker joining mid-span: the next
+    generation is cut for both, so the span ends there and its result is dropped."""
+    manager = make_manager(**SPANS)
+    manager.scheduler.join("w", speed=FAST)
+    run_id = manager.create_run(SPANNED)
+    job, loop = _span(manager, "w")
+    if how == "leave":
+        assert manager.scheduler.leave("w") == [job.key]
+    elif how == "expire":
+        deadline = manager.scheduler.next_deadline()
+        assert deadline is not None
+        assert eventually(lambda: manager.scheduler.now() >= deadline, timeout=10.0)
+        assert manager.scheduler.expire() == 1
+    elif how == "pause":
+        manager.pause(run_id)
+    else:
+        manager.scheduler.join("x")  # its speed unknown: no longer a span's whole generation
+    ack = manager.scheduler.settle(_span_result(loop, job.key, "w"))
+    if how in ("leave", "expire"):
+        assert ack.accepted is False
+        assert manager.scheduler.counts() == {"pending": 1, "leased": 0, "done": 0}
+        return
+    assert ack.accepted is True
+    pending = 2 if how == "cut" else 1
+    assert manager.scheduler.counts() == {"pending": pending, "leased": 0, "done": 0}
+    assert manager.scheduler.settle(_span_result(loop, job.key, "w")).accepted is False
+    manager.flush()
+    assert _run_row(manager, run_id) == ("paused" if how == "pause" else "running", 1)
+
+
+# any order of worker events and restarts --------------------------------------------------------
 
 TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
 EVENTS = st.lists(
     st.tuples(
-        st.sampled_from(
-            ["lease", "complete", "release", "expire", "flush", "restart", "whole", "span"]
-        ),
-        st.integers(),
+        st.sampled_from(["lease", "settle", "leave", "fast", "flush", "restart"]),
+        st.integers(0, 2**16),
     ),
     max_size=25,
 )
+
+
+@dataclasses.dataclass
+class _Held:
+    """A result a worker holds, and for a span its loop and the generations left after it."""
+
+    result: Result
+    loop: RunLoop | None = None
+    left: int = 0
+
+
+def _work(job: Job, worker: str) -> _Held:
+    """What a worker does with a job: evaluate it, or evolve a span's first generation."""
+    if job.state is None:
+        return _Held(run_job(job, worker))
+    loop = RunLoop(job.config, GAState.from_arrays(job.state))
+    return _Held(_span_result(loop, job.key, worker), loop, job.span - 1)
+
+
+def _settle(manager: RunManager, held: _Held) -> tuple[bool, _Held | None]:
+    """Settle a held result: whether it was accepted, and a span's next generation (the
+    worker goes on with its span; the result is dropped if the lease did not move on)."""
+    accepted = manager.scheduler.settle(held.result).accepted
+    if not (accepted and held.loop is not None and held.left > 0):
+        return accepted, None
+    following = _span_result(held.loop, held.result.key, held.result.worker)
+    return accepted, _Held(following, held.loop, held.left - 1)
 
 
 @pytest.fixture(scope="module")
@@ -535,183 +812,54 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
     tiny_best: str,
     events: list[tuple[str, int]],
 ) -> None:
-    """Leases, results (also from before a restart), releases, expiries, deferred writes (a
-    restart loses the unwritten ones, as a crash would), server restarts, whole generations
-    and spans (their worker evolves the next generation it is leased): the run ends with
-    `evolve`'s best controller, no generation is ever committed twice, and each genome is
-    stored once."""
+    """Leases (asking again drops what a worker held), results (also from before a restart,
+    and a span's generations), departures, fast workers (their whole generations go in spans),
+    writes (a restart loses the unwritten ones, as a crash would) and server restarts: the
+    run ends with `evolve`'s best controller, no generation is committed twice, and each genome
+    is stored once."""
     engine = make_engine(f"sqlite:///{tmp_path_factory.mktemp('q') / 'colony.db'}")
     upgrade(engine)
-    settings_ = Settings(db_url="unused", lease_seconds=10.0, max_attempts=2)
+    settings_ = Settings(**{**BASE, "span_below_seconds": 0.1})
     manager = RunManager(engine, settings_)
     run_id = manager.create_run(TINY)
-    held: list[tuple[JobKey, JobResult, str]] = []
-    now = 0.0
+    held: list[_Held] = []
     for kind, n in events:
-        now += 1.0
         worker = f"w{n % 3}"
-        if kind == "lease" and (item := _evaluate(manager, worker, now)) is not None:
-            held.append((*item, worker))
-        elif kind == "complete" and held:
-            key, result, worker = held.pop(n % len(held))
-            manager.queue.complete(key, result, defer=n % 2 == 0, now=now)
-            following = JobKey(key.run_id, key.generation + 1, 0)
-            if manager.queue.leased_to(following) == worker:  # a span goes on
-                genomes = manager.queue.genomes(following)
-                assert genomes is not None
-                ev = evaluate(TINY, following.generation, genomes)
-                held.append((following, JobResult(ev.fitness, ev.components), worker))
-        elif kind == "whole":
-            manager.queue.set_job_sizer(lambda config, _generation: config.population)
-        elif kind == "span" and held:
-            key, _, worker = held[n % len(held)]
-            manager.queue.grant_span(key, worker, n % 3 + 2)
+        if kind == "lease" and (job := manager.scheduler.lease(worker)) is not None:
+            held.append(_work(job, worker))
+        elif kind == "settle" and held:
+            following = _settle(manager, held.pop(n % len(held)))[1]
+            if following is not None:
+                held.append(following)
+        elif kind == "leave":
+            manager.scheduler.leave(worker)
+        elif kind == "fast":
+            manager.scheduler.join(worker, speed=1e6)
         elif kind == "flush":
-            manager.queue.flush()
-        elif kind == "release" and held:
-            manager.queue.release(held[n % len(held)][0])
-        elif kind == "expire":
-            manager.queue.expire(now + 10.0 * (n % 2))
+            manager.flush()
         elif kind == "restart":  # the old process dies; its workers' results may still arrive
             manager = RunManager(engine, settings_)
             manager.recover()
-    for key, result, _ in held:
-        manager.queue.complete(key, result)
-    while (item := _evaluate(manager, "drain", now)) is not None:
-        assert manager.queue.complete(*item) is True
+    while held:
+        following = _settle(manager, held.pop(0))[1]
+        if following is not None:
+            held.append(following)
+    for name in ("w0", "w1", "w2"):
+        manager.scheduler.leave(name)
+    while (job := manager.scheduler.lease("drain")) is not None:
+        item: _Held | None = _work(job, "drain")
+        while item is not None:
+            accepted, item = _settle(manager, item)
+            assert accepted
+        manager.flush()
+    manager.flush()
     with manager.sessions() as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.status, run.generation) == ("completed", 3)
         assert [g.generation for g in crud.list_generations(session, run_id=run_id)] == [0, 1, 2]
-    assert manager.best(run_id) == tiny_best
+    assert manager.best(run_id).sha256 == tiny_best
     _assert_stored_once(engine, run_id, TINY, _local_ranked(TINY))
     engine.dispose()
-
-
-def test_a_failed_evaluation_is_stored_as_null_ranks_last_and_the_run_goes_on(
-    manager: RunManager,
-) -> None:
-    run_id = manager.create_run(SMALL)
-    for _ in range(3):
-        done = _evaluate(manager, "w", 0.0)
-        assert done is not None
-        key, result = done
-        if key.index == 0:  # one individual's evaluation failed
-            result = JobResult(
-                np.where(np.arange(5) == 2, np.nan, result.fitness), result.components
-            )
-        assert manager.queue.complete(key, result) is True
-    with manager.sessions() as session:
-        ranked = crud.ranked(session, run_id=run_id, generation=0)[0]
-    assert [int(ranked.index[r]) for r in range(12) if ranked.fitness_of(r) is None] == [2]
-    assert ranked.index[-1] == 2  # NaN never wins: it ranks last
-    assert _evaluate(manager, "w", 0.0) is not None  # generation 1 was asked
-
-
-def _whole(manager: RunManager, config: RunConfig) -> int:
-    manager.queue.set_job_sizer(lambda c, _g: c.population)
-    return manager.create_run(config)
-
-
-def _result(config: RunConfig, generation: int, genomes: np.ndarray) -> JobResult:
-    ev = evaluate(config, generation, genomes)
-    return JobResult(ev.fitness, ev.components)
-
-
-SPANNED = RunConfig(population=6, generations=6, steps=5, trials=1, seed=3)
-
-
-def test_a_span_leases_each_next_generation_to_its_worker_until_used_up(
-    manager: RunManager,
-) -> None:
-    run_id = _whole(manager, SPANNED)
-    job = manager.queue.lease("w", 0.0)
-    assert job is not None
-    granted, state = manager.queue.grant_span(job.key, "w", 3)
-    assert granted == 3 and state is not None and state.generation == 0
-    key, genomes = job.key, job.genomes
-    for g in (1, 2):  # the span's second and third generations go to "w" alone
-        assert manager.queue.complete(key, _result(SPANNED, g - 1, genomes), now=float(g))
-        key = JobKey(run_id, g, 0)
-        assert manager.queue.leased_to(key) == "w"
-        assert manager.queue.lease("x", float(g)) is None
-        leased = manager.queue.genomes(key)
-        assert leased is not None
-        genomes = leased
-    assert manager.queue.complete(key, _result(SPANNED, 2, genomes), now=3.0)
-    assert manager.queue.leased_to(JobKey(run_id, 3, 0)) is None  # used up: pending again
-    while (job := manager.queue.lease("x", 4.0)) is not None:
-        manager.queue.complete(job.key, _result(SPANNED, job.key.generation, job.genomes))
-    assert manager.best(run_id) == evolve(SPANNED).best.sha256
-
-
-def test_a_span_goes_on_in_one_job_when_the_sizer_would_now_cut_slices(
-    manager: RunManager,
-) -> None:
-    """Workers' speeds move across the span threshold mid-span: the span still gets its
-    generations whole (cut, it would end and its worker's generations evaluated ahead would be
-    dropped); once it is used up, the sizer cuts again."""
-    run_id = _whole(manager, SPANNED)
-    job = manager.queue.lease("w", 0.0)
-    assert job is not None
-    assert manager.queue.grant_span(job.key, "w", 3)[0] == 3
-    cut_for: list[int] = []
-
-    def slices(config: RunConfig, generation: int) -> int:
-        cut_for.append(generation)
-        return 2
-
-    manager.queue.set_job_sizer(slices)
-    key, genomes = job.key, job.genomes
-    for g in (1, 2):
-        assert manager.queue.complete(key, _result(SPANNED, g - 1, genomes), now=float(g))
-        key = JobKey(run_id, g, 0)
-        assert manager.queue.leased_to(key) == "w"
-        leased = manager.queue.genomes(key)
-        assert leased is not None and leased.shape[0] == SPANNED.population
-        genomes = leased
-    assert cut_for == []
-    assert manager.queue.complete(key, _result(SPANNED, 2, genomes), now=3.0)
-    assert cut_for == [3]
-    assert manager.queue.leased_to(JobKey(run_id, 3, 0)) is None
-    sliced = manager.queue.genomes(JobKey(run_id, 3, 0))
-    assert sliced is not None and sliced.shape[0] == 2
-
-
-def test_a_span_is_only_granted_for_a_whole_generation_to_its_holder(
-    manager: RunManager,
-) -> None:
-    manager.create_run(SMALL)  # cut by job_size: three jobs
-    job = manager.queue.lease("w", 0.0)
-    assert job is not None
-    assert manager.queue.grant_span(job.key, "w", 3)[0] == 1
-    whole = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=6)
-    run_id = manager.create_run(whole)
-    while (job := manager.queue.lease("w", 0.0)) is not None and job.key.run_id != run_id:
-        pass
-    assert job is not None
-    assert manager.queue.grant_span(job.key, "other", 3)[0] == 1
-    assert manager.queue.grant_span(job.key, "w", 99)[0] == whole.generations  # capped
-
-
-@pytest.mark.parametrize("how", ["release", "expire", "pause"])
-def test_a_span_ends_when_its_lease_returns_or_its_run_pauses(
-    manager: RunManager, how: str
-) -> None:
-    run_id = _whole(manager, SPANNED)
-    job = manager.queue.lease("w", 0.0)
-    assert job is not None
-    manager.queue.grant_span(job.key, "w", 5)
-    if how == "release":
-        manager.queue.release(job.key)
-        again = manager.queue.lease("x", 1.0)
-        assert again is not None and again.key == job.key
-    elif how == "expire":
-        assert manager.queue.expire(100.0) == 1
-    else:
-        manager.pause(run_id)
-    manager.queue.complete(job.key, _result(SPANNED, 0, job.genomes), now=2.0)
-    assert manager.queue.leased_to(JobKey(run_id, 1, 0)) is None
 
 
 # genomes stored once: Eq 11's copies point to the row holding their bytes ---------------------
@@ -735,14 +883,18 @@ def _local_ranked(config: RunConfig) -> list[np.ndarray]:
 
 
 def _drive(manager: RunManager, *, until: int | None = None) -> None:
-    """Evaluate and complete jobs (every other write deferred) until the run ends, or until
-    generation `until` is in flight with every earlier one written."""
-    while (item := _evaluate(manager, "w", 0.0)) is not None:
-        if until is not None and item[0].generation >= until:
-            manager.queue.release(item[0])
+    """Evaluate and settle jobs (written every other result, so flushes write one generation
+    or several) until the run ends, or until generation `until` is leased with every earlier
+    one written."""
+    settled = 0
+    while (result := _evaluated(manager, "w")) is not None:
+        if until is not None and result.key.generation >= until:
             break
-        manager.queue.complete(*item, defer=item[0].index % 2 == 0)
-    manager.queue.flush()
+        assert manager.scheduler.settle(result).accepted
+        settled += 1
+        if settled % 2:
+            manager.flush()
+    manager.flush()
 
 
 def _assert_stored_once(
@@ -776,11 +928,11 @@ def test_a_run_stores_each_genome_once_and_reads_back_evolve_bit_for_bit(
 ) -> None:
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
-    manager = RunManager(engine, Settings(db_url="unused", lease_seconds=10.0))
+    manager = RunManager(engine, Settings(**BASE))
     run_id = manager.create_run(config)
     _drive(manager)
     _assert_stored_once(engine, run_id, config, _local_ranked(config))
-    assert manager.best(run_id) == evolve(config).best.sha256
+    assert manager.best(run_id).sha256 == evolve(config).best.sha256
     engine.dispose()
 
 
@@ -792,7 +944,7 @@ def test_copies_after_a_restart_find_their_origins_in_the_store(
     query) and copies still point at rows with bytes, written before the restart."""
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
-    settings_ = Settings(db_url="unused", lease_seconds=10.0)
+    settings_ = Settings(**BASE)
     first = RunManager(engine, settings_)
     run_id = first.create_run(COPIES)
     _drive(first, until=restart_after)
@@ -803,7 +955,7 @@ def test_copies_after_a_restart_find_their_origins_in_the_store(
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and run.status == "completed"
     _assert_stored_once(engine, run_id, COPIES, _local_ranked(COPIES))
-    assert second.best(run_id) == evolve(COPIES).best.sha256
+    assert second.best(run_id).sha256 == evolve(COPIES).best.sha256
     engine.dispose()
 
 
