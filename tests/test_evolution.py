@@ -10,14 +10,15 @@ from hypothesis import strategies as st
 from evorobotics.evaluate import evaluate
 from evorobotics.evolution import (
     GenerationSummary,
+    RunLoop,
     best_document,
     evaluate_population,
     evolve,
     job_slices,
 )
-from evorobotics.ga import GAParams, ask, ga_rng, init, tell
+from evorobotics.ga import GAParams, GAState, ask, ga_rng, init, tell
 from evorobotics.layout import layout
-from schemas.run import RunConfig
+from schemas.run import GAConfig, RunConfig
 
 
 @given(population=st.integers(1, 5000), job_size=st.integers(1, 600))
@@ -146,3 +147,77 @@ def test_evaluate_population_needs_one_row_per_individual() -> None:
         evaluate_population(SMALL, 0, genomes)
     with pytest.raises(ValueError, match="one row per individual"):
         evaluate_population(SMALL, 0, genomes[0])
+
+
+LOOPED = RunConfig(population=6, generations=4, steps=5, trials=1)
+
+
+def _states_equal(a: GAState, b: GAState) -> bool:
+    arrays_a, arrays_b = a.to_arrays(), b.to_arrays()
+    return arrays_a.keys() == arrays_b.keys() and all(
+        arrays_a[k].dtype == arrays_b[k].dtype and arrays_a[k].tobytes() == arrays_b[k].tobytes()
+        for k in arrays_a
+    )
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    selection=st.sampled_from(["prose", "literal"]),
+    fitness=st.lists(
+        st.lists(st.floats(-1e6, 1e6) | st.just(np.nan), min_size=6, max_size=6),
+        min_size=4,
+        max_size=4,
+    ),
+    stop=st.integers(0, 4),
+)
+def test_a_loop_rebuilt_from_any_state_goes_on_bit_for_bit(
+    seed: int, selection: str, fitness: list[list[float]], stop: int
+) -> None:
+    """A RunLoop rebuilt from any intermediate state, through its arrays (what the server
+    stores and a span's worker receives), asks and tells exactly what the uninterrupted loop
+    does: any fitness, NaN (a failed evaluation) and ties included."""
+    config = LOOPED.model_copy(update={"seed": seed, "ga": GAConfig(selection=selection)})
+    values = [np.array(row, dtype=np.float64) for row in fitness]
+    straight = RunLoop(config)
+    expected = []
+    while not straight.done:
+        expected.append(straight.tell(values[straight.generation]))
+    assert straight.done and straight.generation == config.generations
+    loop = RunLoop(config)
+    told = [loop.tell(values[g]) for g in range(stop)]
+    loop = RunLoop(config, GAState.from_arrays(loop.state.to_arrays()))
+    assert loop.generation == stop
+    while not loop.done:
+        told.append(loop.tell(values[loop.generation]))
+    for a, b in zip(told, expected, strict=True):
+        assert a.generation == b.generation
+        assert a.genomes.tobytes() == b.genomes.tobytes()
+        assert a.metrics.order.tobytes() == b.metrics.order.tobytes()
+        assert _states_equal(a.before, b.before) and _states_equal(a.after, b.after)
+    assert _states_equal(loop.state, straight.state)
+    with pytest.raises(ValueError, match="over"):
+        loop.ask()
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), generations=st.integers(1, 3))
+def test_evolve_equals_the_manual_run_loop(seed: int, generations: int) -> None:
+    """`evolve` is the ask / evaluate / tell loop over RunLoop, nothing more."""
+    config = LOOPED.model_copy(update={"seed": seed, "generations": generations})
+    result = evolve(config)
+    loop = RunLoop(config)
+    history = []
+    while not loop.done:
+        genomes = loop.ask()
+        assert loop.ask() is genomes and not genomes.flags.writeable  # asked once, read-only
+        fitness, components = evaluate_population(config, loop.generation, genomes)
+        told = loop.tell(fitness, components)
+        history.append(told.summary())
+    assert _states_equal(result.state, loop.state)
+    assert result.genomes.tobytes() == told.genomes.tobytes()
+    assert result.fitness.tobytes() == told.fitness.tobytes()
+    assert result.components.tobytes() == components.tobytes()
+    assert result.history == tuple(history)
+    top = int(told.metrics.order[0])
+    assert result.best.weights.tobytes() == told.genomes[top].tobytes()
