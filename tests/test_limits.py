@@ -11,8 +11,7 @@ from schemas.robots import decode_message, decode_trace
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES
 from schemas.wire import WireError
 from server.settings import Settings
-from tests.helpers import free_port
-from tests.test_server_api import serving
+from tests.helpers import free_port, serving
 
 
 @pytest.fixture(scope="module")

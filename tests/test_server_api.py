@@ -7,48 +7,23 @@ import json
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
 import pytest
-import uvicorn
-from fastapi import FastAPI
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig
-from server.app import create_app
 from server.settings import Settings
-from tests.helpers import free_port
+from tests.helpers import free_port, serving
 from worker.main import WorkerSettings, run_worker
 
 SMALL = {"population": 12, "generations": 5, "steps": 20, "job_size": 5}
 TIMEOUT_S = 60.0
-
-
-@contextmanager
-def serving(settings: Settings) -> Iterator[tuple[str, FastAPI]]:
-    """The app under a real uvicorn on `settings.port`; its base URL and the app."""
-    app = create_app(settings)
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=settings.port, log_level="warning")
-    )
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        deadline = time.monotonic() + TIMEOUT_S
-        while not server.started:
-            if time.monotonic() > deadline or not thread.is_alive():
-                raise RuntimeError("uvicorn did not start")
-            thread.join(0.05)
-        yield f"http://127.0.0.1:{settings.port}", app
-    finally:
-        server.should_exit = True
-        thread.join(timeout=30)
 
 
 @pytest.fixture(scope="module")
