@@ -21,10 +21,13 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from evorobotics.document import ControllerDocument
+from evorobotics.evolution import RunLoop
 from robot_agent.agent import Agent, AgentSettings
 from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
+from schemas.network import PRESETS
 from schemas.robots import (
     KEY_REPLACE,
     KEY_TRACES,
@@ -42,6 +45,7 @@ from schemas.robots import (
     encode_trace,
 )
 from schemas.robots import encode_message as encode_robot_message
+from schemas.run import RunConfig
 from schemas.wire import (
     ALLOWED_DTYPES,
     KEY_JOB_NEXT,
@@ -49,37 +53,26 @@ from schemas.wire import (
     MAGIC,
     NAME_PATTERN,
     Ack,
+    Idle,
     Job,
     JobKey,
     JobRequest,
     Result,
     WireError,
-    decode_ack,
+    decode,
     decode_next_reply,
-    decode_result,
     decode_result_reply,
+    encode,
     encode_frame,
-    encode_job,
-    encode_message,
-    encode_result,
-    team_key,
 )
 from server.db import make_engine, upgrade
-from server.dispatch import Dispatcher
+from server.dispatch import Dispatcher, DispatchSettings
 from server.robots import RobotService
+from server.scheduler import Policy, Scheduler
 from tests.helpers import eventually, free_port
-from tests.test_agent import random_controller
-from tests.test_dispatch import (
-    CONFIG,
-    WAIT,
-    MemorySource,
-    client_config,
-    dispatch_settings,
-    fake_evaluator,
-    worker_thread,
-)
-from tests.test_robots_server import router_config
+from worker.main import Evaluator, WorkerSettings, WorkerStats, run_worker
 
+WAIT = 30.0
 FUZZ = settings(
     max_examples=40,
     deadline=None,
@@ -88,6 +81,33 @@ FUZZ = settings(
 KINDS = ["next", "job", "idle", "ack", "result", "push", "stop", "trace", "trace-ack", "stuck"]
 KINDS += ["replacement", "", "\x00"]
 STATUS = RobotStatus(state="running", steps=3, sha256=None, serial_ok=True)
+CONFIG = RunConfig(population=6, job_size=2, generations=100_000, trials=1, steps=5)
+RUN = 1
+POLICY = Policy(lease_min_s=1.0, lease_max_s=2.0, lease_unknown_s=2.0)
+"""Short leases: a job leased to a name garbage happened to carry returns within seconds."""
+LONG_POLL_S = 4.0
+
+
+def router_config(port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("connect/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def client_config(port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def random_controller(seed: int) -> ControllerDocument:
+    spec = PRESETS["reactive"]
+    return ControllerDocument(spec, np.random.default_rng(seed).uniform(-1, 1, spec.weight_count))
 
 
 def trace(robot: str, first: int, n: int = 3) -> TraceBatch:
@@ -105,41 +125,32 @@ def trace(robot: str, first: int, n: int = 3) -> TraceBatch:
 
 
 def _job() -> Job:
-    source = MemorySource()
-    return source.jobs[0]
+    """Job 0 of generation 0 of CONFIG, as the scheduler leases it."""
+    genomes = RunLoop(CONFIG).ask()[0:2]
+    key = JobKey(run_id=RUN, generation=0, index=0)
+    return Job(key=key, start=0, stop=2, config=CONFIG, genomes=np.array(genomes))
 
 
-class EndlessSource:
-    """A JobSource that always has the same job: every valid request must get it."""
-
-    def __init__(self) -> None:
-        self.job = _job()
-        self.completed = 0
-
-    def lease(self, worker: str) -> Job | None:
-        return self.job
-
-    def complete(self, result: Result) -> bool:
-        self.completed += 1
-        return True
-
-    def fail(self, key: JobKey, error: str) -> None:
-        raise AssertionError(f"no error result was sent: {error}")
-
-    def release(self, key: JobKey) -> None:
-        pass
-
-    def flush(self) -> None:
-        pass
+def fitted(job: Job, worker: str = "fuzzer", **fields: Any) -> Result:
+    """A result of `job`: fitness the genomes' row sums."""
+    n = job.stop - job.start
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=job.start,
+        stop=job.stop,
+        fitness=job.genomes.sum(axis=1)[np.newaxis],
+        components=np.zeros((1, n, job.config.trials, 4)),
+        **fields,
+    )
 
 
 VALID: list[bytes] = [
-    encode_message(JobRequest(worker="template", holding=())),
-    encode_result(
-        Result(_job().key, "template", np.zeros(3), np.zeros((3, 2, 4)), start=0, stop=3)
-    ),
-    encode_job(_job()),
-    encode_message(Ack(key=_job().key, accepted=True)),
+    encode(JobRequest(worker="fuzzer", robot_steps_per_s=1e4)),
+    encode(fitted(_job())),
+    encode(_job()),
+    encode(Ack(key=_job().key, accepted=True)),
+    encode(Idle(reason="no job")),
     encode_trace(trace("template-bot", 0)),
     encode_robot_message(StuckRequest(robot="template-bot", sha256=None, reason="x", step=1)),
     encode_robot_message(TraceAck(robot="template-bot", last=5)),
@@ -204,81 +215,137 @@ def ask(session: zenoh.Session, key: str, payload: bytes) -> zenoh.Reply:
     """The first reply; retries while the queryable's declaration propagates."""
     deadline = threading.Event()
     for _ in range(int(WAIT / 0.05)):
-        replies = list(session.get(key, payload=payload, timeout=5.0))
+        replies = list(session.get(key, payload=payload, timeout=2 * LONG_POLL_S))
         if replies:
             return replies[0]
         deadline.wait(0.05)
     raise AssertionError(f"no reply on {key}")
 
 
-def refused_or_valid(reply: zenoh.Reply) -> None:
+def refused_or_valid(reply: zenoh.Reply) -> bool:
     """Garbage is answered with reply_err("malformed: ..."); a payload that happens to be a
-    valid message gets an ordinary reply."""
+    valid message gets an ordinary reply. Whether it was refused."""
     if reply.err is not None:
         assert reply.err.payload.to_bytes().startswith(b"malformed")
-    else:
-        assert reply.ok is not None
+        return True
+    assert reply.ok is not None
+    return False
 
 
 # ------------------------------------------------------------------------------ server: jobs
 
 
-@pytest.fixture(scope="module")
-def dispatcher() -> Iterator[tuple[Dispatcher, zenoh.Session]]:
+@contextlib.contextmanager
+def job_server() -> Iterator[tuple[Dispatcher, Scheduler, zenoh.Session]]:
+    """A real dispatcher over a real scheduler serving a long run, and a client session."""
     port = free_port()
+    scheduler = Scheduler(POLICY)
+    scheduler.add(RUN, RunLoop(CONFIG), running=True)
+    settings = DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",), long_poll_s=LONG_POLL_S)
     with (
-        Dispatcher(dispatch_settings(port), EndlessSource()) as disp,
+        Dispatcher(settings, scheduler) as disp,
         zenoh.open(client_config(port)) as session,
     ):
-        yield disp, session
+        yield disp, scheduler, session
+        assert disp.alive()
 
 
-def lease(session: zenoh.Session) -> Job:
-    """A valid request: the first job again (a request without `holding` releases the last)."""
-    reply = ask(session, KEY_JOB_NEXT, encode_message(JobRequest(worker="fuzzer")))
+@pytest.fixture(scope="module")
+def dispatcher() -> Iterator[tuple[Dispatcher, Scheduler, zenoh.Session]]:
+    with job_server() as served:
+        yield served
+
+
+def lease(session: zenoh.Session, worker: str = "fuzzer", speed: float | None = None) -> Job:
+    """A valid request: a job of the run (asking again releases what the worker held)."""
+    request = JobRequest(worker=worker, robot_steps_per_s=speed)
+    reply = ask(session, KEY_JOB_NEXT, encode(request))
     assert reply.ok is not None, reply.err and reply.err.payload.to_bytes()
     job = decode_next_reply(reply.ok.payload.to_bytes())
-    assert isinstance(job, Job) and job.key.run_id == 1
+    assert isinstance(job, Job) and job.key.run_id == RUN
+    assert POLICY.lease_min_s <= job.lease_s <= POLICY.lease_max_s
     return job
+
+
+def settle(session: zenoh.Session, result: Result) -> tuple[Ack, Job | None]:
+    reply = ask(session, KEY_JOB_RESULT, encode(result))
+    assert reply.ok is not None, reply.err and reply.err.payload.to_bytes()
+    ack, job = decode_result_reply(reply.ok.payload.to_bytes())
+    assert ack.key == result.key
+    if job is not None:
+        assert job.lease_s <= POLICY.lease_max_s
+    return ack, job
+
+
+def of_this_protocol(key: str, reply: zenoh.Reply) -> None:
+    """An ordinary reply is a message of protocol 10 for its key."""
+    if reply.ok is None:
+        return
+    payload = reply.ok.payload.to_bytes()
+    if key == KEY_JOB_NEXT:
+        assert isinstance(decode_next_reply(payload), Job | Idle)
+    else:
+        decode_result_reply(payload)
 
 
 @FUZZ
 @given(payload=garbage)
 def test_job_queryables_drop_garbage_and_keep_serving(
-    dispatcher: tuple[Dispatcher, zenoh.Session], payload: bytes
+    dispatcher: tuple[Dispatcher, Scheduler, zenoh.Session], payload: bytes
 ) -> None:
-    disp, session = dispatcher
-    before = disp.malformed
+    disp, _, session = dispatcher
     for key in (KEY_JOB_NEXT, KEY_JOB_RESULT):
-        refused_or_valid(ask(session, key, payload))
+        before = disp.malformed
+        reply = ask(session, key, payload)
+        if refused_or_valid(reply):
+            assert disp.malformed > before  # counted
+        else:
+            of_this_protocol(key, reply)
     job = lease(session)
-    fitness = np.arange(job.stop - job.start, dtype=np.float64)
-    components = np.zeros((len(fitness), CONFIG.trials, 4))
-    result = Result(job.key, "fuzzer", fitness, components, start=job.start, stop=job.stop)
-    reply = ask(session, KEY_JOB_RESULT, encode_result(result))
-    assert reply.ok is not None
-    ack = decode_ack(reply.ok.payload.to_bytes())
-    assert ack.key == job.key and ack.accepted
-    assert disp.malformed >= before
+    ack, _ = settle(session, fitted(job))
+    assert ack.accepted, ack.reason
+    assert disp.alive()
 
 
 def test_bad_worker_liveliness_names_are_dropped(
-    dispatcher: tuple[Dispatcher, zenoh.Session],
+    dispatcher: tuple[Dispatcher, Scheduler, zenoh.Session],
 ) -> None:
-    disp, session = dispatcher
+    disp, scheduler, session = dispatcher
     before = disp.malformed
-    bad = ["bad name", "é", "x" * 129, "a:b", "~!@%+", "a/b/c"]
+    bad = ["bad name", "é", "x" * 129, "a:b", "~!@%+", "a/b/c"]  # a/b/c matches no token key
     tokens = [session.liveliness().declare_token(f"evocolony/workers/{n}") for n in bad]
     good = session.liveliness().declare_token("evocolony/workers/fuzz-good")
     try:
-        assert eventually(lambda: "fuzz-good" in {w.name for w in disp.workers()})
-        assert eventually(lambda: disp.malformed >= before + len(bad) - 1)
-        names = {w.name for w in disp.workers()}
+        assert eventually(lambda: "fuzz-good" in {w.name for w in scheduler.workers()}, WAIT)
+        assert eventually(lambda: disp.malformed >= before + len(bad) - 1, WAIT)
+        names = {w.name for w in scheduler.workers()}
         assert not any(n in names for n in bad)
-        lease(session)
+        settle(session, fitted(lease(session)))
     finally:
         for token in [*tokens, good]:
             token.undeclare()  # type: ignore[no-untyped-call]
+
+
+@pytest.mark.parametrize("speed", [1e-300, 0.0, 1e300])
+def test_absurd_speed_claims_never_lease_past_the_maximum(speed: float) -> None:
+    """A worker claiming 1e-300, 0 or 1e300 robot-steps/s (in a request, then in a result):
+    every lease stays within the policy, the dispatcher lives on and serves the next request."""
+    with job_server() as (disp, scheduler, session):
+        first = lease(session, "claimer", speed)
+        ack, following = settle(session, fitted(first, "claimer", robot_steps_per_s=speed))
+        assert ack.accepted, ack.reason
+        assert disp.alive()
+        if following is None:
+            following = lease(session, "claimer")
+        slow = speed < 1.0  # clamped to SPEED_MIN: the longest lease there is
+        assert following.lease_s == (POLICY.lease_max_s if slow else POLICY.lease_min_s)
+        settle(session, fitted(following, "claimer", robot_steps_per_s=speed, want_next=True))
+        assert disp.alive()
+        normal = lease(session, "claimer")
+        ack, _ = settle(session, fitted(normal, "claimer"))
+        assert ack.accepted, ack.reason
+        assert [w.name for w in scheduler.workers()] == ["claimer"]
+        assert disp.alive() and disp.malformed == 0
 
 
 # ---------------------------------------------------------------------------- server: robots
@@ -346,12 +413,42 @@ def test_bad_robot_liveliness_names_are_ignored(
 # ------------------------------------------------------------------------------------ worker
 
 
+def fake_evaluator(
+    config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    n = genomes.shape[0]
+    return genomes.sum(axis=1), np.zeros((n, config.trials, 4))
+
+
+@contextlib.contextmanager
+def worker_thread(port: int, name: str, evaluator: Evaluator) -> Iterator[WorkerStats]:
+    """A real worker (its own client session) in a thread; stopped and joined on exit."""
+    stop = threading.Event()
+    stats = WorkerStats()
+    settings = WorkerSettings(
+        connect=(f"tcp/127.0.0.1:{port}",), name=name, backoff_max_s=0.2, request_timeout_s=5.0
+    )
+
+    def body() -> None:
+        got = run_worker(settings, stop, evaluator=evaluator)
+        stats.jobs_done, stats.errors = got.jobs_done, got.errors
+
+    thread = threading.Thread(target=body, name=f"worker-{name}")
+    thread.start()
+    try:
+        yield stats
+    finally:
+        stop.set()
+        thread.join(timeout=WAIT)
+    assert not thread.is_alive()
+
+
 def _is_a_job(payload: bytes) -> bool:
     """Whether a worker would evaluate `payload` as a reply: a mutation that is still a valid
     job (other genomes, say) is work, not garbage."""
-    for decode in (decode_next_reply, lambda p: decode_result_reply(p)[1]):
+    for decoder in (decode_next_reply, lambda p: decode_result_reply(p)[1]):
         with contextlib.suppress(WireError):
-            if isinstance(decode(payload), Job):
+            if isinstance(decoder(payload), Job):
                 return True
     return False
 
@@ -369,7 +466,7 @@ def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) ->
 
     def on_next(query: zenoh.Query) -> None:
         with query:
-            query.reply(KEY_JOB_NEXT, next_junk.pop() if next_junk else encode_job(job))
+            query.reply(KEY_JOB_NEXT, next_junk.pop() if next_junk else encode(job))
 
     def on_result(query: zenoh.Query) -> None:
         with query:
@@ -377,9 +474,9 @@ def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) ->
                 query.reply(KEY_JOB_RESULT, result_junk.pop())
                 return
             assert query.payload is not None
-            result = decode_result(query.payload.to_bytes())
+            result = decode(query.payload.to_bytes(), Result)
             delivered.put(result)
-            query.reply(KEY_JOB_RESULT, encode_message(Ack(key=result.key, accepted=True)))
+            query.reply(KEY_JOB_RESULT, encode(Ack(key=result.key, accepted=True)))
 
     with zenoh.open(router_config(port)) as session:
         nxt = session.declare_queryable(KEY_JOB_NEXT, on_next)
@@ -395,31 +492,9 @@ def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) ->
         finally:
             nxt.undeclare()  # type: ignore[no-untyped-call]
             res.undeclare()  # type: ignore[no-untyped-call]
-    assert result.key == job.key and result.error is None
+    assert result.key == job.key and result.error is None and result.worker == "fuzzed"
     assert result.fitness is not None
-    assert np.array_equal(result.fitness, job.genomes.sum(axis=1))
-
-
-@settings(max_examples=5, deadline=None)
-@given(junk=st.lists(garbage, min_size=1, max_size=4))
-def test_team_members_drop_garbage_on_their_keys_and_finish_the_generation(
-    junk: list[bytes],
-) -> None:
-    """Garbage on both members' team keys before a generation's exchange: each logs and
-    drops it and still gets the other's slice."""
-    from tests.test_team import members, router, run_team, whole
-
-    names = ("lead", "member")
-    with router() as port, members(port, names) as sessions:
-        for name in names:
-            for payload in junk:
-                sessions[0][0].put(team_key(name), payload)
-        out = run_team(sessions, names, 2)
-    for results, _ in out.values():
-        assert len(results) == 2
-        for g, result in enumerate(results):
-            assert result is not None and result[0].tobytes() == whole(g)[0].tobytes()
-    assert sorted(out) == [0, 1]
+    assert result.fitness.tobytes() == job.genomes.sum(axis=1)[np.newaxis].tobytes()
 
 
 # ------------------------------------------------------------------------------------- agent
@@ -514,7 +589,12 @@ def test_agent_drops_garbage_trace_acks_and_delivers_later(
     assert agent.status().serial_ok
 
 
-def test_replies_are_names_of_this_protocol() -> None:
+def test_the_templates_are_messages_of_this_protocol() -> None:
     """The fuzzers' template messages really are valid, so mutations start from the real thing."""
-    assert NAME_PATTERN.match("fuzz-agent") and decode_trace(VALID[4]).robot == "template-bot"
-    assert isinstance(decode_next_reply(VALID[2]), Job)
+    assert NAME_PATTERN.match("fuzz-agent") and decode_trace(VALID[5]).robot == "template-bot"
+    job = decode_next_reply(VALID[2])
+    assert isinstance(job, Job) and job.key == _job().key
+    assert decode(VALID[0], JobRequest).worker == "fuzzer"
+    assert decode(VALID[1], Result).fitness is not None
+    assert decode_result_reply(VALID[3]) == (Ack(key=job.key, accepted=True), None)
+    assert decode_next_reply(VALID[4]) == Idle(reason="no job")
