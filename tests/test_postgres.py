@@ -31,7 +31,7 @@ from server.models import Base
 from server.robot_store import StuckEventRow, TraceRow
 from server.settings import Settings
 from tests import test_server_api as api
-from tests.helpers import free_port
+from tests.helpers import free_port, serving
 
 TABLES = {
     "runs",
@@ -131,7 +131,7 @@ def test_restart_resumes_from_the_store(engine: sa.Engine) -> None:
 
 @pytest.mark.slow
 def test_small_run_completes_through_the_rest_api(db_url: str) -> None:
-    with api.serving(Settings(db_url=db_url, port=free_port(), zenoh=False)) as (url, _):
+    with serving(Settings(db_url=db_url, port=free_port(), zenoh=False)) as (url, _):
         api.test_small_run_completes_and_matches_evolve(url)
         assert httpx.get(f"{url}/healthz", timeout=5).is_success
 
