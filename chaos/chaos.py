@@ -2,8 +2,8 @@
 
 Real processes on loopback: `colony server` on an SQLite file, `colony worker`s, and virtual
 robots (`colony agent --emulate`). During the run, on a schedule drawn from a seeded generator
-(reproducible with `--chaos-seed`): a random worker is SIGKILLed every few seconds (and a
-fresh one started), the server is SIGKILLed and restarted twice (which also cuts every robot's
+(reproducible with `--chaos-seed`): a random worker the server lists as serving is SIGKILLed
+every few seconds (and a fresh one started), the server is SIGKILLed and restarted twice (which also cuts every robot's
 link), and the store refuses writes for a while (an exclusive SQLite lock held by this script:
 root ignores file modes and the server's pooled connections keep the mode they opened with, so
 the lock is the outside mechanism that makes every write of the live server fail). The run must
@@ -115,6 +115,13 @@ class Lab:
         argv += ["--insecure-no-verify"]
         self.spawn(argv, robot)
 
+    def serving(self) -> list[str]:
+        """This script's live workers the server lists as idle or busy: killing one that is
+        still starting (a loaded machine takes seconds to import) would test nothing."""
+        listed = self.client.get("/api/workers").json()
+        joined = {w["name"] for w in listed if w["state"] in ("idle", "busy")}
+        return sorted(name for name in self.workers if name in joined)
+
     def metrics(self) -> dict[str, float]:
         text = self.client.get("/metrics").text
         out: dict[str, float] = {}
@@ -208,9 +215,9 @@ def chaos(args: argparse.Namespace) -> dict[str, Any]:
                 print(f"  server back, store holds generation {after}")
             elif not refused and gen >= refuse_at:
                 refused = True
-                report["generations_while_refused"] = refuse_writes(lab, run_id, args.refuse)
-            elif time.monotonic() >= next_kill:
-                name = str(schedule.choice(sorted(lab.workers)))
+                report.update(refuse_writes(lab, run_id, args.refuse))
+            elif time.monotonic() >= next_kill and (serving := lab.serving()):
+                name = str(schedule.choice(serving))
                 lab.workers.pop(name).kill()
                 lab.start_worker(f"w{next(serial)}")
                 worker_kills += 1
@@ -244,10 +251,12 @@ def chaos(args: argparse.Namespace) -> dict[str, Any]:
     return report
 
 
-def refuse_writes(lab: Lab, run_id: int, seconds: float) -> int:
+def refuse_writes(lab: Lab, run_id: int, seconds: float) -> dict[str, Any]:
     """Hold an exclusive SQLite lock for `seconds`: the run must stop evolving (at most the one
-    generation in flight ahead of the store), then, once the store takes the writes again, be
-    paused with the write error; resume it. Returns how far the run got while refused."""
+    generation in flight, or one span message, ahead of the store), then, once the store takes
+    the writes again, be paused with the write error; resume it. Returns how far the stored
+    run got while refused, how far once writable, and whether it paused (a run that ended
+    instead evolved on in memory while the store refused: a failed check)."""
     lock = sqlite3.connect(lab.db, timeout=30, isolation_level=None)
     try:
         lock.execute("BEGIN EXCLUSIVE")
@@ -259,14 +268,25 @@ def refuse_writes(lab: Lab, run_id: int, seconds: float) -> int:
     finally:
         lock.execute("ROLLBACK")
         lock.close()
-    wait_until(lambda: lab.run(run_id)["status"] == "paused", "the run to pause", 60)
+    wait_until(lambda: lab.run(run_id)["status"] != "running", "the run to pause", 60)
     run = lab.run(run_id)
+    refused = {
+        "generations_while_refused": reached - start,
+        "generations_ahead_of_store": int(run["generation"]) - start,
+        "paused_after_refusal": run["status"] == "paused",
+    }
+    if run["status"] != "paused":
+        print(
+            f"  store writable: run {run['status']} at generation {run['generation']} instead "
+            f"of pausing: it evolved on in memory while the store refused writes"
+        )
+        return refused
     print(f"  store writable: run paused at generation {run['generation']}, {run['error']!r}")
     if not str(run["error"] or "").startswith("database write failed"):
         raise RuntimeError(f"paused without the write error: {run['error']!r}")
     lab.client.post(f"/api/runs/{run_id}/resume").raise_for_status()
     print(f"  resumed: status {lab.run(run_id)['status']}")
-    return reached - start
+    return refused
 
 
 def main() -> None:
@@ -287,6 +307,7 @@ def main() -> None:
         print(f"  {key}: {value}")
     ok = (
         report["status"] == "completed"
+        and report.get("paused_after_refusal", False)
         and report["identical"]
         and report["generations_lost"] == 0
         and report["trace_gaps"] == 0
