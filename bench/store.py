@@ -37,7 +37,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         engine = make_engine(f"sqlite:///{Path(tmp) / 'bench.db'}", background_checkpoint=True)
         upgrade(engine)
-        manager = RunManager(engine, Settings(db_url="unused"))
+        manager = RunManager(engine, Settings(db_url="unused", span_below_seconds=0))
         manager.create_run(config)
         scheduler = manager.scheduler
         totals: list[float] = []
