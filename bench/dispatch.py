@@ -46,6 +46,7 @@ from evorobotics.evolution import RunLoop
 from schemas.run import RunConfig
 from schemas.wire import Ack, Result, decode, decode_result_reply, encode
 from server.dispatch import Dispatcher, DispatchSettings
+from server.manager import WRITE_AFTER_S
 from server.scheduler import Policy, Scheduler
 from server.settings import Settings
 from worker.main import WorkerSettings, run_worker
@@ -86,7 +87,7 @@ def worker_process(port: int, name: str, empty: bool, stopping: threading.Event)
 
 class EndlessRuns:
     """Empty runs on a real scheduler, one after another: a thread takes the told generations
-    every 0.1 s as the run manager's flush does (without storing them) and adds the next run
+    as the run manager's writer does (without storing them) and adds the next run
     when one ends."""
 
     def __init__(self, scheduler: Scheduler) -> None:
@@ -103,11 +104,15 @@ class EndlessRuns:
         return self.scheduler.totals()["done"]
 
     def _drain(self) -> None:
-        while not self._stop.wait(0.1):
+        while not self._stop.is_set():
+            self.scheduler.told_many.wait(WRITE_AFTER_S)
+            self.scheduler.told_many.clear()
             self._take()
 
     def _take(self) -> None:
-        for written in self.scheduler.take_told():
+        taken = self.scheduler.take_told()
+        self.scheduler.written(taken)  # as the run manager does once it has stored them
+        for written in taken:
             self.generations += 1
             if written.last:
                 self._runs += 1

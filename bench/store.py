@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from schemas.run import RunConfig
+from schemas.wire import Job
 from server.db import make_engine, upgrade
 from server.executor import run_job
 from server.manager import RunManager
@@ -45,7 +46,7 @@ def main() -> None:
         writes: list[float] = []
         for _ in range(GENERATIONS):
             t0 = time.perf_counter()
-            jobs = []
+            jobs: list[Job] = []
             while (job := scheduler.lease(f"bench-{len(jobs)}")) is not None:
                 jobs.append(job)
             lease_s = time.perf_counter() - t0

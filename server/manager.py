@@ -95,9 +95,10 @@ def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarr
     return crud.ranked(session, run_id=run_id, generation=generation)[1]
 
 
-WRITE_AFTER_S = 0.1
-"""How long told generations wait to be written together: a span tells hundreds a second,
-and a transaction per generation cost more than the rows in it."""
+WRITE_AFTER_S = 0.05
+"""How long told generations wait to be written together (a transaction per generation cost
+more than the rows in it), unless a run is halfway to `Policy.ahead_max` generations ahead of
+its store: then at once."""
 
 
 class RunOverError(Exception):
@@ -231,7 +232,9 @@ class RunManager:
         """Every WRITE_AFTER_S write what was told; every housekeeping period expire leases
         and promote queued runs. Survives any error (logged), e.g. a database that is down."""
         housekept = time.monotonic()
-        while not self._stop.wait(WRITE_AFTER_S):
+        while not self._stop.is_set():
+            self.scheduler.told_many.wait(WRITE_AFTER_S)
+            self.scheduler.told_many.clear()
             try:
                 self.flush()
                 if time.monotonic() - housekept >= self.settings.housekeeping_seconds:
@@ -254,6 +257,7 @@ class RunManager:
                 self.scheduler.put_back(told)
                 self._stall(told, exc)
                 raise
+            self.scheduler.written(told)
             self._settle_write_failures()
             failed = self.scheduler.take_failed()
             if failed:

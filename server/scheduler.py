@@ -58,6 +58,10 @@ class Policy:
     """Leases of a job whose evaluation failed before its run fails."""
     gone_keep_s: float = 600.0
     """How long a departed worker stays listed as gone."""
+    ahead_max: int = 8
+    """Generations a run may be told ahead of its store: from there it leases nothing and a
+    span ends with its current message, so a store that blocks or refuses writes stops its
+    runs within `ahead_max` generations and one span message."""
 
     def __post_init__(self) -> None:
         for name in ("lease_min_s", "lease_factor", "lease_unknown_s", "span_s"):
@@ -67,8 +71,8 @@ class Policy:
             raise ValueError(f"lease_max_s must be >= lease_min_s, got {self.lease_max_s}")
         if self.span_below_s < 0 or self.gone_keep_s < 0:
             raise ValueError("span_below_s and gone_keep_s must be >= 0")
-        if self.jobs_per_worker < 1 or self.max_attempts < 1:
-            raise ValueError("jobs_per_worker and max_attempts must be >= 1")
+        if self.jobs_per_worker < 1 or self.max_attempts < 1 or self.ahead_max < 1:
+            raise ValueError("jobs_per_worker, max_attempts and ahead_max must be >= 1")
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
         """The lease of a job of `robot_steps` for a worker of `speed` robot-steps/s."""
@@ -175,6 +179,10 @@ class Scheduler:
         self._leases: dict[JobKey, _Lease] = {}
         self._workers: dict[str, _Worker] = {}
         self._told: list[Written] = []
+        self._ahead: dict[int, int] = {}
+        """run id -> generations told and not yet written (see `Policy.ahead_max`)."""
+        self.told_many = threading.Event()
+        """Set when a run is halfway to `ahead_max`: the store should write now."""
         self._failed: dict[int, str] = {}
         self._sequence = 0
         self._totals = dict.fromkeys(TOTALS, 0)
@@ -215,6 +223,7 @@ class Scheduler:
         """Drop a run (over): its results, if any arrive, are acknowledged as dropped."""
         with self._lock:
             self._runs.pop(run_id, None)
+            self._ahead.pop(run_id, None)
             self._drop_leases(run_id)
 
     def take_told(self) -> list[Written]:
@@ -222,6 +231,17 @@ class Scheduler:
         with self._lock:
             told, self._told = self._told, []
             return told
+
+    def written(self, told: list[Written]) -> None:
+        """The store has `told` (or dropped it, its run being over): their runs may go on."""
+        with self._lock:
+            for item in told:
+                left = self._ahead.get(item.run_id, 0) - 1
+                if left > 0:
+                    self._ahead[item.run_id] = left
+                else:
+                    self._ahead.pop(item.run_id, None)
+        self._announce()
 
     def put_back(self, told: list[Written]) -> None:
         """Told generations the store refused: first in line for the next `take_told`."""
@@ -237,7 +257,7 @@ class Scheduler:
 
     def has_pending(self) -> bool:
         with self._lock:
-            return any(run.running and run.pending for run in self._runs.values())
+            return any(self._leasable(run) for run in self._runs.values())
 
     # workers ---------------------------------------------------------------------------------
 
@@ -299,12 +319,8 @@ class Scheduler:
             self._release_where(lambda lease: lease.worker == worker)
             chosen: _Run | None = None
             for run in self._runs.values():
-                if (
-                    run.running
-                    and run.pending
-                    and (
-                        chosen is None or (run.served, run.run_id) < (chosen.served, chosen.run_id)
-                    )
+                if self._leasable(run) and (
+                    chosen is None or (run.served, run.run_id) < (chosen.served, chosen.run_id)
                 ):
                     chosen = run
             if chosen is None:
@@ -340,6 +356,7 @@ class Scheduler:
             if result.robot_steps_per_s > 0:
                 record.speed = clamp_speed(result.robot_steps_per_s)
             ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
+            following = result.key
             for i in range(result.generations):
                 key = result.key.at(result.key.generation + i)
                 lease = self._leases.get(key)
@@ -365,6 +382,10 @@ class Scheduler:
                 self._complete(key, lease, fitness[i], components[i])
                 record.jobs_done += 1
                 ack = Ack(key=result.key, accepted=True)
+                following = key.at(key.generation + 1)
+            if ack.accepted and self._ahead.get(result.key.run_id, 0) >= self.policy.ahead_max:
+                # a span ends with the message that took its run too far ahead of the store
+                self._release_where(lambda lease: lease.key == following)
         self._announce()
         return ack
 
@@ -405,10 +426,18 @@ class Scheduler:
     def _announce(self) -> None:
         with self._lock:
             listeners = list(self._listeners)
-            ready = any(run.running and run.pending for run in self._runs.values())
+            ready = any(self._leasable(run) for run in self._runs.values())
         if ready:
             for listener in listeners:
                 listener()
+
+    def _leasable(self, run: _Run) -> bool:
+        """Running, with a job pending, and not too far ahead of the store."""
+        return (
+            run.running
+            and bool(run.pending)
+            and self._ahead.get(run.run_id, 0) < self.policy.ahead_max
+        )
 
     def _touch(self, worker: str, *, revive: bool = True) -> _Worker:
         """The worker's record, seen now; live again unless `revive` is False (a result
@@ -503,12 +532,15 @@ class Scheduler:
         loop = run.loop
         told = loop.tell(run.fitness, run.components)
         self._told.append(Written(run.run_id, loop.config, told, last=loop.done))
+        self._ahead[run.run_id] = self._ahead.get(run.run_id, 0) + 1
+        if 2 * self._ahead[run.run_id] >= self.policy.ahead_max:
+            self.told_many.set()
         if loop.done:
             del self._runs[run.run_id]
             return
         self._install(run.run_id, loop, run.running, served=run.served)
         following = self._runs[run.run_id]
-        if lease.span_left > 0 and run.running and len(following.slots) == 1:
+        if lease.span_left > 0 and following.running and len(following.slots) == 1:
             heapq.heappop(following.pending)
             speed = self._workers[lease.worker].speed
             lease_s = self.policy.lease_seconds(

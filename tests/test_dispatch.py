@@ -53,7 +53,9 @@ class Served:
 
     def wait_told(self, predicate: Callable[[list[Written]], bool], timeout: float = WAIT) -> bool:
         def check() -> bool:
-            self.told += self.scheduler.take_told()
+            taken = self.scheduler.take_told()
+            self.scheduler.written(taken)  # as the run manager does once it has stored them
+            self.told += taken
             return predicate(self.told)
 
         return eventually(check, timeout=timeout)
@@ -285,7 +287,9 @@ def test_a_worker_whose_ga_differs_has_its_span_refused_and_gets_no_more() -> No
         token = session.liveliness().declare_token(worker_key("skewed"))
         request = encode(JobRequest(worker="skewed", robot_steps_per_s=FAST))
         pending = session.get(KEY_JOB_NEXT, payload=request, timeout=WAIT)
-        assert eventually(lambda: served.scheduler.workers()[0].robot_steps_per_s == FAST)
+        assert eventually(
+            lambda: [w.robot_steps_per_s for w in served.scheduler.workers()] == [FAST]
+        )
         served.scheduler.add(1, RunLoop(config), running=True)
         span = decode_next_reply(ok(list(pending)))
         assert isinstance(span, Job) and span.span == 5 and span.state is not None

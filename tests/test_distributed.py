@@ -260,7 +260,7 @@ def test_stopped_worker_past_its_lease_is_replaced_and_its_late_result_dropped(
 
 LONG_CONFIG = {**CONFIG, "generations": 30}
 """Long enough that the server is still evolving it when killed: told generations are
-written a tenth of a second at a time (server.dispatch.WRITE_AFTER_S), several at once."""
+written together (server.manager.WRITE_AFTER_S), several at once."""
 
 
 def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(colony: Colony) -> None:

@@ -610,3 +610,57 @@ def test_any_interleaving_tells_the_same_generations_bit_for_bit(
         written += sched.take_told()
     same_generations(written, reference(CONFIG))
     assert sched.take_failed() == {}
+
+
+def test_a_run_told_ahead_max_generations_past_its_store_waits_for_the_writes() -> None:
+    """A store that blocks or refuses writes stops its runs: nothing is leased past
+    `ahead_max` unwritten generations, and `written` lets the run go on."""
+    config = RunConfig(population=4, generations=6, trials=1, steps=5, job_size=4)
+    sched, _ = make(Policy(ahead_max=2, span_below_s=0))
+    sched.add(1, RunLoop(config), running=True)
+    for _ in range(2):
+        job = sched.lease("w")
+        assert job is not None and sched.settle(result(job, "w")).accepted
+    assert sched.told_many.is_set()  # halfway: the store is asked to write now
+    assert sched.lease("w") is None and not sched.has_pending()
+    woken: list[bool] = []
+    sched.add_listener(lambda: woken.append(True))
+    taken = sched.take_told()
+    assert sched.lease("w") is None  # taken is not written: the store may still refuse it
+    sched.written(taken)
+    assert woken and sched.has_pending()
+    job = sched.lease("w")
+    assert job is not None and job.key.generation == 2
+
+
+def test_a_span_ends_with_the_message_that_takes_its_run_too_far_ahead() -> None:
+    """The generations a worker already evolved in one message all count; then its lease
+    does not move on, so its next message is refused and the span ends."""
+    config = RunConfig(population=8, generations=8, trials=1, steps=5, job_size=3)
+    sched, _ = make(Policy(ahead_max=2))
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(config), running=True)
+    job, loop = span_job(sched)
+    results = []
+    for _ in range(3):
+        genomes = loop.ask()
+        current = job.model_copy(update={"key": job.key.at(loop.generation)})
+        results.append(result(current, "fast", genomes, digest=True))
+        loop.tell(fake_fitness(genomes))
+    batch = results[0].model_copy(
+        update={
+            "fitness": np.concatenate([r.fitness for r in results if r.fitness is not None]),
+            "components": np.concatenate(
+                [r.components for r in results if r.components is not None]
+            ),
+            "digests": tuple(d for r in results for d in r.digests),
+        }
+    )
+    assert sched.settle(batch).accepted
+    assert sched.counts() == {"pending": 1, "leased": 0, "done": 0}  # the lease did not move on
+    assert not span_step(sched, job, loop)  # the worker's next generation: refused
+    told = sched.take_told()
+    assert [w.told.generation for w in told] == [0, 1, 2]
+    sched.written(told)
+    following, _ = span_job(sched)  # the run goes on from the last recorded generation
+    assert following.key.generation == 3

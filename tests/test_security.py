@@ -178,7 +178,9 @@ def _run_worker(port: int, auth: ZenohClientAuth, scheduler: Scheduler) -> list[
     told: list[Written] = []
 
     def generation_told() -> bool:
-        told.extend(scheduler.take_told())
+        taken = scheduler.take_told()
+        scheduler.written(taken)
+        told.extend(taken)
         return bool(told)
 
     eventually(generation_told, timeout=20.0)

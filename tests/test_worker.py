@@ -214,7 +214,9 @@ def served(port: int, run_id: int, config: RunConfig = CONFIG) -> Iterator[Any]:
     told: list[Written] = []
 
     def take() -> list[Written]:
-        told.extend(scheduler.take_told())
+        taken = scheduler.take_told()
+        scheduler.written(taken)  # as the run manager does once it has stored them
+        told.extend(taken)
         return told
 
     settings = DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",), long_poll_s=0.2)
