@@ -1,4 +1,5 @@
-"""Shared fixtures: one throwaway PostgreSQL server for the whole test session.
+"""Shared fixtures: one throwaway PostgreSQL server for the whole test session, `db_url` on
+SQLite and on it, and a migrated `engine` on that URL.
 
 The server is Debian's `postgresql` package (binaries in /usr/lib/postgresql/*/bin), initdb'd
 into a temporary directory and started on a free loopback port with fsync off. PostgreSQL
@@ -17,8 +18,12 @@ import subprocess
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
+
+if TYPE_CHECKING:
+    import sqlalchemy as sa
 
 PG_USER = "colony"
 
@@ -111,3 +116,14 @@ def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
         return f"sqlite:///{tmp_path / 'colony.db'}"
     factory: Callable[[], str] = request.getfixturevalue("postgres_database")
     return factory()
+
+
+@pytest.fixture
+def engine(db_url: str) -> Iterator[sa.Engine]:
+    """An engine on `db_url`, migrated to the head revision; disposed after the test."""
+    from server.db import make_engine, upgrade
+
+    engine = make_engine(db_url)
+    upgrade(engine)
+    yield engine
+    engine.dispose()

@@ -1,26 +1,56 @@
-"""Helpers shared by the tests: free loopback ports, polling with a deadline, a dispatcher's
-loopback settings, a fast fake evaluator, and a real uvicorn server."""
+"""Helpers shared by the tests (tests never import each other): free loopback ports, polling
+with a deadline, a dispatcher's loopback settings, zenoh router and client configurations, a
+fast fake evaluator, a worker thread, a real uvicorn server, the REST API's small run, robot
+controllers and agents on BasicX emulators, and the store's manager steps.
+
+Imports stay light: the app, zenoh, the agent and the science are imported where they are used.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import math
 import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from schemas.network import PRESETS, NetworkSpec
 from schemas.run import RunConfig
 
 if TYPE_CHECKING:
+    import httpx
+    import zenoh
     from fastapi import FastAPI
 
+    from evorobotics.document import ControllerDocument
+    from robot_agent.agent import Agent, AgentSettings
+    from robot_agent.emulator import BasicXEmulator
+    from schemas.wire import Result
     from server.dispatch import DispatchSettings
+    from server.manager import RunManager
+    from server.robots import RobotService
     from server.settings import Settings
+    from worker.main import Evaluator, WorkerStats
 
 SERVER_START_S = 60.0
+WAIT = 30.0
+"""Seconds to wait for a zenoh, robot or worker event."""
+AGENT_WAIT = 20.0
+"""Seconds to wait for an agent's own steps over its emulator (no server involved)."""
+QUICK = {"population": 8, "generations": 2, "steps": 10, "job_size": 4}
+"""A run that completes in about a second."""
+SMALL = {"population": 12, "generations": 5, "steps": 20, "job_size": 5}
+"""The REST API's small run (`check_small_run`): 5 generations of 12."""
+RUN_TIMEOUT_S = 60.0
+TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
+REACTIVE = PRESETS["reactive"]
 
 
 def free_port() -> int:
@@ -63,17 +93,64 @@ def fake_evaluator(
     return fake_fitness(genomes), np.full((n, config.trials, 4), float(generation))
 
 
+def router_config(port: int) -> zenoh.Config:
+    """A zenoh router on 127.0.0.1:`port` only: no peers to connect, multicast scouting off."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("connect/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def client_config(port: int) -> zenoh.Config:
+    """A zenoh client of the router on 127.0.0.1:`port`, multicast scouting off."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
 @contextmanager
-def serving(settings: Settings) -> Iterator[tuple[str, FastAPI]]:
-    """The app under a real uvicorn on `settings.port`; its base URL and the app."""
+def worker_thread(port: int, name: str, evaluator: Evaluator) -> Iterator[WorkerStats]:
+    """A real worker (its own client session) in a thread; stopped and joined on exit. The
+    stats are filled in when it returns."""
+    from worker.main import WorkerSettings, WorkerStats, run_worker
+
+    stop = threading.Event()
+    stats = WorkerStats()
+    settings = WorkerSettings(
+        connect=(f"tcp/127.0.0.1:{port}",), name=name, backoff_max_s=0.2, request_timeout_s=5.0
+    )
+
+    def body() -> None:
+        got = run_worker(settings, stop, evaluator=evaluator)
+        stats.jobs_done, stats.errors = got.jobs_done, got.errors
+
+    thread = threading.Thread(target=body, name=f"worker-{name}")
+    thread.start()
+    try:
+        yield stats
+    finally:
+        stop.set()
+        thread.join(timeout=WAIT)
+    assert not thread.is_alive()
+
+
+# ------------------------------------------------------------------------------------ servers
+
+
+@contextmanager
+def uvicorn_running(app: FastAPI, port: int) -> Iterator[threading.Thread]:
+    """`app` under a real uvicorn on 127.0.0.1:`port` until exit; the thread it runs in."""
     import uvicorn
 
-    from server.app import create_app
-
-    app = create_app(settings)
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=settings.port, log_level="warning")
-    )
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     try:
@@ -82,7 +159,250 @@ def serving(settings: Settings) -> Iterator[tuple[str, FastAPI]]:
             if time.monotonic() > deadline or not thread.is_alive():
                 raise RuntimeError("uvicorn did not start")
             thread.join(0.05)
-        yield f"http://127.0.0.1:{settings.port}", app
+        yield thread
     finally:
         server.should_exit = True
         thread.join(timeout=30)
+
+
+@contextmanager
+def serving(settings: Settings) -> Iterator[tuple[str, FastAPI]]:
+    """The app under a real uvicorn on `settings.port`; its base URL and the app."""
+    from server.app import create_app
+
+    app = create_app(settings)
+    with uvicorn_running(app, settings.port):
+        yield f"http://127.0.0.1:{settings.port}", app
+
+
+@dataclass
+class Served:
+    url: str
+    app: FastAPI
+
+
+@contextmanager
+def serve(tmp: Path, app: FastAPI | None = None) -> Iterator[Served]:
+    """create_app (or `app`) under a real uvicorn on a free port, stopped on exit."""
+    from server.app import create_app
+    from server.settings import Settings
+
+    port = free_port()
+    app = app or create_app(
+        Settings(db_url=f"sqlite:///{tmp / 'colony.db'}", port=port, executors=1, zenoh=False)
+    )
+    with uvicorn_running(app, port) as thread:
+        yield Served(f"http://127.0.0.1:{port}", app)
+    assert not thread.is_alive(), "uvicorn did not stop"
+
+
+def completed_run(url: str, config: dict[str, Any]) -> int:
+    """Start a run of `config` on the server at `url` and wait until it completes; its id."""
+    import httpx
+
+    with httpx.Client(base_url=url, timeout=30) as client:
+        run_id: int = client.post("/api/runs", json=config).json()["id"]
+        assert eventually(
+            lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed", 120
+        )
+    return run_id
+
+
+# ---------------------------------------------------------------------------- the REST API
+
+
+def wait_status(client: httpx.Client, run_id: int, done: set[str]) -> dict[str, Any]:
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while time.monotonic() < deadline:
+        run: dict[str, Any] = client.get(f"/api/runs/{run_id}").json()
+        if run["status"] in done:
+            return run
+        threading.Event().wait(0.05)
+    raise TimeoutError(f"run {run_id} did not reach {done}")
+
+
+def check_small_run(base_url: str) -> None:
+    """A SMALL run through the REST API at `base_url` completes and its history, ranking and
+    best controller are `evolve`'s, bit for bit."""
+    import httpx
+
+    from evorobotics.evolution import evolve
+
+    with httpx.Client(base_url=base_url, timeout=30) as client:
+        created = client.post("/api/runs", json=SMALL)
+        assert created.status_code == 201
+        run_id = created.json()["id"]
+        run = wait_status(client, run_id, {"completed", "failed"})
+        assert run["status"] == "completed", run["error"]
+        assert run["generation"] == 5 and run["evaluations"] == 60
+        assert run["started_at"] and run["finished_at"]
+        history = client.get(f"/api/runs/{run_id}/generations").json()
+        assert [g["generation"] for g in history] == list(range(5))
+        assert all(g["worst"] <= g["mean"] <= g["best"] for g in history)
+        best = client.get(f"/api/runs/{run_id}/best").json()
+        assert best["fitness"] == run["best_fitness"] == history[-1]["best"]
+        ranked = client.get(f"/api/runs/{run_id}/individuals").json()
+        assert ranked["generation"] == 4
+        assert [i["rank"] for i in ranked["individuals"]] == list(range(12))
+        first = client.get(f"/api/runs/{run_id}/individuals", params={"generation": 0}).json()
+        assert all(i["parent"] is None for i in first["individuals"])
+        stored = client.get(f"/api/controllers/{best['sha256']}")
+        assert stored.status_code == 200 and stored.json()["sha256"] == best["sha256"]
+    local = evolve(RunConfig(**SMALL))
+    assert best["sha256"] == local.best.sha256
+    assert best["weights"] == local.best.to_dict()["weights"]
+    assert local.state.ranked is not None  # the store keeps a copy's bytes at its origin only
+    assert [i["genome_sha256"] for i in ranked["individuals"]] == [
+        hashlib.sha256(genome.tobytes()).hexdigest() for genome in local.state.ranked
+    ]
+
+
+# --------------------------------------------------------------------------- the run manager
+
+
+def evaluated(manager: RunManager, worker: str) -> Result | None:
+    """`worker` leases a job and evaluates it (not yet settled); None when none is leasable."""
+    from server.executor import run_job
+
+    job = manager.scheduler.lease(worker)
+    return None if job is None else run_job(job, worker)
+
+
+def drain(manager: RunManager, worker: str = "w") -> None:
+    """Evaluate, settle and write jobs until none is leasable."""
+    while (result := evaluated(manager, worker)) is not None:
+        assert manager.scheduler.settle(result).accepted
+        manager.flush()
+
+
+# ---------------------------------------------------------------------------- robot controllers
+
+
+def constant_drive(left: float, right: float, spec: NetworkSpec = REACTIVE) -> ControllerDocument:
+    """A controller that ignores its whiskers: output biases give these wheel commands."""
+    from evorobotics.document import ControllerDocument
+    from evorobotics.layout import layout
+
+    w = np.zeros((1, spec.weight_count))
+    lay = layout(spec)
+    for block in lay.blocks:
+        if block.m == spec.layers and block.t == 0 and block.s == 0:
+            view = lay.view(w, block)
+            for k, motor in enumerate((left, right)):
+                y = (motor + 1.0) / 2.0
+                view[0, k, -1] = math.log(y / (1.0 - y))
+    return ControllerDocument(spec, w[0], provenance={"test": f"drive {left} {right}"})
+
+
+def random_controller(seed: int, spec: NetworkSpec = REACTIVE) -> ControllerDocument:
+    """Weights uniform in [-1, 1) from `seed`."""
+    from evorobotics.document import ControllerDocument
+
+    rng = np.random.default_rng(seed)
+    return ControllerDocument(spec, rng.uniform(-1, 1, spec.weight_count))
+
+
+def save(state_dir: Path, doc: ControllerDocument) -> None:
+    """Install `doc` as the controller an agent in `state_dir` starts with."""
+    state_dir.mkdir(parents=True, exist_ok=True)
+    (state_dir / "controller.json").write_text(doc.to_json())
+
+
+class FixedBody:
+    """Physics that stays put and shows preset whiskers: isolates the link from the simulator."""
+
+    dt = 0.1
+
+    def __init__(self) -> None:
+        self.bits: tuple[bool, ...] = (True, False, True, False, False)
+
+    def step(self, left: float, right: float) -> None:
+        pass
+
+    def whiskers(self) -> tuple[bool, ...]:
+        return self.bits
+
+
+# --------------------------------------------------------------------------------- robot agents
+
+
+def offline_settings(robot: str, state_dir: Path, **kwargs: object) -> AgentSettings:
+    """An agent whose server never answers (a free port nobody listens on)."""
+    from robot_agent.agent import AgentSettings
+
+    return AgentSettings(
+        robot_id=robot,
+        connect=(f"tcp/127.0.0.1:{free_port()}",),
+        state_dir=state_dir,
+        backoff_max=0.5,
+        **kwargs,  # type: ignore[arg-type]
+    )
+
+
+@dataclass
+class Colony:
+    url: str
+    db_url: str
+    run_id: int
+    app: Any
+    tmp: Path
+
+
+@dataclass
+class Link:
+    router: zenoh.Session
+    service: RobotService
+    endpoint: str
+    port: int
+
+
+@contextmanager
+def robot_link(colony: Colony, port: int | None = None) -> Iterator[Link]:
+    """A router session and a RobotService on the app's database, installed in the app."""
+    import zenoh
+
+    from server.db import make_engine
+    from server.robots import RobotService, RobotSettings
+
+    port = port or free_port()
+    engine = make_engine(colony.db_url)
+    router = zenoh.open(router_config(port))
+    try:
+        service = RobotService(router, engine, RobotSettings(push_timeout=5.0)).start()
+        colony.app.state.robots = service
+        try:
+            yield Link(router, service, f"tcp/127.0.0.1:{port}", port)
+        finally:
+            service.close()
+            colony.app.state.robots = None
+    finally:
+        router.close()  # type: ignore[no-untyped-call]
+        engine.dispose()
+
+
+@contextmanager
+def virtual_robot(
+    robot: str, link: Link, state_dir: Path, seed: int = 0, **kwargs: Any
+) -> Iterator[tuple[Agent, BasicXEmulator]]:
+    """An agent over a BasicX emulator pty (the paper's maze), connected to `link`'s router."""
+    from robot_agent.agent import Agent, AgentSettings
+    from robot_agent.driver import BasicXDriver
+    from robot_agent.emulator import BasicXEmulator
+    from robot_agent.sim_body import SimBody
+
+    with BasicXEmulator(SimBody.create("paper", seed=seed)) as emulator:
+        settings = AgentSettings(
+            robot_id=robot,
+            connect=(link.endpoint,),
+            state_dir=state_dir,
+            backoff_max=0.5,
+            request_timeout=1.0,
+            **kwargs,
+        )
+        with BasicXDriver.open(emulator.port_path) as driver, Agent(settings, driver) as agent:
+            yield agent, emulator
+
+
+def online(client: httpx.Client, robot: str) -> bool:
+    response = client.get(f"/api/robots/{robot}")
+    return response.status_code == 200 and bool(response.json()["online"])

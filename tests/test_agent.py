@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import base64
 import json
-import math
 import os
 import signal
 import subprocess
@@ -21,51 +20,22 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evorobotics.document import ControllerDocument
-from evorobotics.layout import layout
-from robot_agent.agent import Agent, AgentSettings, validate_document
+from robot_agent.agent import Agent, validate_document
 from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
 from robot_agent.stuck import StuckConfig
 from schemas.network import PRESETS, NetworkSpec
-from tests.helpers import free_port
+from tests.helpers import (
+    AGENT_WAIT,
+    constant_drive,
+    free_port,
+    offline_settings,
+    random_controller,
+    save,
+)
 
-WAIT = 20.0
 SPEC = PRESETS["reactive"]
-
-
-def constant_drive(left: float, right: float, spec: NetworkSpec = SPEC) -> ControllerDocument:
-    """A controller that ignores its whiskers: output biases give these wheel commands."""
-    w = np.zeros((1, spec.weight_count))
-    lay = layout(spec)
-    for block in lay.blocks:
-        if block.m == spec.layers and block.t == 0 and block.s == 0:
-            view = lay.view(w, block)
-            for k, motor in enumerate((left, right)):
-                y = (motor + 1.0) / 2.0
-                view[0, k, -1] = math.log(y / (1.0 - y))
-    return ControllerDocument(spec, w[0], provenance={"test": f"drive {left} {right}"})
-
-
-def random_controller(seed: int, spec: NetworkSpec = SPEC) -> ControllerDocument:
-    rng = np.random.default_rng(seed)
-    return ControllerDocument(spec, rng.uniform(-1, 1, spec.weight_count))
-
-
-def offline_settings(robot: str, state_dir: Path, **kwargs: object) -> AgentSettings:
-    """An agent whose server never answers (a free port nobody listens on)."""
-    return AgentSettings(
-        robot_id=robot,
-        connect=(f"tcp/127.0.0.1:{free_port()}",),
-        state_dir=state_dir,
-        backoff_max=0.5,
-        **kwargs,  # type: ignore[arg-type]
-    )
-
-
-def save(state_dir: Path, doc: ControllerDocument) -> None:
-    state_dir.mkdir(parents=True, exist_ok=True)
-    (state_dir / "controller.json").write_text(doc.to_json())
 
 
 @pytest.fixture
@@ -124,7 +94,7 @@ def test_agent_resumes_its_saved_controller_without_a_server(
         agent = Agent(offline_settings("r1", tmp_path), driver)
         assert agent.boot == 0 and agent.controller == doc and agent.state == "running"
         with agent:
-            assert agent.wait_for(lambda: agent.steps >= 20, WAIT)
+            assert agent.wait_for(lambda: agent.steps >= 20, AGENT_WAIT)
             assert not agent.connected.is_set()
     with BasicXDriver.open(emulator.port_path) as driver:
         again = Agent(offline_settings("r1", tmp_path), driver)
@@ -147,10 +117,10 @@ def test_stuck_without_server_escapes_and_carries_on(
         "r1", tmp_path, stuck=StuckConfig(contact_steps=5), buffer_samples=10_000
     )
     with BasicXDriver.open(emulator.port_path) as driver, Agent(cfg, driver) as agent:
-        assert agent.wait_for(lambda: agent.stuck_events >= 1, WAIT)
-        assert agent.wait_for(lambda: agent.state == "running", WAIT)
+        assert agent.wait_for(lambda: agent.stuck_events >= 1, AGENT_WAIT)
+        assert agent.wait_for(lambda: agent.state == "running", AGENT_WAIT)
         resumed = agent.steps
-        assert agent.wait_for(lambda: agent.steps >= resumed + 2, WAIT)
+        assert agent.wait_for(lambda: agent.steps >= resumed + 2, AGENT_WAIT)
         with agent.changed:
             samples = list(agent._buffer)
     escape = [s for s in samples if s.sha256 is None]
@@ -166,7 +136,7 @@ def test_trace_buffer_is_bounded(emulator: BasicXEmulator, tmp_path: Path) -> No
     save(tmp_path, random_controller(5))
     cfg = offline_settings("r1", tmp_path, buffer_samples=15)
     with BasicXDriver.open(emulator.port_path) as driver, Agent(cfg, driver) as agent:
-        assert agent.wait_for(lambda: agent.dropped >= 10, WAIT)
+        assert agent.wait_for(lambda: agent.dropped >= 10, AGENT_WAIT)
         assert agent.buffered() == 15
         with agent.changed:
             steps = [s.step for s in agent._buffer]
@@ -179,11 +149,11 @@ def test_serial_garbage_is_survived(emulator: BasicXEmulator, tmp_path: Path) ->
         BasicXDriver.open(emulator.port_path) as driver,
         Agent(offline_settings("r1", tmp_path), driver) as agent,
     ):
-        assert agent.wait_for(lambda: agent.steps >= 5, WAIT)
+        assert agent.wait_for(lambda: agent.steps >= 5, AGENT_WAIT)
         emulator.inject(b"\x00\xff garbage $$ *ZZ\n$12 W*00\n" + os.urandom(300) + b"\n")
         emulator.corrupt_replies(4)
         before = agent.steps
-        assert agent.wait_for(lambda: agent.steps >= before + 20 and agent.serial_ok, WAIT)
+        assert agent.wait_for(lambda: agent.steps >= before + 20 and agent.serial_ok, AGENT_WAIT)
     assert driver.stats.resends >= 1 or driver.stats.bad_lines >= 1
 
 
@@ -212,14 +182,14 @@ def test_killed_agent_motors_stop_by_the_firmware_watchdog(
         stderr=subprocess.PIPE,
     )
     try:
-        assert emulator.wait_steps(emulator.steps + 30, WAIT)
+        assert emulator.wait_steps(emulator.steps + 30, AGENT_WAIT)
         assert emulator.motors == pytest.approx((0.5, 0.4), abs=1e-3)
         emulator.watchdog_tripped.clear()
         proc.send_signal(signal.SIGKILL)
-        assert emulator.watchdog_tripped.wait(WAIT)
+        assert emulator.watchdog_tripped.wait(AGENT_WAIT)
         gap = emulator.watchdog_gap
         assert gap is not None and 0.5 <= gap < 0.6
         assert emulator.motors == (0.0, 0.0)
     finally:
         proc.kill()
-        proc.communicate(timeout=WAIT)
+        proc.communicate(timeout=AGENT_WAIT)

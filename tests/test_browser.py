@@ -19,9 +19,16 @@ import pytest
 
 from server.app import create_app
 from server.settings import Settings
-from tests.helpers import eventually
-from tests.test_dashboard import QUICK, Served, serve
-from tests.test_robots_server import Colony, online, robot_link, virtual_robot
+from tests.helpers import (
+    QUICK,
+    Colony,
+    Served,
+    eventually,
+    online,
+    robot_link,
+    serve,
+    virtual_robot,
+)
 
 CHROMIUM = Path("/usr/bin/chromium")
 ARGS = [

@@ -6,54 +6,19 @@ Real uvicorn on a free port, a temporary SQLite file, in-process evaluation (no 
 from __future__ import annotations
 
 import json
-import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
-import uvicorn
-from fastapi import FastAPI
 
-from server.app import create_app
 from server.routes.dashboard import sse
-from server.settings import Settings
-from tests.helpers import eventually, free_port
+from tests.helpers import QUICK, Served, eventually, serve
 
 WAIT = 60.0
-QUICK = {"population": 8, "generations": 2, "steps": 10, "job_size": 4}
 SLOW = {"population": 12, "generations": 40, "steps": 60, "job_size": 4}
 """Long enough to be running while a stream is read (about 0.1 s a generation)."""
-
-
-@dataclass
-class Served:
-    url: str
-    app: FastAPI
-
-
-@contextmanager
-def serve(tmp: Path, app: FastAPI | None = None) -> Iterator[Served]:
-    """create_app (or `app`) under a real uvicorn on a free port, stopped on exit."""
-    port = free_port()
-    app = app or create_app(
-        Settings(db_url=f"sqlite:///{tmp / 'colony.db'}", port=port, executors=1, zenoh=False)
-    )
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        assert eventually(lambda: server.started or not thread.is_alive(), 30)
-        assert server.started, "uvicorn did not start"
-        yield Served(f"http://127.0.0.1:{port}", app)
-    finally:
-        server.should_exit = True
-        thread.join(timeout=30)
-        assert not thread.is_alive(), "uvicorn did not stop"
 
 
 def read_events(

@@ -12,21 +12,7 @@ from robot_agent.driver import BasicXDriver, DriverConfig, open_port
 from robot_agent.emulator import FIRMWARE_VERSION, BasicXEmulator
 from robot_agent.errors import FirmwareError, LinkDeadError
 from robot_agent.serial_protocol import encode
-
-
-class FixedBody:
-    """Physics that stays put and shows preset whiskers: isolates the link from the simulator."""
-
-    dt = 0.1
-
-    def __init__(self) -> None:
-        self.bits: tuple[bool, ...] = (True, False, True, False, False)
-
-    def step(self, left: float, right: float) -> None:
-        pass
-
-    def whiskers(self) -> tuple[bool, ...]:
-        return self.bits
+from tests.helpers import FixedBody
 
 
 @pytest.fixture

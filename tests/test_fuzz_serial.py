@@ -23,8 +23,7 @@ from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import FIRMWARE_VERSION, BasicXEmulator
 from robot_agent.serial_protocol import MAX_LINE, Frame, LineDecoder, encode
 from robot_agent.sim_body import SimBody
-from tests.test_agent import WAIT, constant_drive, offline_settings, save
-from tests.test_driver import FixedBody
+from tests.helpers import AGENT_WAIT, FixedBody, constant_drive, offline_settings, save
 
 BITS = (True, False, True, False, False)
 FUZZ = settings(
@@ -108,12 +107,12 @@ def test_running_agent_keeps_stepping_through_noise_both_ways(
             serial.serial_for_url(emulator.port_path, timeout=0.05) as stray,
             Agent(offline_settings("noisy", state), driver) as agent,
         ):
-            assert agent.wait_for(lambda: agent.steps >= 3, WAIT)
+            assert agent.wait_for(lambda: agent.steps >= 3, AGENT_WAIT)
             for _ in range(3):
                 emulator.inject(towards_agent)
                 stray.write(towards_firmware + b"\n")
                 stray.flush()
             steps = agent.steps
-            assert agent.wait_for(lambda: agent.steps >= steps + 10, WAIT)
-            assert agent.wait_for(lambda: agent.status().serial_ok, WAIT)
+            assert agent.wait_for(lambda: agent.steps >= steps + 10, AGENT_WAIT)
+            assert agent.wait_for(lambda: agent.status().serial_ok, AGENT_WAIT)
             assert emulator.motors != (0.0, 0.0)  # driving, not stopped by the watchdog

@@ -21,13 +21,11 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from evorobotics.document import ControllerDocument
 from evorobotics.evolution import RunLoop
 from robot_agent.agent import Agent, AgentSettings
 from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
-from schemas.network import PRESETS
 from schemas.robots import (
     KEY_REPLACE,
     KEY_TRACES,
@@ -69,10 +67,16 @@ from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, DispatchSettings
 from server.robots import RobotService
 from server.scheduler import Policy, Scheduler
-from tests.helpers import eventually, free_port
-from worker.main import Evaluator, WorkerSettings, WorkerStats, run_worker
+from tests.helpers import (
+    WAIT,
+    client_config,
+    eventually,
+    free_port,
+    random_controller,
+    router_config,
+    worker_thread,
+)
 
-WAIT = 30.0
 FUZZ = settings(
     max_examples=40,
     deadline=None,
@@ -86,28 +90,6 @@ RUN = 1
 POLICY = Policy(lease_min_s=1.0, lease_max_s=2.0, lease_unknown_s=2.0)
 """Short leases: a job leased to a name garbage happened to carry returns within seconds."""
 LONG_POLL_S = 4.0
-
-
-def router_config(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("connect/endpoints", "[]")
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
-def client_config(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
-def random_controller(seed: int) -> ControllerDocument:
-    spec = PRESETS["reactive"]
-    return ControllerDocument(spec, np.random.default_rng(seed).uniform(-1, 1, spec.weight_count))
 
 
 def trace(robot: str, first: int, n: int = 3) -> TraceBatch:
@@ -237,17 +219,31 @@ def refused_or_valid(reply: zenoh.Reply) -> bool:
 
 @contextlib.contextmanager
 def job_server() -> Iterator[tuple[Dispatcher, Scheduler, zenoh.Session]]:
-    """A real dispatcher over a real scheduler serving a long run, and a client session."""
+    """A real dispatcher over a real scheduler serving a long run, and a client session. A
+    thread stands in for the run manager's writer: it takes the told generations and reports
+    them written (storing nothing), else the run stops `ahead_max` generations in."""
     port = free_port()
     scheduler = Scheduler(POLICY)
     scheduler.add(RUN, RunLoop(CONFIG), running=True)
     settings = DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",), long_poll_s=LONG_POLL_S)
-    with (
-        Dispatcher(settings, scheduler) as disp,
-        zenoh.open(client_config(port)) as session,
-    ):
-        yield disp, scheduler, session
-        assert disp.alive()
+    stop = threading.Event()
+
+    def store() -> None:
+        while not stop.wait(0.05):
+            scheduler.written(scheduler.take_told())
+
+    writer = threading.Thread(target=store, name="fuzz-store")
+    writer.start()
+    try:
+        with (
+            Dispatcher(settings, scheduler) as disp,
+            zenoh.open(client_config(port)) as session,
+        ):
+            yield disp, scheduler, session
+            assert disp.alive()
+    finally:
+        stop.set()
+        writer.join(timeout=WAIT)
 
 
 @pytest.fixture(scope="module")
@@ -418,29 +414,6 @@ def fake_evaluator(
 ) -> tuple[np.ndarray, np.ndarray]:
     n = genomes.shape[0]
     return genomes.sum(axis=1), np.zeros((n, config.trials, 4))
-
-
-@contextlib.contextmanager
-def worker_thread(port: int, name: str, evaluator: Evaluator) -> Iterator[WorkerStats]:
-    """A real worker (its own client session) in a thread; stopped and joined on exit."""
-    stop = threading.Event()
-    stats = WorkerStats()
-    settings = WorkerSettings(
-        connect=(f"tcp/127.0.0.1:{port}",), name=name, backoff_max_s=0.2, request_timeout_s=5.0
-    )
-
-    def body() -> None:
-        got = run_worker(settings, stop, evaluator=evaluator)
-        stats.jobs_done, stats.errors = got.jobs_done, got.errors
-
-    thread = threading.Thread(target=body, name=f"worker-{name}")
-    thread.start()
-    try:
-        yield stats
-    finally:
-        stop.set()
-        thread.join(timeout=WAIT)
-    assert not thread.is_alive()
 
 
 def _is_a_job(payload: bytes) -> bool:

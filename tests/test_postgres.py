@@ -8,7 +8,7 @@ REST API and must give `evolve`'s best controller bit for bit.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import httpx
@@ -21,17 +21,13 @@ from alembic.script import ScriptDirectory
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import evolve
-from schemas.run import RunConfig
-from schemas.wire import Result
 from server import crud
-from server.db import alembic_config, make_engine, upgrade
-from server.executor import run_job
+from server.db import alembic_config, upgrade
 from server.manager import RunManager
 from server.models import Base
 from server.robot_store import StuckEventRow, TraceRow
 from server.settings import Settings
-from tests import test_server_api as api
-from tests.helpers import free_port, serving
+from tests.helpers import TINY, check_small_run, drain, evaluated, free_port, serving
 
 TABLES = {
     "runs",
@@ -45,15 +41,6 @@ TABLES = {
 }
 
 
-@pytest.fixture
-def engine(db_url: str) -> Iterator[sa.Engine]:
-    engine = make_engine(db_url)
-    upgrade(engine)
-    yield engine
-    engine.dispose()
-
-
-TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
 BASE: dict[str, Any] = {"db_url": "unused", "max_attempts": 2, "span_below_seconds": 0.0}
 """No spans: the cut of each generation follows the live workers only (not their speeds)."""
 
@@ -101,23 +88,12 @@ def test_robot_tables_keep_64_bit_steps_and_bytes(engine: sa.Engine) -> None:
     assert event.step == big and event.id is not None
 
 
-def _evaluated(manager: RunManager, worker: str) -> Result | None:
-    job = manager.scheduler.lease(worker)
-    return None if job is None else run_job(job, worker)
-
-
-def _drain(manager: RunManager, worker: str = "w") -> None:
-    while (result := _evaluated(manager, worker)) is not None:
-        assert manager.scheduler.settle(result).accepted
-        manager.flush()
-
-
 def test_restart_resumes_from_the_store(engine: sa.Engine) -> None:
     """A second manager on the same database (a restarted server) finishes `evolve`'s run."""
     first = RunManager(engine, Settings(**BASE))
     run_id = first.create_run(TINY)
     for _ in range(4):  # generation 0's three jobs, then generation 1 (one job: one worker)
-        result = _evaluated(first, "w")
+        result = evaluated(first, "w")
         assert result is not None and first.scheduler.settle(result).accepted
         first.flush()
     second = RunManager(engine, Settings(**BASE))
@@ -125,14 +101,14 @@ def test_restart_resumes_from_the_store(engine: sa.Engine) -> None:
     with Session(engine) as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.status, run.generation) == ("running", 2)
-    _drain(second)
+    drain(second)
     assert second.best(run_id).sha256 == evolve(TINY).best.sha256
 
 
 @pytest.mark.slow
 def test_small_run_completes_through_the_rest_api(db_url: str) -> None:
     with serving(Settings(db_url=db_url, port=free_port(), zenoh=False)) as (url, _):
-        api.test_small_run_completes_and_matches_evolve(url)
+        check_small_run(url)
         assert httpx.get(f"{url}/healthz", timeout=5).is_success
 
 
@@ -168,15 +144,15 @@ def test_a_store_that_refuses_writes_stops_the_run_and_resume_is_bit_identical(
     manager = RunManager(engine, Settings(**BASE))
     run_id = manager.create_run(TINY)
     for worker in ("w", "w", "w"):  # generation 0: three jobs (no worker known at its cut)
-        result = _evaluated(manager, worker)
+        result = evaluated(manager, worker)
         assert result is not None and result.key.generation == 0
         assert manager.scheduler.settle(result).accepted
     manager.flush()
     refuse(True)
-    result = _evaluated(manager, "a")  # generation 1: one job ("w" was the one live worker)
+    result = evaluated(manager, "a")  # generation 1: one job ("w" was the one live worker)
     assert result is not None and result.key.generation == 1
     assert manager.scheduler.settle(result).accepted
-    held = _evaluated(manager, "b")  # generation 2 (cut for w and a) goes out before the write
+    held = evaluated(manager, "b")  # generation 2 (cut for w and a) goes out before the write
     assert held is not None and (held.key.generation, held.start, held.stop) == (2, 0, 3)
     with pytest.raises(sa.exc.DBAPIError):
         manager.flush()
@@ -195,7 +171,7 @@ def test_a_store_that_refuses_writes_stops_the_run_and_resume_is_bit_identical(
         assert run.error is not None and "database write failed" in run.error
     assert manager.scheduler.lease("c") is None
     manager.resume(run_id)
-    _drain(manager)
+    drain(manager)
     with Session(engine) as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and (run.status, run.error) == ("completed", None)

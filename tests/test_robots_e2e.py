@@ -6,19 +6,15 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
-import uvicorn
 
-from server.app import create_app
 from server.settings import Settings
-from tests.helpers import eventually, free_port
-from tests.test_robots_server import SMALL, WAIT
+from tests.helpers import QUICK, WAIT, completed_run, eventually, free_port, serving
 
 
 @pytest.fixture(scope="module")
@@ -34,23 +30,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str,
         workers=0,
         executors=1,
     )
-    app = create_app(settings)  # the robot service is on by default
-    uv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=uv.run, daemon=True)
-    thread.start()
-    url = f"http://127.0.0.1:{port}"
-    try:
-        assert eventually(lambda: uv.started or not thread.is_alive())
-        assert uv.started, "uvicorn did not start"
-        with httpx.Client(base_url=url, timeout=30) as client:
-            run_id = client.post("/api/runs", json=SMALL).json()["id"]
-            assert eventually(
-                lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed", 120
-            )
-        yield url, endpoint, run_id
-    finally:
-        uv.should_exit = True
-        thread.join(timeout=30)
+    with serving(settings) as (url, _):  # the robot service is on by default
+        yield url, endpoint, completed_run(url, QUICK)
 
 
 def agent_process(robot: str, endpoint: str, state_dir: Path, url: str) -> subprocess.Popen[str]:

@@ -5,18 +5,13 @@ from __future__ import annotations
 
 import json
 import queue
-import threading
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import httpx
 import numpy as np
 import pytest
-import uvicorn
 import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -26,10 +21,6 @@ from typer.testing import CliRunner
 from colony.cli import app as cli
 from evorobotics import network
 from evorobotics.document import ControllerDocument
-from robot_agent.agent import Agent, AgentSettings
-from robot_agent.driver import BasicXDriver
-from robot_agent.emulator import BasicXEmulator
-from robot_agent.sim_body import SimBody
 from robot_agent.stuck import StuckConfig
 from schemas.network import NetworkSpec
 from schemas.robots import (
@@ -47,108 +38,34 @@ from schemas.robots import (
 from schemas.robots import encode_message as encode_robot_message
 from schemas.wire import WireError
 from server import crud
-from server.app import create_app
-from server.db import make_engine
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
-from server.robots import RobotService, RobotSettings, ranked_document, replay_trace
+from server.robots import ranked_document, replay_trace
 from server.settings import Settings
-from tests.helpers import eventually, free_port
-from tests.test_agent import constant_drive, random_controller, save
-
-WAIT = 30.0
-SMALL = {"population": 8, "generations": 2, "steps": 10, "job_size": 4}
-
-
-def router_config(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("connect/endpoints", "[]")
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
-@dataclass
-class Colony:
-    url: str
-    db_url: str
-    run_id: int
-    app: Any
-    tmp: Path
+from tests.helpers import (
+    QUICK,
+    WAIT,
+    Colony,
+    completed_run,
+    constant_drive,
+    eventually,
+    free_port,
+    online,
+    random_controller,
+    robot_link,
+    save,
+    serving,
+    virtual_robot,
+)
 
 
 @pytest.fixture(scope="module")
 def colony(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Colony]:
     tmp = tmp_path_factory.mktemp("robots")
     db_url = f"sqlite:///{tmp / 'colony.db'}"
-    port = free_port()
     # zenoh off: each test opens its own router (to kill and restart it) with a RobotService
-    app = create_app(Settings(db_url=db_url, port=port, executors=1, zenoh=False))
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    url = f"http://127.0.0.1:{port}"
-    try:
-        assert eventually(lambda: server.started or not thread.is_alive())
-        assert server.started, "uvicorn did not start"
-        with httpx.Client(base_url=url, timeout=30) as client:
-            run_id = client.post("/api/runs", json=SMALL).json()["id"]
-            assert eventually(
-                lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed", 120
-            )
-        yield Colony(url, db_url, run_id, app, tmp)
-    finally:
-        server.should_exit = True
-        thread.join(timeout=30)
-
-
-@dataclass
-class Link:
-    router: zenoh.Session
-    service: RobotService
-    endpoint: str
-    port: int
-
-
-@contextmanager
-def robot_link(colony: Colony, port: int | None = None) -> Iterator[Link]:
-    """A router session and a RobotService on the app's database, installed in the app."""
-    port = port or free_port()
-    engine = make_engine(colony.db_url)
-    router = zenoh.open(router_config(port))
-    try:
-        service = RobotService(router, engine, RobotSettings(push_timeout=5.0)).start()
-        colony.app.state.robots = service
-        try:
-            yield Link(router, service, f"tcp/127.0.0.1:{port}", port)
-        finally:
-            service.close()
-            colony.app.state.robots = None
-    finally:
-        router.close()  # type: ignore[no-untyped-call]
-        engine.dispose()
-
-
-@contextmanager
-def virtual_robot(
-    robot: str, link: Link, state_dir: Path, seed: int = 0, **kwargs: Any
-) -> Iterator[tuple[Agent, BasicXEmulator]]:
-    with BasicXEmulator(SimBody.create("paper", seed=seed)) as emulator:
-        settings = AgentSettings(
-            robot_id=robot,
-            connect=(link.endpoint,),
-            state_dir=state_dir,
-            backoff_max=0.5,
-            request_timeout=1.0,
-            **kwargs,
-        )
-        with BasicXDriver.open(emulator.port_path) as driver, Agent(settings, driver) as agent:
-            yield agent, emulator
-
-
-def online(client: httpx.Client, robot: str) -> bool:
-    response = client.get(f"/api/robots/{robot}")
-    return response.status_code == 200 and bool(response.json()["online"])
+    settings = Settings(db_url=db_url, port=free_port(), executors=1, zenoh=False)
+    with serving(settings) as (url, app):
+        yield Colony(url, db_url, completed_run(url, QUICK), app, tmp)
 
 
 def test_push_ack_run_replay_and_tamper(colony: Colony, tmp_path: Path) -> None:

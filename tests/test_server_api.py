@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import httpx
 import numpy as np
@@ -16,14 +13,16 @@ import pytest
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
-from evorobotics.evolution import evolve
 from schemas.run import RunConfig
 from server.settings import Settings
-from tests.helpers import free_port, serving
+from tests.helpers import SMALL as SMALL
+from tests.helpers import check_small_run, free_port
+from tests.helpers import serving as serving
+from tests.helpers import wait_status as wait_status
 from worker.main import WorkerSettings, run_worker
 
-SMALL = {"population": 12, "generations": 5, "steps": 20, "job_size": 5}
-TIMEOUT_S = 60.0
+# test_fuzz_api.py still reads SMALL, serving and wait_status through this module (a test
+# importing a test): explicit re-exports until it imports them from tests.helpers.
 
 
 @pytest.fixture(scope="module")
@@ -35,44 +34,8 @@ def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         yield url
 
 
-def wait_status(client: httpx.Client, run_id: int, done: set[str]) -> dict[str, Any]:
-    deadline = time.monotonic() + TIMEOUT_S
-    while time.monotonic() < deadline:
-        run: dict[str, Any] = client.get(f"/api/runs/{run_id}").json()
-        if run["status"] in done:
-            return run
-        threading.Event().wait(0.05)
-    raise TimeoutError(f"run {run_id} did not reach {done}")
-
-
 def test_small_run_completes_and_matches_evolve(base_url: str) -> None:
-    with httpx.Client(base_url=base_url, timeout=30) as client:
-        created = client.post("/api/runs", json=SMALL)
-        assert created.status_code == 201
-        run_id = created.json()["id"]
-        run = wait_status(client, run_id, {"completed", "failed"})
-        assert run["status"] == "completed", run["error"]
-        assert run["generation"] == 5 and run["evaluations"] == 60
-        assert run["started_at"] and run["finished_at"]
-        history = client.get(f"/api/runs/{run_id}/generations").json()
-        assert [g["generation"] for g in history] == list(range(5))
-        assert all(g["worst"] <= g["mean"] <= g["best"] for g in history)
-        best = client.get(f"/api/runs/{run_id}/best").json()
-        assert best["fitness"] == run["best_fitness"] == history[-1]["best"]
-        ranked = client.get(f"/api/runs/{run_id}/individuals").json()
-        assert ranked["generation"] == 4
-        assert [i["rank"] for i in ranked["individuals"]] == list(range(12))
-        first = client.get(f"/api/runs/{run_id}/individuals", params={"generation": 0}).json()
-        assert all(i["parent"] is None for i in first["individuals"])
-        stored = client.get(f"/api/controllers/{best['sha256']}")
-        assert stored.status_code == 200 and stored.json()["sha256"] == best["sha256"]
-    local = evolve(RunConfig(**SMALL))
-    assert best["sha256"] == local.best.sha256
-    assert best["weights"] == local.best.to_dict()["weights"]
-    assert local.state.ranked is not None  # the store keeps a copy's bytes at its origin only
-    assert [i["genome_sha256"] for i in ranked["individuals"]] == [
-        hashlib.sha256(genome.tobytes()).hexdigest() for genome in local.state.ranked
-    ]
+    check_small_run(base_url)
 
 
 def test_errors_name_the_problem(base_url: str) -> None:
