@@ -41,7 +41,7 @@ ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
-LONG = {"population": 12, "generations": 2000, "steps": 60, "job_size": 4}
+LONG = {"population": 12, "generations": 2000, "steps": 300, "job_size": 4}
 """Runs for tens of seconds: it is paused, resumed and cancelled while the page watches."""
 TIMEOUT_MS = 30_000
 
