@@ -35,7 +35,14 @@ from schemas.wire import (
 )
 from server.dispatch import Dispatcher, DispatchSettings
 from server.scheduler import Policy, Scheduler, Written
-from tests.helpers import dispatch_settings, eventually, fake_evaluator, fake_fitness, free_port
+from tests.helpers import (
+    client_config,
+    dispatch_settings,
+    eventually,
+    fake_evaluator,
+    fake_fitness,
+    free_port,
+)
 from worker.main import Evaluator, WorkerSettings, WorkerStats, evaluate_slice, run_worker
 
 CONFIG = RunConfig(population=12, job_size=3, generations=2, trials=2, steps=5)
@@ -100,11 +107,7 @@ def workers(
 
 @contextmanager
 def client(port: int) -> Iterator[zenoh.Session]:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
+    session = zenoh.open(client_config(port))
     try:
         yield session
     finally:

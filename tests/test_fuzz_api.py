@@ -21,20 +21,19 @@ from schemathesis.specs.openapi.checks import (
 )
 
 from server.settings import Settings
-from tests import test_server_api as api
-from tests.helpers import free_port
+from tests.helpers import SMALL, free_port, serving, wait_status
 
 
 @pytest.fixture(scope="module")
 def api_schema(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     db = tmp_path_factory.mktemp("fuzz") / "colony.db"
-    with api.serving(Settings(db_url=f"sqlite:///{db}", port=free_port(), zenoh=False)) as (
+    with serving(Settings(db_url=f"sqlite:///{db}", port=free_port(), zenoh=False)) as (
         url,
         _,
     ):
         with httpx.Client(base_url=url, timeout=30) as client:
-            run_id = client.post("/api/runs", json={**api.SMALL, "generations": 2}).json()["id"]
-            api.wait_status(client, run_id, {"completed"})
+            run_id = client.post("/api/runs", json={**SMALL, "generations": 2}).json()["id"]
+            wait_status(client, run_id, {"completed"})
         yield schemathesis.openapi.from_url(f"{url}/openapi.json")
 
 

@@ -15,14 +15,8 @@ from typer.testing import CliRunner
 from colony.cli import app as cli
 from schemas.run import RunConfig
 from server.settings import Settings
-from tests.helpers import SMALL as SMALL
-from tests.helpers import check_small_run, free_port
-from tests.helpers import serving as serving
-from tests.helpers import wait_status as wait_status
+from tests.helpers import SMALL, check_small_run, free_port, serving, wait_status
 from worker.main import WorkerSettings, run_worker
-
-# test_fuzz_api.py still reads SMALL, serving and wait_status through this module (a test
-# importing a test): explicit re-exports until it imports them from tests.helpers.
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +45,7 @@ from server.models import Generation
 from server.population import Population, PopulationError, decode, encode, resolve
 from server.robots import ranked_document
 from server.settings import Settings
-from tests.helpers import eventually
+from tests.helpers import TINY, drain, evaluated, eventually
 
 TABLES = {"runs", "generations", "controllers", "robots"}
 SMALL = RunConfig(population=12, generations=3, steps=10, trials=2, job_size=5)
@@ -56,14 +56,6 @@ BASE: dict[str, Any] = {
     "lease_min_seconds": 0.05,
     "lease_unknown_seconds": 0.5,  # leases expire only when a test calls expire()
 }
-
-
-@pytest.fixture
-def engine(db_url: str) -> Iterator[sa.Engine]:
-    engine = make_engine(db_url)
-    upgrade(engine)
-    yield engine
-    engine.dispose()
 
 
 @pytest.fixture
@@ -254,12 +246,6 @@ def _lease(manager: RunManager, worker: str) -> Job:
     return job
 
 
-def _evaluated(manager: RunManager, worker: str) -> Result | None:
-    """`worker` leases a job and evaluates it (not yet settled); None when none is leasable."""
-    job = manager.scheduler.lease(worker)
-    return None if job is None else run_job(job, worker)
-
-
 def _fake(job: Job, worker: str, *, start: int | None = None, stop: int | None = None) -> Result:
     """A result of zero fitness for `job` (or for another slice of its generation)."""
     start = job.start if start is None else start
@@ -279,13 +265,6 @@ def _error(job: Job, worker: str, message: str) -> Result:
     return Result(key=job.key, worker=worker, start=job.start, stop=job.stop, error=message)
 
 
-def _drain(manager: RunManager, worker: str = "w") -> None:
-    """Evaluate, settle and write jobs until none is leasable."""
-    while (result := _evaluated(manager, worker)) is not None:
-        assert manager.scheduler.settle(result).accepted
-        manager.flush()
-
-
 def _run_row(manager: RunManager, run_id: int) -> tuple[str, int]:
     with manager.sessions() as session:
         run = crud.get_run(session, run_id=run_id)
@@ -297,7 +276,7 @@ def _first_generation_written(manager: RunManager) -> int:
     """A SMALL run with its generation 0 evaluated (its 3 jobs) and written; its id."""
     run_id = manager.create_run(SMALL)
     for _ in range(3):
-        result = _evaluated(manager, "w")
+        result = evaluated(manager, "w")
         assert result is not None and result.key.generation == 0
         assert manager.scheduler.settle(result).accepted
     manager.flush()
@@ -437,7 +416,7 @@ def test_generations_commit_whole_under_concurrent_results_and_writes(
 
     def work(name: str) -> None:
         try:
-            while (result := _evaluated(manager, name)) is not None:
+            while (result := evaluated(manager, name)) is not None:
                 manager.scheduler.settle(result)
                 manager.flush()
         except BaseException as exc:
@@ -479,7 +458,7 @@ def test_a_paused_run_settles_what_is_in_hand_but_leases_nothing_new(
     manager: RunManager,
 ) -> None:
     run_id = manager.create_run(SMALL.model_copy(update={"job_size": 12}))
-    result = _evaluated(manager, "w")
+    result = evaluated(manager, "w")
     assert result is not None
     manager.pause(run_id)
     assert manager.scheduler.settle(result).accepted is True
@@ -492,7 +471,7 @@ def test_a_paused_run_settles_what_is_in_hand_but_leases_nothing_new(
 
 def test_results_after_cancel_are_dropped(manager: RunManager) -> None:
     run_id = manager.create_run(SMALL)
-    result = _evaluated(manager, "w")
+    result = evaluated(manager, "w")
     assert result is not None
     manager.cancel(run_id)
     assert manager.scheduler.settle(result).accepted is False
@@ -527,7 +506,7 @@ def test_the_next_generation_is_leased_before_the_told_one_is_written(
     """Settling a generation's last job asks the next at once; the store gets the told one at
     `flush`, exactly once."""
     run_id = manager.create_run(SMALL)
-    results = [_evaluated(manager, w) for w in ("w0", "w1", "w2")]
+    results = [evaluated(manager, w) for w in ("w0", "w1", "w2")]
     for result in results:
         assert result is not None and manager.scheduler.settle(result).accepted
     assert _lease(manager, "w0").key.generation == 1
@@ -552,7 +531,7 @@ def test_flush_writes_the_told_generations_in_one_transaction(
     commits: list[int] = []
 
     def tell_one() -> None:
-        result = _evaluated(manager, "w")
+        result = evaluated(manager, "w")
         assert result is not None and manager.scheduler.settle(result).accepted
 
     def count(_conn: sa.Connection) -> None:
@@ -581,7 +560,7 @@ def test_flush_writes_the_told_generations_in_one_transaction(
 
 def test_cancel_writes_the_told_generation_before_cancelling(manager: RunManager) -> None:
     run_id = manager.create_run(SMALL.model_copy(update={"job_size": 12}))
-    result = _evaluated(manager, "w")
+    result = evaluated(manager, "w")
     assert result is not None and manager.scheduler.settle(result).accepted
     manager.cancel(run_id)
     assert _run_row(manager, run_id) == ("cancelled", 1)
@@ -691,7 +670,7 @@ def test_a_span_s_generation_of_other_genomes_is_an_error_and_ends_its_worker_s_
     retry = _lease(manager, "w")
     assert (retry.key.generation, retry.span, retry.state) == (1, 1, None)  # no more spans
     assert manager.scheduler.settle(run_job(retry, "w")).accepted
-    _drain(manager, "w")
+    drain(manager, "w")
     assert _run_row(manager, run_id) == ("completed", 6)
     assert manager.best(run_id).sha256 == evolve(SPANNED).best.sha256
 
@@ -763,7 +742,6 @@ def test_a_span_ends_when_its_lease_returns_its_run_pauses_or_the_cut_changes(
 
 # any order of worker events and restarts --------------------------------------------------------
 
-TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, seed=11)
 EVENTS = st.lists(
     st.tuples(
         st.sampled_from(["lease", "settle", "leave", "fast", "flush", "restart"]),
@@ -887,7 +865,7 @@ def _drive(manager: RunManager, *, until: int | None = None) -> None:
     or several) until the run ends, or until generation `until` is leased with every earlier
     one written."""
     settled = 0
-    while (result := _evaluated(manager, "w")) is not None:
+    while (result := evaluated(manager, "w")) is not None:
         if until is not None and result.key.generation >= until:
             break
         assert manager.scheduler.settle(result).accepted

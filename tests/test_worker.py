@@ -35,7 +35,15 @@ from schemas.wire import (
 )
 from server.dispatch import Dispatcher, DispatchSettings
 from server.scheduler import Scheduler, Written
-from tests.helpers import eventually, free_port
+from tests.helpers import (
+    WAIT,
+    eventually,
+    fake_evaluator,
+    fake_fitness,
+    free_port,
+    router_config,
+    worker_thread,
+)
 from worker.main import (
     EvaluationError,
     Evaluator,
@@ -43,55 +51,11 @@ from worker.main import (
     WorkerSettings,
     WorkerStats,
     evaluate_slice,
-    run_worker,
 )
 
-WAIT = 30.0
 CONFIG = RunConfig(population=8, job_size=3, generations=3, trials=2, steps=5)
 W = CONFIG.network_spec.weight_count
 KEY = JobKey(run_id=9, generation=2, index=0)
-
-
-def fake_evaluator(
-    config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic and fast: row sums, components of the expected shape."""
-    n = genomes.shape[0]
-    return genomes.sum(axis=1), np.full((n, config.trials, 4), float(generation))
-
-
-def router_config(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
-@contextmanager
-def worker_thread(
-    port: int, name: str, evaluator: Evaluator = fake_evaluator
-) -> Iterator[WorkerStats]:
-    """A real worker (its own client session) in a thread; stopped and joined on exit. The
-    stats are filled in when it returns."""
-    stop = threading.Event()
-    stats = WorkerStats()
-    settings = WorkerSettings(
-        connect=(f"tcp/127.0.0.1:{port}",), name=name, backoff_max_s=0.2, request_timeout_s=5.0
-    )
-
-    def body() -> None:
-        got = run_worker(settings, stop, evaluator=evaluator)
-        stats.jobs_done, stats.errors = got.jobs_done, got.errors
-
-    thread = threading.Thread(target=body, name=f"worker-{name}")
-    thread.start()
-    try:
-        yield stats
-    finally:
-        stop.set()
-        thread.join(timeout=WAIT)
-    assert not thread.is_alive()
 
 
 def serve_one_job(
@@ -159,7 +123,7 @@ def test_a_valid_job_is_evaluated_and_delivered() -> None:
     result, stats = serve_one_job(job_frame(genomes=genomes))
     assert result.error is None and (result.start, result.stop) == (0, 3)
     assert result.fitness is not None and result.components is not None
-    assert result.fitness.tobytes() == genomes.sum(axis=1)[np.newaxis].tobytes()
+    assert result.fitness.tobytes() == fake_fitness(genomes)[np.newaxis].tobytes()
     assert np.all(result.components == KEY.generation)
     assert result.robot_steps_per_s > 0 and result.digests == ()
     assert (stats.jobs_done, stats.errors) == (1, 0)
@@ -231,7 +195,7 @@ def finished(take: Any, generations: int) -> bool:
 
 def test_worker_started_before_the_server_waits_and_survives_a_restart() -> None:
     port = free_port()
-    with worker_thread(port, "patient") as stats:
+    with worker_thread(port, "patient", fake_evaluator) as stats:
         with served(port, 1) as (_, _, take):
             assert eventually(lambda: finished(take, CONFIG.generations), WAIT)
         with served(port, 2) as (dispatcher, scheduler, take):
@@ -242,7 +206,7 @@ def test_worker_started_before_the_server_waits_and_survives_a_restart() -> None
     assert [w.told.generation for w in told] == list(range(CONFIG.generations))
     for written in told:
         assert written.run_id == 2
-        expected = written.told.genomes.sum(axis=1)
+        expected = fake_fitness(written.told.genomes)
         assert written.told.fitness.tobytes() == expected.tobytes()
     assert stats.jobs_done >= 2 * CONFIG.generations and stats.errors == 0
 
@@ -347,12 +311,15 @@ def test_a_span_is_evolved_by_the_run_loop_and_counts_every_generation(
     caplog.set_level(logging.INFO, logger="server.dispatch")
     port = free_port()
     config = CONFIG.model_copy(update={"generations": 6})
-    with served(port, 1, config) as (_, _, take), worker_thread(port, "spanner") as stats:
+    with (
+        served(port, 1, config) as (_, _, take),
+        worker_thread(port, "spanner", fake_evaluator) as stats,
+    ):
         assert eventually(lambda: finished(take, config.generations), WAIT)
     loop = RunLoop(config)
     for written in take():
         genomes = loop.ask()
         assert written.told.genomes.tobytes() == genomes.tobytes()
-        loop.tell(genomes.sum(axis=1))
+        loop.tell(fake_fitness(genomes))
     assert stats.errors == 0 and stats.jobs_done >= config.generations
     assert any("as a span of" in record.getMessage() for record in caplog.records)

@@ -17,7 +17,7 @@ import zenoh
 
 from robot_agent.agent import AgentSettings
 from server.dispatch import DispatchSettings
-from tests.helpers import dispatch_settings, free_port
+from tests.helpers import client_config, dispatch_settings, free_port
 
 STATUS = Path("/proc/self/status")
 pytestmark = pytest.mark.skipif(
@@ -31,15 +31,6 @@ def shared_mib() -> float:
         if line.startswith("RssShmem:"):
             return int(line.split()[1]) / 1024
     raise AssertionError("no RssShmem line")
-
-
-def worker_config(endpoint: str) -> zenoh.Config:
-    """A client with zenoh's defaults (as a worker's): only the router's config protects it."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
 
 
 @pytest.fixture
@@ -70,13 +61,13 @@ def test_the_shared_memory_defaults_are_off() -> None:
 
 @pytest.mark.parametrize("client", ["agent", "worker"])
 def test_large_messages_allocate_no_shared_memory(
-    router: zenoh.Session, endpoint: str, client: str
+    router: zenoh.Session, port: int, endpoint: str, client: str
 ) -> None:
     before = shared_mib()
     configs = [
         AgentSettings(f"mem-{i}", connect=(endpoint,)).zenoh_config()
         if client == "agent"
-        else worker_config(endpoint)
+        else client_config(port)  # zenoh's defaults, as a worker's: only the router protects it
         for i in range(4)
     ]
     sessions = [zenoh.open(conf) for conf in configs]
