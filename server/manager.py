@@ -97,8 +97,7 @@ def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarr
 
 WRITE_AFTER_S = 0.05
 """How long told generations wait to be written together (a transaction per generation cost
-more than the rows in it), unless a run is halfway to `Policy.ahead_max` generations ahead of
-its store: then at once."""
+more than the rows in it), or at once when a run has `Policy.write_now` unwritten."""
 
 
 class RunOverError(Exception):

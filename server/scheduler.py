@@ -20,6 +20,7 @@ from __future__ import annotations
 import heapq
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -58,10 +59,13 @@ class Policy:
     """Leases of a job whose evaluation failed before its run fails."""
     gone_keep_s: float = 600.0
     """How long a departed worker stays listed as gone."""
-    ahead_max: int = 8
-    """Generations a run may be told ahead of its store: from there it leases nothing and a
-    span ends with its current message, so a store that blocks or refuses writes stops its
-    runs within `ahead_max` generations and one span message."""
+    store_lag_s: float = 0.25
+    """How long a told generation may wait for the store: past this its run leases nothing and
+    a span ends with its current message, so a store that blocks or refuses writes (or a
+    writer that stopped) stops its runs within that much evolution and one span message. The
+    writer takes told generations every 0.05 s and writes them in milliseconds."""
+    write_now: int = 4
+    """Told generations of one run that make the store write at once (`told_many`)."""
 
     def __post_init__(self) -> None:
         for name in ("lease_min_s", "lease_factor", "lease_unknown_s", "span_s"):
@@ -71,8 +75,10 @@ class Policy:
             raise ValueError(f"lease_max_s must be >= lease_min_s, got {self.lease_max_s}")
         if self.span_below_s < 0 or self.gone_keep_s < 0:
             raise ValueError("span_below_s and gone_keep_s must be >= 0")
-        if self.jobs_per_worker < 1 or self.max_attempts < 1 or self.ahead_max < 1:
-            raise ValueError("jobs_per_worker, max_attempts and ahead_max must be >= 1")
+        if self.jobs_per_worker < 1 or self.max_attempts < 1 or self.write_now < 1:
+            raise ValueError("jobs_per_worker, max_attempts and write_now must be >= 1")
+        if not self.store_lag_s > 0:
+            raise ValueError(f"store_lag_s must be > 0, got {self.store_lag_s}")
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
         """The lease of a job of `robot_steps` for a worker of `speed` robot-steps/s."""
@@ -179,10 +185,10 @@ class Scheduler:
         self._leases: dict[JobKey, _Lease] = {}
         self._workers: dict[str, _Worker] = {}
         self._told: list[Written] = []
-        self._ahead: dict[int, int] = {}
-        """run id -> generations told and not yet written (see `Policy.ahead_max`)."""
+        self._unwritten: dict[int, deque[float]] = {}
+        """run id -> when each generation told and not yet written was told, oldest first."""
         self.told_many = threading.Event()
-        """Set when a run is halfway to `ahead_max`: the store should write now."""
+        """Set when a run has `write_now` generations unwritten: the store should write now."""
         self._failed: dict[int, str] = {}
         self._sequence = 0
         self._totals = dict.fromkeys(TOTALS, 0)
@@ -223,7 +229,7 @@ class Scheduler:
         """Drop a run (over): its results, if any arrive, are acknowledged as dropped."""
         with self._lock:
             self._runs.pop(run_id, None)
-            self._ahead.pop(run_id, None)
+            self._unwritten.pop(run_id, None)
             self._drop_leases(run_id)
 
     def take_told(self) -> list[Written]:
@@ -236,11 +242,11 @@ class Scheduler:
         """The store has `told` (or dropped it, its run being over): their runs may go on."""
         with self._lock:
             for item in told:
-                left = self._ahead.get(item.run_id, 0) - 1
-                if left > 0:
-                    self._ahead[item.run_id] = left
-                else:
-                    self._ahead.pop(item.run_id, None)
+                times = self._unwritten.get(item.run_id)
+                if times:
+                    times.popleft()
+                if not times:
+                    self._unwritten.pop(item.run_id, None)
         self._announce()
 
     def put_back(self, told: list[Written]) -> None:
@@ -383,7 +389,7 @@ class Scheduler:
                 record.jobs_done += 1
                 ack = Ack(key=result.key, accepted=True)
                 following = key.at(key.generation + 1)
-            if ack.accepted and self._ahead.get(result.key.run_id, 0) >= self.policy.ahead_max:
+            if ack.accepted and self._store_lags(result.key.run_id):
                 # a span ends with the message that took its run too far ahead of the store
                 self._release_where(lambda lease: lease.key == following)
         self._announce()
@@ -432,12 +438,13 @@ class Scheduler:
                 listener()
 
     def _leasable(self, run: _Run) -> bool:
-        """Running, with a job pending, and not too far ahead of the store."""
-        return (
-            run.running
-            and bool(run.pending)
-            and self._ahead.get(run.run_id, 0) < self.policy.ahead_max
-        )
+        """Running, with a job pending, and its store keeping up."""
+        return run.running and bool(run.pending) and not self._store_lags(run.run_id)
+
+    def _store_lags(self, run_id: int) -> bool:
+        """Whether the run's oldest unwritten generation has waited past `store_lag_s`."""
+        times = self._unwritten.get(run_id)
+        return times is not None and self._clock() - times[0] > self.policy.store_lag_s
 
     def _touch(self, worker: str, *, revive: bool = True) -> _Worker:
         """The worker's record, seen now; live again unless `revive` is False (a result
@@ -532,8 +539,9 @@ class Scheduler:
         loop = run.loop
         told = loop.tell(run.fitness, run.components)
         self._told.append(Written(run.run_id, loop.config, told, last=loop.done))
-        self._ahead[run.run_id] = self._ahead.get(run.run_id, 0) + 1
-        if 2 * self._ahead[run.run_id] >= self.policy.ahead_max:
+        times = self._unwritten.setdefault(run.run_id, deque())
+        times.append(self._clock())
+        if len(times) >= self.policy.write_now:
             self.told_many.set()
         if loop.done:
             del self._runs[run.run_id]

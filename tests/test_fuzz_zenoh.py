@@ -221,7 +221,7 @@ def refused_or_valid(reply: zenoh.Reply) -> bool:
 def job_server() -> Iterator[tuple[Dispatcher, Scheduler, zenoh.Session]]:
     """A real dispatcher over a real scheduler serving a long run, and a client session. A
     thread stands in for the run manager's writer: it takes the told generations and reports
-    them written (storing nothing), else the run stops `ahead_max` generations in."""
+    them written (storing nothing), else the run stops once its store lags (`store_lag_s`)."""
     port = free_port()
     scheduler = Scheduler(POLICY)
     scheduler.add(RUN, RunLoop(CONFIG), running=True)
