@@ -30,12 +30,14 @@ if TYPE_CHECKING:
     from fastapi import FastAPI
 
     from evorobotics.document import ControllerDocument
+    from evorobotics.evolution import Told
     from robot_agent.agent import Agent, AgentSettings
     from robot_agent.emulator import BasicXEmulator
     from schemas.wire import Result
     from server.dispatch import DispatchSettings
     from server.manager import RunManager
     from server.robots import RobotService
+    from server.scheduler import Written
     from server.settings import Settings
     from worker.main import Evaluator, WorkerStats
 
@@ -91,6 +93,27 @@ def fake_evaluator(
     """A worker's Evaluator, fast: `fake_fitness`, components of the expected shape."""
     n = genomes.shape[0]
     return fake_fitness(genomes), np.full((n, config.trials, 4), float(generation))
+
+
+def reference(config: RunConfig) -> list[Told]:
+    """The run undisturbed, each generation evaluated whole by `fake_evaluator`."""
+    from evorobotics.evolution import RunLoop
+
+    loop = RunLoop(config)
+    told = []
+    while not loop.done:
+        told.append(loop.tell(*fake_evaluator(config, loop.generation, loop.ask())))
+    return told
+
+
+def same_generations(written: list[Written], expected: list[Told]) -> None:
+    """Bit for bit: generation numbers, genomes and fitness, in order; only the last is
+    marked as its run's last."""
+    assert [w.told.generation for w in written] == [t.generation for t in expected]
+    for w, t in zip(written, expected, strict=True):
+        assert w.told.genomes.tobytes() == t.genomes.tobytes()
+        assert w.told.fitness.tobytes() == t.fitness.tobytes()
+    assert [w.last for w in written] == [False] * (len(written) - 1) + [True]
 
 
 def router_config(port: int) -> zenoh.Config:

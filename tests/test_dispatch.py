@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from evorobotics.evolution import RunLoop, Told, evaluate_population, evolve
+from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
 from schemas.run import RunConfig
 from schemas.wire import (
@@ -42,6 +42,8 @@ from tests.helpers import (
     fake_evaluator,
     fake_fitness,
     free_port,
+    reference,
+    same_generations,
 )
 from worker.main import Evaluator, WorkerSettings, WorkerStats, evaluate_slice, run_worker
 
@@ -144,23 +146,6 @@ def result_of(job: Job, worker: str, genomes: np.ndarray | None = None, **update
         components=components[None],
         **update,
     )
-
-
-def reference(config: RunConfig) -> list[Told]:
-    """The run undisturbed, with the fake fitness."""
-    loop = RunLoop(config)
-    told = []
-    while not loop.done:
-        genomes = loop.ask()
-        told.append(loop.tell(*fake_evaluator(config, loop.generation, genomes)))
-    return told
-
-
-def same_generations(written: list[Written], expected: list[Told]) -> None:
-    assert [w.told.generation for w in written] == [t.generation for t in expected]
-    for w, t in zip(written, expected, strict=True):
-        assert w.told.genomes.tobytes() == t.genomes.tobytes()
-        assert w.told.fitness.tobytes() == t.fitness.tobytes()
 
 
 # ------------------------------------------------------------------------------------------------

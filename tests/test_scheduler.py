@@ -10,12 +10,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evorobotics.evolution import RunLoop, Told, evaluate_population, evolve
+from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
 from server.executor import run_job
 from server.scheduler import SPEED_MAX, SPEED_MIN, Policy, Scheduler, Written, clamp_speed
+from tests.helpers import fake_evaluator, fake_fitness, reference, same_generations
 
 CONFIG = RunConfig(population=8, generations=4, trials=1, steps=5, job_size=3)
 FAST = 1e9
@@ -39,15 +40,6 @@ def make(policy: Policy | None = None) -> tuple[Scheduler, Clock]:
     return Scheduler(policy or Policy(), clock=clock, wall=lambda: 1000.0 + clock.t), clock
 
 
-def fake_fitness(genomes: np.ndarray) -> np.ndarray:
-    """A deterministic function of each genome alone (as the real fitness is)."""
-    return np.asarray(np.sin(genomes).sum(axis=1) + genomes[:, 0] ** 2, dtype=np.float64)
-
-
-def fake_components(config: RunConfig, genomes: np.ndarray) -> np.ndarray:
-    return np.repeat(genomes[:, :4, None].transpose(0, 2, 1), config.trials, axis=1).copy()
-
-
 def result(
     job: Job, worker: str, genomes: np.ndarray | None = None, *, digest: bool = False
 ) -> Result:
@@ -59,32 +51,32 @@ def result(
         start=job.start,
         stop=job.stop,
         fitness=fake_fitness(genomes)[None],
-        components=fake_components(job.config, genomes)[None],
+        components=fake_evaluator(job.config, job.key.generation, genomes)[1][None],
         digests=(genome_digest(genomes),) if digest else (),
+    )
+
+
+def span_message(job: Job, loop: RunLoop, k: int, worker: str = "fast") -> Result:
+    """The worker evolves `k` generations of its span and sends them as one message."""
+    results = []
+    for _ in range(k):
+        genomes = loop.ask()
+        current = job.model_copy(update={"key": job.key.at(loop.generation)})
+        results.append(result(current, worker, genomes, digest=True))
+        loop.tell(fake_fitness(genomes))
+    return results[0].model_copy(
+        update={
+            "fitness": np.concatenate([r.fitness for r in results if r.fitness is not None]),
+            "components": np.concatenate(
+                [r.components for r in results if r.components is not None]
+            ),
+            "digests": tuple(d for r in results for d in r.digests),
+        }
     )
 
 
 def error_result(job: Job, worker: str) -> Result:
     return Result(key=job.key, worker=worker, start=job.start, stop=job.stop, error="boom")
-
-
-def reference(config: RunConfig) -> list[Told]:
-    """The undisturbed run: the whole generation evaluated at once."""
-    loop = RunLoop(config)
-    told = []
-    while not loop.done:
-        genomes = loop.ask()
-        told.append(loop.tell(fake_fitness(genomes), fake_components(config, genomes)))
-    return told
-
-
-def same_generations(written: list[Written], expected: list[Told]) -> None:
-    """Bit for bit: generation numbers, genomes and fitness, in order."""
-    assert [w.told.generation for w in written] == [t.generation for t in expected]
-    for w, t in zip(written, expected, strict=True):
-        assert w.told.genomes.tobytes() == t.genomes.tobytes()
-        assert w.told.fitness.tobytes() == t.fitness.tobytes()
-    assert [w.last for w in written] == [False] * (len(written) - 1) + [True]
 
 
 # cutting ---------------------------------------------------------------------------------------
@@ -473,21 +465,7 @@ def test_a_span_result_of_several_generations_settles_each() -> None:
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(CONFIG), running=True)
     job, loop = span_job(sched)
-    results = []
-    for _ in range(3):
-        genomes = loop.ask()
-        current = job.model_copy(update={"key": job.key.at(loop.generation)})
-        results.append(result(current, "fast", genomes, digest=True))
-        loop.tell(fake_fitness(genomes))
-    batch = results[0].model_copy(
-        update={
-            "fitness": np.concatenate([r.fitness for r in results if r.fitness is not None]),
-            "components": np.concatenate(
-                [r.components for r in results if r.components is not None]
-            ),
-            "digests": tuple(d for r in results for d in r.digests),
-        }
-    )
+    batch = span_message(job, loop, 3)
     assert sched.settle(batch).accepted
     assert [w.told.generation for w in sched.take_told()] == [0, 1, 2]
     assert not sched.settle(batch).accepted  # a duplicate batch counts nowhere
@@ -648,21 +626,7 @@ def test_a_span_ends_with_the_message_that_finds_its_store_lagging() -> None:
     job, loop = span_job(sched)
     assert span_step(sched, job, loop)  # generation 0 told, not written
     clock.t += 0.3
-    results = []
-    for _ in range(2):
-        genomes = loop.ask()
-        current = job.model_copy(update={"key": job.key.at(loop.generation)})
-        results.append(result(current, "fast", genomes, digest=True))
-        loop.tell(fake_fitness(genomes))
-    batch = results[0].model_copy(
-        update={
-            "fitness": np.concatenate([r.fitness for r in results if r.fitness is not None]),
-            "components": np.concatenate(
-                [r.components for r in results if r.components is not None]
-            ),
-            "digests": tuple(d for r in results for d in r.digests),
-        }
-    )
+    batch = span_message(job, loop, 2)
     assert sched.settle(batch).accepted
     assert sched.counts() == {"pending": 1, "leased": 0, "done": 0}  # the lease did not move on
     assert not span_step(sched, job, loop)  # the worker's next generation: refused
