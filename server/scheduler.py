@@ -50,9 +50,10 @@ class Policy:
     """Lease for a worker with no measured speed yet (its first job compiles the kernels)."""
     jobs_per_worker: int = 1
     """A generation is cut into this many jobs per live worker."""
-    span_below_s: float = 0.1
+    span_below_s: float = 0.02
     """A generation a worker evaluates faster than this runs in spans (0: never): below it the
-    round trip per generation costs more than parallel slices save."""
+    round trip per generation costs more than parallel slices save (on 2 cores, slices won
+    from about 20 ms a generation: bench/dispatch.py --sweep)."""
     span_s: float = 5.0
     """A span covers about this much evaluation time, then its worker asks again."""
     max_attempts: int = 3

@@ -82,7 +82,7 @@ class Settings(BaseSettings):
         1, ge=1, le=64, description="jobs per live worker and generation (more: finer balance)"
     )
     span_below_seconds: float = Field(
-        0.1,
+        0.02,
         ge=0.0,
         description="a generation a worker evaluates faster than this runs in spans (0: never)",
     )
