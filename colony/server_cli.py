@@ -392,16 +392,15 @@ def _workers_table(workers: list[dict[str, Any]]) -> Table:
 
 
 def _robots_table(robots: list[dict[str, Any]]) -> Table:
-    """Rows of GET /api/robots (online, state, steps) or of /api/colony (status only)."""
+    """Rows of GET /api/robots or of /api/colony's robots (the same view)."""
     table = Table(title="robots")
     for column in ("id", "state", "steps", "controller", "last seen"):
         table.add_column(column)
     for r in robots:
-        state = r.get("state", r.get("status"))
         table.add_row(
             r["id"],
-            _fmt(state),
-            _fmt(r.get("steps")),
+            _fmt(r["state"]),
+            _fmt(r["steps"]),
             (r["controller_sha256"] or "-")[:12],
             _fmt(r["last_seen"]),
         )

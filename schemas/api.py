@@ -11,6 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from schemas.robots import RobotOut
 from schemas.run import RunConfig
 
 RunStatus = Literal["queued", "running", "paused", "completed", "failed", "cancelled"]
@@ -84,15 +85,6 @@ class WorkerOut(BaseModel):
     last_seen: datetime
 
 
-class RobotOut(BaseModel):
-    model_config = ConfigDict(frozen=True)
-
-    id: str
-    status: str
-    controller_sha256: str | None
-    last_seen: datetime
-
-
 class JobCounts(BaseModel):
     model_config = ConfigDict(frozen=True)
 
@@ -110,7 +102,7 @@ class ColonyOut(BaseModel):
     active: list[RunOut] = Field(description="runs queued, running or paused")
     jobs: JobCounts
     workers: list[WorkerOut]
-    robots: list[RobotOut]
+    robots: list[RobotOut] = Field(description="as GET /api/robots")
 
 
 class HealthOut(BaseModel):

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from server import population
 from server.errors import NotFoundError, ServerError
-from server.models import Controller, Generation, Robot, Run
+from server.models import Controller, Generation, Run
 from server.population import Population
 from server.scheduler import Scheduler
 
@@ -136,7 +136,3 @@ def job_counts(session: Session) -> dict[str, int]:
     if isinstance(scheduler, Scheduler):
         return scheduler.counts()
     return {"pending": 0, "leased": 0, "done": 0}
-
-
-def list_robots(session: Session) -> list[Robot]:
-    return list(session.scalars(select(Robot).order_by(Robot.id)))

@@ -405,9 +405,7 @@ class RobotService:
 
     def robots(self) -> list[RobotOut]:
         with self.sessions() as db:
-            rows = list(db.scalars(select(Robot).order_by(Robot.id)))
-            states = {s.robot_id: s for s in db.scalars(select(RobotStateRow))}
-            return [self._summary(r, states.get(r.id)) for r in rows]
+            return robot_summaries(db, self.is_online)
 
     def robot(self, robot_id: str) -> RobotDetail:
         with self.sessions() as db:
@@ -436,16 +434,7 @@ class RobotService:
             )
 
     def _summary(self, row: Robot, state: RobotStateRow | None) -> RobotOut:
-        online = self.is_online(row.id)
-        last = state.updated_at if state else row.last_seen
-        return RobotOut(
-            id=row.id,
-            online=online,
-            state=(state.state if state else "idle") if online else "offline",
-            controller_sha256=row.controller_sha256,
-            steps=state.steps if state else 0,
-            last_seen=last.timestamp() if last else None,
-        )
+        return _summary(row, state, self.is_online(row.id))
 
     def push(
         self,
@@ -757,3 +746,22 @@ def robot_service(
         return close
 
     return install
+
+
+def robot_summaries(db: Session, is_online: Callable[[str], bool]) -> list[RobotOut]:
+    """Every robot ever seen, by id: the one robot view of /api/robots and /api/colony."""
+    rows = list(db.scalars(select(Robot).order_by(Robot.id)))
+    states = {s.robot_id: s for s in db.scalars(select(RobotStateRow))}
+    return [_summary(r, states.get(r.id), is_online(r.id)) for r in rows]
+
+
+def _summary(row: Robot, state: RobotStateRow | None, online: bool) -> RobotOut:
+    last = state.updated_at if state else row.last_seen
+    return RobotOut(
+        id=row.id,
+        online=online,
+        state=(state.state if state else "idle") if online else "offline",
+        controller_sha256=row.controller_sha256,
+        steps=state.steps if state else 0,
+        last_seen=last.timestamp() if last else None,
+    )

@@ -76,6 +76,12 @@ def test_push_ack_run_replay_and_tamper(colony: Colony, tmp_path: Path) -> None:
     ):
         assert eventually(lambda: online(client, "r-push"))
         assert "r-push" in [r["id"] for r in client.get("/api/robots").json()]
+        listed = client.get("/api/robots").json()
+        in_colony = client.get("/api/colony").json()["robots"]  # the same view of robots
+        assert [sorted(r) for r in in_colony] == [sorted(r) for r in listed]
+        assert [(r["id"], r["online"]) for r in in_colony] == [
+            (r["id"], r["online"]) for r in listed
+        ]
         pushed = client.post(
             "/api/robots/r-push/controller", json={"run_id": colony.run_id, "rank": 1}
         )

@@ -7,10 +7,11 @@ from importlib.metadata import PackageNotFoundError, version
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from schemas.api import ColonyOut, HealthOut, JobCounts, RobotOut
+from schemas.api import ColonyOut, HealthOut, JobCounts
 from server import crud
 from server.deps import SessionDep, WorkersDep
-from server.routes.runs import aware, run_out
+from server.robots import RobotService, robot_summaries
+from server.routes.runs import run_out
 
 router = APIRouter(tags=["colony"])
 
@@ -40,21 +41,19 @@ def healthz(request: Request) -> HealthOut | JSONResponse:
 
 
 @router.get("/api/colony", response_model=ColonyOut)
-def colony(session: SessionDep, workers: WorkersDep) -> ColonyOut:
+def colony(request: Request, session: SessionDep, workers: WorkersDep) -> ColonyOut:
     """Runs by status, the active runs, job counts, workers and robots."""
+    robots: RobotService | None = getattr(request.app.state, "robots", None)
     active = crud.list_runs(session, statuses=("queued", "running", "paused"), limit=1000)
     return ColonyOut(
         runs=crud.count_runs_by_status(session),
         active=[run_out(r) for r in active],
         jobs=JobCounts(**crud.job_counts(session)),
         workers=workers,
-        robots=[
-            RobotOut(
-                id=r.id,
-                status=r.status,
-                controller_sha256=r.controller_sha256,
-                last_seen=aware(r.last_seen) or r.last_seen,
-            )
-            for r in crud.list_robots(session)
-        ],
+        robots=robot_summaries(session, robots.is_online if robots else _offline),
     )
+
+
+def _offline(_robot_id: str) -> bool:
+    """Without the robot service (no zenoh) no robot is online."""
+    return False
