@@ -61,7 +61,10 @@ class IndividualOut(BaseModel):
     components: list[list[float]] = Field(
         description="per trial: curve length, net offset, max offset, stuck (Eq 12)"
     )
-    genome_sha256: str = Field(description="sha256 of the genome's raw float64 bytes")
+    sha256: str = Field(
+        description="the controller's identity (docs/controller.md), as a push of this rank "
+        "or GET /api/runs/{id}/best stores it"
+    )
 
 
 class IndividualsOut(BaseModel):

@@ -8,7 +8,6 @@ Imports stay light: the app, zenoh, the agent and the science are imported where
 
 from __future__ import annotations
 
-import hashlib
 import math
 import socket
 import threading
@@ -249,6 +248,7 @@ def check_small_run(base_url: str) -> None:
     best controller are `evolve`'s, bit for bit."""
     import httpx
 
+    from evorobotics.document import controller_sha256
     from evorobotics.evolution import evolve
 
     with httpx.Client(base_url=base_url, timeout=30) as client:
@@ -275,9 +275,11 @@ def check_small_run(base_url: str) -> None:
     assert best["sha256"] == local.best.sha256
     assert best["weights"] == local.best.to_dict()["weights"]
     assert local.state.ranked is not None  # the store keeps a copy's bytes at its origin only
-    assert [i["genome_sha256"] for i in ranked["individuals"]] == [
-        hashlib.sha256(genome.tobytes()).hexdigest() for genome in local.state.ranked
+    spec = RunConfig(**SMALL).network_spec
+    assert [i["sha256"] for i in ranked["individuals"]] == [
+        controller_sha256(spec, genome) for genome in local.state.ranked
     ]
+    assert ranked["individuals"][0]["sha256"] == best["sha256"]  # one identity
 
 
 # --------------------------------------------------------------------------- the run manager

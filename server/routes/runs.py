@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import hashlib
 from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
 
+from evorobotics.document import controller_sha256
 from schemas.api import GenerationOut, IndividualOut, IndividualsOut, RunOut, RunStatus
 from schemas.run import RunConfig
 from server import crud
@@ -123,6 +123,7 @@ def list_individuals(
             404, detail=f"run {run_id} has committed generations 0..{run.generation - 1} only"
         )
     found, genomes = crud.ranked(session, run_id=run_id, generation=generation)
+    spec = RunConfig.model_validate_json(run.config).network_spec
     return IndividualsOut(
         run_id=run_id,
         generation=generation,
@@ -133,7 +134,7 @@ def list_individuals(
                 parent=found.parent_of(rank),
                 fitness=found.fitness_of(rank),
                 components=found.components[rank].tolist(),
-                genome_sha256=hashlib.sha256(genomes[rank].tobytes()).hexdigest(),
+                sha256=controller_sha256(spec, genomes[rank]),
             )
             for rank in range(len(found))
         ],
