@@ -8,7 +8,7 @@ Two kinds of rows. "default world": a robot that gets stuck (paper rule, stuck_a
 and its remaining steps are skipped, so the figure depends on how many robots get stuck.
 "never stuck": WorldParams(stuck_after=10**6), so every robot runs all 40 steps (controller,
 whiskers, physics, collision test each step), the honest cost of a robot-step and the figure
-issue 3's target (2 M robot-steps/s at batch >= 1024 for paper-best) is judged on.
+the target (2 M robot-steps/s at batch >= 1024 for paper-best) is judged on.
 """
 
 from __future__ import annotations

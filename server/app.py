@@ -75,7 +75,7 @@ def create_app(
 ) -> FastAPI:
     """The server; nothing touches the database or the network until the lifespan starts.
 
-    `services` run on the server's zenoh session; by default the robot service (issue 6).
+    `services` run on the server's zenoh session; by default the robot service.
     """
     settings = settings or Settings()
     services = (robot_service(),) if services is None else tuple(services)

@@ -1,4 +1,4 @@
-"""Issue 8: the server's RSS grew by 16 MiB per local robot under load.
+"""No zenoh shared memory: without it off, the server's RSS grows by 16 MiB per local robot.
 
 zenoh enables shared memory by default: a session that sends a message above 3 KiB (a trace
 batch while a backlog drains, a job) allocates a 16 MiB pool, and the router maps the pool of
