@@ -6,7 +6,13 @@ vector. At step k, a_0(k) = inputs, then for m = 1..M in order
     u_m = sum over the blocks W[m,t,s] of layer m of  W[m,t,s] @ [x; 1]   (Eq 3: bias last)
         s = 0:  x = a_{m-1}(k - t)        (t = 0 is this step's value, just computed)
         s >= 1: x = a_{m-1+s}(k - 1 - t)  (recurrent: the previous step and earlier)
-    a_m(k) = sigmoid(u_m), or u_m for a linear output layer (Eqs 1-2).
+    a_m(k) = sigmoid(u_m), or sat(u_m) for a linear output layer (Eqs 1-2).
+
+sat(u) = clip(u, -LINEAR_BOUND, LINEAR_BOUND), and 0 for NaN: a linear output fed back with a
+gain above 1 grows geometrically and would reach inf, then NaN, within a few hundred steps.
+LINEAR_BOUND = 1e6 is far beyond anything a non-diverging controller produces (the wheels
+saturate at |y| = 1), so results where no output reaches it are bit-identical to the unbounded
+Eq 2, and small enough that no weighted sum of bounded activations overflows.
 
 Before the first step every past activation and input is 0, so a zero weight is exactly an
 absent connection.
@@ -37,7 +43,8 @@ Kernel call convention (for fused numba kernels, e.g. the simulator's episode lo
 
 It allocates nothing. From Python, `step_one(w, *plan, state_row, inputs_row, out_row,
 scratch)` is the same call. `motor_one(out_row, linear_output, motor_row)` is the compiled
-twin of `motor_commands` for one robot.
+twin of `motor_commands` for one robot: finite commands in [-1, 1] whatever the outputs (NaN
+gives 0).
 
 Specialised kernels. `spec_kernel(spec)` is `step_one` with the plan baked in: Python source
 generated per spec (constant loop bounds, block offsets and state offsets, blocks summed in the
@@ -127,6 +134,22 @@ def reset(spec: NetworkSpec, batch: int) -> np.ndarray:
     return np.zeros((batch, state_size(spec)), dtype=np.float64)
 
 
+LINEAR_BOUND = 1e6
+"""|a_M| of a linear output layer never exceeds this (see the module docstring)."""
+
+
+@njit(cache=True)
+def _saturate(u: float) -> float:
+    # A linear output: clipped to +-LINEAR_BOUND, NaN to 0; the same as `_saturate_array`.
+    if math.isnan(u):
+        return 0.0
+    if u > LINEAR_BOUND:
+        return LINEAR_BOUND
+    if u < -LINEAR_BOUND:
+        return -LINEAR_BOUND
+    return u
+
+
 @njit(cache=True)
 def _sigmoid(u: float) -> float:
     # Written so exp never overflows: the same formula as `_sigmoid_array`.
@@ -201,6 +224,9 @@ def step_one(
         if m < top or linear_output == 0:
             for n in range(rows):
                 scratch[base + n] = _sigmoid(scratch[base + n])
+        else:
+            for n in range(rows):
+                scratch[base + n] = _saturate(scratch[base + n])
     for j in range(top + 1):
         n_j = sizes[j]
         h = hist_off[j]
@@ -234,7 +260,7 @@ def _kernel_source(spec: NetworkSpec) -> str:
         "",
         "from numba import njit",
         "",
-        "from evorobotics.network import _sigmoid",
+        "from evorobotics.network import _saturate, _sigmoid",
         "",
         "",
         "@njit(cache=True)",
@@ -263,7 +289,9 @@ def _kernel_source(spec: NetworkSpec) -> str:
                 "        u += acc",
             ]
         linear = m == top and plan.linear_output == 1
-        lines.append(f"        scratch[{act[m]} + n] = {'u' if linear else '_sigmoid(u)'}")
+        lines.append(
+            f"        scratch[{act[m]} + n] = {'_saturate(u)' if linear else '_sigmoid(u)'}"
+        )
     for j in range(top + 1):
         n_j, h = sizes[j], hist[j]
         for r in range(spec.delays, 0, -1):
@@ -489,6 +517,11 @@ def step(
     return out, new_state
 
 
+def _saturate_array(u: np.ndarray) -> np.ndarray:
+    a: np.ndarray = np.where(np.isnan(u), 0.0, np.clip(u, -LINEAR_BOUND, LINEAR_BOUND))
+    return a
+
+
 def _sigmoid_array(u: np.ndarray) -> np.ndarray:
     e = np.exp(-np.abs(u))
     a: np.ndarray = np.where(u >= 0.0, 1.0 / (1.0 + e), e / (1.0 + e))
@@ -526,9 +559,10 @@ def step_reference(
             else:
                 src = history[blk.src][:, blk.t, :]
             mat = lay.view(w, blk)
-            u = u + (mat[:, :, :-1] * src[:, None, :]).sum(axis=-1) + mat[:, :, -1]
+            with np.errstate(over="ignore", invalid="ignore"):  # saturated below, as in `step`
+                u = u + (mat[:, :, :-1] * src[:, None, :]).sum(axis=-1) + mat[:, :, -1]
         linear = m == spec.layers and spec.output_activation == "linear"
-        act.append(u if linear else _sigmoid_array(u))
+        act.append(_saturate_array(u) if linear else _sigmoid_array(u))
     new_state = np.concatenate(
         [
             np.concatenate([a[:, None, :], h[:, :-1, :]], axis=1).reshape(batch, -1)
@@ -540,22 +574,29 @@ def step_reference(
 
 
 def motor_commands(spec: NetworkSpec, outputs: np.ndarray) -> np.ndarray:
-    """Wheel commands in [-1, 1] from raw outputs: 2y - 1 for sigmoid, clipped if linear."""
+    """Wheel commands from raw outputs: 2y - 1 for sigmoid, y if linear; clipped to [-1, 1].
+
+    Always finite: a NaN output gives 0 (the wheel stops), +-inf gives +-1. Sigmoid outputs are
+    in [0, 1], so the clip changes nothing for them.
+    """
     y = np.asarray(outputs, dtype=np.float64)
     if y.ndim == 0 or y.shape[-1] != spec.outputs:
         raise ValueError(f"outputs must have last dimension {spec.outputs}, got {y.shape}")
-    motors: np.ndarray = (
-        np.clip(y, -1.0, 1.0) if spec.output_activation == "linear" else 2.0 * y - 1.0
-    )
+    raw = y if spec.output_activation == "linear" else 2.0 * y - 1.0
+    motors: np.ndarray = np.where(np.isnan(raw), 0.0, np.clip(raw, -1.0, 1.0))
     return motors
 
 
 @njit(cache=True)
 def motor_one(out_row: np.ndarray, linear_output: int, motor_row: np.ndarray) -> None:
-    """Compiled `motor_commands` for one robot: writes motor_row from out_row."""
+    """Compiled `motor_commands` for one robot: writes motor_row from out_row (same bits)."""
     for i in range(out_row.shape[0]):
-        y = out_row[i]
-        if linear_output != 0:
-            motor_row[i] = min(max(y, -1.0), 1.0)
+        y = out_row[i] if linear_output != 0 else 2.0 * out_row[i] - 1.0
+        if math.isnan(y):
+            motor_row[i] = 0.0
+        elif y > 1.0:
+            motor_row[i] = 1.0
+        elif y < -1.0:
+            motor_row[i] = -1.0
         else:
-            motor_row[i] = 2.0 * y - 1.0
+            motor_row[i] = y

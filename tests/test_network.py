@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from evorobotics.layout import layout
 from evorobotics.network import (
     CACHE_ENV,
+    LINEAR_BOUND,
     cached_module,
     kernel_cache_dir,
     kernel_plan,
@@ -251,17 +252,132 @@ def test_step_one_is_the_same_call_from_python() -> None:
 @pytest.mark.parametrize("activation", ["sigmoid", "linear"])
 def test_motor_commands_in_range_and_compiled_twin_agrees(activation: str) -> None:
     spec = NetworkSpec(output_activation=activation)
-    y = np.array([[0.0, 1.0], [0.25, 0.5], [-3.0, 3.0]])
+    nan, inf = np.nan, np.inf
+    y = np.array([[0.0, 1.0], [0.25, 0.5], [-3.0, 3.0], [nan, inf], [-inf, -0.0]])
     motors = motor_commands(spec, y)
     expected = {
-        "sigmoid": [[-1.0, 1.0], [-0.5, 0.0], [-7.0, 5.0]],
-        "linear": [[0.0, 1.0], [0.25, 0.5], [-1.0, 1.0]],
+        "sigmoid": [[-1.0, 1.0], [-0.5, 0.0], [-1.0, 1.0], [0.0, 1.0], [-1.0, -1.0]],
+        "linear": [[0.0, 1.0], [0.25, 0.5], [-1.0, 1.0], [0.0, 1.0], [-1.0, -0.0]],
     }[activation]
     assert motors.tolist() == expected
     row = np.empty(2)
-    for r in range(3):
+    for r in range(len(y)):
         motor_one(y[r], kernel_plan(spec).linear_output, row)
-        assert np.array_equal(row, motors[r])
+        assert row.tobytes() == motors[r].tobytes()
+
+
+DIVERGING = NetworkSpec(hidden=(), delays=0, recurrence=1, output_activation="linear")
+"""Five inputs, two linear outputs fed back to themselves (weights 18: 12 forward, 6 recurrent)."""
+
+
+def diverging_weights() -> np.ndarray:
+    """a(k) = [[4, .5], [.5, 4]] a(k-1) + [1, -1]: a_2 = -a_1 grows by 3.5 a step.
+
+    Under the unbounded Eq 2 a_1 is inf after 567 steps, and the next step sums 4 inf - 0.5 inf,
+    NaN: the overflow case of a fed-back linear output.
+    """
+    w = np.zeros((1, DIVERGING.weight_count))
+    w[0, 5], w[0, 11] = 1.0, -1.0  # biases of the forward block
+    w[0, 12], w[0, 13], w[0, 15], w[0, 16] = 4.0, 0.5, 0.5, 4.0  # the recurrent block
+    return w
+
+
+@pytest.mark.parametrize("fn", [step, step_reference])
+def test_fed_back_linear_outputs_saturate_and_never_overflow(fn: StepFn) -> None:
+    w = diverging_weights()
+    rng = np.random.default_rng(11)
+    state = reset(DIVERGING, 1)
+    outs, states = [], []
+    for x in rng.integers(0, 2, size=(2500, 1, DIVERGING.inputs)).astype(np.float64):
+        out, state = fn(DIVERGING, w, x, state)
+        outs.append(out[0])
+        states.append(state[0])
+    y, s = np.array(outs), np.array(states)
+    assert np.isfinite(y).all() and np.isfinite(s).all()
+    assert np.abs(y).max() == LINEAR_BOUND  # the bound is what stopped it
+    assert y[-1].tolist() == [LINEAR_BOUND, -LINEAR_BOUND]
+    first = int(np.flatnonzero(y[:, 0] == LINEAR_BOUND)[0])
+    assert 5 < first < 20  # 3.5**k passes 1e6 after about 11 steps, and saturation is final
+    assert (y[first:] == [LINEAR_BOUND, -LINEAR_BOUND]).all()
+    assert (y[:first, 0] < LINEAR_BOUND).all()  # below the bound: plain Eq 2
+    np.testing.assert_array_equal(y[1:first, 0], 3.5 * y[: first - 1, 0] + 1.0)
+    motors = motor_commands(DIVERGING, y)
+    assert np.isfinite(motors).all() and motors[-1].tolist() == [1.0, -1.0]
+
+
+def test_non_finite_sums_of_a_linear_output_become_finite_in_every_implementation() -> None:
+    """A sum that overflows saturates, one that is NaN (inf - inf) becomes 0, in all four."""
+    spec = DIVERGING
+    w = np.zeros(spec.weight_count)
+    w[0:3] = 1e308, 1e308, -1e300  # output 1: 1e308 + 1e308 = inf, then + (-inf) = NaN
+    w[6:8] = -1e308, -1e308  # output 2: -inf
+    x = np.array([1.0, 1.0, 1e300, 0.0, 0.0])
+    plan, kernel = kernel_plan(spec), spec_kernel(spec)
+    results = []
+    for fn in (step, step_reference):
+        out, state = fn(spec, w[None], x[None], reset(spec, 1))
+        results.append((out[0].tobytes(), state[0].tobytes()))
+    row, out_row = reset(spec, 1)[0], np.empty(spec.outputs)
+    step_one(w, *plan, row, x, out_row, np.empty(scratch_size(spec)))
+    results.append((out_row.tobytes(), row.tobytes()))
+    special, out_s = reset(spec, 1)[0], np.empty(spec.outputs)
+    kernel(w, special, x, out_s, np.empty(scratch_size(spec)))
+    results.append((out_s.tobytes(), special.tobytes()))
+    assert out_row.tolist() == [0.0, -LINEAR_BOUND]
+    assert np.isfinite(row).all()
+    assert results == [results[0]] * 4
+
+
+LINEAR_FED_BACK = [
+    DIVERGING,
+    *(p for p in POOL if p.output_activation == "linear" and p.recurrence >= 1),
+]
+"""Linear-output specs with the outputs fed back (recurrence >= 1): with the weights of
+`test_large_weights_stay_finite_and_kernels_agree_bit_for_bit` they nearly always reach the
+bound within 300 steps."""
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    spec=st.sampled_from(LINEAR_FED_BACK),
+    seed=st.integers(0, 2**32 - 1),
+    scale=st.floats(0.5, 50.0),
+)
+def test_large_weights_stay_finite_and_kernels_agree_bit_for_bit(
+    spec: NetworkSpec, seed: int, scale: float
+) -> None:
+    """Weights big enough that fed-back outputs diverge: every implementation stays finite,
+    the generated kernel is `step_one` bit for bit, the numpy reference agrees with `step`,
+    `motor_one` is `motor_commands` bit for bit."""
+    rng = np.random.default_rng(seed)
+    batch = 3
+    w = rng.normal(scale=scale, size=(batch, spec.weight_count))
+    xs = rng.integers(0, 2, size=(300, batch, spec.inputs)).astype(np.float64)
+    plan, kernel = kernel_plan(spec), spec_kernel(spec)
+    generic, special = reset(spec, batch), reset(spec, batch)
+    out_g, out_s = np.empty(spec.outputs), np.empty(spec.outputs)
+    scratch = np.empty(scratch_size(spec))
+    motor_g = np.empty(spec.outputs)
+    for x in xs:
+        for r in range(batch):
+            step_one(w[r], *plan, generic[r], x[r], out_g, scratch)
+            kernel(w[r], special[r], x[r], out_s, np.full(scratch_size(spec), np.nan))
+            assert out_g.tobytes() == out_s.tobytes()
+            assert np.abs(out_g).max() <= LINEAR_BOUND
+            motor_one(out_g, plan.linear_output, motor_g)
+            assert motor_g.tobytes() == motor_commands(spec, out_g).tobytes()
+        assert generic.tobytes() == special.tobytes()
+    assert np.isfinite(generic).all()
+    # `step` is that kernel; the reference agrees with it step by step from the same state (over
+    # 300 steps the rounding differences of a chaotic controller grow, so not whole runs)
+    state = reset(spec, batch)
+    for x in xs:
+        out_r, state_r = step_reference(spec, w, x, state)
+        out, state = step(spec, w, x, state)
+        assert np.isfinite(out_r).all() and np.isfinite(state_r).all()
+        np.testing.assert_allclose(out_r, out, rtol=1e-12, atol=1e-3)  # sums reach ~1e10
+        np.testing.assert_allclose(state_r, state, rtol=1e-12, atol=1e-3)
+    assert state.tobytes() == generic.tobytes()
 
 
 def test_motor_commands_rejects_wrong_width() -> None:
@@ -393,6 +509,11 @@ def test_cached_module_names_by_content_and_rewrites_damaged_files(tmp_path: Pat
     assert cached_module("probe", "VALUE = 1\n", (str(dep),), tmp_path / "c") is one
     other = cached_module("probe", "VALUE = 2\n", (str(dep),), tmp_path / "c")
     assert other.__name__ != one.__name__ and other.VALUE == 2
+    # a dependency with other bytes (an edited evorobotics/network.py): a new module too
+    edited = tmp_path / "edited.py"
+    edited.write_text("A = 2\n")
+    third = cached_module("probe", "VALUE = 1\n", (str(edited),), tmp_path / "c")
+    assert third.__name__ not in (one.__name__, other.__name__) and third.VALUE == 1
     path = tmp_path / "c" / f"{one.__name__}.py"
     pristine = path.read_bytes()
     path.write_bytes(pristine[:-3])  # a torn write

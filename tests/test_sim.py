@@ -401,3 +401,24 @@ def test_read_only_inputs_give_the_same_bits_without_a_new_compilation() -> None
     assert len(kernel.signatures) == compiled
     assert again.components.tobytes() == first.components.tobytes()
     assert again.poses_final.tobytes() == first.poses_final.tobytes()
+
+
+def test_diverging_linear_feedback_never_puts_nan_in_poses_or_motors() -> None:
+    """Fed-back linear outputs that overflow under the unbounded Eq 2 (inf, then NaN, after
+    about 570 steps) saturate: 2,500 steps later every pose and motor command is finite."""
+    maze = load_maze("paper")
+    g = np.random.default_rng(23)
+    spin = np.zeros((1, FLIP.weight_count))  # a(k) = [[4, .5], [.5, 4]] a(k-1) + [1, -1]
+    spin[0, 5], spin[0, 11] = 1.0, -1.0
+    spin[0, 12], spin[0, 13], spin[0, 15], spin[0, 16] = 4.0, 0.5, 0.5, 4.0
+    weights = np.concatenate([spin, g.normal(0.0, 5.0, (11, FLIP.weight_count))])
+    starts = np.tile(start_poses(maze, 4, 0, 4), (3, 1))
+    gap = Gap(g.uniform(0.025, 0.1, 12), g.uniform(0.85, 1.15, (12, 2)))
+    for run in (simulate, simulate_reference):
+        res = run(FLIP, weights, maze, starts, 2500, gap=gap, record=True)
+        assert res.poses is not None and res.motors is not None
+        assert np.isfinite(res.poses).all() and np.isfinite(res.poses_final).all()
+        assert np.isfinite(res.components).all()
+        assert np.isfinite(res.motors).all() and np.abs(res.motors).max() <= 1.0
+        assert (res.motors[0, 20:] == [1.0, -1.0]).all()  # saturated for good: it spins
+        assert not res.stuck[0] and res.poses[0, -1, 2] != res.poses[0, 0, 2]
