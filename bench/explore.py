@@ -17,9 +17,7 @@ import time
 import numpy as np
 
 from evorobotics.evaluate import evaluate
-from evorobotics.evolution import evolve
-from evorobotics.ga import GAParams, ask, ga_rng, init
-from evorobotics.layout import layout
+from evorobotics.evolution import RunLoop, evolve
 from schemas.run import RunConfig
 
 TEST_SEED = 12345
@@ -61,9 +59,7 @@ def main() -> None:
         for steps in (40, 200):
             rows.append((label, steps, unseen(config, best, steps)))
 
-    params = GAParams.from_config(base)
-    lay = layout(base.network_spec)
-    random_genomes, _ = ask(ga_rng(base.seed, 0), init(lay, params), params, lay)
+    random_genomes = RunLoop(base).ask()  # generation 0: the Eq 7 population
     for steps in (40, 200):
         rows.append(
             (
