@@ -229,9 +229,7 @@ class Scheduler:
     def forget(self, run_id: int) -> None:
         """Drop a run (over): its results, if any arrive, are acknowledged as dropped."""
         with self._lock:
-            self._runs.pop(run_id, None)
-            self._unwritten.pop(run_id, None)
-            self._drop_leases(run_id)
+            self._drop_run(run_id)
 
     def take_told(self) -> list[Written]:
         """The generations told since the last call, oldest first, for the store."""
@@ -341,9 +339,7 @@ class Scheduler:
             if record.spans and len(chosen.slots) == 1:
                 wanted = self.policy.span_generations(config, record.speed)
                 span = max(1, min(wanted, config.generations - loop.generation))
-            robot_steps = (slot.stop - slot.start) * config.trials * config.steps
-            lease_s = self.policy.lease_seconds(robot_steps, record.speed)
-            self._lease(chosen, index, worker, lease_s, span_left=span - 1)
+            lease_s = self._lease(chosen, index, worker, span_left=span - 1)
             return Job(
                 key=key,
                 start=slot.start,
@@ -494,12 +490,16 @@ class Scheduler:
         run: _Run,
         index: int,
         worker: str,
-        lease_s: float,
         *,
         span_left: int = 0,
         asked_by_worker: bool = False,
-    ) -> None:
+    ) -> float:
+        """Lease slot `index` of the run's generation to `worker`; the lease's seconds, from
+        the slot's robot-steps and the worker's speed."""
         slot = run.slots[index]
+        config = run.loop.config
+        robot_steps = (slot.stop - slot.start) * config.trials * config.steps
+        lease_s = self.policy.lease_seconds(robot_steps, self._workers[worker].speed)
         slot.status = "leased"
         slot.attempts += 1
         self._sequence += 1
@@ -509,6 +509,7 @@ class Scheduler:
             key, worker, self._clock() + lease_s, slot.start, slot.stop, span_left, asked_by_worker
         )
         self._totals["leased"] += 1
+        return lease_s
 
     def _digest_error(self, result: Result, i: int, lease: _Lease, record: _Worker) -> str | None:
         """Why a span's generation cannot count (None if it can): the worker must have
@@ -551,17 +552,8 @@ class Scheduler:
         following = self._runs[run.run_id]
         if lease.span_left > 0 and following.running and len(following.slots) == 1:
             heapq.heappop(following.pending)
-            speed = self._workers[lease.worker].speed
-            lease_s = self.policy.lease_seconds(
-                loop.config.population * loop.config.trials * loop.config.steps, speed
-            )
             self._lease(
-                following,
-                0,
-                lease.worker,
-                lease_s,
-                span_left=lease.span_left - 1,
-                asked_by_worker=True,
+                following, 0, lease.worker, span_left=lease.span_left - 1, asked_by_worker=True
             )
 
     def _fail_job(self, key: JobKey, message: str) -> None:
@@ -570,10 +562,14 @@ class Scheduler:
             return
         if run.slots[key.index].attempts >= self.policy.max_attempts:
             self._failed[key.run_id] = f"job {key.generation}/{key.index} failed: {message}"
-            self._runs.pop(key.run_id, None)
-            self._drop_leases(key.run_id)
+            self._drop_run(key.run_id)
             return
         self._make_pending(run, key.index)
+
+    def _drop_run(self, run_id: int) -> None:
+        self._runs.pop(run_id, None)
+        self._unwritten.pop(run_id, None)
+        self._drop_leases(run_id)
 
     def _drop_leases(self, run_id: int) -> None:
         for key in [k for k in self._leases if k.run_id == run_id]:
