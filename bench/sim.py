@@ -6,7 +6,7 @@ the evaluation's own start poses.
 
 Two kinds of rows. "default world": a robot that gets stuck (paper rule, stuck_after = 1) stops
 and its remaining steps are skipped, so the figure depends on how many robots get stuck.
-"never stuck": WorldParams(stuck_after=10**6), so every robot runs all 40 steps (controller,
+"never stuck": World(stuck_after=10**6), so every robot runs all 40 steps (controller,
 whiskers, physics, collision test each step), the honest cost of a robot-step and the figure
 the target (2 M robot-steps/s at batch >= 1024 for paper-best) is judged on.
 """
@@ -26,12 +26,13 @@ import numpy as np
 from evorobotics.evaluate import evaluate, start_poses
 from evorobotics.evolution import evolve
 from evorobotics.maze import load_maze
-from evorobotics.sim import DEFAULT_WORLD, WorldParams, simulate, simulate_reference
+from evorobotics.sim import DEFAULT_WORLD, simulate, simulate_reference
 from schemas.network import PRESETS
 from schemas.run import RunConfig
+from schemas.world import World
 
 STEPS = 40
-NEVER_STUCK = WorldParams(stuck_after=10**6)
+NEVER_STUCK = World(stuck_after=10**6)
 
 
 def best_of(fn: Callable[[], object], repeats: int) -> float:
@@ -45,9 +46,7 @@ def best_of(fn: Callable[[], object], repeats: int) -> float:
     return min(times)
 
 
-def rate(
-    preset: str, batch: int, params: WorldParams, reference: bool = False
-) -> tuple[float, float]:
+def rate(preset: str, batch: int, params: World, reference: bool = False) -> tuple[float, float]:
     """(robot-steps per second, fraction of robots that ended stuck)."""
     spec = PRESETS[preset]
     maze = load_maze("paper")

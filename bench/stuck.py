@@ -21,9 +21,10 @@ from evorobotics import network
 from evorobotics.evaluate import draw_gap, start_poses
 from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose, rng
-from evorobotics.sim import WorldParams, body_hits_wall, move, whisker_bits
+from evorobotics.sim import body_hits_wall, move, whisker_bits
 from robot_agent.stuck import StuckConfig, detect
 from schemas.network import PRESETS
+from schemas.world import World
 
 
 def evolved_like(whiskers: np.ndarray, memory: np.ndarray, traits: np.ndarray) -> np.ndarray:
@@ -53,7 +54,7 @@ def traces(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Whiskers (B, T, 5), motors (B, T, 2), positions (B, T + 1, 2); half random, half evolved-like."""
     maze = load_maze(maze_name)
-    params = WorldParams()
+    params = World()
     poses = start_poses(maze, seed, 0, robots, params).copy()  # the cached draw is read-only
     gap = draw_gap(seed, 0, robots)
     spec = PRESETS["paper-best"]

@@ -6,13 +6,16 @@ Python's shortest round-trip float repr), so one controller always gives byte-id
     {"fitness": 12.5 | null,
      "format": "evocolony.controller/1",
      "provenance": {"run": "...", "generation": 349, ...},
+     "validation": {<ValidationScore>},   (a run's champion only)
+     "world": {<World>},                  (when known: the world it was evolved in)
      "sha256": "<hex>",
      "spec": {<NetworkSpec, every field>},
      "weights": {"data": "<base64 of little-endian float64>", "dtype": "<f8", "shape": [n]}}
 
 The id is `sha256` of canonical spec JSON + b"\\n" + the weights' little-endian float64 bytes.
 The spec is hashed too, so two structurally different controllers (same weight count, other
-layers) never share an id. Fitness and provenance are not hashed: they describe, not define.
+layers) never share an id. Fitness, provenance, validation and world are not hashed: they
+describe, not define.
 Loading never unpickles; every malformed, non-finite or tampered document raises
 `ControllerDocumentError` naming the problem.
 """
@@ -33,6 +36,8 @@ from pydantic import ValidationError
 
 from evorobotics.errors import ControllerDocumentError
 from schemas.network import NetworkSpec
+from schemas.run import ValidationScore
+from schemas.world import World
 
 FORMAT = "evocolony.controller/1"
 """The `format` field of every document this module writes and the only one it reads."""
@@ -40,6 +45,8 @@ FORMAT = "evocolony.controller/1"
 Provenance = dict[str, str | int | float | None]
 
 _FIELDS = frozenset({"format", "spec", "weights", "sha256", "fitness", "provenance"})
+_OPTIONAL = frozenset({"validation", "world"})
+"""Members written only when known (a champion's); described, never hashed."""
 _ANNOTATIONS = frozenset({"field"})
 """Members a server may add beside a document (field performance); read past, never hashed."""
 _WEIGHT_FIELDS = frozenset({"dtype", "shape", "data"})
@@ -72,6 +79,10 @@ class ControllerDocument:
     weights: np.ndarray
     fitness: float | None = None
     provenance: Provenance = field(default_factory=dict)
+    validation: ValidationScore | None = None
+    """The champion's score on its run's validation set; None for any other controller."""
+    world: World | None = None
+    """The world it was evolved in (its run's `world`); None when unknown."""
 
     def __post_init__(self) -> None:
         """Copy and check the arguments (ValueError), so a document is always trustworthy."""
@@ -102,7 +113,7 @@ class ControllerDocument:
     def to_dict(self) -> dict[str, Any]:
         """The JSON-ready document (weights as base64 of little-endian float64)."""
         raw = self.weights.astype("<f8").tobytes()
-        return {
+        out: dict[str, Any] = {
             "format": FORMAT,
             "spec": self.spec.model_dump(mode="json"),
             "weights": {
@@ -114,6 +125,11 @@ class ControllerDocument:
             "fitness": self.fitness,
             "provenance": dict(self.provenance),
         }
+        if self.validation is not None:
+            out["validation"] = self.validation.model_dump(mode="json")
+        if self.world is not None:
+            out["world"] = self.world.model_dump(mode="json")
+        return out
 
     def to_json(self) -> str:
         """Canonical JSON: the same controller always gives the same characters."""
@@ -131,7 +147,7 @@ class ControllerDocument:
                 f"unknown format {obj.get('format')!r}; this reader understands {FORMAT!r}"
             )
         missing = sorted(_FIELDS - obj.keys())
-        extra = sorted(set(obj) - _FIELDS - _ANNOTATIONS)
+        extra = sorted(set(obj) - _FIELDS - _OPTIONAL - _ANNOTATIONS)
         if missing or extra:
             raise ControllerDocumentError(f"missing fields {missing}, unknown fields {extra}")
         try:
@@ -147,7 +163,16 @@ class ControllerDocument:
         if fitness is not None and not math.isfinite(fitness):
             raise ControllerDocumentError(f"non-finite fitness {fitness}")
         try:
-            doc = cls(spec, weights, fitness, obj["provenance"])
+            validation = (
+                None
+                if obj.get("validation") is None
+                else ValidationScore.model_validate(obj["validation"])
+            )
+            world = None if obj.get("world") is None else World.model_validate(obj["world"])
+        except ValidationError as exc:
+            raise ControllerDocumentError(f"invalid validation or world: {exc}") from None
+        try:
+            doc = cls(spec, weights, fitness, obj["provenance"], validation, world)
         except ValueError as exc:
             raise ControllerDocumentError(str(exc)) from None
         if obj["sha256"] != doc.sha256:

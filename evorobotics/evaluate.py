@@ -7,11 +7,16 @@ it is evaluated in:
 - trial start poses from rng(seed, generation, Purpose.START_POSES): uniform position and
   heading, rejected until the body is clear of walls and no whisker touches one;
 - with `reality_gap` on, per trial t from rng(seed, generation, Purpose.REALITY_GAP, t): one
-  whisker trigger distance uniform in [25, 100] mm and two wheel gains uniform in [0.85, 1.15].
+  whisker trigger distance and two wheel gains in the world's gap ranges (by default 25-100 mm
+  and 0.85-1.15, section 4).
+
+A run's validation set (`validate`) and exploration reports (`evorobotics.explore`) draw the
+same way from streams of their own, so they never reuse a training pose.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -21,20 +26,9 @@ from evorobotics.errors import MazeError
 from evorobotics.fitness import mean_fitness
 from evorobotics.maze import Maze, load_maze
 from evorobotics.seeds import Purpose, rng
-from evorobotics.sim import (
-    DEFAULT_WORLD,
-    Gap,
-    SimResult,
-    WorldParams,
-    clear_of_walls,
-    simulate,
-)
+from evorobotics.sim import DEFAULT_WORLD, Gap, SimResult, clear_of_walls, simulate
 from schemas.run import RunConfig
-
-GAP_WHISKER_RANGE = (0.025, 0.100)
-"""Real whiskers trigger anywhere between 25 and 100 mm from their base (section 4)."""
-GAP_MOTOR_GAIN = 0.15
-"""Real motors are calibrated to within 15 % of the simulated ones (section 4)."""
+from schemas.world import World
 
 _CANDIDATES = 64
 _MAX_ROUNDS = 1000
@@ -49,19 +43,25 @@ class Evaluation:
 
 
 def start_poses(
-    maze: Maze, seed: int, generation: int, trials: int, params: WorldParams = DEFAULT_WORLD
+    maze: Maze,
+    seed: int,
+    generation: int,
+    trials: int,
+    params: World = DEFAULT_WORLD,
+    purpose: Purpose = Purpose.START_POSES,
 ) -> np.ndarray:
     """(trials, 3) random free poses: body clear of walls, every whisker untriggered (read-only).
 
     Candidates are drawn in rounds of 64 and accepted in draw order, so the result is a pure
-    function of (maze, seed, generation, trials, params). Every job of a generation asks for the
+    function of (maze, seed, generation, trials, params, purpose): training poses come from
+    Purpose.START_POSES, validation and exploration poses from streams of their own. Every job of a generation asks for the
     same poses, so the last START_CACHE draws of this process are kept (keyed by the Maze
     object, as `load_maze` hands out one per spec); the array is a read-only view of the cached
     one, so no caller can change another's poses.
     """
     if trials < 0:
         raise ValueError(f"trials must be >= 0, got {trials}")
-    return _cached_start_poses(maze, seed, generation, trials, params).view()
+    return _cached_start_poses(maze, seed, generation, trials, params, purpose).view()
 
 
 START_CACHE = 64
@@ -70,18 +70,18 @@ START_CACHE = 64
 
 @lru_cache(maxsize=START_CACHE)
 def _cached_start_poses(
-    maze: Maze, seed: int, generation: int, trials: int, params: WorldParams
+    maze: Maze, seed: int, generation: int, trials: int, params: World, purpose: Purpose
 ) -> np.ndarray:
-    poses = _draw_start_poses(maze, seed, generation, trials, params)
+    poses = _draw_start_poses(maze, seed, generation, trials, params, purpose)
     poses.flags.writeable = False
     return poses
 
 
 def _draw_start_poses(
-    maze: Maze, seed: int, generation: int, trials: int, params: WorldParams
+    maze: Maze, seed: int, generation: int, trials: int, params: World, purpose: Purpose
 ) -> np.ndarray:
     """`start_poses` without the cache: the draws themselves."""
-    gen = rng(seed, generation, Purpose.START_POSES)
+    gen = rng(seed, generation, purpose)
     accepted: list[np.ndarray] = [np.empty((0, 3))]
     found = 0
     for _ in range(_MAX_ROUNDS):
@@ -103,48 +103,119 @@ def _draw_start_poses(
     return np.concatenate(accepted)[:trials].copy()
 
 
-def draw_gap(seed: int, generation: int, trials: int) -> Gap:
-    """Per-trial reality-gap draws (trials,), (trials, 2) from Purpose.REALITY_GAP (read-only).
+def draw_gap(
+    seed: int,
+    generation: int,
+    trials: int,
+    world: World = DEFAULT_WORLD,
+    purpose: Purpose = Purpose.REALITY_GAP,
+) -> Gap:
+    """Per-trial reality-gap draws (trials,), (trials, 2) from `purpose`'s stream (read-only).
 
-    Cached like `start_poses` (every job of a generation draws the same); read-only views.
+    Trial t draws from rng(seed, generation, purpose, t): a whisker trigger distance uniform in
+    `world.gap_whisker_range`, two wheel gains uniform in 1 +- `world.gap_motor_gain`. Cached
+    like `start_poses` (every job of a generation draws the same); read-only views.
     """
     if trials < 0:
         raise ValueError(f"trials must be >= 0, got {trials}")
-    cached = _cached_gap(seed, generation, trials)
+    cached = _cached_gap(seed, generation, trials, world, purpose)
     return Gap(cached.whisker_range.view(), cached.motor_gain.view())
 
 
 @lru_cache(maxsize=START_CACHE)
-def _cached_gap(seed: int, generation: int, trials: int) -> Gap:
+def _cached_gap(seed: int, generation: int, trials: int, world: World, purpose: Purpose) -> Gap:
     ranges = np.empty(trials)
     gains = np.empty((trials, 2))
     for t in range(trials):
-        gen = rng(seed, generation, Purpose.REALITY_GAP, t)
-        ranges[t] = gen.uniform(*GAP_WHISKER_RANGE)
-        gains[t] = gen.uniform(1.0 - GAP_MOTOR_GAIN, 1.0 + GAP_MOTOR_GAIN, 2)
+        gen = rng(seed, generation, purpose, t)
+        ranges[t] = gen.uniform(*world.gap_whisker_range)
+        gains[t] = gen.uniform(1.0 - world.gap_motor_gain, 1.0 + world.gap_motor_gain, 2)
     ranges.flags.writeable = False
     gains.flags.writeable = False
     return Gap(ranges, gains)
 
 
-def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluation:
-    """Eq 12 of k genomes (k, n_weights), every (individual, trial) pair in one batch."""
+def crossing_steps(maze: Maze, world: World = DEFAULT_WORLD) -> int:
+    """The paper's trial length: a robot at full speed just crosses the maze, no time to return.
+
+    "Run times were limited so that the best possible performance would result in travel from
+    one side of the environment to the other without time for a return trip" (section 2.4):
+    the longer side of the maze over one step's travel at full speed, rounded up.
+    """
+    return max(1, math.ceil(max(maze.width, maze.height) / world.step_length - 1e-9))
+
+
+def trial_steps(config: RunConfig) -> int:
+    """Steps of each training trial: `config.steps`, or the crossing rule for its maze."""
+    if config.steps is not None:
+        return config.steps
+    return crossing_steps(load_maze(config.maze), config.world)
+
+
+def robot_steps(config: RunConfig, individuals: int) -> int:
+    """Robot-steps of one generation of `individuals`: individuals x trials x trial steps."""
+    return individuals * config.trials * trial_steps(config)
+
+
+def _trials(
+    config: RunConfig,
+    genomes: np.ndarray,
+    poses: np.ndarray,
+    per_trial: Gap | None,
+    steps: int,
+) -> Evaluation:
+    """Every (individual, trial) pair of k genomes in one batch; Eq 12 averaged over trials."""
     spec = config.network_spec
     g = np.asarray(genomes, dtype=np.float64)
     if g.ndim != 2 or g.shape[1] != spec.weight_count:
         raise ValueError(f"genomes must be (k, {spec.weight_count}), got {g.shape}")
-    k, trials = g.shape[0], config.trials
-    maze = load_maze(config.maze)
-    poses = start_poses(maze, config.seed, generation, trials)
+    k, trials = g.shape[0], poses.shape[0]
     gap = None
-    if config.reality_gap:
-        per_trial = draw_gap(config.seed, generation, trials)
+    if per_trial is not None:
         gap = Gap(np.tile(per_trial.whisker_range, k), np.tile(per_trial.motor_gain, (k, 1)))
     result = simulate(
-        spec, np.repeat(g, trials, axis=0), maze, np.tile(poses, (k, 1)), config.steps, gap=gap
+        spec,
+        np.repeat(g, trials, axis=0),
+        load_maze(config.maze),
+        np.tile(poses, (k, 1)),
+        steps,
+        params=config.world,
+        gap=gap,
     )
     components = result.components.reshape(k, trials, 4)
     return Evaluation(mean_fitness(components, config.fitness), components)
+
+
+def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluation:
+    """Eq 12 of k genomes (k, n_weights) on the generation's training trials."""
+    maze = load_maze(config.maze)
+    poses = start_poses(maze, config.seed, generation, config.trials, config.world)
+    gap = (
+        draw_gap(config.seed, generation, config.trials, config.world)
+        if config.reality_gap
+        else None
+    )
+    return _trials(config, genomes, poses, gap, trial_steps(config))
+
+
+def validate(config: RunConfig, genomes: np.ndarray) -> Evaluation:
+    """Eq 12 of k genomes on the run's validation set (`config.validation`).
+
+    Its poses come from rng(seed, 0, Purpose.VALIDATION) and its reality-gap draws from
+    Purpose.VALIDATION_GAP: streams no training trial draws from, so a champion is chosen on
+    poses it was never trained on, and the same ones for every candidate.
+    """
+    v = config.validation
+    if v.poses < 1:
+        raise ValueError("validation is off (validation.poses = 0)")
+    maze = load_maze(config.maze)
+    poses = start_poses(maze, config.seed, 0, v.poses, config.world, Purpose.VALIDATION)
+    gap = (
+        draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP)
+        if config.reality_gap
+        else None
+    )
+    return _trials(config, genomes, poses, gap, v.steps)
 
 
 def record_path(
@@ -158,4 +229,6 @@ def record_path(
     spec = config.network_spec
     w = np.asarray(genome, dtype=np.float64).reshape(1, -1)
     pose = np.asarray(start_pose, dtype=np.float64).reshape(1, 3)
-    return simulate(spec, w, load_maze(config.maze), pose, steps, gap=gap, record=True)
+    return simulate(
+        spec, w, load_maze(config.maze), pose, steps, params=config.world, gap=gap, record=True
+    )

@@ -6,8 +6,9 @@ share its `evaluate` call. So how a generation is cut into contiguous jobs (`job
 server cuts by the run's `job_size` or, with zenoh workers, one job per live worker) cannot
 change a run, and `evolve` evaluates the whole generation in one call: bit-identical fitness
 arrays either way.
-`best_document` names the best controller the same way for `colony evolve` and the server
-(rank 0 of the latest completed generation).
+`best_document` names the best of a generation on training (rank 0); `champion` names a
+finished run's controller the same way for `colony evolve` and the server: the best of its
+final population on the run's validation set (`RunConfig.validation`, docs/evolve.md).
 """
 
 from __future__ import annotations
@@ -18,10 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evaluate import evaluate
+from evorobotics.evaluate import draw_gap, evaluate, start_poses, validate
+from evorobotics.explore import report
 from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, tell
 from evorobotics.layout import layout
-from schemas.run import RunConfig
+from evorobotics.maze import load_maze
+from evorobotics.seeds import Purpose
+from evorobotics.sim import Gap, simulate
+from schemas.run import RunConfig, ValidationScore
 
 
 def job_slices(population: int, job_size: int) -> list[tuple[int, int]]:
@@ -90,6 +95,70 @@ def best_document(
         weights=np.array(genomes[top], dtype=np.float64),
         fitness=value if np.isfinite(value) else None,
         provenance={"seed": config.seed, "generation": generation, "rank": 0, "run": run},
+        world=config.world,
+    )
+
+
+def champion(
+    config: RunConfig,
+    genomes: np.ndarray,
+    fitness: np.ndarray,
+    order: np.ndarray,
+    *,
+    generation: int,
+    run: str | int = "local",
+) -> ControllerDocument:
+    """The controller a finished run exports: its final population's best on validation.
+
+    Training ranks a generation on a few short trials, so its rank 0 is partly luck (a
+    winner's curse). The `config.validation.candidates` fittest on training are re-scored on
+    the run's validation set (`evaluate.validate`); the best mean Eq 12 there wins, ties to the
+    better training rank. Its document carries the score, the stuck fraction and the roaming
+    fraction of its validation trials. With validation off it is training rank 0.
+    """
+    v = config.validation
+    trained = best_document(config, genomes, fitness, order, generation=generation, run=run)
+    if v.poses == 0:
+        return trained
+    candidates = np.asarray(order[: v.candidates])
+    scored = validate(config, np.asarray(genomes)[candidates])
+    score = np.where(np.isfinite(scored.fitness), scored.fitness, -np.inf)
+    pick = int(np.argmax(score))  # first maximum: the better training rank
+    top = int(candidates[pick])
+    maze = load_maze(config.maze)
+    poses = start_poses(maze, config.seed, 0, v.poses, config.world, Purpose.VALIDATION)
+    weights = np.array(genomes[top], dtype=np.float64)
+    gap = None
+    if config.reality_gap:
+        drawn = draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP)
+        gap = Gap(drawn.whisker_range.copy(), drawn.motor_gain.copy())
+    recorded = simulate(
+        config.network_spec,
+        np.repeat(weights[None, :], v.poses, axis=0),
+        maze,
+        poses,
+        v.steps,
+        params=config.world,
+        gap=gap,
+        record=True,
+    )
+    value = float(fitness[top])
+    return ControllerDocument(
+        spec=config.network_spec,
+        weights=weights,
+        fitness=value if np.isfinite(value) else None,
+        provenance={"seed": config.seed, "generation": generation, "rank": pick, "run": run},
+        validation=ValidationScore(
+            poses=v.poses,
+            steps=v.steps,
+            seed=config.seed,
+            candidates=len(candidates),
+            training_rank=pick,
+            score=float(scored.fitness[pick]),
+            stuck=float(np.mean(scored.components[pick, :, 3])),
+            roaming=float(report(recorded, config.fitness, v.steps)["roaming"]),
+        ),
+        world=config.world,
     )
 
 
@@ -203,7 +272,7 @@ def evolve(
             on_generation(history[-1])
     if told is None:
         raise ValueError("a run needs at least one generation")
-    best = best_document(
+    best = champion(
         config, told.genomes, told.fitness, told.metrics.order, generation=told.generation
     )
     return EvolutionResult(loop.state, tuple(history), best, told.genomes, told.fitness, components)

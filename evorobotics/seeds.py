@@ -21,6 +21,10 @@ class Purpose(IntEnum):
     REALITY_GAP = 4
     MAZE = 5
     EVALUATION = 6
+    VALIDATION = 7
+    VALIDATION_GAP = 8
+    EXPLORATION = 9
+    EXPLORATION_GAP = 10
 
 
 def rng(seed: int, generation: int, purpose: Purpose, index: int = 0) -> np.random.Generator:

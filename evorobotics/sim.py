@@ -44,57 +44,12 @@ from evorobotics import network
 from evorobotics.maze import Maze
 from evorobotics.network import motor_one
 from schemas.network import NetworkSpec
+from schemas.world import N_WHISKERS, World
 
-N_WHISKERS = 5
 TWO_PI = 2.0 * math.pi
 
 
-@dataclass(frozen=True)
-class WorldParams:
-    """Every physical constant of the simulated world (metres, seconds, radians)."""
-
-    dt: float = 0.1
-    """Control period: the robot agent runs its loop at 10 Hz."""
-    max_speed: float = 0.3
-    """Wheel surface speed at command 1: 30 mm per step, well under the 50 mm whisker range;
-    40 steps cover at most 1.2 m, half the 2.4 m "paper" maze, so no crossing and return."""
-    wheel_base: float = 0.11
-    """Distance between the wheel contact points, inside the 127 mm body width."""
-    body_length: float = 0.165
-    """Along the heading (EvBot: 165 mm)."""
-    body_width: float = 0.127
-    """Across the heading (EvBot: 127 mm)."""
-    whisker_range: float = 0.05
-    """Nominal trigger distance from the attachment point (paper: exactly 50 mm)."""
-    whisker_x: tuple[float, ...] = (0.0825,) * N_WHISKERS
-    """Attachment points, forward coordinate in the body frame: all on the front edge."""
-    whisker_y: tuple[float, ...] = (0.055, 0.0275, 0.0, -0.0275, -0.055)
-    """Attachment points, leftward coordinate: spread across the front edge, left to right."""
-    whisker_angle: tuple[float, ...] = tuple(math.radians(a) for a in (60, 30, 0, -30, -60))
-    """Direction of each whisker relative to the heading (counter-clockwise positive)."""
-    stuck_after: int = 1
-    """Consecutive blocked steps after which a robot is stuck for the rest of its trial."""
-
-    def __post_init__(self) -> None:
-        for name in ("dt", "max_speed", "wheel_base", "body_length", "body_width"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"WorldParams.{name} must be positive, got {value}")
-        if not (math.isfinite(self.whisker_range) and self.whisker_range >= 0):
-            raise ValueError(f"whisker_range must be >= 0, got {self.whisker_range}")
-        lengths = {len(self.whisker_x), len(self.whisker_y), len(self.whisker_angle)}
-        if lengths != {N_WHISKERS}:
-            raise ValueError(f"need {N_WHISKERS} whisker positions and angles, got {lengths}")
-        if self.stuck_after < 1:
-            raise ValueError(f"stuck_after must be >= 1, got {self.stuck_after}")
-
-    @property
-    def half_diagonal(self) -> float:
-        """Radius of the circle around the body: bounds every cell the body can touch."""
-        return math.hypot(self.body_length / 2, self.body_width / 2)
-
-
-DEFAULT_WORLD = WorldParams()
+DEFAULT_WORLD = World()
 """The default world: every function's `params` default."""
 
 
@@ -106,7 +61,7 @@ class Gap:
     motor_gain: np.ndarray
 
     @classmethod
-    def nominal(cls, batch: int, params: WorldParams = DEFAULT_WORLD) -> Gap:
+    def nominal(cls, batch: int, params: World = DEFAULT_WORLD) -> Gap:
         """No gap: every robot at the nominal whisker range and unit gains."""
         return cls(np.full(batch, params.whisker_range), np.ones((batch, 2)))
 
@@ -119,13 +74,19 @@ class SimResult:
     curve_length: np.ndarray
     net_offset: np.ndarray
     max_offset: np.ndarray
-    stuck: np.ndarray
+    stuck_step: np.ndarray
+    """(B,) int64: the step (1-based) on which the robot became stuck, -1 if it never did."""
     poses: np.ndarray | None = field(default=None)
     """(B, steps+1, 3) pose before each step and after the last."""
     whiskers: np.ndarray | None = field(default=None)
     """(B, steps, 5) uint8 bits sensed at the start of each step."""
     motors: np.ndarray | None = field(default=None)
     """(B, steps, 2) wheel commands in [-1, 1] the controller chose at each step."""
+
+    @property
+    def stuck(self) -> np.ndarray:
+        """(B,) bool: stuck by the end of the trial."""
+        return self.stuck_step >= 0
 
     @property
     def components(self) -> np.ndarray:
@@ -146,9 +107,7 @@ def _wall_at(solid: np.ndarray, j: np.ndarray, i: np.ndarray) -> np.ndarray:
     return np.where(inside, solid[np.clip(j, 0, ny - 1), np.clip(i, 0, nx - 1)], True)
 
 
-def body_hits_wall(
-    maze: Maze, poses: np.ndarray, params: WorldParams = DEFAULT_WORLD
-) -> np.ndarray:
+def body_hits_wall(maze: Maze, poses: np.ndarray, params: World = DEFAULT_WORLD) -> np.ndarray:
     """(B,) True where the body rectangle at `poses` (B, 3) overlaps a wall cell (SAT, exact)."""
     poses = np.asarray(poses, dtype=np.float64)
     cell = maze.cell_size
@@ -177,7 +136,7 @@ def body_hits_wall(
 def whisker_bits(
     maze: Maze,
     poses: np.ndarray,
-    params: WorldParams = DEFAULT_WORLD,
+    params: World = DEFAULT_WORLD,
     ranges: np.ndarray | None = None,
 ) -> np.ndarray:
     """(B, 5) uint8: 1 where a wall lies within `ranges` (B,) of a whisker's attachment point."""
@@ -223,9 +182,7 @@ def _slab(
     return t0, t1
 
 
-def move(
-    poses: np.ndarray, motors: np.ndarray, gain: np.ndarray, params: WorldParams
-) -> np.ndarray:
+def move(poses: np.ndarray, motors: np.ndarray, gain: np.ndarray, params: World) -> np.ndarray:
     """(B, 3) poses after one unobstructed differential-drive step (midpoint integration)."""
     vl = motors[:, 0] * gain[:, 0] * params.max_speed
     vr = motors[:, 1] * gain[:, 1] * params.max_speed
@@ -259,7 +216,7 @@ def _prepare(
     weights: np.ndarray,
     start_poses: np.ndarray,
     steps: int,
-    params: WorldParams,
+    params: World,
     gap: Gap | None,
 ) -> tuple[np.ndarray, np.ndarray, Gap]:
     if spec.inputs != N_WHISKERS or spec.outputs != 2:
@@ -278,7 +235,7 @@ def _prepare(
         raise ValueError("start_poses must be finite")
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
-    if gap is None:  # valid by construction (WorldParams checks whisker_range)
+    if gap is None:  # valid by construction (World checks whisker_range)
         return w, poses, Gap.nominal(batch, params)
     ranges = _kernel_array(gap.whisker_range)
     gains = _kernel_array(gap.motor_gain)
@@ -301,7 +258,7 @@ def simulate_reference(
     maze: Maze,
     start_poses: np.ndarray,
     steps: int,
-    params: WorldParams = DEFAULT_WORLD,
+    params: World = DEFAULT_WORLD,
     gap: Gap | None = None,
     record: bool = False,
 ) -> SimResult:
@@ -312,10 +269,11 @@ def simulate_reference(
     state = network.reset(spec, batch)
     blocked = np.zeros(batch, dtype=np.int64)
     stuck = np.zeros(batch, dtype=bool)
+    stuck_step = np.full(batch, -1, dtype=np.int64)
     curve = np.zeros(batch)
     max_off = np.zeros(batch)
     trace_p, trace_w, trace_m = [pose.copy()], [], []
-    for _ in range(steps):
+    for k in range(steps):
         bits = whisker_bits(maze, pose, params, gap.whisker_range)
         out, state = network.step_reference(spec, w, bits.astype(np.float64), state)
         motors = network.motor_commands(spec, out)
@@ -324,7 +282,9 @@ def simulate_reference(
         moving = ~stuck
         accept = moving & ~hit
         blocked = np.where(moving & hit, blocked + 1, np.where(accept, 0, blocked))
-        stuck = stuck | (blocked >= params.stuck_after)
+        now_stuck = moving & (blocked >= params.stuck_after)
+        stuck_step = np.where(now_stuck, k + 1, stuck_step)
+        stuck = stuck | now_stuck
         ddx, ddy = cand[:, 0] - pose[:, 0], cand[:, 1] - pose[:, 1]
         curve = curve + np.where(accept, np.sqrt(ddx * ddx + ddy * ddy), 0.0)
         pose = np.where(accept[:, None], cand, pose)
@@ -337,13 +297,13 @@ def simulate_reference(
     ox, oy = pose[:, 0] - start[:, 0], pose[:, 1] - start[:, 1]
     net = np.sqrt(ox * ox + oy * oy)
     if not record:
-        return SimResult(pose, curve, net, max_off, stuck)
+        return SimResult(pose, curve, net, max_off, stuck_step)
     return SimResult(
         pose,
         curve,
         net,
         max_off,
-        stuck,
+        stuck_step,
         np.stack(trace_p, axis=1),
         np.stack(trace_w, axis=1) if steps else np.zeros((batch, 0, N_WHISKERS), np.uint8),
         np.stack(trace_m, axis=1) if steps else np.zeros((batch, 0, 2)),
@@ -510,6 +470,7 @@ def _episodes(
         gr = gains[r, 1]
         blocked = 0
         stuck = False
+        stuck_at = -1
         curve = 0.0
         max_off = 0.0
         if record:
@@ -555,6 +516,7 @@ def _episodes(
                     blocked += 1
                     if blocked >= stuck_after:
                         stuck = True
+                        stuck_at = k + 1
                 else:
                     blocked = 0
                     ddx = nx - x
@@ -584,7 +546,7 @@ def _episodes(
         metrics[r, 0] = curve
         metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
         metrics[r, 2] = max_off
-        stuck_out[r] = stuck
+        stuck_out[r] = stuck_at
 
 
 @njit(cache=True)
@@ -673,9 +635,7 @@ def _clear_of_walls(
         out[n] = free
 
 
-def clear_of_walls(
-    maze: Maze, poses: np.ndarray, params: WorldParams = DEFAULT_WORLD
-) -> np.ndarray:
+def clear_of_walls(maze: Maze, poses: np.ndarray, params: World = DEFAULT_WORLD) -> np.ndarray:
     """(B,) True where the body at `poses` (B, 3) is clear and no whisker (nominal range) touches.
 
     Bit for bit `~body_hits_wall(...) & ~whisker_bits(...).any(axis=1)` (the start-pose test),
@@ -742,7 +702,7 @@ def simulate(
     maze: Maze,
     start_poses: np.ndarray,
     steps: int,
-    params: WorldParams = DEFAULT_WORLD,
+    params: World = DEFAULT_WORLD,
     gap: Gap | None = None,
     record: bool = False,
 ) -> SimResult:
@@ -756,7 +716,7 @@ def simulate(
     world, wx, wy, ca, sa, reach = _world_arrays(params)
     final = np.empty((batch, 3))
     metrics = np.empty((batch, 3))
-    stuck = np.empty(batch, dtype=np.bool_)
+    stuck = np.empty(batch, dtype=np.int64)
     shape = (batch, steps) if record else (0, 0)
     rec_p = np.zeros((*shape[:1], steps + 1 if record else 0, 3))
     rec_w = np.zeros((*shape, N_WHISKERS), dtype=np.uint8)
@@ -796,11 +756,11 @@ def simulate(
 
 @lru_cache(maxsize=16)
 def _world_arrays(
-    params: WorldParams,
+    params: World,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """The kernel's constants of `params` (world, wx, wy, cos, sin of whisker angles, reach).
 
-    Cached per WorldParams so a call does not rebuild them; private, the kernel only reads them.
+    Cached per World so a call does not rebuild them; private, the kernel only reads them.
     """
     world = np.array(
         [

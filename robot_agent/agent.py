@@ -39,7 +39,6 @@ import zenoh
 from evorobotics import network
 from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
-from evorobotics.sim import WorldParams
 from robot_agent.errors import SerialLinkError
 from robot_agent.stuck import StuckConfig, StuckDetector
 from robot_agent.verify import Verifier, pin_key, pinned_key
@@ -67,6 +66,7 @@ from schemas.robots import (
 )
 from schemas.security import ZenohClientAuth
 from schemas.wire import WireError
+from schemas.world import World
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +95,7 @@ class AgentSettings:
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     state_dir: Path | None = None
     """Where the last accepted controller is kept (default ~/.evocolony/agent-ID)."""
-    period: float = WorldParams().dt
+    period: float = World().dt
     """Control period: the simulator's step, so the controller sees the same time base."""
     batch_steps: int = 10
     """Samples per trace batch in normal operation (one batch a second)."""
@@ -235,7 +235,7 @@ class Agent:
         self._fresh = False
         self._state: AgentState = "idle"
         self._escape: list[tuple[float, float]] = []
-        self._detector = StuckDetector(settings.stuck, WorldParams(dt=settings.period))
+        self._detector = StuckDetector(settings.stuck, World(dt=settings.period))
         self._lateness: deque[float] = deque(maxlen=1000)
         self.steps = 0
         self.stuck_events = 0

@@ -18,12 +18,13 @@ import numpy as np
 from evorobotics.evaluate import draw_gap as draw_trial_gaps
 from evorobotics.evaluate import start_poses
 from evorobotics.maze import Maze, load_maze
-from evorobotics.sim import Gap, WorldParams, body_hits_wall, move, whisker_bits
+from evorobotics.sim import DEFAULT_WORLD, Gap, body_hits_wall, move, whisker_bits
+from schemas.world import World
 
 
-def draw_gap(seed: int, index: int) -> Gap:
-    """The reality gap of robot `index` under `seed`, as a batch-of-one Gap."""
-    gaps = draw_trial_gaps(seed, 0, index + 1)
+def draw_gap(seed: int, index: int, world: World = DEFAULT_WORLD) -> Gap:
+    """The reality gap of robot `index` under `seed` in `world`'s ranges, a batch-of-one Gap."""
+    gaps = draw_trial_gaps(seed, 0, index + 1, world)
     return Gap(gaps.whisker_range[index:], gaps.motor_gain[index:])
 
 
@@ -35,9 +36,9 @@ class SimBody:
         maze: Maze,
         pose: np.ndarray,
         gap: Gap | None = None,
-        params: WorldParams | None = None,
+        params: World | None = None,
     ) -> None:
-        self.params = params or WorldParams()
+        self.params = params or World()
         self.maze = maze
         pose = np.asarray(pose, dtype=np.float64).reshape(1, 3)
         if body_hits_wall(maze, pose, self.params)[0]:
@@ -49,12 +50,23 @@ class SimBody:
         self.blocked = False
 
     @classmethod
-    def create(cls, maze: str, *, seed: int, index: int = 0, gap: bool = True) -> SimBody:
-        """Robot `index` of `seed` in the named maze at a random free pose, gap on by default."""
+    def create(
+        cls,
+        maze: str,
+        *,
+        seed: int,
+        index: int = 0,
+        gap: bool = True,
+        world: World = DEFAULT_WORLD,
+    ) -> SimBody:
+        """Robot `index` of `seed` in the named maze at a random free pose, gap on by default.
+
+        `world` is the run's (its config.json or champion document carry it), so a virtual
+        robot has the body, whiskers and speed the controller was evolved with.
+        """
         loaded = load_maze(maze)
-        params = WorldParams()
-        pose = start_poses(loaded, seed, 0, index + 1, params)[index]
-        return cls(loaded, pose, draw_gap(seed, index) if gap else None, params)
+        pose = start_poses(loaded, seed, 0, index + 1, world)[index]
+        return cls(loaded, pose, draw_gap(seed, index, world) if gap else None, world)
 
     @property
     def dt(self) -> float:

@@ -10,7 +10,7 @@ precision and recall and the reasoning behind the defaults). Three signs, each c
   `recur_window` steps: the robot bumps the same wall over and over (the paper's "bump up
   against the same wall over and over again").
 - going nowhere: dead reckoning of the commanded wheel speeds with the simulator's nominal
-  kinematics (`WorldParams`) keeps the robot within `odometry_radius` of where it was
+  kinematics (`World`) keeps the robot within `odometry_radius` of where it was
   `odometry_window` steps ago: spinning or circling in place (the paper's "spinning
   perpetually in one spot"), rocking, or idling. Commands are not motion (+/-15 % motors,
   slipping), but over a few seconds the estimate tells a tight loop from a journey.
@@ -29,8 +29,8 @@ from enum import StrEnum
 
 import numpy as np
 
-from evorobotics.sim import WorldParams
 from robot_agent.serial_protocol import WHISKERS
+from schemas.world import World
 
 
 class StuckReason(StrEnum):
@@ -71,9 +71,9 @@ class StuckConfig:
 class StuckDetector:
     """Streaming detector: `update` once per control step, `reset` after a new controller."""
 
-    def __init__(self, config: StuckConfig | None = None, world: WorldParams | None = None) -> None:
+    def __init__(self, config: StuckConfig | None = None, world: World | None = None) -> None:
         self.config = config or StuckConfig()
-        self.world = world or WorldParams()
+        self.world = world or World()
         self._onsets: deque[tuple[int, int]] = deque()
         self._track: deque[tuple[float, float]] = deque(maxlen=self.config.odometry_window + 1)
         self.reset()

@@ -11,6 +11,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.network import NetworkSpec, resolve_network
+from schemas.world import World
 
 
 class FitnessWeights(BaseModel):
@@ -51,6 +52,42 @@ class GAConfig(BaseModel):
     )
 
 
+class ValidationConfig(BaseModel):
+    """The end-of-run re-scoring that picks the champion (docs/evolve.md, "Validated champion").
+
+    The final population's `candidates` fittest on training are re-scored on `poses` start poses
+    of their own seed stream (never a training pose) for `steps` steps each; the champion is the
+    best on that score. `poses = 0` turns validation off: the champion is training rank 0.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    poses: int = Field(100, ge=0, le=10_000, description="validation start poses; 0: off")
+    steps: int = Field(400, ge=1, le=100_000, description="steps of each validation trial")
+    candidates: int = Field(
+        100, ge=1, le=10_000, description="the final population's fittest this many are re-scored"
+    )
+
+
+class ValidationScore(BaseModel):
+    """How a champion did on its run's validation set: the `validation` member of its document."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    poses: int = Field(ge=1, le=10_000)
+    steps: int = Field(ge=1, le=100_000)
+    seed: int = Field(
+        ge=0, lt=2**63, description="the run's seed; poses from its validation stream"
+    )
+    candidates: int = Field(ge=1, le=10_000, description="individuals re-scored")
+    training_rank: int = Field(ge=0, le=10_000, description="the champion's rank on training")
+    score: float = Field(allow_inf_nan=False, description="mean Eq 12 over the validation trials")
+    stuck: float = Field(ge=0.0, le=1.0, description="fraction of validation trials ending stuck")
+    roaming: float = Field(
+        ge=0.0, le=1.0, description="fraction neither stuck nor confined (evorobotics.explore)"
+    )
+
+
 class RunConfig(BaseModel):
     """One evolutionary experiment; defaults are the paper's (section 4)."""
 
@@ -59,12 +96,19 @@ class RunConfig(BaseModel):
     population: int = Field(100, ge=4, le=10_000)
     generations: int = Field(350, ge=1, le=100_000)
     trials: int = Field(3, ge=1, le=100)
-    steps: int = Field(40, ge=1, le=100_000)
+    steps: int | None = Field(
+        None,
+        ge=1,
+        le=100_000,
+        description="steps of each training trial; None: the crossing rule (docs/simulator.md)",
+    )
     seed: int = Field(0, ge=0, lt=2**63)
     maze: str = Field("paper", min_length=1, max_length=4096, description="maze name or text")
     network: str | NetworkSpec = Field("paper-best", description="preset name or a spec")
     fitness: FitnessWeights = FitnessWeights()
     reality_gap: bool = False
+    world: World = World()
+    validation: ValidationConfig = ValidationConfig()
     ga: GAConfig = GAConfig()
     job_size: int = Field(
         25,

@@ -309,11 +309,6 @@ class Job(_Message):
             )
         return self
 
-    @property
-    def robot_steps(self) -> int:
-        """Robot-steps one generation of this job simulates: individuals x trials x steps."""
-        return (self.stop - self.start) * self.config.trials * self.config.steps
-
 
 class Result(_Message):
     """Worker -> server on KEY_JOB_RESULT: fitness and components of `k` consecutive

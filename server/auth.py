@@ -18,6 +18,8 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 from urllib.parse import parse_qs
 
+from evorobotics.errors import MazeError
+from evorobotics.evaluate import robot_steps
 from evorobotics.maze import maze_names
 from schemas.run import RunConfig
 
@@ -195,13 +197,23 @@ def run_limit_error(
             f"population x weights = {config.population} x {weights} exceeds the server's "
             f"limit of {max_population_weights}"
         )
-    steps = config.population * config.trials * config.steps
+    maze = config.maze
+    if "\n" not in maze and not maze.startswith("gen:") and maze not in maze_names():
+        return f"maze {maze!r} is not a shipped maze, gen:SIZE:SEED or maze text"
+    try:
+        steps = robot_steps(config, config.population)
+    except (ValueError, MazeError) as exc:
+        return f"maze {maze!r}: {exc}"
     if steps > max_generation_steps:
         return (
             f"population x trials x steps = {steps} exceeds the server's limit of "
             f"{max_generation_steps} robot steps per generation"
         )
-    maze = config.maze
-    if "\n" not in maze and not maze.startswith("gen:") and maze not in maze_names():
-        return f"maze {maze!r} is not a shipped maze, gen:SIZE:SEED or maze text"
+    v = config.validation
+    validation_steps = min(v.candidates, config.population) * v.poses * v.steps
+    if validation_steps > max_generation_steps:
+        return (
+            f"validation candidates x poses x steps = {validation_steps} exceeds the server's "
+            f"limit of {max_generation_steps} robot steps per generation"
+        )
     return None

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from evorobotics.evaluate import evaluate
+from evorobotics.evaluate import evaluate, robot_steps
 from schemas.wire import Job, Result
 from server.scheduler import Scheduler
 
@@ -34,7 +34,9 @@ def run_job(job: Job, worker: str) -> Result:
         worker=worker,
         start=job.start,
         stop=job.stop,
-        robot_steps_per_s=job.robot_steps / seconds if seconds > 0 else 0.0,
+        robot_steps_per_s=(
+            robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else 0.0
+        ),
         seconds=seconds,
         fitness=evaluation.fitness[None],
         components=evaluation.components[None],

@@ -35,7 +35,6 @@ from sqlalchemy.orm import Session, sessionmaker
 from evorobotics import network
 from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
-from evorobotics.sim import WorldParams
 from schemas.robots import (
     ESCAPE,
     KEY_ACKS,
@@ -64,6 +63,7 @@ from schemas.robots import (
 )
 from schemas.run import RunConfig
 from schemas.wire import WireError
+from schemas.world import World
 from server import crud
 from server.errors import NotFoundError, ServerError
 from server.logs import context
@@ -90,7 +90,7 @@ class RobotSettings:
     """Seconds a push waits for the robot's acknowledgement (it applies at a step boundary)."""
     recent_failures: int = 5
     """A stuck robot gets no controller it failed with in its last this-many stuck events."""
-    dt: float = WorldParams().dt
+    dt: float = World().dt
     """Seconds of one control step, for robot-hours."""
 
     def __post_init__(self) -> None:

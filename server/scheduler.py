@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from evorobotics.evaluate import robot_steps
 from evorobotics.evolution import RunLoop, Told, job_slices
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus, genome_digest
@@ -92,7 +93,7 @@ class Policy:
         """Generations of `config` a worker of `speed` evolves in one span (1: no span)."""
         if speed is None:
             return 1
-        seconds = config.population * config.trials * config.steps / clamp_speed(speed)
+        seconds = robot_steps(config, config.population) / clamp_speed(speed)
         if seconds >= self.span_below_s:
             return 1
         return max(1, int(self.span_s / seconds))
@@ -498,8 +499,9 @@ class Scheduler:
         the slot's robot-steps and the worker's speed."""
         slot = run.slots[index]
         config = run.loop.config
-        robot_steps = (slot.stop - slot.start) * config.trials * config.steps
-        lease_s = self.policy.lease_seconds(robot_steps, self._workers[worker].speed)
+        lease_s = self.policy.lease_seconds(
+            robot_steps(config, slot.stop - slot.start), self._workers[worker].speed
+        )
         slot.status = "leased"
         slot.attempts += 1
         self._sequence += 1

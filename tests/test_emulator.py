@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import serial
 
-from evorobotics.evaluate import GAP_MOTOR_GAIN, GAP_WHISKER_RANGE
 from evorobotics.maze import load_maze
-from evorobotics.sim import WorldParams, whisker_bits
+from evorobotics.sim import DEFAULT_WORLD, whisker_bits
 from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import FIRMWARE_VERSION, BasicXEmulator, FirmwareConfig
 from robot_agent.serial_protocol import UNKNOWN_SEQ, Frame, LineDecoder, encode
 from robot_agent.sim_body import SimBody, draw_gap
+from schemas.world import World
 
 
 @pytest.fixture
@@ -92,7 +92,7 @@ def test_motors_move_the_simulated_robot(emulator: BasicXEmulator, body: SimBody
 def test_whiskers_follow_the_simulator() -> None:
     maze = load_maze("paper")
     body = SimBody.create("paper", seed=1, gap=False)
-    expected = whisker_bits(maze, body.pose, WorldParams())[0]
+    expected = whisker_bits(maze, body.pose, World())[0]
     assert body.whiskers() == tuple(bool(b) for b in expected)
     # drive straight until something touches: the robot is blocked before it enters a wall
     for _ in range(400):
@@ -106,8 +106,11 @@ def test_reality_gap_draws_are_in_the_paper_ranges_and_deterministic() -> None:
     gaps = [draw_gap(7, i) for i in range(50)]
     ranges = np.array([g.whisker_range[0] for g in gaps])
     gains = np.array([g.motor_gain[0] for g in gaps])
-    assert ((GAP_WHISKER_RANGE[0] <= ranges) & (ranges <= GAP_WHISKER_RANGE[1])).all()
-    assert (np.abs(gains - 1) <= GAP_MOTOR_GAIN).all()
+    assert (
+        (DEFAULT_WORLD.gap_whisker_range[0] <= ranges)
+        & (ranges <= DEFAULT_WORLD.gap_whisker_range[1])
+    ).all()
+    assert (np.abs(gains - 1) <= DEFAULT_WORLD.gap_motor_gain).all()
     assert len(set(ranges.tolist())) == 50
     assert np.array_equal(draw_gap(7, 3).motor_gain, gaps[3].motor_gain)
     a, b = SimBody.create("paper", seed=7, index=3), SimBody.create("paper", seed=7, index=3)

@@ -13,12 +13,14 @@ from evorobotics.evaluate import (
     evaluate,
     record_path,
     start_poses,
+    trial_steps,
 )
 from evorobotics.fitness import COMPONENTS, fitness, mean_fitness
 from evorobotics.maze import Maze, load_maze, parse_maze
 from evorobotics.seeds import Purpose, rng
-from evorobotics.sim import DEFAULT_WORLD, WorldParams, body_hits_wall, whisker_bits
+from evorobotics.sim import DEFAULT_WORLD, body_hits_wall, whisker_bits
 from schemas.run import FitnessWeights, RunConfig
+from schemas.world import World
 
 
 def test_eq12_with_paper_weights() -> None:
@@ -45,7 +47,7 @@ def test_start_poses_are_free_and_deterministic(seed: int, generation: int) -> N
 
 
 def numpy_start_poses(
-    maze: Maze, seed: int, generation: int, trials: int, params: WorldParams
+    maze: Maze, seed: int, generation: int, trials: int, params: World
 ) -> np.ndarray:
     """The start-pose draw as first written: rounds of 64, the numpy geometry, no cache."""
     gen = rng(seed, generation, Purpose.START_POSES)
@@ -66,15 +68,13 @@ def numpy_start_poses(
 @settings(max_examples=25, deadline=None)
 @given(
     name=st.sampled_from(["paper", "arena", "corridor", "zigzag", "gen:4:2"]),
-    params=st.sampled_from(
-        [DEFAULT_WORLD, WorldParams(whisker_range=0.1), WorldParams(body_length=0.3)]
-    ),
+    params=st.sampled_from([DEFAULT_WORLD, World(whisker_range=0.1), World(body_length=0.3)]),
     seed=st.integers(0, 2**40),
     generation=st.integers(0, 1000),
     trials=st.integers(1, 80),
 )
 def test_start_poses_are_the_numpy_draws_bit_for_bit(
-    name: str, params: WorldParams, seed: int, generation: int, trials: int
+    name: str, params: World, seed: int, generation: int, trials: int
 ) -> None:
     maze = load_maze(name)
     expected = numpy_start_poses(maze, seed, generation, trials, params).tobytes()
@@ -172,10 +172,10 @@ def test_record_path_matches_evaluation() -> None:
     pop = genomes(3, seed=5)
     ev = evaluate(config, 2, pop)
     pose = start_poses(load_maze("paper"), 9, 2, 3)[1]
-    rec = record_path(config, pop[2], pose, config.steps)
+    rec = record_path(config, pop[2], pose, trial_steps(config))
     assert rec.poses is not None and rec.whiskers is not None and rec.motors is not None
-    assert rec.poses.shape == (1, 41, 3) and rec.whiskers.shape == (1, 40, 5)
-    assert rec.whiskers.dtype == np.uint8 and rec.motors.shape == (1, 40, 2)
+    assert rec.poses.shape == (1, 81, 3) and rec.whiskers.shape == (1, 80, 5)
+    assert rec.whiskers.dtype == np.uint8 and rec.motors.shape == (1, 80, 2)
     assert np.array_equal(rec.poses[0, 0], pose)
     assert np.abs(rec.motors).max() <= 1.0
     assert rec.components[0].tobytes() == ev.components[2, 1].tobytes()

@@ -12,6 +12,7 @@ from evorobotics.evolution import (
     GenerationSummary,
     RunLoop,
     best_document,
+    champion,
     evaluate_population,
     evolve,
     job_slices,
@@ -54,16 +55,15 @@ def _manual(config: RunConfig) -> tuple[np.ndarray, np.ndarray, list[tuple[int, 
     params = GAParams.from_config(config)
     state = init(lay, params)
     rows = []
-    genomes = fitness = np.empty(0)
-    top = -1
+    genomes = fitness = order = np.empty(0)
     for g in range(config.generations):
         genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
         jobs = job_slices(config.population, config.job_size)
         fitness = np.concatenate([evaluate(config, g, genomes[a:b]).fitness for a, b in jobs])
         state, metrics = tell(genomes, fitness, state, params)
         rows.append((g, metrics.best))
-        top = int(metrics.order[0])
-    return genomes, fitness, rows, top
+        order = metrics.order
+    return genomes, fitness, rows, order
 
 
 def test_evolve_is_deterministic() -> None:
@@ -80,14 +80,17 @@ def test_evolve_is_deterministic() -> None:
 def test_evolve_equals_manual_composition_whatever_the_slicing() -> None:
     seen: list[GenerationSummary] = []
     result = evolve(SMALL, on_generation=seen.append)
-    genomes, fitness, rows, top = _manual(SMALL)
+    genomes, fitness, rows, order = _manual(SMALL)
     assert np.array_equal(result.genomes, genomes)
     assert result.fitness.tobytes() == fitness.tobytes()
     assert [(h.generation, h.best) for h in result.history] == rows
     assert tuple(seen) == result.history
-    assert np.array_equal(result.best.weights, genomes[top])
-    assert result.best.fitness == fitness[top] == max(fitness)
-    assert result.best.provenance == {"seed": 7, "generation": 3, "rank": 0, "run": "local"}
+    champ = champion(SMALL, genomes, fitness, order, generation=3)
+    assert result.best == champ and champ.validation is not None
+    rank = champ.validation.training_rank
+    assert np.array_equal(result.best.weights, genomes[order[rank]])
+    assert result.best.fitness == fitness[order[rank]]
+    assert result.best.provenance == {"seed": 7, "generation": 3, "rank": rank, "run": "local"}
     assert result.components.shape == (12, SMALL.trials, 4)
 
 
@@ -219,5 +222,6 @@ def test_evolve_equals_the_manual_run_loop(seed: int, generations: int) -> None:
     assert result.fitness.tobytes() == told.fitness.tobytes()
     assert result.components.tobytes() == components.tobytes()
     assert result.history == tuple(history)
-    top = int(told.metrics.order[0])
-    assert result.best.weights.tobytes() == told.genomes[top].tobytes()
+    order = told.metrics.order
+    best = champion(config, told.genomes, told.fitness, order, generation=told.generation)
+    assert result.best.to_json() == best.to_json()

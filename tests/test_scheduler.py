@@ -185,7 +185,8 @@ def test_a_known_speed_sets_the_lease() -> None:
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("a")
     assert job is not None
-    assert job.lease_s == 10.0 * job.robot_steps / SLOW == policy.lease_seconds(40, SLOW)
+    robot_steps = (job.stop - job.start) * CONFIG.trials * 5
+    assert job.lease_s == 10.0 * robot_steps / SLOW == policy.lease_seconds(40, SLOW)
 
 
 def test_duplicate_results_are_dropped_and_counted() -> None:

@@ -18,7 +18,7 @@ from evorobotics.maze import load_maze
 from evorobotics.sim import (
     DEFAULT_WORLD,
     Gap,
-    WorldParams,
+    World,
     _episode_kernel,
     body_hits_wall,
     clear_of_walls,
@@ -124,7 +124,7 @@ def test_driving_into_a_wall_blocks_then_sticks() -> None:
     assert bool(res.stuck[0])
     assert res.curve_length[0] == pytest.approx(16 * 0.03)
     assert (res.poses[0, 17:] == res.poses[0, 16]).all()
-    patient = WorldParams(stuck_after=100)
+    patient = World(stuck_after=100)
     res2 = simulate(CONST, const_weights(1, 1), ARENA, start, 40, params=patient)
     assert not res2.stuck[0]
     assert res2.poses_final[0] == pytest.approx(res.poses_final[0])
@@ -138,7 +138,7 @@ def test_stuck_robot_stays_immobile_but_blocked_one_can_back_off() -> None:
     assert res.motors[0, 1, 0] == -1.0  # reverse was commanded after the block ...
     assert bool(res.stuck[0]) and res.curve_length[0] == 0.0  # ... but stuck never moves
     assert (res.poses[0] == res.poses[0, 0]).all()
-    res2 = simulate(FLIP, flip_weights(), ARENA, start, 20, params=WorldParams(stuck_after=2))
+    res2 = simulate(FLIP, flip_weights(), ARENA, start, 20, params=World(stuck_after=2))
     assert not res2.stuck[0]
     assert res2.curve_length[0] == pytest.approx(0.03 * 19)
 
@@ -158,7 +158,7 @@ def test_blocked_moves_never_enter_walls(
     maze = load_maze("paper")
     start = np.array([[x, y, th]])
     assume(not body_hits_wall(maze, start)[0])
-    params = WorldParams(stuck_after=stuck_after)
+    params = World(stuck_after=stuck_after)
     res = simulate(CONST, const_weights(left, right), maze, start, 30, params, record=True)
     assert res.poses is not None
     assert not body_hits_wall(maze, res.poses[0]).any()
@@ -252,7 +252,7 @@ def test_bad_arguments() -> None:
     with pytest.raises(ValueError, match="gap"):
         simulate(spec, w, ARENA, np.ones((2, 3)), 5, gap=Gap(np.ones(3), np.ones((2, 2))))
     with pytest.raises(ValueError, match="stuck_after"):
-        WorldParams(stuck_after=0)
+        World(stuck_after=0)
 
 
 def test_recording_does_not_change_results() -> None:
@@ -330,9 +330,9 @@ def test_fresh_process_with_warm_kernel_cache_gives_the_same_bits(tmp_path: Path
 CHECK_MAZES = ["arena", "corridor", "paper", "zigzag", "gen:4:2"]
 CHECK_WORLDS = [
     DEFAULT_WORLD,
-    WorldParams(whisker_range=0.1),
-    WorldParams(body_length=0.3, body_width=0.2),
-    WorldParams(whisker_range=0.0),
+    World(whisker_range=0.1),
+    World(body_length=0.3, body_width=0.2),
+    World(whisker_range=0.0),
 ]
 
 
@@ -342,9 +342,7 @@ CHECK_WORLDS = [
     params=st.sampled_from(CHECK_WORLDS),
     seed=st.integers(0, 2**32 - 1),
 )
-def test_clear_of_walls_is_the_numpy_test_bit_for_bit(
-    name: str, params: WorldParams, seed: int
-) -> None:
+def test_clear_of_walls_is_the_numpy_test_bit_for_bit(name: str, params: World, seed: int) -> None:
     # the start-pose check: random poses, plus a quarter-cell lattice at headings k pi / 4
     # (poses exactly on cell edges and axis-parallel whiskers, where rounding would show)
     maze = load_maze(name)
@@ -376,7 +374,7 @@ def test_clear_of_walls_examples_and_bad_arguments() -> None:
     # arena: inner faces at 0.1 and 1.9; a body in the middle is clear, one across a wall is not
     poses = np.array([[1.0, 1.0, 0.0], [0.1, 1.0, 0.0], [1.9 - 0.0825 - 0.049, 1.0, 0.0]])
     assert clear_of_walls(ARENA, poses).tolist() == [True, False, False]  # last: whisker
-    assert clear_of_walls(ARENA, poses[2:], WorldParams(whisker_range=0.04)).tolist() == [True]
+    assert clear_of_walls(ARENA, poses[2:], World(whisker_range=0.04)).tolist() == [True]
     assert clear_of_walls(ARENA, np.empty((0, 3))).shape == (0,)
     with pytest.raises(ValueError, match="poses must be"):
         clear_of_walls(ARENA, np.zeros((2, 2)))

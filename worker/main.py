@@ -30,6 +30,7 @@ from types import FrameType
 import numpy as np
 import zenoh
 
+from evorobotics.evaluate import robot_steps
 from evorobotics.evolution import RunLoop
 from evorobotics.ga import GAState
 from schemas.run import RunConfig
@@ -266,7 +267,7 @@ def _evaluate(
             key=job.key, worker=link.settings.name, error=error, start=job.start, stop=job.stop
         )
     seconds = time.perf_counter() - began
-    speed = job.robot_steps / seconds if seconds > 0 else None
+    speed = robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else None
     link.stats.jobs_done += 1
     link.stats.robot_steps_per_s = speed
     return Result(

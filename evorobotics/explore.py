@@ -1,0 +1,195 @@
+"""Does a controller explore? Its behaviour over long horizons from unseen start poses.
+
+The paper's claim is a robot that wanders a maze "indefinitely without getting stuck". One
+report runs a controller from `poses` start poses (drawn from Purpose.EXPLORATION, a stream no
+training or validation trial uses) for `steps` steps each and measures, per trial:
+
+- stuck by step h: its body was blocked `world.stuck_after` times in a row by step h;
+- confined: before any sticking, 100 consecutive steps (CONFINED_STEPS) with every position in
+  a box of at most 0.3 m diagonal (CONFINED_DIAGONAL): spinning on the spot, or bumping the same
+  wall again and again;
+- roaming: neither stuck nor confined over the whole horizon;
+- max offset by step h: the largest distance from the start position so far;
+- coverage: distinct 0.1 m grid cells (COVERAGE_CELL) its centre visited;
+- Eq 12 fitness of its first 40 steps (the paper's trial), with the run's weights.
+
+Pure numpy over one recorded `simulate` call; deterministic in (controller, world, maze, seed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from evorobotics.evaluate import draw_gap, start_poses
+from evorobotics.fitness import fitness
+from evorobotics.maze import load_maze
+from evorobotics.seeds import Purpose
+from evorobotics.sim import Gap, SimResult, simulate
+from schemas.network import NetworkSpec
+from schemas.run import FitnessWeights
+from schemas.world import World
+
+CONFINED_STEPS = 100
+"""A confinement lasts this many consecutive steps (10 s of robot time)."""
+CONFINED_DIAGONAL = 0.3
+"""... inside a box of at most this diagonal (m): under two body lengths."""
+COVERAGE_CELL = 0.1
+"""Coverage counts distinct squares of this side (m): one maze cell."""
+PAPER_TRIAL = 40
+"""The paper's training trial: 40 steps (section 4)."""
+HORIZONS = (40, 200)
+"""Stuck fractions and offsets are also reported at these steps (when within the horizon)."""
+MAX_ROBOT_STEPS = 20_000_000
+"""Upper bound on poses x steps of one report, so no request can exhaust memory (~0.5 GB)."""
+
+
+@dataclass(frozen=True)
+class Exploration:
+    """One controller's exploration report (fractions of trials, metres, cells)."""
+
+    poses: int
+    steps: int
+    maze: str
+    seed: int
+    reality_gap: bool
+    stuck: dict[int, float]
+    """step h -> fraction of trials stuck by step h (for 40, 200 and `steps`)."""
+    confined: float
+    roaming: float
+    max_offset: dict[int, float]
+    """step h -> mean max offset by step h, m (for 40 and `steps`)."""
+    coverage: float
+    """Mean distinct 0.1 m cells visited per trial."""
+    fitness_40: float
+    """Mean Eq 12 fitness over the first 40 steps of each trial."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: integer keys become strings."""
+        out = asdict(self)
+        out["stuck"] = {str(k): v for k, v in self.stuck.items()}
+        out["max_offset"] = {str(k): v for k, v in self.max_offset.items()}
+        return out
+
+
+def _window_extreme(x: np.ndarray, width: int, pick: np.ufunc) -> np.ndarray:
+    """(B, n - width + 1): pick (np.maximum or np.minimum) over x[:, i : i + width].
+
+    Doubling: after j rounds m[:, i] covers x[:, i : i + 2^j]; two overlapping power-of-two
+    windows then cover any width. O(n log width), numpy only.
+    """
+    n, m, k = x.shape[1], x, 1
+    while 2 * k <= width:
+        m = pick(m[:, :-k], m[:, k:])
+        k *= 2
+    count = n - width + 1
+    return np.asarray(pick(m[:, :count], m[:, width - k : width - k + count]))
+
+
+def confined(poses: np.ndarray, stuck_step: np.ndarray) -> np.ndarray:
+    """(B,) bool: a window of CONFINED_STEPS steps inside a CONFINED_DIAGONAL box before sticking.
+
+    `poses` (B, steps+1, 3) as `simulate(record=True)` gives them; a window of w steps spans
+    w + 1 positions. Windows that reach past the step a robot stuck on do not count: being
+    stuck is reported on its own.
+    """
+    b, n = poses.shape[0], poses.shape[1]
+    span = CONFINED_STEPS + 1
+    if n < span:
+        return np.zeros(b, dtype=bool)
+    extent = [
+        _window_extreme(poses[:, :, axis], span, np.maximum)
+        - _window_extreme(poses[:, :, axis], span, np.minimum)
+        for axis in (0, 1)
+    ]
+    diagonal = np.hypot(extent[0], extent[1])
+    # window starting at position i ends at position i + CONFINED_STEPS: it counts if that
+    # step came before the robot stuck (never stuck: every window counts)
+    last = np.where(stuck_step >= 0, stuck_step - 1, n - 1)
+    starts = np.arange(n - span + 1)
+    valid = starts[None, :] + CONFINED_STEPS <= last[:, None]
+    return np.asarray(np.any((diagonal <= CONFINED_DIAGONAL) & valid, axis=1))
+
+
+def report(result: SimResult, weights: FitnessWeights, steps: int) -> dict[str, Any]:
+    """The measures of one recorded batch of trials (see the module docstring)."""
+    if result.poses is None:
+        raise ValueError("report needs a recorded simulation (record=True)")
+    poses = result.poses
+    start = poses[:, :1, :2]
+    offsets = np.hypot(*(poses[:, :, :2] - start).transpose(2, 0, 1))
+    stuck_step = result.stuck_step
+    stuck = {
+        h: float(np.mean((stuck_step >= 0) & (stuck_step <= h)))
+        for h in (*HORIZONS, steps)
+        if h <= steps
+    }
+    is_confined = confined(poses, stuck_step)
+    roaming = float(np.mean(~is_confined & (stuck_step < 0)))
+    max_offset = {
+        h: float(np.mean(offsets[:, : h + 1].max(axis=1)))
+        for h in (PAPER_TRIAL, steps)
+        if h <= steps
+    }
+    cells = np.floor(poses[:, :, :2] / COVERAGE_CELL).astype(np.int64)
+    keys = cells[:, :, 0] * 1_000_003 + cells[:, :, 1]
+    coverage = float(np.mean([len(np.unique(row)) for row in keys]))
+    h = min(PAPER_TRIAL, steps)
+    moves = np.hypot(*np.diff(poses[:, : h + 1, :2], axis=1).transpose(2, 0, 1))
+    first = np.stack(
+        [
+            moves.sum(axis=1),
+            offsets[:, h],
+            offsets[:, : h + 1].max(axis=1),
+            ((stuck_step >= 0) & (stuck_step <= h)).astype(np.float64),
+        ],
+        axis=-1,
+    )
+    return {
+        "stuck": stuck,
+        "confined": float(np.mean(is_confined)),
+        "roaming": roaming,
+        "max_offset": max_offset,
+        "coverage": coverage,
+        "fitness_40": float(np.mean(fitness(first, weights))),
+    }
+
+
+def explore(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    *,
+    poses: int = 1000,
+    steps: int = 1000,
+    maze: str = "paper",
+    seed: int = 0,
+    reality_gap: bool = False,
+    world: World | None = None,
+    fitness_weights: FitnessWeights | None = None,
+) -> Exploration:
+    """The exploration report of one controller (see the module docstring)."""
+    world = world or World()
+    if poses < 1 or steps < 1:
+        raise ValueError(f"poses and steps must be >= 1, got {poses} and {steps}")
+    if poses * steps > MAX_ROBOT_STEPS:
+        raise ValueError(
+            f"poses x steps = {poses * steps} exceeds the limit of {MAX_ROBOT_STEPS} robot steps"
+        )
+    w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
+    loaded = load_maze(maze)
+    starts = start_poses(loaded, seed, 0, poses, world, Purpose.EXPLORATION)
+    gap = draw_gap(seed, 0, poses, world, Purpose.EXPLORATION_GAP) if reality_gap else None
+    result = simulate(
+        spec,
+        np.repeat(w, poses, axis=0),
+        loaded,
+        starts,
+        steps,
+        params=world,
+        gap=None if gap is None else Gap(gap.whisker_range.copy(), gap.motor_gain.copy()),
+        record=True,
+    )
+    measured = report(result, fitness_weights or FitnessWeights(), steps)
+    return Exploration(poses, steps, loaded.name, seed, reality_gap, **measured)

@@ -1,0 +1,90 @@
+"""The simulated world a run evolves in: robot kinematics, body, whiskers, stuck rule, gap.
+
+Part of every run config (`RunConfig.world`), so it travels with the run to workers, is written
+into config.json and into the champion's controller document. Defaults are the EvBot of the
+paper (section 2.2 and 4); lengths in metres, times in seconds, angles in degrees.
+"""
+
+from __future__ import annotations
+
+import math
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+N_WHISKERS = 5
+"""The EvBot's five binary whiskers: the controller's five inputs."""
+
+
+class World(BaseModel):
+    """Every physical constant of the simulated world; frozen and hashable (a cache key)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    dt: float = Field(0.1, gt=0.0, le=10.0, description="control period, s (the agent's 10 Hz)")
+    max_speed: float = Field(
+        0.3, gt=0.0, le=10.0, description="wheel surface speed at command 1, m/s: 30 mm a step"
+    )
+    wheel_base: float = Field(
+        0.11, gt=0.0, le=10.0, description="distance between the wheel contact points, m"
+    )
+    body_length: float = Field(0.165, gt=0.0, le=10.0, description="along the heading, m")
+    body_width: float = Field(0.127, gt=0.0, le=10.0, description="across the heading, m")
+    whisker_range: float = Field(
+        0.05, ge=0.0, le=1.0, description="nominal trigger distance from the attachment point, m"
+    )
+    whisker_x: tuple[float, ...] = Field(
+        (0.0825,) * N_WHISKERS, description="attachment points, forward in the body frame, m"
+    )
+    whisker_y: tuple[float, ...] = Field(
+        (0.055, 0.0275, 0.0, -0.0275, -0.055),
+        description="attachment points, leftward in the body frame, m (left to right)",
+    )
+    whisker_angles: tuple[float, ...] = Field(
+        (60.0, 30.0, 0.0, -30.0, -60.0),
+        description="whisker directions relative to the heading, degrees counter-clockwise",
+    )
+    stuck_after: int = Field(
+        1,
+        ge=1,
+        le=1_000_000,
+        description="consecutive blocked steps after which a robot is stuck for the trial",
+    )
+    gap_whisker_range: tuple[float, float] = Field(
+        (0.025, 0.100),
+        description="reality gap: whisker trigger distance drawn uniformly in this range, m",
+    )
+    gap_motor_gain: float = Field(
+        0.15, ge=0.0, lt=1.0, description="reality gap: wheel gains drawn in 1 +- this"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> World:
+        for name in ("whisker_x", "whisker_y", "whisker_angles"):
+            values = getattr(self, name)
+            if len(values) != N_WHISKERS:
+                raise ValueError(
+                    f"{name} needs {N_WHISKERS} values, one per whisker, got {len(values)}"
+                )
+            if not all(math.isfinite(v) and abs(v) <= 360.0 for v in values):
+                raise ValueError(f"{name} must be finite and within +-360, got {values}")
+        lo, hi = self.gap_whisker_range
+        if not (0.0 <= lo <= hi <= 1.0):
+            raise ValueError(
+                f"gap_whisker_range must be 0 <= low <= high <= 1 m, got {self.gap_whisker_range}"
+            )
+        return self
+
+    @property
+    def whisker_angle(self) -> tuple[float, ...]:
+        """Whisker directions in radians (what the simulator computes with)."""
+        return tuple(math.radians(a) for a in self.whisker_angles)
+
+    @property
+    def step_length(self) -> float:
+        """Largest distance a robot covers in one step: max_speed x dt."""
+        return self.max_speed * self.dt
+
+    @property
+    def half_diagonal(self) -> float:
+        """Radius of the circle around the body: bounds every cell the body can touch."""
+        return math.hypot(self.body_length / 2, self.body_width / 2)
