@@ -25,9 +25,11 @@ def presets() -> None:
     from schemas.network import PRESETS
 
     for name, spec in PRESETS.items():
+        depth = spec.recurrence
+        per_layer = list(depth) if isinstance(depth, tuple) else depth
         typer.echo(
             f"{name:16s} {spec.weight_count:6d} weights  hidden={list(spec.hidden)} "
-            f"T={spec.delays} S={spec.recurrence} out={spec.output_activation}"
+            f"T={spec.delays} S={per_layer} out={spec.output_activation}"
         )
 
 

@@ -2,7 +2,8 @@
 
 The chromosome C is every sub-matrix W[m,t,s] flattened row-major (neuron n, then input i,
 bias last), the sub-matrices ordered by layer m, then lag t, then source level s: exactly the
-paper's order w_{m,t,s,n,i}. Absent sources (s with layer m-1+s deeper than M) have no block.
+paper's order w_{m,t,s,n,i}. A level s that layer m lacks (`spec.source(m, s)` is None: beyond
+its recurrence depth) has no block.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ class Layout:
     t: np.ndarray
     """(n_weights,) delay lag t of each weight (0..T)."""
     s: np.ndarray
-    """(n_weights,) source level s of each weight (0..S)."""
+    """(n_weights,) source level s of each weight (0..S, S the largest depth of any layer)."""
     block_size: np.ndarray
     """(n_weights,) N*I of the sub-matrix each weight belongs to (Eq 9)."""
 
@@ -62,7 +63,7 @@ def layout(spec: NetworkSpec) -> Layout:
     offset = 0
     for m in range(1, spec.layers + 1):
         for t in range(spec.delays + 1):
-            for s in range(spec.recurrence + 1):
+            for s in range(spec.layers + 1):
                 src = spec.source(m, s)
                 if src is None:
                     continue

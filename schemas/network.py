@@ -10,6 +10,10 @@ follow the paper with two documented shifts (see docs/science.md):
 - source level s = 0..S (the paper's s = level + 1): s = 0 is the feed-forward source, layer
   m - 1 at this step; s >= 1 is recurrent, layer m - 1 + s at the previous step (s = 1 is the
   layer itself, Elman-style; s = 2 the next deeper layer, Jordan-style for m = M - 1).
+
+The recurrence depth is one int S for every layer (layer m gets the levels 1..S whose source
+exists) or a tuple of M depths, one per layer m = 1..M, so that e.g. (1, 0) feeds the hidden
+layer back without the outputs' self-feedback (the paper's Fig 1B).
 """
 
 from __future__ import annotations
@@ -23,27 +27,28 @@ MAX_WEIGHTS = 1_000_000
 """Upper bound on a network's weight count, so no config can exhaust memory."""
 
 
-def _source(layers: int, m: int, s: int) -> int | None:
-    src = m - 1 + s
-    return src if src <= layers else None
+def _depths(layers: int, recurrence: int | tuple[int, ...]) -> tuple[int, ...]:
+    """Depth of each layer m = 1..M; an int S is cut to the levels whose source exists."""
+    if isinstance(recurrence, int):
+        return tuple(min(recurrence, layers - m + 1) for m in range(1, layers + 1))
+    return recurrence
 
 
 @functools.lru_cache(maxsize=256)
-def _weight_count(sizes: tuple[int, ...], recurrence: int, delays: int) -> int:
+def _weight_count(sizes: tuple[int, ...], depths: tuple[int, ...], delays: int) -> int:
     """Computed once per shape (every job's genomes are checked against it); not a cached
     property, which `model_copy(update=...)` would carry over to another shape."""
     layers = len(sizes) - 1
-    per_lag = 0
-    for m in range(1, layers + 1):
-        for s in range(recurrence + 1):
-            src = _source(layers, m, s)
-            if src is not None:
-                per_lag += sizes[m] * (sizes[src] + 1)
+    per_lag = sum(
+        sizes[m] * (sizes[m - 1 + s] + 1)
+        for m in range(1, layers + 1)
+        for s in range(depths[m - 1] + 1)
+    )
     return per_lag * (delays + 1)
 
 
 class NetworkSpec(BaseModel):
-    """Layer sizes, output activation, time-delay depth T and recurrence depth S."""
+    """Layer sizes, output activation, time-delay depth T and recurrence depth(s) S."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -54,22 +59,43 @@ class NetworkSpec(BaseModel):
     outputs: int = Field(2, ge=1, le=64, description="output neurons (left, right wheel)")
     output_activation: Literal["sigmoid", "linear"] = "sigmoid"
     delays: int = Field(2, ge=0, le=32, description="time-delay depth T: lags 0..T")
-    recurrence: int = Field(0, ge=0, description="recurrence depth S: feedback levels 1..S")
+    recurrence: int | tuple[int, ...] = Field(
+        0,
+        description="recurrence depth S: feedback levels 1..S for every layer, or one depth per "
+        "layer m = 1..M (input side first, outputs last)",
+    )
 
     @model_validator(mode="after")
     def _check_shape(self) -> NetworkSpec:
         for k, size in enumerate(self.hidden, start=1):
             if not 1 <= size <= 1024:
                 raise ValueError(f"hidden layer {k} has {size} neurons; allowed 1..1024")
-        if self.recurrence > self.layers:
-            raise ValueError(
-                f"recurrence depth {self.recurrence} exceeds the {self.layers} layer(s) of this "
-                f"network: level s feeds layer m from layer m-1+s, which must exist"
-            )
+        self._check_recurrence()
         count = self.weight_count
         if count > MAX_WEIGHTS:
             raise ValueError(f"network has {count} weights; the limit is {MAX_WEIGHTS}")
         return self
+
+    def _check_recurrence(self) -> None:
+        rec, layers = self.recurrence, self.layers
+        if isinstance(rec, int):
+            if not 0 <= rec <= layers:
+                raise ValueError(
+                    f"recurrence depth {rec} is outside 0..{layers}, the layers of this "
+                    f"network: level s feeds layer m from layer m-1+s, which must exist"
+                )
+            return
+        if len(rec) != layers:
+            raise ValueError(
+                f"recurrence has {len(rec)} depth(s) but the network has {layers} layer(s): "
+                f"give one per layer m = 1..{layers}, input side first"
+            )
+        for m, depth in enumerate(rec, start=1):
+            if not 0 <= depth <= layers - m + 1:
+                raise ValueError(
+                    f"recurrence depth {depth} of layer {m} is outside 0..{layers - m + 1}: "
+                    f"level s feeds layer m from layer m-1+s, which must exist"
+                )
 
     @property
     def layers(self) -> int:
@@ -81,14 +107,20 @@ class NetworkSpec(BaseModel):
         """Neuron count of layers 0 (inputs) .. M (outputs)."""
         return (self.inputs, *self.hidden, self.outputs)
 
+    def recurrence_of(self, m: int) -> int:
+        """Recurrence depth of layer m = 1..M: its levels are s = 0..depth."""
+        if not 1 <= m <= self.layers:
+            raise ValueError(f"layer {m} is outside 1..{self.layers}")
+        return _depths(self.layers, self.recurrence)[m - 1]
+
     def source(self, m: int, s: int) -> int | None:
-        """Layer feeding layer m at source level s, or None where it does not exist."""
-        return _source(self.layers, m, s)
+        """Layer feeding layer m at source level s, or None where layer m has no level s."""
+        return m - 1 + s if 0 <= s <= self.recurrence_of(m) else None
 
     @property
     def weight_count(self) -> int:
         """Length of the chromosome: every sub-matrix W[m,t,s] with its bias column."""
-        return _weight_count(self.sizes, self.recurrence, self.delays)
+        return _weight_count(self.sizes, _depths(self.layers, self.recurrence), self.delays)
 
 
 PRESETS: dict[str, NetworkSpec] = {
@@ -100,6 +132,8 @@ PRESETS: dict[str, NetworkSpec] = {
     "reactive": NetworkSpec(hidden=(27,), delays=0, recurrence=0),
     # A small Elman/Jordan network: self and output feedback, one delay; 232 weights.
     "recurrent-small": NetworkSpec(hidden=(6,), delays=1, recurrence=2),
+    # Fig 1B: two hidden layers, time-delayed, hidden-layer self-feedback only; 396 weights.
+    "fig1b": NetworkSpec(hidden=(5, 5), delays=2, recurrence=(1, 1, 0)),
 }
 """Named networks; `docs/science.md` lists their exact weight counts (tests check them)."""
 

@@ -18,6 +18,7 @@ def test_preset_weight_counts() -> None:
         "paper-largest": 7104,
         "reactive": 218,
         "recurrent-small": 232,
+        "fig1b": 396,
     }
 
 
@@ -57,7 +58,7 @@ def test_layout_indices_cover_every_weight(
     ("kwargs", "message"),
     [
         ({"hidden": (0,)}, "hidden layer 1 has 0 neurons"),
-        ({"recurrence": 3, "hidden": (4,)}, "recurrence depth 3 exceeds"),
+        ({"recurrence": 3, "hidden": (4,)}, r"recurrence depth 3 is outside 0\.\.2"),
         ({"delays": -1}, "greater than or equal to 0"),
         ({"hidden": (1024, 1024, 1024), "delays": 3}, "the limit is"),
     ],

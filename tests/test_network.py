@@ -39,15 +39,18 @@ StepFn = Callable[[NetworkSpec, np.ndarray, np.ndarray, np.ndarray], tuple[np.nd
 
 @st.composite
 def specs(draw: st.DrawFn, max_hidden: int = 3, max_delays: int = 3) -> NetworkSpec:
-    """Random small specs: hidden 0..3 layers, T 0..3, S 0..M, both output activations."""
+    """Random small specs: hidden 0..3 layers, T 0..3, S 0..M or per-layer depths, both
+    output activations."""
     hidden = tuple(draw(st.lists(st.integers(1, 5), max_size=max_hidden)))
+    layers = len(hidden) + 1
+    per_layer = st.tuples(*(st.integers(0, layers - m + 1) for m in range(1, layers + 1)))
     return NetworkSpec(
         inputs=draw(st.integers(1, 5)),
         hidden=hidden,
         outputs=draw(st.integers(1, 3)),
         output_activation=draw(st.sampled_from(["sigmoid", "linear"])),
         delays=draw(st.integers(0, max_delays)),
-        recurrence=draw(st.integers(0, len(hidden) + 1)),
+        recurrence=draw(st.one_of(st.integers(0, layers), per_layer)),
     )
 
 
@@ -67,12 +70,20 @@ POOL = (
     NetworkSpec(inputs=4, hidden=(3, 1, 2), outputs=2, delays=2, recurrence=4),
     NetworkSpec(inputs=4, hidden=(3, 1, 2), outputs=2, delays=0, recurrence=0),
     NetworkSpec(inputs=2, hidden=(1, 4, 2), outputs=1, output_activation="linear", delays=3),
+    NetworkSpec(
+        inputs=3,
+        hidden=(4, 2),
+        outputs=2,
+        output_activation="linear",
+        delays=1,
+        recurrence=(2, 0, 1),
+    ),
     PRESETS["paper-best"],
 )
 """Specs for the property tests of the canonical `step`. Each spec compiles its own kernel
 (~0.5 s), so they draw from this pool (every shape of the `specs()` space: 0-3 hidden layers,
-T 0-3, S 0-M, both activations; most T=0, S=0 twins are here for the zero-weight test), and
-`test_spec_kernel_is_step_one_bit_for_bit` carries the result to any spec."""
+T 0-3, S 0-M or per layer, both activations; most T=0, S=0 twins are here for the zero-weight
+test), and `test_spec_kernel_is_step_one_bit_for_bit` carries the result to any spec."""
 
 
 def _run(
@@ -330,9 +341,9 @@ def test_non_finite_sums_of_a_linear_output_become_finite_in_every_implementatio
 
 LINEAR_FED_BACK = [
     DIVERGING,
-    *(p for p in POOL if p.output_activation == "linear" and p.recurrence >= 1),
+    *(p for p in POOL if p.output_activation == "linear" and p.recurrence_of(p.layers) >= 1),
 ]
-"""Linear-output specs with the outputs fed back (recurrence >= 1): with the weights of
+"""Linear-output specs with the outputs fed back (output layer depth >= 1): with the weights of
 `test_large_weights_stay_finite_and_kernels_agree_bit_for_bit` they nearly always reach the
 bound within 300 steps."""
 
