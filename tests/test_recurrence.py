@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from typer.testing import CliRunner
 
+from colony.cli import app
 from evorobotics import network
 from evorobotics.document import ControllerDocument
 from evorobotics.evaluate import start_poses
@@ -200,3 +202,11 @@ def test_recurrence_of_a_layer_that_does_not_exist_is_an_error() -> None:
         HIDDEN_ONLY.recurrence_of(3)
     with pytest.raises(ValueError, match=r"layer 0 is outside 1\.\.2"):
         HIDDEN_ONLY.source(0, 0)
+
+
+def test_colony_presets_prints_per_layer_depths_as_a_list() -> None:
+    result = CliRunner().invoke(app, ["presets"])
+    assert result.exit_code == 0, result.output
+    lines = {line.split()[0]: line for line in result.output.splitlines()}
+    assert "396 weights  hidden=[5, 5] T=2 S=[1, 1, 0] out=sigmoid" in lines["fig1b"]
+    assert "T=1 S=2 out=sigmoid" in lines["recurrent-small"]
