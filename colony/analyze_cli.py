@@ -2,7 +2,8 @@
 
 The controller comes from a document file, or from a server's REST API (docs/api.md):
 `--server URL --run ID` (the run's best) or `--server URL --sha SHA256`. Prints a rich table or
-`--json`; `--out DIR` also writes DIR/analysis.json and DIR/responses.png.
+`--json`; `--out DIR` also writes DIR/analysis.json, responses.png, network.png (Fig 5 before
+and after training) and encounter.png (Fig 7 close-up, in `--maze`, the paper maze by default).
 """
 
 from __future__ import annotations
@@ -16,9 +17,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from evorobotics.analysis import Analysis, analyze
+from evorobotics.analysis import RESOLUTION_MM, TOLERANCE_MM, Analysis, analyze
 from evorobotics.document import ControllerDocument
-from evorobotics.errors import ControllerDocumentError
+from evorobotics.errors import ControllerDocumentError, EvoError
+from evorobotics.maze import load_maze
 
 TIMEOUT_S = 30.0
 
@@ -76,13 +78,14 @@ def print_table(a: Analysis) -> None:
     period = f" (period {a.baseline.period})" if a.baseline.kind == "cycle" else ""
     console.print(
         f"controller {a.sha256[:12]}  baseline after {a.warmup} zero steps: "
-        f"{a.baseline.kind}{period}  tol {a.settle_tol:g}, horizon {a.max_steps} steps"
+        f"{a.baseline.kind}{period}  tolerance {a.tolerance_mm_per_step:g} mm per step "
+        f"(command 1 = {a.full_speed_mm_per_step:g} mm per step), horizon {a.max_steps} steps"
     )
     table = Table(title="steps to settle after the last contact step (no = not within horizon)")
     table.add_column("contact")
     for d in sorted({c.duration for c in a.contacts}):
         table.add_column(f"held {d}", justify="right")
-    table.add_column("peak |dev|", justify="right")
+    table.add_column("peak |dev| mm/step", justify="right")
     for label in dict.fromkeys(c.label for c in a.contacts):
         row = [c for c in a.contacts if c.label == label]
         cells = []
@@ -91,9 +94,12 @@ def print_table(a: Analysis) -> None:
             if c.settle_steps is None and c.new_steady_steps is not None:
                 cell = f"new {c.new_steady_steps}"
             cells.append(cell)
-        table.add_row(label, *cells, f"{max(c.peak_deviation for c in row):.3g}")
+        table.add_row(label, *cells, f"{max(c.peak_deviation_mm_per_step for c in row):.3g}")
     console.print(table)
-    distinct = Table(title=f"distinct motor responses (reactive bound {a.reactive_bound})")
+    distinct = Table(
+        title=f"distinct motor responses in cells of {a.resolution_mm_per_step:g} mm per step "
+        f"(reactive bound {a.reactive_bound})"
+    )
     distinct.add_column("history k", justify="right")
     distinct.add_column("sequences", justify="right")
     distinct.add_column("distinct", justify="right")
@@ -102,7 +108,7 @@ def print_table(a: Analysis) -> None:
     console.print(distinct)
     more = " (or more: raise --history)" if a.memory_saturated else ""
     console.print(
-        f"longest settle after a one-step single contact: {_steps(a.max_settle)}; "
+        f"longest settle after a one-step single contact: {_steps(a.max_settle_steps)}; "
         f"effective memory {a.memory} step(s){more}"
     )
 
@@ -117,17 +123,50 @@ def analyze_command(
         str | None, typer.Option(help="analyze the controller with this sha256 (with --server)")
     ] = None,
     history: Annotated[int, typer.Option(help="longest whisker history k")] = 3,
-    settle_tol: Annotated[float, typer.Option(help="motor command tolerance")] = 1e-3,
+    tolerance_mm: Annotated[
+        float,
+        typer.Option(help="settled = within this wheel travel of the baseline, mm per step"),
+    ] = TOLERANCE_MM,
+    resolution_mm: Annotated[
+        float, typer.Option(help="count distinct responses in cells this size, mm per step")
+    ] = RESOLUTION_MM,
     max_steps: Annotated[int, typer.Option(help="settling horizon in steps")] = 50,
     as_json: Annotated[bool, typer.Option("--json", help="print the analysis as JSON")] = False,
     out: Annotated[
-        Path | None, typer.Option(help="write analysis.json and responses.png here")
+        Path | None,
+        typer.Option(help="write analysis.json, responses.png, network.png, encounter.png here"),
+    ] = None,
+    maze: Annotated[
+        str, typer.Option(help="maze of the encounter.png close-up (with --out)")
+    ] = "paper",
+    seed: Annotated[
+        int | None,
+        typer.Option(
+            help="seed of network.png's generation-0 controller and encounter.png's start "
+            "poses (default: the document's run seed, else 0)"
+        ),
     ] = None,
 ) -> None:
-    """Settling times after whisker contacts and distinct responses to whisker histories."""
+    """Settling times after whisker contacts and distinct responses to whisker histories.
+
+    Tolerances are wheel travel in mm per control step (command 1 = max_speed * dt = 30 mm per
+    step in the default world). With --out, also the paper's Fig 5 before and after training
+    and a Fig 7 close-up of one wall encounter (in the paper maze unless --maze).
+    """
     doc = _load(controller, server, run, sha)
+    if out is not None:
+        try:
+            load_maze(maze)
+        except (EvoError, OSError) as exc:
+            raise _fail(f"--maze: {exc}") from None
     try:
-        result = analyze(doc, history=history, settle_tol=settle_tol, max_steps=max_steps)
+        result = analyze(
+            doc,
+            history=history,
+            tolerance_mm=tolerance_mm,
+            resolution_mm=resolution_mm,
+            max_steps=max_steps,
+        )
     except ValueError as exc:
         raise _fail(str(exc)) from None
     text = json.dumps(result.to_dict(), allow_nan=False)
@@ -136,10 +175,39 @@ def analyze_command(
     else:
         print_table(result)
     if out is not None:
-        from evorobotics.analysis_plots import responses_plot  # matplotlib: only when writing
+        _write_figures(doc, result, text, out, maze, _seed(doc, seed), quiet=as_json)
 
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "analysis.json").write_text(text + "\n")
-        responses_plot(result, out / "responses.png")
-        if not as_json:
-            typer.echo(f"wrote {out / 'analysis.json'}, {out / 'responses.png'}")
+
+def _seed(doc: ControllerDocument, seed: int | None) -> int:
+    """--seed, else the run seed in the document's provenance, else 0."""
+    if seed is not None:
+        return seed
+    value = doc.provenance.get("seed") if isinstance(doc.provenance, dict) else None
+    return value if isinstance(value, int) and value >= 0 else 0
+
+
+def _write_figures(
+    doc: ControllerDocument,
+    result: Analysis,
+    text: str,
+    out: Path,
+    maze: str,
+    seed: int,
+    *,
+    quiet: bool,
+) -> None:
+    # matplotlib and the simulator: only when writing
+    from evorobotics import analysis_plots as ap
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / n for n in ("analysis.json", "responses.png", "network.png")]
+    written[0].write_text(text + "\n")
+    ap.responses_plot(result, written[1])
+    ap.network_before_after_plot(doc, seed, written[2])
+    try:
+        ap.encounter_plot(doc, out / "encounter.png", maze=maze, seed=seed)
+        written.append(out / "encounter.png")
+    except ValueError as exc:  # a controller that never touches a wall
+        typer.echo(f"colony analyze: no encounter.png: {exc}", err=True)
+    if not quiet:
+        typer.echo("wrote " + ", ".join(str(p) for p in written))

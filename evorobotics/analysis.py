@@ -9,11 +9,17 @@ the responses "not fully characterized". `analyze` measures them for one control
   is a fixed point, a limit cycle of period p, or unsteady;
 - contacts: from the baseline state, one whisker (each in turn, then all together) touches for
   d = 1..3 steps, then zeros; the settling time is the number of steps after the last contact
-  step until the motor commands stay within `settle_tol` of the zero-input continuation (any
-  phase of a limit cycle) for good; otherwise whether they settle on a new fixed point;
+  step until the wheel travel per step stays within a physical tolerance (mm per step) of the
+  zero-input continuation (any phase of a limit cycle) for good; otherwise whether it settles
+  on a new fixed point;
 - distinct responses: every whisker history of length k = 1..history from the baseline state,
-  in one batch, counting distinct motor commands at the last step; and the effective memory,
-  the fewest last steps that determine the response.
+  in one batch, counting the distinct cells (of a stated size in mm per step) the last step's
+  wheel travel falls in; and the effective memory, the fewest last steps that determine it;
+- `wall_encounter`: where a recorded trial touches a wall (for the Fig 7 close-up).
+
+Tolerances are wheel travel, not motor-command units: a command c moves a wheel
+c * max_speed * dt metres per step (30 mm at c = 1 in the default world), so differences the
+robot cannot act on do not count as unsettled or distinct.
 
 Pure numpy over `network.step` (the robot's and simulator's compiled path): no I/O, no randomness.
 """
@@ -27,7 +33,9 @@ import numpy as np
 
 from evorobotics.document import ControllerDocument
 from evorobotics.network import motor_commands, reset, step
+from evorobotics.sim import DEFAULT_WORLD
 from schemas.network import NetworkSpec
+from schemas.world import World
 
 DURATIONS = (1, 2, 3)
 """Contact lengths d (steps with the whisker held) of every contact experiment."""
@@ -38,8 +46,13 @@ WARMUP = 200
 PRE = 3
 """Baseline steps kept before the contact onset in every stored trace (for plots)."""
 
-ROUND = 1e-9
-"""Motor commands are rounded to multiples of this before distinct responses are counted."""
+TOLERANCE_MM = 2.0
+"""Default settling tolerance, mm of wheel travel per step: 1/25 of the 50 mm whisker range and
+under the +-4.5 mm per step at full speed that the reality gap's +-15 % motor gain spans, so a
+difference this small is slip, not a different move."""
+
+RESOLUTION_MM = 1.0
+"""Default cell size, mm of wheel travel per step, at which distinct responses are counted."""
 
 MAX_SEQUENCES = 2**20
 """Upper bound on whisker histories evaluated (32^4), so no call can exhaust memory."""
@@ -72,8 +85,8 @@ class ContactResponse:
     """Steps after the last contact step until back on the baseline for good; None if never."""
     new_steady_steps: int | None
     """When not back on the baseline: steps until a new fixed point for good; else None."""
-    peak_deviation: float
-    """Largest |motor - baseline| over the trace (max over both wheels)."""
+    peak_deviation_mm_per_step: float
+    """Largest |wheel travel - baseline| over the trace (max over both wheels)."""
     motors: tuple[tuple[float, ...], ...]
     """Motor commands for steps -PRE .. duration - 1 + max_steps relative to the onset."""
 
@@ -85,7 +98,12 @@ class Analysis:
     sha256: str
     spec: dict[str, Any]
     history: int
-    settle_tol: float
+    full_speed_mm_per_step: float
+    """Wheel travel per step at command 1 (max_speed * dt): converts commands to mm per step."""
+    tolerance_mm_per_step: float
+    """Settling and baseline tolerance (max over both wheels)."""
+    resolution_mm_per_step: float
+    """Cell size of the distinct-response count."""
     max_steps: int
     warmup: int
     baseline: Baseline
@@ -94,14 +112,14 @@ class Analysis:
     trace_start: int
     """Step of the first trace entry relative to the contact onset (-PRE)."""
     contacts: tuple[ContactResponse, ...]
-    max_settle: int | None
+    max_settle_steps: int | None
     """Largest settle_steps over single-step single-input contacts; None if one never settles."""
     distinct: tuple[int, ...]
-    """Distinct motor responses to all histories of length k = 1..history."""
+    """Distinct responses (cells of resolution_mm_per_step) to all histories of k = 1..history."""
     reactive_bound: int
     """2^inputs: the most responses a controller without memory can give for any k."""
     memory: int
-    """Fewest last steps of whisker history that determine the response (<= history)."""
+    """Fewest last steps of whisker history that determine the response cell (<= history)."""
     memory_saturated: bool
     """memory == history: the controller may remember further back than was tested."""
 
@@ -121,6 +139,11 @@ def _listed(obj: Any) -> Any:
 
 def _rows(a: np.ndarray) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(x) for x in row) for row in a)
+
+
+def mm_per_step(world: World = DEFAULT_WORLD) -> float:
+    """Wheel travel in mm per control step at command 1 (30 in the default world)."""
+    return 1e3 * world.max_speed * world.dt
 
 
 def _run(spec: NetworkSpec, w: np.ndarray, state: np.ndarray, inputs: np.ndarray) -> np.ndarray:
@@ -183,8 +206,12 @@ def _contacts(
     baseline: Baseline,
     tol: float,
     horizon: int,
+    mm: float,
 ) -> tuple[tuple[ContactResponse, ...], np.ndarray]:
-    """Every contact experiment in one batch, and the zero-input reference trace."""
+    """Every contact experiment in one batch, and the zero-input reference trace.
+
+    `tol` is in command units; `mm` converts a command to mm per step for the peak deviation.
+    """
     n = spec.inputs
     patterns: list[tuple[str, tuple[int, ...]]] = [(f"whisker {i}", (i,)) for i in range(n)]
     if n > 1:
@@ -221,7 +248,8 @@ def _contacts(
                 duration=d,
                 settle_steps=settle,
                 new_steady_steps=new_steady,
-                peak_deviation=float(np.abs(shown - control[: shown.shape[0]]).max()),
+                peak_deviation_mm_per_step=mm
+                * float(np.abs(shown - control[: shown.shape[0]]).max()),
                 motors=_rows(shown),
             )
         )
@@ -239,8 +267,10 @@ def _histories(n: int, k: int) -> np.ndarray:
     return bits.astype(np.float64)
 
 
-def _keys(motors: np.ndarray) -> np.ndarray:
-    return np.rint(motors / ROUND).astype(np.int64)
+def _keys(motors: np.ndarray, cell: float) -> np.ndarray:
+    """Cell index per wheel: [k cell, (k + 1) cell) is cell k, so a cell of an integer multiple
+    of `cell` is a union of these and the distinct count can only fall as cells grow."""
+    return np.floor(motors / cell).astype(np.int64)
 
 
 def _memory(keys: np.ndarray, n: int, history: int) -> int:
@@ -255,15 +285,21 @@ def _memory(keys: np.ndarray, n: int, history: int) -> int:
 
 
 def distinct_responses(
-    spec: NetworkSpec, weights: np.ndarray, state: np.ndarray, history: int
+    spec: NetworkSpec, weights: np.ndarray, state: np.ndarray, history: int, cell: float
 ) -> tuple[tuple[int, ...], int]:
-    """Distinct rounded motor responses for k = 1..history from `state` (1, size), and memory."""
+    """Distinct response cells for k = 1..history from `state` (1, size), and memory.
+
+    `cell` is the cell size in command units (> 0): the last step's commands of every history
+    are binned per wheel and the occupied cells counted.
+    """
+    if not (np.isfinite(cell) and cell > 0):
+        raise ValueError(f"cell must be finite and > 0, got {cell}")
     counts = []
     keys = np.empty((0, spec.outputs), dtype=np.int64)
     for k in range(1, history + 1):
         seqs = _histories(spec.inputs, k)
         states = np.repeat(state, seqs.shape[1], axis=0)
-        keys = _keys(_run(spec, weights, states, seqs)[-1])
+        keys = _keys(_run(spec, weights, states, seqs)[-1], cell)
         counts.append(int(np.unique(keys, axis=0).shape[0]))
     return tuple(counts), _memory(keys, spec.inputs, history)
 
@@ -272,11 +308,17 @@ def analyze(
     doc: ControllerDocument,
     *,
     history: int = 3,
-    settle_tol: float = 1e-3,
+    tolerance_mm: float = TOLERANCE_MM,
+    resolution_mm: float = RESOLUTION_MM,
     max_steps: int = 50,
     warmup: int = WARMUP,
+    world: World | None = None,
 ) -> Analysis:
-    """Baseline, contact settling times and distinct responses of one controller."""
+    """Baseline, contact settling times and distinct responses of one controller.
+
+    `tolerance_mm` and `resolution_mm` are wheel travel in mm per step in `world`: by default
+    the world the document says it was evolved in, else `evorobotics.sim.DEFAULT_WORLD`.
+    """
     spec = doc.spec
     if history < 1:
         raise ValueError(f"history must be >= 1, got {history}")
@@ -285,33 +327,80 @@ def analyze(
             f"history {history} with {spec.inputs} inputs means {(2**spec.inputs) ** history} "
             f"sequences; the limit is {MAX_SEQUENCES}"
         )
-    if not (np.isfinite(settle_tol) and settle_tol >= 0):
-        raise ValueError(f"settle_tol must be finite and >= 0, got {settle_tol}")
+    if not (np.isfinite(tolerance_mm) and tolerance_mm >= 0):
+        raise ValueError(f"tolerance_mm must be finite and >= 0, got {tolerance_mm}")
+    if not (np.isfinite(resolution_mm) and resolution_mm > 0):
+        raise ValueError(f"resolution_mm must be finite and > 0, got {resolution_mm}")
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
     if warmup < 4:
         raise ValueError(f"warmup must be >= 4, got {warmup}")
+    mm = mm_per_step(world or doc.world or DEFAULT_WORLD)
+    tol = tolerance_mm / mm
     w = np.ascontiguousarray(doc.weights, dtype=np.float64)
     warm_motors, state = _after_state(spec, w, reset(spec, 1), warmup)
-    baseline = classify_baseline(warm_motors, settle_tol)
-    contacts, reference = _contacts(spec, w, state, baseline, settle_tol, max_steps)
+    baseline = classify_baseline(warm_motors, tol)
+    contacts, reference = _contacts(spec, w, state, baseline, tol, max_steps, mm)
     singles = [c.settle_steps for c in contacts if c.duration == 1 and len(c.inputs) == 1]
     max_settle = None if any(s is None for s in singles) else max(s or 0 for s in singles)
-    distinct, memory = distinct_responses(spec, w, state, history)
+    distinct, memory = distinct_responses(spec, w, state, history, resolution_mm / mm)
     return Analysis(
         sha256=doc.sha256,
         spec=spec.model_dump(mode="json"),
         history=history,
-        settle_tol=float(settle_tol),
+        full_speed_mm_per_step=mm,
+        tolerance_mm_per_step=float(tolerance_mm),
+        resolution_mm_per_step=float(resolution_mm),
         max_steps=max_steps,
         warmup=warmup,
         baseline=baseline,
         reference=_rows(reference),
         trace_start=-PRE,
         contacts=contacts,
-        max_settle=max_settle,
+        max_settle_steps=max_settle,
         distinct=distinct,
         reactive_bound=2**spec.inputs,
         memory=memory,
         memory_saturated=memory == history,
     )
+
+
+@dataclass(frozen=True)
+class Encounter:
+    """Steps of one wall encounter in a recorded trial (indices into its whiskers/motors)."""
+
+    start: int
+    """First step shown: up to `lead` steps before the onset."""
+    onset: int
+    """First step with a whisker touching, after at least one step with none."""
+    release: int
+    """First step after the onset with no whisker touching."""
+    stop: int
+    """One past the last step shown: `after` steps past the release, or the trial's end."""
+    backward: tuple[int, ...]
+    """Steps in start..stop-1 whose mean wheel command is < 0 (the robot reverses)."""
+
+
+def wall_encounter(
+    whiskers: np.ndarray, motors: np.ndarray, *, lead: int = 4, after: int = 8
+) -> Encounter | None:
+    """The first wall encounter with a backward move in a recorded trial, else the first one.
+
+    `whiskers` (steps, n) bits and `motors` (steps, 2) commands of one robot
+    (`record_path`). None when no whisker ever touches after a free step.
+    """
+    touch = np.asarray(np.asarray(whiskers).reshape(len(whiskers), -1).any(axis=1))
+    back = np.asarray(np.asarray(motors).mean(axis=1) < 0)
+    if touch.shape != back.shape:
+        raise ValueError(f"whiskers and motors differ in steps: {touch.shape} vs {back.shape}")
+    n = touch.shape[0]
+    found: list[Encounter] = []
+    for onset in np.flatnonzero(touch[1:] & ~touch[:-1]) + 1:
+        free = np.flatnonzero(~touch[onset:])
+        release = n if free.size == 0 else int(onset + free[0])
+        start, stop = max(0, int(onset) - lead), min(n, release + after)
+        steps = tuple(int(k) for k in np.flatnonzero(back[start:stop]) + start)
+        found.append(Encounter(start, int(onset), release, stop, steps))
+        if any(k >= onset for k in steps):
+            return found[-1]
+    return found[0] if found else None

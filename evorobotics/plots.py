@@ -24,9 +24,9 @@ from evorobotics.evaluate import record_path, start_poses
 from evorobotics.evolution import GenerationSummary
 from evorobotics.layout import layout
 from evorobotics.maze import load_maze
-from evorobotics.sim import WorldParams
 from schemas.network import NetworkSpec
 from schemas.run import RunConfig
+from schemas.world import World
 
 PNG_METADATA: dict[str, Any] = {"Software": None}
 """Drop matplotlib's version stamp so a PNG depends on its data only."""
@@ -82,6 +82,21 @@ def network_plot(spec: NetworkSpec, weights: np.ndarray, path: Path) -> None:
     bending more with the lag, recurrent ones (s >= 1) red arcs back from deeper layers or
     loops on the same layer. Biases are the grey node under each source column.
     """
+    fig, ax = plt.subplots(figsize=(2.0 + 1.6 * len(spec.sizes), 5))
+    draw_network(ax, spec, weights)
+    ax.set_title(
+        f"{layout(spec).n_weights} weights, T={spec.delays}, S={spec.recurrence} (width ~ |w|)",
+        pad=22,
+    )
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def draw_network(
+    ax: Any, spec: NetworkSpec, weights: np.ndarray, scale: float | None = None
+) -> None:
+    """`network_plot`'s drawing on one axes; line width 0.1 + 3 |w| / `scale` (default max |w|),
+    so panels given the same scale compare weight sizes."""
     lay = layout(spec)
     w = np.asarray(weights, dtype=np.float64)
     if w.shape != (lay.n_weights,):
@@ -95,7 +110,8 @@ def network_plot(spec: NetworkSpec, weights: np.ndarray, path: Path) -> None:
     def bias_pos(layer: int) -> np.ndarray:
         return np.asarray(pos(layer, 0) - [0.0, 1.0 / max(max(sizes) - 1, 1) + 0.05])
 
-    scale = float(np.max(np.abs(w))) or 1.0
+    if scale is None:
+        scale = float(np.max(np.abs(w))) or 1.0
     segments: list[np.ndarray] = []
     widths: list[float] = []
     colours: list[str] = []
@@ -118,7 +134,6 @@ def network_plot(spec: NetworkSpec, weights: np.ndarray, path: Path) -> None:
                 segments.append(_curve(src, dst, bend))
                 widths.append(0.1 + 3.0 * abs(value) / scale)
                 colours.append(KIND_COLOURS[kind])
-    fig, ax = plt.subplots(figsize=(2.0 + 1.6 * len(sizes), 5))
     ax.add_collection(LineCollection(segments, linewidths=widths, colors=colours, alpha=0.7))
     for layer, n in enumerate(sizes):
         xy = np.array([pos(layer, k) for k in range(n)])
@@ -140,11 +155,6 @@ def network_plot(spec: NetworkSpec, weights: np.ndarray, path: Path) -> None:
         frameon=False,
         fontsize=8,
     )
-    ax.set_title(
-        f"{lay.n_weights} weights, T={spec.delays}, S={spec.recurrence} (width ~ |w|)", pad=22
-    )
-    fig.tight_layout()
-    _save(fig, path)
 
 
 def _body_outline(pose: np.ndarray, length: float, width: float) -> np.ndarray:
@@ -166,7 +176,7 @@ def paths_plot(
     generation, so evolution never saw them. Dotted path, start dot, final body outline.
     """
     maze = load_maze(config.maze)
-    params = WorldParams()
+    params = World()
     starts = start_poses(maze, config.seed, config.generations, PATH_TRIALS)
     rows, cols = maze.grid.shape
     extent = (0.0, cols * maze.cell_size, 0.0, rows * maze.cell_size)
@@ -188,6 +198,13 @@ def paths_plot(
         ax.set_xticks([])
         ax.set_yticks([])
     score = "n/a" if best.fitness is None else f"{best.fitness:.3f}"
-    fig.suptitle(f"best controller, {steps} steps from unseen start poses (fitness {score})")
+    title = f"champion, {steps} steps from unseen start poses: training fitness {score}"
+    if best.validation is not None:
+        v = best.validation
+        title += (
+            f"\nvalidation ({v.poses} poses x {v.steps} steps): score {v.score:.3f}, "
+            f"stuck {v.stuck:.0%}, roaming {v.roaming:.0%}"
+        )
+    fig.suptitle(title)
     fig.tight_layout()
     _save(fig, path)

@@ -15,11 +15,20 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from colony.cli import app
-from evorobotics.analysis import PRE, analyze, classify_baseline
+from evorobotics.analysis import (
+    PRE,
+    RESOLUTION_MM,
+    TOLERANCE_MM,
+    analyze,
+    classify_baseline,
+    mm_per_step,
+    wall_encounter,
+)
 from evorobotics.document import ControllerDocument
 from evorobotics.layout import layout
 from evorobotics.seeds import Purpose, rng
 from schemas.network import PRESETS, NetworkSpec
+from schemas.world import World
 
 FAST = settings(max_examples=8, deadline=None)
 
@@ -52,7 +61,7 @@ def test_reactive_settles_in_one_step_with_at_most_32_responses(seed: int, scale
     a = analyze(random_doc(PRESETS["reactive"], seed, scale), history=3, warmup=8)
     assert a.baseline.kind == "fixed"
     for c in a.contacts:
-        touched = c.peak_deviation > a.settle_tol
+        touched = c.peak_deviation_mm_per_step > a.tolerance_mm_per_step
         assert c.settle_steps == (1 if touched else 0), c
     assert all(n <= 32 for n in a.distinct)
     assert a.distinct[0] == a.distinct[1] == a.distinct[2]
@@ -77,7 +86,7 @@ def test_delayed_net_is_a_finite_impulse_response(which: int, seed: int, scale: 
     steps, even with zero tolerance."""
     spec = FIR_SPECS[which]
     bound = spec.layers * spec.delays + 1
-    a = analyze(random_doc(spec, seed, scale), history=1, settle_tol=0.0, max_steps=12)
+    a = analyze(random_doc(spec, seed, scale), history=1, tolerance_mm=0.0, max_steps=12)
     assert a.baseline.kind == "fixed" and a.baseline.period == 1
     for c in a.contacts:
         assert c.settle_steps is not None and c.settle_steps <= bound, c
@@ -86,13 +95,13 @@ def test_delayed_net_is_a_finite_impulse_response(which: int, seed: int, scale: 
         tail = np.asarray(c.motors)[end + c.settle_steps :]
         ref = np.asarray(a.reference)[end + c.settle_steps : end + c.settle_steps + len(tail)]
         assert np.array_equal(tail, ref)
-    assert a.max_settle is not None and a.max_settle <= bound
+    assert a.max_settle_steps is not None and a.max_settle_steps <= bound
 
 
 @FAST
 @given(seed=st.integers(0, 2**31))
 def test_delayed_net_gives_more_than_32_responses(seed: int) -> None:
-    a = analyze(random_doc(PRESETS["paper-best"], seed), history=2, warmup=8)
+    a = analyze(random_doc(PRESETS["paper-best"], seed), history=2, warmup=8, resolution_mm=1e-6)
     assert a.distinct[0] <= 32 < a.distinct[1] <= 1024
     assert a.memory == 2 and a.memory_saturated
 
@@ -105,13 +114,22 @@ def test_oscillating_recurrent_net_never_settles_and_reports_it() -> None:
             assert c.settle_steps is None and c.new_steady_steps is None, c
         else:  # y = u, then -u + u = 0 at the last contact step: already back
             assert c.settle_steps == 0, c
-    assert a.max_settle is None
+    assert a.max_settle_steps is None
     json.dumps(a.to_dict(), allow_nan=False)  # the dashboard can still show it
 
 
 def test_integrating_recurrent_net_latches_on_a_new_steady_state() -> None:
     gains = (0.01, 0.02, 0.04, 0.08, 0.16)  # y sums distinct multiples of 0.01, unclipped
-    a = analyze(loop_doc(1.0, gains=gains), history=2, max_steps=5, warmup=8)
+    # cells of 0.067 mm per step = 0.00223 command: each multiple of 0.01 up to 0.63 in its own
+    # cell and at least 1.5 % of a cell from its edges (float sums never straddle one)
+    a = analyze(
+        loop_doc(1.0, gains=gains),
+        history=2,
+        max_steps=5,
+        warmup=8,
+        tolerance_mm=0.03,
+        resolution_mm=0.067,
+    )
     for c in a.contacts:
         assert c.settle_steps is None
         assert c.new_steady_steps == 0  # from the last contact step on, y holds its new value
@@ -150,9 +168,104 @@ def test_trace_geometry_and_determinism() -> None:
     assert {c.label for c in a.contacts} == {*(f"whisker {i}" for i in range(5)), "all"}
 
 
+def test_default_tolerances_are_wheel_travel_of_the_default_world() -> None:
+    assert mm_per_step() == pytest.approx(30.0)  # 0.3 m/s * 0.1 s
+    a = analyze(random_doc(PRESETS["reactive"], 0), history=1, warmup=8)
+    assert (a.tolerance_mm_per_step, a.resolution_mm_per_step) == (TOLERANCE_MM, RESOLUTION_MM)
+    assert a.full_speed_mm_per_step == pytest.approx(30.0)
+
+
+@pytest.mark.parametrize(
+    ("tolerance_mm", "max_speed", "settle"),
+    # deviation after the last contact step j: 0.5 * 0.5^j commands = 15 * 0.5^j mm per step
+    [(2.0, 0.3, 3), (4.0, 0.3, 2), (1.0, 0.3, 4), (16.0, 0.3, 0), (2.0, 0.6, 4)],
+)
+def test_decaying_loop_settles_when_its_travel_is_within_tolerance(
+    tolerance_mm: float, max_speed: float, settle: int
+) -> None:
+    """y(k) = 0.5 y(k-1) + 0.5 whiskers: a one-step contact leaves 0.5^(j+1) of a command j
+    steps later, so the settling time follows from the tolerance in mm (and the world's speed)."""
+    doc = loop_doc(0.5)
+    world = World(max_speed=max_speed)
+    a = analyze(doc, history=1, max_steps=10, warmup=8, tolerance_mm=tolerance_mm, world=world)
+    singles = [c for c in a.contacts if c.duration == 1 and len(c.inputs) == 1]
+    assert {c.settle_steps for c in singles} == {settle}
+    assert a.max_settle_steps == settle
+    assert singles[0].peak_deviation_mm_per_step == pytest.approx(1e3 * max_speed * 0.1 * 0.5)
+    # a document that names its world is measured in it by default
+    evolved_in = ControllerDocument(doc.spec, doc.weights, world=world)
+    b = analyze(evolved_in, history=1, max_steps=10, warmup=8, tolerance_mm=tolerance_mm)
+    assert b.max_settle_steps == settle
+
+
+@FAST
+@given(
+    which=st.sampled_from(range(len(FIR_SPECS))),
+    seed=st.integers(0, 2**31),
+    tols=st.lists(st.floats(0.0, 40.0), min_size=2, max_size=2).map(sorted),
+)
+def test_a_tighter_tolerance_never_settles_sooner(which: int, seed: int, tols: list[float]) -> None:
+    doc = random_doc(FIR_SPECS[which], seed)
+    tight, loose = (analyze(doc, history=1, max_steps=8, tolerance_mm=t) for t in tols)
+    for t, lo in zip(tight.contacts, loose.contacts, strict=True):
+        assert t.settle_steps is not None and lo.settle_steps is not None  # FIR: always settles
+        assert t.settle_steps >= lo.settle_steps, (t.label, t.duration, tols)
+    assert (tight.max_settle_steps or 0) >= (loose.max_settle_steps or 0)
+
+
+@FAST
+@given(
+    spec=st.sampled_from([PRESETS["paper-best"], PRESETS["recurrent-small"]]),
+    seed=st.integers(0, 2**31),
+    resolution_mm=st.floats(1e-3, 10.0),
+    factor=st.integers(2, 7),
+)
+def test_coarser_cells_never_count_more_responses(
+    spec: NetworkSpec, seed: int, resolution_mm: float, factor: int
+) -> None:
+    """A cell `factor` times larger is a union of finer cells: counts and memory can only fall."""
+    doc = random_doc(spec, seed)
+    fine = analyze(doc, history=2, max_steps=4, warmup=8, resolution_mm=resolution_mm)
+    coarse = analyze(doc, history=2, max_steps=4, warmup=8, resolution_mm=factor * resolution_mm)
+    assert all(c <= f for c, f in zip(coarse.distinct, fine.distinct, strict=True))
+    assert coarse.memory <= fine.memory
+    # wheel travel spans 60 mm per step (-30..30): a 100 mm cell leaves at most 2 per wheel
+    huge = analyze(doc, history=2, max_steps=4, warmup=8, resolution_mm=100.0)
+    assert all(n <= 4 for n in huge.distinct)
+
+
+def test_wall_encounter_prefers_one_with_a_backward_move() -> None:
+    touch = np.zeros((30, 5), dtype=np.uint8)
+    motors = np.full((30, 2), 0.5)
+    touch[5:7, 2] = 1  # first encounter: onset 5, forward only
+    touch[15:18, 0] = 1  # second: onset 15, reverses at 16
+    motors[16] = (-0.6, -0.2)
+    motors[3] = (-1.0, 0.0)  # a backward move before the first onset does not count
+    enc = wall_encounter(touch, motors, lead=3, after=4)
+    assert enc is not None
+    assert (enc.start, enc.onset, enc.release, enc.stop, enc.backward) == (12, 15, 18, 22, (16,))
+    motors[16] = 0.5
+    first = wall_encounter(touch, motors, lead=3, after=4)
+    assert first is not None and (first.onset, first.release, first.backward) == (5, 7, (3,))
+    assert wall_encounter(np.zeros((30, 5)), motors) is None
+    always = np.ones((30, 5))  # touching from the first step: no onset after a free step
+    assert wall_encounter(always, motors) is None
+    with pytest.raises(ValueError):
+        wall_encounter(touch, motors[:-1])
+
+
 @pytest.mark.parametrize(
     "kwargs",
-    [{"history": 0}, {"history": 5}, {"settle_tol": -1.0}, {"max_steps": 0}, {"warmup": 3}],
+    [
+        {"history": 0},
+        {"history": 5},
+        {"tolerance_mm": -1.0},
+        {"tolerance_mm": float("nan")},
+        {"resolution_mm": 0.0},
+        {"resolution_mm": float("inf")},
+        {"max_steps": 0},
+        {"warmup": 3},
+    ],
 )
 def test_bad_arguments_raise_value_error(kwargs: dict[str, float]) -> None:
     with pytest.raises(ValueError):
@@ -167,20 +280,46 @@ def controller_file(tmp_path: Path) -> tuple[Path, ControllerDocument]:
     return path, doc
 
 
-def test_cli_writes_png_and_json(controller_file: tuple[Path, ControllerDocument]) -> None:
+def test_cli_writes_json_and_deterministic_figures(
+    controller_file: tuple[Path, ControllerDocument],
+) -> None:
     path, doc = controller_file
-    out = path.parent / "analysis"
-    result = CliRunner().invoke(
-        app,
-        ["analyze", str(path), "--history", "2", "--max-steps", "8", "--json", "--out", str(out)],
-    )
-    assert result.exit_code == 0, result.output
-    printed = json.loads(result.stdout)
-    assert printed["sha256"] == doc.sha256 and printed["max_settle"] == 5
-    assert json.loads((out / "analysis.json").read_text()) == printed
-    assert (out / "responses.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    args = ["analyze", str(path), "--history", "2", "--max-steps", "8", "--json"]
+    first = CliRunner().invoke(app, [*args, "--out", str(path.parent / "a")])
+    assert first.exit_code == 0, first.output
+    printed = json.loads(first.stdout)
+    assert printed == analyze(doc, history=2, max_steps=8).to_dict()
+    assert printed["tolerance_mm_per_step"] == TOLERANCE_MM
+    assert printed["resolution_mm_per_step"] == RESOLUTION_MM
+    assert json.loads((path.parent / "a" / "analysis.json").read_text()) == printed
+    again = CliRunner().invoke(app, [*args, "--out", str(path.parent / "b")])
+    assert again.exit_code == 0, again.output
+    for name in ("responses.png", "network.png", "encounter.png"):
+        png = (path.parent / "a" / name).read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n", name
+        assert png == (path.parent / "b" / name).read_bytes(), name
     table = CliRunner().invoke(app, ["analyze", str(path), "--history", "1"])
     assert table.exit_code == 0 and "distinct motor responses" in table.stdout
+    assert "mm per step" in table.stdout
+
+
+def test_cli_skips_the_encounter_of_a_robot_that_never_moves(tmp_path: Path) -> None:
+    """Zero weights: sigmoid outputs 0.5, wheel commands 0, so no whisker ever touches."""
+    spec = PRESETS["paper-best"]
+    path = tmp_path / "still.json"
+    path.write_text(ControllerDocument(spec, np.zeros(spec.weight_count)).to_json())
+    result = CliRunner().invoke(
+        app, ["analyze", str(path), "--history", "1", "--out", str(tmp_path / "out")]
+    )
+    assert result.exit_code == 0, result.output
+    assert "no encounter.png: no wall encounter" in result.stderr
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "analysis.json",
+        "network.png",
+        "responses.png",
+    ]
+    bad = CliRunner().invoke(app, ["analyze", str(path), "--out", str(tmp_path), "--maze", "x"])
+    assert bad.exit_code == 2 and "--maze" in bad.output
 
 
 @pytest.fixture
@@ -230,6 +369,8 @@ def test_cli_rejects_bad_sources(controller_file: tuple[Path, ControllerDocument
         [str(path), "--server", "http://127.0.0.1:9", "--run", "1"],
         ["--server", "http://127.0.0.1:9"],
         [str(path.parent / "nope.json")],
+        [str(path), "--tolerance-mm", "-1"],
+        [str(path), "--resolution-mm", "0"],
     ):
         result = CliRunner().invoke(app, ["analyze", *args])
         assert result.exit_code == 2, (args, result.output)
