@@ -7,6 +7,7 @@ import typer
 from colony.agent_cli import register as register_agent_commands
 from colony.analyze_cli import analyze_command
 from colony.demo import demo_command
+from colony.evaluate_cli import evaluate_command
 from colony.evolve import evolve_command
 from colony.server_cli import register as register_server_commands
 from colony.worker_cli import worker_command
@@ -39,6 +40,7 @@ register_server_commands(app)
 app.command(name="worker")(worker_command)
 register_agent_commands(app)
 app.command(name="analyze")(analyze_command)
+app.command(name="evaluate")(evaluate_command)
 
 
 def main() -> None:

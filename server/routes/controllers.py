@@ -1,15 +1,28 @@
-"""/api/controllers: controller documents by sha256, with their field performance."""
+"""/api/controllers: controller documents by sha256, their field performance and exploration."""
 
 from __future__ import annotations
 
 import json
+from functools import lru_cache
+from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Request, Response
+from fastapi import APIRouter, HTTPException, Query, Request, Response
 
+from evorobotics.document import ControllerDocument
+from evorobotics.errors import EvoError
+from evorobotics.explore import explore
+from evorobotics.maze import load_maze, maze_names
 from server import crud
-from server.deps import SessionDep
+from server.deps import ManagerDep, SessionDep
 
 router = APIRouter(prefix="/api/controllers", tags=["controllers"])
+
+MAX_EVALUATION_POSES = 1000
+MAX_EVALUATION_STEPS = 2000
+MAX_EVALUATION_ROBOT_STEPS = 1_000_000
+"""poses x steps of one evaluation request: about 1 s of one core (docs/api.md)."""
+EVALUATION_CACHE = 8
+"""Evaluations kept, keyed by (document, parameters): a dashboard re-asking costs nothing."""
 
 
 @router.get(
@@ -35,3 +48,71 @@ def get_controller(request: Request, session: SessionDep, sha256: str) -> Respon
         content=json.dumps(body, sort_keys=True, separators=(",", ":")),
         media_type="application/json",
     )
+
+
+@router.get(
+    "/{sha256}/evaluation",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"application/json": {}},
+            "description": "the controller's exploration report (evorobotics.explore, "
+            "docs/explore.md) plus its `sha256`",
+        }
+    },
+)
+def get_evaluation(
+    manager: ManagerDep,
+    sha256: str,
+    poses: Annotated[int, Query(ge=1, le=MAX_EVALUATION_POSES)] = 1000,
+    steps: Annotated[int, Query(ge=1, le=MAX_EVALUATION_STEPS)] = 1000,
+    maze: Annotated[str, Query(min_length=1, max_length=4096)] = "paper",
+    seed: Annotated[int, Query(ge=0, lt=2**63)] = 0,
+    reality_gap: bool = False,
+) -> Response:
+    """CPU-bound (up to about 1 s): a sync route, so it runs in the threadpool."""
+    with manager.sessions() as session:  # closed before the computation, not held through it
+        row = crud.get_controller(session, sha256=sha256)
+        document = None if row is None else row.document
+    if document is None:
+        raise HTTPException(404, detail=f"no controller with sha256 {sha256}")
+    if poses * steps > MAX_EVALUATION_ROBOT_STEPS:
+        raise HTTPException(
+            422,
+            detail=f"poses x steps: {poses} x {steps} = {poses * steps} exceeds the limit of "
+            f"{MAX_EVALUATION_ROBOT_STEPS} robot steps",
+        )
+    # a bare path would read a file on the server
+    if "\n" not in maze and not maze.startswith("gen:") and maze not in maze_names():
+        raise HTTPException(
+            422, detail=f"maze: {maze!r} is not a shipped maze, gen:SIZE:SEED or maze text"
+        )
+    try:
+        load_maze(maze)
+    except (EvoError, ValueError) as exc:
+        raise HTTPException(422, detail=f"maze: {exc}") from None
+    try:
+        body = _evaluation(document, poses, steps, maze, seed, reality_gap)
+    except (EvoError, ValueError) as exc:
+        raise HTTPException(422, detail=str(exc)) from None
+    return Response(content=body, media_type="application/json")
+
+
+@lru_cache(maxsize=EVALUATION_CACHE)
+def _evaluation(
+    document: str, poses: int, steps: int, maze: str, seed: int, reality_gap: bool
+) -> str:
+    """The report's JSON; pure in its arguments (the stored document text included)."""
+    doc = ControllerDocument.from_json(document)
+    report = explore(
+        doc.spec,
+        doc.weights,
+        poses=poses,
+        steps=steps,
+        maze=maze,
+        seed=seed,
+        reality_gap=reality_gap,
+        world=doc.world,
+    )
+    body = {**report.as_dict(), "sha256": doc.sha256}
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)

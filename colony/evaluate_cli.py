@@ -1,0 +1,160 @@
+"""`colony evaluate`: does a controller explore? Its exploration report (docs/explore.md).
+
+The controller comes from a document file, or from a server's REST API (docs/api.md):
+`--server URL --run ID` (the run's best) or `--server URL --sha SHA256`. It runs in the
+document's `world` when the document has one (a run's champion), else in the default World.
+Prints a rich table or `--json`; bad input is one line `colony evaluate: ...` and exit code 2.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from colony.analyze_cli import fetch_document
+from evorobotics.document import ControllerDocument
+from evorobotics.errors import ControllerDocumentError, EvoError
+from evorobotics.explore import COVERAGE_CELL, MAX_ROBOT_STEPS, PAPER_TRIAL, Exploration, explore
+from evorobotics.maze import load_maze
+
+
+def _fail(message: str) -> typer.Exit:
+    typer.echo(f"colony evaluate: {message}", err=True)
+    return typer.Exit(code=2)
+
+
+def _load(
+    controller: Path | None, server: str | None, run: int | None, sha: str | None
+) -> ControllerDocument:
+    if controller is not None:
+        if server is not None or run is not None or sha is not None:
+            raise _fail("give CONTROLLER or --server with --run/--sha, not both")
+        try:
+            return ControllerDocument.from_json(controller.read_bytes())
+        except (OSError, ControllerDocumentError) as exc:
+            raise _fail(f"{controller}: {exc}") from None
+    if server is None or (run is None) == (sha is None):
+        raise _fail("give a CONTROLLER file, or --server URL with exactly one of --run, --sha")
+    try:
+        return fetch_document(server, run=run, sha=sha)
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
+
+
+def report_dict(doc: ControllerDocument, e: Exploration) -> dict[str, Any]:
+    """The JSON of `colony evaluate --json`: units in the keys, the document's own scores beside."""
+    return {
+        "controller": doc.sha256,
+        "world": "document" if doc.world is not None else "default",
+        "maze": e.maze,
+        "poses": e.poses,
+        "steps": e.steps,
+        "seed": e.seed,
+        "reality_gap": e.reality_gap,
+        "stuck_fraction_by_step": {str(h): v for h, v in e.stuck.items()},
+        "confined_fraction": e.confined,
+        "roaming_fraction": e.roaming,
+        "mean_max_offset_m_by_step": {str(h): v for h, v in e.max_offset.items()},
+        "mean_coverage_cells": e.coverage,
+        "coverage_cell_m": COVERAGE_CELL,
+        "mean_fitness_40_steps": e.fitness_40,
+        "training_fitness": doc.fitness,
+        "validation": None if doc.validation is None else doc.validation.model_dump(mode="json"),
+    }
+
+
+def _percent(x: float) -> str:
+    return f"{100.0 * x:.1f} %"
+
+
+def print_table(doc: ControllerDocument, e: Exploration) -> None:
+    """One row per measure, then the document's training fitness and validation, labelled."""
+    console = Console()
+    world = "the document's world" if doc.world is not None else "the default World"
+    gap = ", reality gap" if e.reality_gap else ""
+    console.print(
+        f"controller {doc.sha256[:12]} in maze {e.maze!r}, {world}{gap}: {e.poses} unseen start "
+        f"poses (exploration stream, seed {e.seed}) x {e.steps} steps"
+    )
+    table = Table(title="exploration report")
+    table.add_column("measure")
+    table.add_column("value", justify="right")
+    for h, fraction in e.stuck.items():
+        table.add_row(f"stuck by step {h}", _percent(fraction))
+    table.add_row(f"confined (before sticking, over {e.steps} steps)", _percent(e.confined))
+    table.add_row(f"roaming (neither stuck nor confined, {e.steps} steps)", _percent(e.roaming))
+    for h, metres in e.max_offset.items():
+        table.add_row(f"mean max offset by step {h}", f"{metres:.3f} m")
+    table.add_row(f"mean coverage ({COVERAGE_CELL:g} m cells)", f"{e.coverage:.1f} cells")
+    table.add_row(f"mean Eq 12 fitness, first {PAPER_TRIAL} steps", f"{e.fitness_40:.3f}")
+    console.print(table)
+    trained = "none" if doc.fitness is None else f"{doc.fitness:.3f}"
+    console.print(f"training fitness (mean Eq 12 over its run's training trials): {trained}")
+    v = doc.validation
+    if v is None:
+        console.print("validation: none (not a run's validated champion)")
+    else:
+        console.print(
+            f"validation ({v.poses} poses x {v.steps} steps, run seed {v.seed}, "
+            f"{v.candidates} candidates, training rank {v.training_rank}): score {v.score:.3f}, "
+            f"stuck {_percent(v.stuck)}, roaming {_percent(v.roaming)}"
+        )
+
+
+def evaluate_command(
+    controller: Annotated[
+        Path | None, typer.Argument(help="controller document JSON (e.g. out/best.json)")
+    ] = None,
+    server: Annotated[str | None, typer.Option(help="server base URL")] = None,
+    run: Annotated[
+        int | None, typer.Option(help="evaluate this run's best (with --server)")
+    ] = None,
+    sha: Annotated[
+        str | None, typer.Option(help="evaluate the controller with this sha256 (with --server)")
+    ] = None,
+    poses: Annotated[int, typer.Option(help="unseen start poses, one trial each")] = 1000,
+    steps: Annotated[int, typer.Option(help="steps of each trial (H)")] = 1000,
+    maze: Annotated[str, typer.Option(help="shipped maze, gen:SIZE:SEED or a file")] = "paper",
+    seed: Annotated[int, typer.Option(help="seed of the exploration start poses")] = 0,
+    reality_gap: Annotated[
+        bool, typer.Option("--reality-gap", help="draw whisker ranges and motor gains per trial")
+    ] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="print the report as JSON")] = False,
+) -> None:
+    """Stuck, confined and roaming fractions, offsets, coverage and Eq 12 fitness over long runs.
+
+    Trials start from poses no training or validation trial uses (docs/explore.md).
+    """
+    if poses < 1 or steps < 1:
+        raise _fail(f"--poses and --steps must be >= 1, got {poses} and {steps}")
+    if poses * steps > MAX_ROBOT_STEPS:
+        raise _fail(f"--poses x --steps = {poses * steps} exceeds {MAX_ROBOT_STEPS} robot steps")
+    if seed < 0:
+        raise _fail(f"--seed must be >= 0, got {seed}")
+    doc = _load(controller, server, run, sha)
+    try:
+        load_maze(maze)
+    except (EvoError, OSError, ValueError) as exc:
+        raise _fail(f"--maze: {exc}") from None
+    try:
+        result = explore(
+            doc.spec,
+            doc.weights,
+            poses=poses,
+            steps=steps,
+            maze=maze,
+            seed=seed,
+            reality_gap=reality_gap,
+            world=doc.world,
+        )
+    except (EvoError, ValueError) as exc:
+        raise _fail(str(exc)) from None
+    if as_json:
+        typer.echo(json.dumps(report_dict(doc, result), allow_nan=False))
+    else:
+        print_table(doc, result)
