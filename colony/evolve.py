@@ -19,7 +19,9 @@ from typing import Annotated, Any
 import typer
 from pydantic import ValidationError
 
+from evorobotics.document import ControllerDocument
 from evorobotics.errors import EvoError
+from evorobotics.evaluate import trial_steps
 from evorobotics.evolution import EvolutionResult, GenerationSummary, evolve
 from evorobotics.maze import load_maze
 from schemas.network import PRESETS, NetworkSpec
@@ -99,6 +101,18 @@ def write_generations_csv(path: Path, history: tuple[GenerationSummary, ...]) ->
         writer.writerow(["generation", "best", "mean", "worst"])
         for h in history:
             writer.writerow([h.generation, repr(h.best), repr(h.mean), repr(h.worst)])
+
+
+def champion_summary(best: ControllerDocument) -> str:
+    """One line: training fitness, and the validation the champion was chosen on."""
+    training = "n/a" if best.fitness is None else f"{best.fitness:.4f}"
+    v = best.validation
+    if v is None:
+        return f"training fitness {training} (rank 0; validation off)"
+    return (
+        f"training fitness {training} (rank {v.training_rank}); validation on {v.poses} poses x "
+        f"{v.steps} steps: score {v.score:.4f}, stuck {v.stuck:.0%}, roaming {v.roaming:.0%}"
+    )
 
 
 def write_outputs(out: Path, config: RunConfig, result: EvolutionResult) -> list[Path]:
@@ -202,7 +216,7 @@ def evolve_command(
     spec = cfg.network_spec
     typer.echo(
         f"evolving: population {cfg.population}, {cfg.generations} generations, "
-        f"{cfg.trials} x {cfg.steps} steps, {spec.weight_count} weights, seed {cfg.seed}"
+        f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}"
     )
     started = time.perf_counter()
     with _progress(cfg.generations) as report:
@@ -210,7 +224,7 @@ def evolve_command(
     evolved = time.perf_counter() - started
     files = write_outputs(out, cfg, result)
     total = time.perf_counter() - started
-    typer.echo(f"best fitness {result.best.fitness} (controller {result.best.sha256[:12]})")
+    typer.echo(f"champion {result.best.sha256[:12]}: {champion_summary(result.best)}")
     typer.echo(f"wrote {', '.join(str(p) for p in files)}")
     typer.echo(
         f"wall time {total:.2f} s (evolution {evolved:.2f} s, files {total - evolved:.2f} s)"

@@ -198,24 +198,20 @@ def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluat
     return _trials(config, genomes, poses, gap, trial_steps(config))
 
 
-def validate(config: RunConfig, genomes: np.ndarray) -> Evaluation:
-    """Eq 12 of k genomes on the run's validation set (`config.validation`).
+def validation_set(config: RunConfig) -> tuple[np.ndarray, Gap | None]:
+    """The run's validation trials: (poses, 3) start poses and, with the gap on, their draws.
 
-    Its poses come from rng(seed, 0, Purpose.VALIDATION) and its reality-gap draws from
-    Purpose.VALIDATION_GAP: streams no training trial draws from, so a champion is chosen on
-    poses it was never trained on, and the same ones for every candidate.
+    Poses from rng(seed, 0, Purpose.VALIDATION), gap draws from Purpose.VALIDATION_GAP:
+    streams no training trial draws from, so a champion is chosen on poses it was never
+    trained on, the same ones for every candidate. Fresh writeable arrays.
     """
     v = config.validation
-    if v.poses < 1:
-        raise ValueError("validation is off (validation.poses = 0)")
     maze = load_maze(config.maze)
-    poses = start_poses(maze, config.seed, 0, v.poses, config.world, Purpose.VALIDATION)
-    gap = (
-        draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP)
-        if config.reality_gap
-        else None
-    )
-    return _trials(config, genomes, poses, gap, v.steps)
+    poses = start_poses(maze, config.seed, 0, v.poses, config.world, Purpose.VALIDATION).copy()
+    if not config.reality_gap:
+        return poses, None
+    drawn = draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP)
+    return poses, Gap(drawn.whisker_range.copy(), drawn.motor_gain.copy())
 
 
 def record_path(

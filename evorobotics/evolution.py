@@ -19,12 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evaluate import draw_gap, evaluate, start_poses, validate
-from evorobotics.explore import report
+from evorobotics.evaluate import evaluate, validation_set
+from evorobotics.explore import confined
+from evorobotics.fitness import mean_fitness
 from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from evorobotics.maze import load_maze
-from evorobotics.seeds import Purpose
 from evorobotics.sim import Gap, simulate
 from schemas.run import RunConfig, ValidationScore
 
@@ -99,6 +99,58 @@ def best_document(
     )
 
 
+@dataclass(frozen=True)
+class Validated:
+    """k candidates on the validation set: mean Eq 12, stuck and roaming fractions, each (k,)."""
+
+    score: np.ndarray
+    stuck: np.ndarray
+    roaming: np.ndarray
+
+
+VALIDATION_CHUNK_BYTES = 64 * 2**20
+"""Recorded validation trials are simulated in chunks of candidates of about this many bytes."""
+
+
+def validate(config: RunConfig, genomes: np.ndarray) -> Validated:
+    """Score k genomes (k, n_weights) on the run's validation set (`evaluate.validation_set`).
+
+    Each candidate runs every validation pose for `validation.steps` steps; a trial roams if
+    it neither sticks nor is confined (`explore.confined`), the measure of the paper's claim.
+    """
+    v = config.validation
+    if v.poses < 1:
+        raise ValueError("validation is off (validation.poses = 0)")
+    g = np.asarray(genomes, dtype=np.float64)
+    poses, gap = validation_set(config)
+    maze = load_maze(config.maze)
+    per_candidate = v.poses * (v.steps + 1) * 3 * 8
+    chunk = max(1, VALIDATION_CHUNK_BYTES // per_candidate)
+    score, stuck, roaming = (np.empty(len(g)) for _ in range(3))
+    for a in range(0, len(g), chunk):
+        rows = g[a : a + chunk]
+        k = len(rows)
+        result = simulate(
+            config.network_spec,
+            np.repeat(rows, v.poses, axis=0),
+            maze,
+            np.tile(poses, (k, 1)),
+            v.steps,
+            params=config.world,
+            gap=None
+            if gap is None
+            else Gap(np.tile(gap.whisker_range, k), np.tile(gap.motor_gain, (k, 1))),
+            record=True,
+        )
+        assert result.poses is not None
+        trials = (k, v.poses)
+        score[a : a + k] = mean_fitness(result.components.reshape(*trials, 4), config.fitness)
+        stuck[a : a + k] = result.stuck.reshape(trials).mean(axis=1)
+        free = ~confined(result.poses, result.stuck_step) & ~result.stuck
+        roaming[a : a + k] = free.reshape(trials).mean(axis=1)
+    return Validated(score, stuck, roaming)
+
+
 def champion(
     config: RunConfig,
     genomes: np.ndarray,
@@ -112,40 +164,22 @@ def champion(
 
     Training ranks a generation on a few short trials, so its rank 0 is partly luck (a
     winner's curse). The `config.validation.candidates` fittest on training are re-scored on
-    the run's validation set (`evaluate.validate`); the best mean Eq 12 there wins, ties to the
-    better training rank. Its document carries the score, the stuck fraction and the roaming
-    fraction of its validation trials. With validation off it is training rank 0.
+    the run's validation set (`validate`); the champion roams on the most validation trials,
+    ties to the higher mean Eq 12 there, then to the better training rank. Its document
+    carries those figures. With validation off it is training rank 0.
     """
     v = config.validation
-    trained = best_document(config, genomes, fitness, order, generation=generation, run=run)
     if v.poses == 0:
-        return trained
+        return best_document(config, genomes, fitness, order, generation=generation, run=run)
     candidates = np.asarray(order[: v.candidates])
     scored = validate(config, np.asarray(genomes)[candidates])
-    score = np.where(np.isfinite(scored.fitness), scored.fitness, -np.inf)
-    pick = int(np.argmax(score))  # first maximum: the better training rank
+    # lexicographic: roaming, then Eq 12, then training rank (lexsort's last key is primary)
+    pick = int(np.lexsort((np.arange(len(candidates)), -scored.score, -scored.roaming))[0])
     top = int(candidates[pick])
-    maze = load_maze(config.maze)
-    poses = start_poses(maze, config.seed, 0, v.poses, config.world, Purpose.VALIDATION)
-    weights = np.array(genomes[top], dtype=np.float64)
-    gap = None
-    if config.reality_gap:
-        drawn = draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP)
-        gap = Gap(drawn.whisker_range.copy(), drawn.motor_gain.copy())
-    recorded = simulate(
-        config.network_spec,
-        np.repeat(weights[None, :], v.poses, axis=0),
-        maze,
-        poses,
-        v.steps,
-        params=config.world,
-        gap=gap,
-        record=True,
-    )
     value = float(fitness[top])
     return ControllerDocument(
         spec=config.network_spec,
-        weights=weights,
+        weights=np.array(genomes[top], dtype=np.float64),
         fitness=value if np.isfinite(value) else None,
         provenance={"seed": config.seed, "generation": generation, "rank": pick, "run": run},
         validation=ValidationScore(
@@ -154,9 +188,9 @@ def champion(
             seed=config.seed,
             candidates=len(candidates),
             training_rank=pick,
-            score=float(scored.fitness[pick]),
-            stuck=float(np.mean(scored.components[pick, :, 3])),
-            roaming=float(report(recorded, config.fitness, v.steps)["roaming"]),
+            score=float(scored.score[pick]),
+            stuck=float(scored.stuck[pick]),
+            roaming=float(scored.roaming[pick]),
         ),
         world=config.world,
     )

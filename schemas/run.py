@@ -53,16 +53,17 @@ class GAConfig(BaseModel):
 
 
 class ValidationConfig(BaseModel):
-    """The end-of-run re-scoring that picks the champion (docs/evolve.md, "Validated champion").
+    """The end-of-run re-scoring that picks the champion (docs/evolve.md, "The champion").
 
     The final population's `candidates` fittest on training are re-scored on `poses` start poses
-    of their own seed stream (never a training pose) for `steps` steps each; the champion is the
-    best on that score. `poses = 0` turns validation off: the champion is training rank 0.
+    of their own seed stream (never a training pose) for `steps` steps each; the champion roams
+    (neither stuck nor confined) on the most of them, ties to the higher mean Eq 12.
+    `poses = 0` turns validation off: the champion is training rank 0.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    poses: int = Field(100, ge=0, le=10_000, description="validation start poses; 0: off")
+    poses: int = Field(50, ge=0, le=10_000, description="validation start poses; 0: off")
     steps: int = Field(400, ge=1, le=100_000, description="steps of each validation trial")
     candidates: int = Field(
         100, ge=1, le=10_000, description="the final population's fittest this many are re-scored"

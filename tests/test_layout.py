@@ -6,6 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
+from evorobotics.evaluate import trial_steps
 from evorobotics.layout import layout
 from schemas.network import PRESETS, NetworkSpec
 from schemas.run import RunConfig
@@ -72,7 +73,8 @@ def test_impossible_specs_are_rejected_with_a_message(
 
 def test_run_config_defaults_are_the_paper_experiment() -> None:
     cfg = RunConfig()
-    assert (cfg.population, cfg.generations, cfg.trials, cfg.steps) == (100, 350, 3, 40)
+    assert (cfg.population, cfg.generations, cfg.trials) == (100, 350, 3)
+    assert cfg.steps is None and trial_steps(cfg) == 80  # the crossing rule: 2.4 m at 30 mm/step
     assert (cfg.fitness.k1, cfg.fitness.k2, cfg.fitness.k3, cfg.fitness.k4) == (0, 20, 20, 50)
     assert cfg.replacement_count == 25
     assert cfg.network_spec.weight_count == 222

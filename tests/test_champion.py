@@ -1,0 +1,111 @@
+"""The validated champion: chosen on poses no training trial used, and reproducible."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evorobotics.document import ControllerDocument
+from evorobotics.errors import ControllerDocumentError
+from evorobotics.evaluate import start_poses, validation_set
+from evorobotics.evolution import (
+    RunLoop,
+    best_document,
+    champion,
+    evaluate_population,
+    evolve,
+    validate,
+)
+from evorobotics.maze import load_maze
+from schemas.run import RunConfig, ValidationConfig
+
+SMALL = RunConfig(
+    population=10,
+    generations=3,
+    steps=20,
+    seed=4,
+    validation=ValidationConfig(poses=12, steps=150, candidates=6),
+)
+
+
+def _final(config: RunConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    loop = RunLoop(config)
+    while True:
+        fitness, components = evaluate_population(config, loop.generation, loop.ask())
+        told = loop.tell(fitness, components)
+        if loop.done:
+            return told.genomes, told.fitness, told.metrics.order, told.generation
+
+
+def test_validation_poses_are_never_training_poses() -> None:
+    poses, gap = validation_set(SMALL)
+    assert poses.shape == (12, 3) and gap is None
+    maze = load_maze(SMALL.maze)
+    for generation in range(SMALL.generations + 1):
+        training = start_poses(maze, SMALL.seed, generation, 50, SMALL.world)
+        assert not (poses[:, None, :] == training[None, :, :]).all(axis=2).any()
+
+
+def test_the_champion_roams_most_among_the_candidates() -> None:
+    genomes, fitness, order, generation = _final(SMALL)
+    doc = champion(SMALL, genomes, fitness, order, generation=generation, run=9)
+    scored = validate(SMALL, genomes[order[:6]])
+    v = doc.validation
+    assert v is not None and v.candidates == 6 and (v.poses, v.steps) == (12, 150)
+    rank = v.training_rank
+    assert scored.roaming[rank] == scored.roaming.max()
+    best_score = scored.score[scored.roaming == scored.roaming.max()].max()
+    assert scored.score[rank] == best_score
+    assert (v.score, v.stuck, v.roaming) == (
+        scored.score[rank],
+        scored.stuck[rank],
+        scored.roaming[rank],
+    )
+    assert np.array_equal(doc.weights, genomes[order[rank]])
+    assert doc.fitness == fitness[order[rank]]
+    assert doc.provenance == {"seed": 4, "generation": 2, "rank": rank, "run": 9}
+    assert doc.world == SMALL.world
+
+
+def test_evolve_exports_the_champion_and_is_reproducible() -> None:
+    a, b = evolve(SMALL), evolve(SMALL)
+    assert a.best.to_json() == b.best.to_json() and a.best.validation is not None
+    genomes, fitness, order, generation = _final(SMALL)
+    assert a.best == champion(SMALL, genomes, fitness, order, generation=generation)
+
+
+def test_validation_off_or_one_candidate_is_training_rank_zero() -> None:
+    genomes, fitness, order, generation = _final(SMALL)
+    off = SMALL.model_copy(update={"validation": ValidationConfig(poses=0)})
+    doc = champion(off, genomes, fitness, order, generation=generation)
+    assert doc == best_document(off, genomes, fitness, order, generation=generation)
+    assert doc.validation is None
+    one = SMALL.model_copy(update={"validation": ValidationConfig(poses=5, candidates=1)})
+    only = champion(one, genomes, fitness, order, generation=generation)
+    assert np.array_equal(only.weights, genomes[order[0]])
+    assert only.validation is not None and only.validation.training_rank == 0
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**31), gap=st.booleans())
+def test_a_candidates_score_does_not_depend_on_its_batch(seed: int, gap: bool) -> None:
+    config = SMALL.model_copy(update={"seed": seed, "reality_gap": gap})
+    genomes = RunLoop(config).ask()[:4]
+    together = validate(config, genomes)
+    for i in range(4):
+        alone = validate(config, genomes[i : i + 1])
+        assert alone.score[0] == together.score[i]
+        assert alone.roaming[0] == together.roaming[i] and alone.stuck[0] == together.stuck[i]
+    assert ((together.roaming >= 0) & (together.roaming + together.stuck <= 1 + 1e-12)).all()
+
+
+def test_the_champion_document_round_trips_and_refuses_a_forged_score() -> None:
+    genomes, fitness, order, generation = _final(SMALL)
+    doc = champion(SMALL, genomes, fitness, order, generation=generation)
+    back = ControllerDocument.from_json(doc.to_json())
+    assert back == doc and back.validation == doc.validation and back.world == SMALL.world
+    assert ControllerDocument(doc.spec, doc.weights).sha256 == doc.sha256  # not hashed
+    forged = doc.to_dict()
+    forged["validation"]["roaming"] = 2.0
+    with pytest.raises(ControllerDocumentError, match="validation"):
+        ControllerDocument.from_dict(forged)
