@@ -1,82 +1,197 @@
-"""Does the evolved controller actually explore? Evolved vs reactive vs random, on unseen poses.
+"""Do validated champions explore? Seeds x networks: evolve, then explore the champion.
 
-Evolves the paper's default experiment (paper-best: time-delayed, 222 weights) and the same
-experiment with the purely reactive network (218 weights), draws the random Eq 7 population of
-paper-best, then evaluates the best of each evolved run and every random controller over the
-SAME 100 start poses, never seen in training (start_poses(maze, seed=12345, generation=0,
-trials=100)), for 40 and for 200 steps. Prints mean fitness, mean max offset and stuck fraction.
+For each seed s (`--seeds N`: 0..N-1, default 10) and network n (`--networks`, default
+paper-best and reactive), evolves RunConfig(seed=s, network=n) with every other setting
+default (`evorobotics.evolution.evolve`, validated champion included), then measures its
+champion with `evorobotics.explore.explore` over `--poses` (1,000) unseen start poses x
+`--steps` (1,000) steps: the exploration stream of seed 12345, which no run trains or validates
+on, in the run's world. Prints per seed: training fitness, the champion's validation score,
+stuck and roaming, then roaming, stuck by 40/200/H steps, confined; per network: median, range
+and mean with a 95 % t confidence interval; the wall time of validation against the whole run
+(issue 23 wants at most 20 %); and the random Eq 7 population (generation 0) as a reference.
 
-Run: .venv/bin/python bench/explore.py [--generations N] [--seed S]
+Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G]
+[--poses P] [--steps H] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from evorobotics.evaluate import evaluate
-from evorobotics.evolution import RunLoop, evolve
+from evorobotics.evolution import GenerationSummary, RunLoop, evolve
+from evorobotics.explore import Exploration, explore
 from schemas.run import RunConfig
 
 TEST_SEED = 12345
-TEST_TRIALS = 100
+"""Seed of the exploration start poses every controller is measured on."""
+RANDOM_CONTROLLERS = 20
+"""Controllers of generation 0 (Eq 7) in the random reference row."""
 
 
-def unseen(config: RunConfig, genomes: np.ndarray, steps: int) -> tuple[float, float, float]:
-    """Mean fitness, mean max offset (m) and stuck fraction over the shared unseen poses.
+@dataclass(frozen=True)
+class Row:
+    label: str
+    seed: int | None
+    trained: float | None
+    """Training fitness of the champion (None for a random controller)."""
+    validation: tuple[float, float, float] | None
+    """The champion's validation score, stuck and roaming fractions."""
+    e: Exploration
 
-    evaluate() at generation 0 with seed TEST_SEED and TEST_TRIALS trials draws exactly
-    start_poses(maze, TEST_SEED, 0, TEST_TRIALS), the same poses for every controller.
+
+def t_quantile_975(df: int) -> float:
+    """The 0.975 quantile of Student's t with `df` degrees of freedom (numpy only).
+
+    The density integrated from 0 by the trapezoid rule on a fine grid, then inverted; exact
+    to about 1e-6, plenty for a confidence interval of a handful of seeds.
     """
-    test = config.model_copy(update={"seed": TEST_SEED, "trials": TEST_TRIALS, "steps": steps})
-    ev = evaluate(test, 0, genomes)
-    return (
-        float(np.mean(ev.fitness)),
-        float(np.mean(ev.components[..., 2])),
-        float(np.mean(ev.components[..., 3] > 0)),
+    x = np.linspace(0.0, 60.0, 600_001)
+    log_c = math.lgamma((df + 1) / 2) - math.lgamma(df / 2) - 0.5 * math.log(df * math.pi)
+    pdf = np.exp(log_c - (df + 1) / 2 * np.log1p(x * x / df))
+    cdf = 0.5 + np.concatenate([[0.0], np.cumsum((pdf[1:] + pdf[:-1]) / 2 * np.diff(x))])
+    return float(np.interp(0.975, cdf, x))
+
+
+def summary(values: list[float]) -> str:
+    """Median [min, max], mean +- the 95 % t interval's half-width (n/a for one value)."""
+    v = np.asarray(values, dtype=np.float64)
+    middle = f"{np.median(v):7.3f} [{v.min():.3f}, {v.max():.3f}]"
+    if len(v) < 2:
+        return f"{middle}  mean {v.mean():.3f} (CI n/a)"
+    half = t_quantile_975(len(v) - 1) * float(v.std(ddof=1)) / math.sqrt(len(v))
+    return f"{middle}  mean {v.mean():.3f} +- {half:.3f}"
+
+
+def measure(config: RunConfig, weights: np.ndarray, poses: int, steps: int) -> Exploration:
+    return explore(
+        config.network_spec,
+        weights,
+        poses=poses,
+        steps=steps,
+        maze=config.maze,
+        seed=TEST_SEED,
+        reality_gap=config.reality_gap,
+        world=config.world,
+        fitness_weights=config.fitness,
     )
+
+
+def evolved(config: RunConfig, poses: int, steps: int) -> tuple[Row, float, float]:
+    """The champion's row, and the run's wall time in training and in validation (s).
+
+    Validation is what `evolve` does after the last generation's summary (`champion`).
+    """
+    told_at: list[float] = []
+
+    def on_generation(_: GenerationSummary) -> None:
+        told_at.append(time.perf_counter())
+
+    t0 = time.perf_counter()
+    result = evolve(config, on_generation=on_generation)
+    t1 = time.perf_counter()
+    best = result.best
+    v = best.validation
+    row = Row(
+        str(config.network),
+        config.seed,
+        best.fitness,
+        None if v is None else (v.score, v.stuck, v.roaming),
+        measure(config, np.asarray(best.weights), poses, steps),
+    )
+    return row, told_at[-1] - t0, t1 - told_at[-1]
+
+
+def print_rows(rows: list[Row], steps: int) -> None:
+    print(
+        f"{'network':12s} {'seed':>4s} {'train F':>8s} {'val F':>7s} {'val stuck':>9s} "
+        f"{'val roam':>8s} {'roaming':>7s} {'stuck40':>7s} {'stuck200':>8s} "
+        f"{f'stuck{steps}':>9s} {'confined':>8s} {f'offset{steps} m':>12s}"
+    )
+    for r in rows:
+        trained = "-" if r.trained is None else f"{r.trained:.2f}"
+        val = ("-", "-", "-") if r.validation is None else tuple(f"{x:.2f}" for x in r.validation)
+        seed = "-" if r.seed is None else str(r.seed)
+        e = r.e
+        print(
+            f"{r.label:12s} {seed:>4s} {trained:>8s} {val[0]:>7s} {val[1]:>9s} {val[2]:>8s} "
+            f"{e.roaming:7.3f} {e.stuck[40]:7.3f} {e.stuck[200]:8.3f} {e.stuck[steps]:9.3f} "
+            f"{e.confined:8.3f} {e.max_offset[steps]:12.3f}"
+        )
+
+
+def print_summary(label: str, rows: list[Row], steps: int) -> None:
+    print(f"{label} ({len(rows)} controllers): median [range]  mean +- 95 % CI")
+    measures = {
+        "roaming": [r.e.roaming for r in rows],
+        "stuck by 40": [r.e.stuck[40] for r in rows],
+        "stuck by 200": [r.e.stuck[200] for r in rows],
+        f"stuck by {steps}": [r.e.stuck[steps] for r in rows],
+        f"max offset by {steps}, m": [r.e.max_offset[steps] for r in rows],
+    }
+    for name, values in measures.items():
+        print(f"  {name:22s} {summary(values)}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--generations", type=int, default=RunConfig().generations)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, default=None, help="run seeds 0..N-1 (10)")
+    parser.add_argument("--networks", nargs="+", default=["paper-best", "reactive"])
+    parser.add_argument("--generations", type=int, default=None, help="(the default run's)")
+    parser.add_argument("--poses", type=int, default=1000)
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--quick", action="store_true", help="2 seeds, 30 generations")
     args = parser.parse_args()
+    if args.steps < 200:
+        parser.error("--steps must be >= 200 (stuck is reported at 40 and 200 steps too)")
+    seeds = args.seeds if args.seeds is not None else 2 if args.quick else 10
+    generations = args.generations or (30 if args.quick else RunConfig().generations)
 
-    base = RunConfig(generations=args.generations, seed=args.seed)
-    rows: list[tuple[str, int, tuple[float, float, float]]] = []
-    for label, network in (("evolved paper-best", "paper-best"), ("evolved reactive", "reactive")):
-        config = base.model_copy(update={"network": network})
-        t0 = time.perf_counter()
-        result = evolve(config)
-        print(
-            f"{label}: {config.generations} generations in {time.perf_counter() - t0:.1f} s, "
-            f"training fitness {result.best.fitness:.3f}"
-        )
-        best = np.asarray(result.best.weights)[None, :]
-        for steps in (40, 200):
-            rows.append((label, steps, unseen(config, best, steps)))
-
-    random_genomes = RunLoop(base).ask()  # generation 0: the Eq 7 population
-    for steps in (40, 200):
-        rows.append(
-            (
-                f"random paper-best x{len(random_genomes)}",
-                steps,
-                unseen(base, random_genomes, steps),
+    rows: dict[str, list[Row]] = {}
+    training = validation = 0.0
+    for network in args.networks:
+        rows[network] = []
+        for seed in range(seeds):
+            config = RunConfig(seed=seed, network=network, generations=generations)
+            row, trained_s, validated_s = evolved(config, args.poses, args.steps)
+            rows[network].append(row)
+            training += trained_s
+            validation += validated_s
+            print(
+                f"{network} seed {seed}: {generations} generation(s) in {trained_s:.1f} s, "
+                f"validation {validated_s:.2f} s, roaming {row.e.roaming:.3f}",
+                flush=True,
             )
+
+    base = RunConfig(network=args.networks[0], generations=generations)
+    random_genomes = RunLoop(base).ask()[:RANDOM_CONTROLLERS]  # generation 0: Eq 7
+    randoms = [
+        Row(
+            f"random {args.networks[0]}", None, None, None, measure(base, g, args.poses, args.steps)
         )
+        for g in random_genomes
+    ]
 
     print()
     print(
-        f"unseen start poses: start_poses(maze={base.maze!r}, seed={TEST_SEED}, generation=0, "
-        f"trials={TEST_TRIALS})"
+        f"champions over {args.poses} unseen start poses x {args.steps} steps (exploration "
+        f"stream, seed {TEST_SEED}, maze {base.maze!r}, each run's world)"
     )
-    print(f"{'controller':28s} {'steps':>5s} {'fitness':>9s} {'max offset m':>13s} {'stuck':>6s}")
-    for label, steps, (fit, off, stuck) in rows:
-        print(f"{label:28s} {steps:5d} {fit:9.3f} {off:13.3f} {stuck:6.2f}")
+    print_rows([r for network in args.networks for r in rows[network]], args.steps)
+    print()
+    for network in args.networks:
+        print_summary(f"evolved {network}", rows[network], args.steps)
+    print_summary(f"random {args.networks[0]} (generation 0 of seed 0, Eq 7)", randoms, args.steps)
+    total = training + validation
+    print()
+    print(
+        f"wall time over all runs: training {training:.1f} s, validation {validation:.1f} s: "
+        f"validation share {100 * validation / total:.1f} % of a run (target <= 20 %)"
+    )
 
 
 if __name__ == "__main__":

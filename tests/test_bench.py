@@ -16,7 +16,21 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     ("script", "args", "printed"),
     [
         ("stuck.py", ["--robots", "4", "--steps", "100", "--window", "20"], "evolved-like"),
-        ("explore.py", ["--generations", "2"], "generation"),
+        (
+            "explore.py",
+            [
+                "--quick",
+                "--networks",
+                "reactive",
+                "--generations",
+                "2",
+                "--poses",
+                "20",
+                "--steps",
+                "300",
+            ],
+            "validation share",
+        ),
         (
             "dispatch.py",
             [
