@@ -19,7 +19,7 @@ from schemas.network import PRESETS
 from schemas.run import ValidationScore
 from schemas.world import World
 from server import crud
-from tests.helpers import Served, serve
+from tests.helpers import Served, completed_run, serve
 
 REACTIVE = PRESETS["reactive"]
 SMALL = ["--poses", "30", "--steps", "150"]
@@ -192,3 +192,19 @@ def test_cli_evaluates_a_stored_controller(served: Served) -> None:
     assert got["roaming_fraction"] == want.roaming and got["mean_coverage_cells"] == want.coverage
     code, out, err = invoke("--server", served.url, "--run", "99", *SMALL)
     assert code == 2 and "404" in err and err.startswith("colony evaluate: ")
+
+
+def test_cli_evaluates_a_runs_best(served: Served) -> None:
+    run_id = completed_run(
+        served.url,
+        {"population": 12, "generations": 2, "steps": 20, "validation": {"poses": 5, "steps": 40}},
+    )
+    best = ControllerDocument.from_json(
+        httpx.get(f"{served.url}/api/runs/{run_id}/best", timeout=30).content
+    )
+    code, out, err = invoke("--server", served.url, "--run", str(run_id), *SMALL, "--json")
+    assert code == 0, err
+    got = json.loads(out)
+    want = explore(best.spec, best.weights, poses=30, steps=150, world=best.world)
+    assert got["controller"] == best.sha256 and got["roaming_fraction"] == want.roaming
+    assert got["training_fitness"] == best.fitness
