@@ -336,11 +336,16 @@ class RobotDetail(RobotOut):
 
 
 class PushBody(_Model):
-    """POST /api/robots/{id}/controller: a stored controller, or a run's ranked individual."""
+    """POST /api/robots/{id}/controller: a stored controller, or a run's controller."""
 
     sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
     run_id: int | None = Field(None, ge=0)
-    rank: int = Field(0, ge=0)
+    rank: int | None = Field(
+        None,
+        ge=0,
+        description="a training rank of the run's latest generation; omitted: the run's best "
+        "(its validated champion once completed, else training rank 0)",
+    )
 
 
 class PushOut(_Model):

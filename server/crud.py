@@ -105,6 +105,16 @@ def get_controller(session: Session, *, sha256: str) -> Controller | None:
     return session.get(Controller, sha256.lower())
 
 
+def champion(session: Session, *, run: Run) -> Controller | None:
+    """A completed run's validated champion (`Run.champion_sha256`); None for any other run."""
+    if run.champion_sha256 is None:
+        return None
+    row = get_controller(session, sha256=run.champion_sha256)
+    if row is None:
+        raise ServerError(f"run {run.id}: its champion {run.champion_sha256} is not stored")
+    return row
+
+
 def put_controller(
     session: Session,
     *,
@@ -113,10 +123,18 @@ def put_controller(
     run_id: int | None,
     generation: int | None,
     fitness: float | None,
+    replace: bool = False,
 ) -> Controller:
-    """Store a document once; the same sha256 is the same document, so a repeat is a no-op."""
+    """Store a document once; the same sha256 is the same controller, so a repeat is a no-op.
+
+    With `replace`, a stored document of that sha256 takes this one's text and origin: a
+    champion's document describes the same controller with more (its `validation`) than the
+    rank's document a push may have stored before."""
     existing = session.get(Controller, sha256)
     if existing is not None:
+        if replace:
+            existing.document, existing.run_id = document, run_id
+            existing.generation, existing.fitness = generation, fitness
         return existing
     row = Controller(
         sha256=sha256, document=document, run_id=run_id, generation=generation, fitness=fitness

@@ -14,6 +14,12 @@ a copy stores no bytes but the (generation, row) of the genome bytes it repeats.
 
 Lifecycle: queued -> running <-> paused; queued/running/paused -> cancelled;
 running -> completed | failed. Terminal: completed, failed, cancelled.
+
+A run completes with its validated champion (`evorobotics.evolution.champion`: the final
+population's best on the run's validation set), stored in `controllers` and named by
+`runs.champion_sha256` in the transaction that writes the last generation. Its validation is
+computed from the told generation before that transaction opens, so seconds of simulation
+never hold the database.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from sqlalchemy import Engine, Table, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evolution import RunLoop, best_document
+from evorobotics.evolution import RunLoop, best_document, champion
 from evorobotics.ga import GAParams, GAState, lineage
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
@@ -268,15 +274,16 @@ class RunManager:
     def _write(self, told: list[Written]) -> None:
         if not told:
             return
+        champions = {item.run_id: _champion(item) for item in told if item.last}
         try:
             with self.sessions.begin() as session:
                 for item in told:
-                    self._write_generation(session, item)
+                    self._write_generation(session, item, champions.get(item.run_id))
         except RunOverError:  # some run ended meanwhile: one transaction each instead
             for item in told:
                 try:
                     with self.sessions.begin() as session:
-                        self._write_generation(session, item)
+                        self._write_generation(session, item, champions.get(item.run_id))
                 except RunOverError as exc:
                     context(log, run=item.run_id).info(
                         "run %d generation %d not written: %s",
@@ -313,8 +320,15 @@ class RunManager:
 
     def recover(self) -> None:
         """Serve again the generation in flight of every live run (its results died with the
-        process)."""
+        process); store the champion of a completed run that has none (one completed before
+        the store named champions)."""
         with self._lock, self.sessions.begin() as session:
+            unnamed = session.scalars(
+                select(Run).where(Run.status == "completed", Run.champion_sha256.is_(None))
+            )
+            for run in unnamed:
+                sha = self.store_champion(session, run, RunConfig.model_validate_json(run.config))
+                context(log, run=run.id).info("run %d: champion %s stored", run.id, sha)
             runs = session.scalars(select(Run).where(Run.status.in_(("running", "paused"))))
             for run in runs:
                 config = RunConfig.model_validate_json(run.config)
@@ -447,9 +461,12 @@ class RunManager:
 
     # the store -------------------------------------------------------------------------------
 
-    def _write_generation(self, session: Session, item: Written) -> None:
+    def _write_generation(
+        self, session: Session, item: Written, document: ControllerDocument | None = None
+    ) -> None:
         """Store generation g (statistics, GA state, its population as one frame) and move
-        the run to g + 1; complete the run after its last generation.
+        the run to g + 1; complete the run after its last generation, with `document` (its
+        champion) as the run's best.
 
         A copy's genome bytes are stored once, at its origin (see `_genome_at`).
         """
@@ -514,7 +531,7 @@ class RunManager:
             metrics.mean,
         )
         if item.last:
-            self._finish(session, self._get(session, run_id), config)
+            self._finish(session, self._get(session, run_id), config, document)
 
     def _genome_at(
         self,
@@ -567,11 +584,17 @@ class RunManager:
         )
         return at
 
-    def _finish(self, session: Session, run: Run, config: RunConfig) -> None:
+    def _finish(
+        self,
+        session: Session,
+        run: Run,
+        config: RunConfig,
+        document: ControllerDocument | None = None,
+    ) -> None:
         run.status, run.finished_at = "completed", utcnow()
-        sha = self.store_best(session, run, config)
+        sha = self.store_champion(session, run, config, document)
         self._forget(run.id)
-        context(log, run=run.id).info("run %d completed; best controller %s", run.id, sha)
+        context(log, run=run.id).info("run %d completed; champion %s", run.id, sha)
 
     def _fail(self, session: Session, run: Run, message: str) -> None:
         run.status, run.error, run.finished_at = "failed", message, utcnow()
@@ -585,24 +608,44 @@ class RunManager:
 
     # results -----------------------------------------------------------------------------------
 
-    def store_best(self, session: Session, run: Run, config: RunConfig) -> str | None:
-        """Store the best controller of a finished run (rank 0 of its last generation), so
-        it can be fetched and pushed by its sha256; the sha256."""
-        latest = crud.latest_generation(session, run_id=run.id)
-        document = self._best(session, run, config)
-        if latest is None or document is None:
-            return None
+    def store_champion(
+        self,
+        session: Session,
+        run: Run,
+        config: RunConfig,
+        document: ControllerDocument | None = None,
+    ) -> str | None:
+        """Store a finished run's champion and name it on the run, so it is fetched and pushed
+        by its sha256 after any restart; its sha256 (None without a committed generation).
+
+        `document` is the champion computed from the told last generation; without it, it is
+        computed from the stored one (the same document: ranks and genomes are stored bit for
+        bit). It replaces a document of the same sha256 that a push stored before without
+        the `validation` member."""
+        last = config.generations - 1
+        if document is None:
+            latest = crud.latest_generation(session, run_id=run.id)
+            if latest is None:
+                return None
+            last = latest.generation
+            found, genomes = crud.ranked(session, run_id=run.id, generation=last)
+            document = champion(
+                config, genomes, found.fitness, np.arange(len(found)), generation=last, run=run.id
+            )
         crud.put_controller(
             session,
             sha256=document.sha256,
             document=document.to_json(),
             run_id=run.id,
-            generation=latest.generation,
+            generation=last,
             fitness=document.fitness,
+            replace=True,
         )
+        run.champion_sha256 = document.sha256
         return document.sha256
 
     def _best(self, session: Session, run: Run, config: RunConfig) -> ControllerDocument | None:
+        """Training rank 0 of the latest committed generation."""
         latest = crud.latest_generation(session, run_id=run.id)
         if latest is None:
             return None
@@ -617,11 +660,28 @@ class RunManager:
         )
 
     def best(self, run_id: int) -> ControllerDocument:
-        """The run's best controller so far, read from the store (a read: nothing is
-        written); NotFoundError before its first committed generation."""
+        """The run's best controller, read from the store (nothing is written): a completed
+        run's validated champion (with `validation`), any other run's training rank 0 of its
+        latest committed generation; NotFoundError before its first committed generation."""
         with self.sessions() as session:
             run = self._get(session, run_id)
+            stored = crud.champion(session, run=run)
+            if stored is not None:
+                return ControllerDocument.from_json(stored.document)
             document = self._best(session, run, RunConfig.model_validate_json(run.config))
         if document is None:
             raise NotFoundError(f"run {run_id} has no completed generation yet")
         return document
+
+
+def _champion(item: Written) -> ControllerDocument:
+    """The champion of a run's last told generation (seconds of simulation: no transaction)."""
+    told = item.told
+    return champion(
+        item.config,
+        told.genomes,
+        told.fitness,
+        told.metrics.order,
+        generation=told.generation,
+        run=item.run_id,
+    )

@@ -48,6 +48,8 @@ class Run(Base):
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    champion_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    """A completed run's validated champion in `controllers` (`RunManager.best`)."""
 
 
 class Generation(Base):

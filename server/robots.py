@@ -442,10 +442,13 @@ class RobotService:
         *,
         sha256: str | None = None,
         run_id: int | None = None,
-        rank: int = 0,
+        rank: int | None = None,
         timeout: float | None = None,
     ) -> PushOut:
-        """Push a stored controller (sha256) or a run's ranked individual; wait for the ack."""
+        """Push a stored controller (sha256) or a run's controller; wait for the ack.
+
+        A run's `rank` is that training rank of its latest committed generation; without one,
+        the run's best: its validated champion once completed, else training rank 0."""
         if sha256 is not None and run_id is not None:
             raise ValueError("give exactly one of sha256 or run_id")
         with self.sessions.begin() as db:
@@ -459,12 +462,18 @@ class RobotService:
             elif run_id is None:
                 raise ValueError("give exactly one of sha256 or run_id")
             else:
-                if db.get(Run, run_id) is None:
+                run = db.get(Run, run_id)
+                if run is None:
                     raise NotFoundError(f"no run with id {run_id}")
-                if rank >= _population(db, run_id):
-                    raise NotFoundError(f"run {run_id} has no individual of rank {rank}")
-                doc = ranked_document(db, run_id, rank)
-                text, sha = doc.to_json(), doc.sha256
+                best = crud.champion(db, run=run) if rank is None else None
+                if best is not None:
+                    text, sha = best.document, best.sha256
+                else:
+                    chosen = 0 if rank is None else rank
+                    if chosen >= _population(db, run_id):
+                        raise NotFoundError(f"run {run_id} has no individual of rank {chosen}")
+                    doc = ranked_document(db, run_id, chosen)
+                    text, sha = doc.to_json(), doc.sha256
         push_id = uuid.uuid4().hex
         seq, signature = self._sign("push", robot_id, push_id, text)
         message = ControllerPush(
@@ -597,6 +606,7 @@ def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
             "rank": rank,
             "run": run_id,
         },
+        world=config.world,
     )
     crud.put_controller(
         db,

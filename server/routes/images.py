@@ -73,7 +73,7 @@ def best_figure(
     figure: Figure,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
-    """`network` or `paths` of the fittest controller so far (rank 0, latest generation)."""
+    """`network` or `paths` of the run's best controller (`GET /api/runs/{id}/best`)."""
     document = manager.best(run_id)
     run = crud.get_run(session, run_id=run_id)
     if run is None:

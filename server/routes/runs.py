@@ -147,7 +147,8 @@ def list_individuals(
     responses={200: {"content": {"application/json": {}}, "description": "controller document"}},
 )
 def best(manager: ManagerDep, run_id: RunId) -> Response:
-    """The controller document of the fittest individual so far (rank 0, latest generation)."""
+    """The run's best controller document: a completed run's validated champion (with its
+    `validation` member), any other run's training rank 0 of its latest generation."""
     return Response(content=manager.best(run_id).to_json(), media_type="application/json")
 
 
