@@ -134,6 +134,11 @@ def test_push_best_controller_to_a_robot_with_a_click(
     with httpx.Client(base_url=served.url, timeout=30) as client:
         run_id = client.post("/api/runs", json=QUICK).json()["id"]
         assert eventually(lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed")
+        best = client.get(f"/api/runs/{run_id}/best").json()
+        page.goto(f"{served.url}/?run={run_id}")  # the champion's validation beside training
+        shown = page.locator("[data-testid=run-validation]")
+        shown.filter(has_text=f"stuck {round(100 * best['validation']['stuck'])} %").wait_for()
+        assert f"rank {best['validation']['training_rank']}" in shown.inner_text()
         colony = Colony(served.url, db_url, run_id, served.app, tmp_path)
         with robot_link(colony) as link, virtual_robot("virt-1", link, tmp_path) as (agent, _):
             assert eventually(lambda: online(client, "virt-1"))
@@ -141,13 +146,11 @@ def test_push_best_controller_to_a_robot_with_a_click(
             card = page.locator('[data-robot="virt-1"]')
             card.wait_for()
             page.select_option("[data-testid=push-run-virt-1]", str(run_id))
-            page.fill("[data-testid=push-rank-virt-1]", "0")
-            page.click("[data-testid=push-virt-1]")
+            page.click("[data-testid=push-virt-1]")  # no rank: the run's best, its champion
             result = page.locator("[data-testid=push-result-virt-1]")
             result.filter(has_text="acknowledged").wait_for()
-            best = client.get(f"/api/runs/{run_id}/best").json()["sha256"]
-            assert agent.controller is not None and agent.controller.sha256 == best
-            assert best[:12] in result.inner_text()
+            assert agent.controller is not None and agent.controller.sha256 == best["sha256"]
+            assert best["sha256"][:12] in result.inner_text()
             # the card follows the robot: its controller's origin arrives over the stream (any
             # rank: a robot that got stuck meanwhile runs a replacement from the same run)
             card.locator('[data-field="origin"]').filter(has_text=f"run {run_id}, rank").wait_for()

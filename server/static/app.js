@@ -10,6 +10,7 @@ const state = {
   chart: null,
   cards: new Map(), // robot id -> card elements
   figuresFor: null, // "run:generation" the figures were last asked for
+  validationFor: null, // id of the completed run whose champion's validation is shown
 };
 
 const $ = (selector, root = document) => root.querySelector(selector);
@@ -137,6 +138,8 @@ function selectRun(id) {
   state.selected = id;
   state.gens = [[], [], [], []];
   state.figuresFor = null;
+  state.validationFor = null;
+  $("#run-validation").hidden = true;
   for (const img of [$("#network-img"), $("#paths-img")]) img.hidden = true;
   updateChart();
   renderRunsTable();
@@ -158,7 +161,8 @@ function renderRunDetail() {
     `seed ${run.seed} · population ${c.population} · ${c.trials} trials × ${c.steps} steps · ` +
     `network ${typeof c.network === "string" ? c.network : "custom"} · ` +
     `maze ${c.maze.includes("\n") ? "custom" : c.maze} · generation ${run.generation}/` +
-    `${run.generations} · ${run.evaluations} evaluations · best ${fmt(run.best_fitness)}`;
+    `${run.generations} · ${run.evaluations} evaluations · ` +
+    `training fitness ${fmt(run.best_fitness)} (rank 0)`;
   const error = $("#run-error");
   error.hidden = !run.error;
   error.textContent = run.error || "";
@@ -171,6 +175,26 @@ function renderRunDetail() {
     button.disabled = !allowed[button.dataset.action].includes(run.status);
   }
   refreshFigures(run);
+  showValidation(run);
+}
+
+async function showValidation(run) {
+  // A completed run's best is its validated champion (docs/api.md); a live run has none yet.
+  if (run.status !== "completed" || state.validationFor === run.id) return;
+  state.validationFor = run.id;
+  try {
+    const best = await api("GET", `/api/runs/${run.id}/best`);
+    const v = best.validation;
+    if (!v || state.selected !== run.id) return;
+    const line = $("#run-validation");
+    line.textContent =
+      `champion: training fitness ${fmt(best.fitness)} (rank ${v.training_rank}) · ` +
+      `validation ${fmt(v.score)} over ${v.poses} poses × ${v.steps} steps · ` +
+      `stuck ${fmt(100 * v.stuck, 0)} % · roaming ${fmt(100 * v.roaming, 0)} %`;
+    line.hidden = false;
+  } catch {
+    state.validationFor = null; // asked again with the next run event
+  }
 }
 
 async function steer(action) {
@@ -278,7 +302,8 @@ function makeCard(id) {
   }
   const runSelect = el("select", { "data-testid": `push-run-${id}`, "aria-label": "run" });
   const rank = el("input", {
-    type: "number", min: "0", value: "0", "data-testid": `push-rank-${id}`, "aria-label": "rank",
+    type: "number", min: "0", placeholder: "best", "data-testid": `push-rank-${id}`,
+    "aria-label": "training rank (empty: the run's best)",
   });
   const button = el("button", { "data-testid": `push-${id}`, text: "Push" });
   const message = el("span", { class: "message", "data-testid": `push-result-${id}` });
@@ -305,7 +330,8 @@ async function push(id, runSelect, rank, button, message) {
   message.textContent = "pushing…";
   message.className = "message";
   try {
-    const body = { run_id: Number(runSelect.value), rank: Number(rank.value || 0) };
+    const body = { run_id: Number(runSelect.value) }; // no rank: the run's best (champion)
+    if (rank.value !== "") body.rank = Number(rank.value);
     const reply = await api("POST", `/api/robots/${encodeURIComponent(id)}/controller`, body);
     const ok = reply.acknowledged && reply.accepted;
     message.textContent = ok
