@@ -142,8 +142,10 @@ def analyze_command(
     seed: Annotated[
         int | None,
         typer.Option(
+            min=0,
+            max=2**63 - 1,
             help="seed of network.png's generation-0 controller and encounter.png's start "
-            "poses (default: the document's run seed, else 0)"
+            "poses (default: the document's run seed, else 0)",
         ),
     ] = None,
 ) -> None:
@@ -207,7 +209,7 @@ def _write_figures(
     try:
         ap.encounter_plot(doc, out / "encounter.png", maze=maze, seed=seed)
         written.append(out / "encounter.png")
-    except ValueError as exc:  # a controller that never touches a wall
+    except (ValueError, EvoError) as exc:  # never touches a wall; no room in the maze
         typer.echo(f"colony analyze: no encounter.png: {exc}", err=True)
     if not quiet:
         typer.echo("wrote " + ", ".join(str(p) for p in written))

@@ -320,6 +320,10 @@ def test_cli_skips_the_encounter_of_a_robot_that_never_moves(tmp_path: Path) -> 
     ]
     bad = CliRunner().invoke(app, ["analyze", str(path), "--out", str(tmp_path), "--maze", "x"])
     assert bad.exit_code == 2 and "--maze" in bad.output
+    negative = CliRunner().invoke(
+        app, ["analyze", str(path), "--out", str(tmp_path), "--seed", "-1"]
+    )
+    assert negative.exit_code == 2
 
 
 @pytest.fixture
