@@ -60,6 +60,8 @@ def test_emulated_agent_process_end_to_end(server: tuple[str, str, int], tmp_pat
             assert eventually(lambda: (robot(client, "e2e") or {}).get("online") is True)
             pushed = client.post("/api/robots/e2e/controller", json={"run_id": run_id}).json()
             assert pushed["acknowledged"] and pushed["accepted"], pushed
+            best = client.get(f"/api/runs/{run_id}/best").json()  # the run's champion
+            assert pushed["sha256"] == best["sha256"] and best["validation"] is not None
             assert eventually(lambda: client.get("/api/robots/e2e/replay").json()["checked"] >= 20)
             replay = client.get("/api/robots/e2e/replay").json()
             assert replay["identical"], replay
@@ -71,7 +73,8 @@ def test_emulated_agent_process_end_to_end(server: tuple[str, str, int], tmp_pat
             assert eventually(lambda: (field() or {}).get("robot_hours", 0) > 0)
             detail = robot(client, "e2e")
             assert detail is not None and detail["controller_sha256"] == pushed["sha256"]
-            assert detail["controller_rank"] == 0 and detail["boot"] == 0
+            assert detail["controller_rank"] == best["validation"]["training_rank"]
+            assert detail["boot"] == 0
 
             proc.send_signal(signal.SIGTERM)
             out, err = proc.communicate(timeout=WAIT)
