@@ -125,7 +125,11 @@ def load_maze(spec: str) -> Maze:
             raise MazeError(f"generated maze {spec!r}: expected 'gen:SIZE:SEED', e.g. 'gen:5:0'")
         return generate_maze(int(parts[0]), int(parts[1]))
     path = Path(spec)
-    if path.is_file():
+    try:
+        is_file = path.is_file()
+    except OSError:  # a name no file system accepts (too long, NUL): not a file
+        is_file = False
+    if is_file:
         return parse_maze(path.read_text(encoding="utf-8"), name=path.stem)
     raise MazeError(
         f"unknown maze {spec!r}: not a shipped maze {sorted(shipped)}, not 'gen:SIZE:SEED', "

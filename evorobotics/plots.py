@@ -26,7 +26,6 @@ from evorobotics.layout import layout
 from evorobotics.maze import load_maze
 from schemas.network import NetworkSpec
 from schemas.run import RunConfig
-from schemas.world import World
 
 PNG_METADATA: dict[str, Any] = {"Software": None}
 """Drop matplotlib's version stamp so a PNG depends on its data only."""
@@ -176,7 +175,7 @@ def paths_plot(
     generation, so evolution never saw them. Dotted path, start dot, final body outline.
     """
     maze = load_maze(config.maze)
-    params = World()
+    params = config.world
     starts = start_poses(maze, config.seed, config.generations, PATH_TRIALS)
     rows, cols = maze.grid.shape
     extent = (0.0, cols * maze.cell_size, 0.0, rows * maze.cell_size)

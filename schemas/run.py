@@ -66,7 +66,7 @@ class ValidationConfig(BaseModel):
     poses: int = Field(50, ge=0, le=10_000, description="validation start poses; 0: off")
     steps: int = Field(400, ge=1, le=100_000, description="steps of each validation trial")
     candidates: int = Field(
-        100, ge=1, le=10_000, description="the final population's fittest this many are re-scored"
+        50, ge=1, le=10_000, description="the final population's fittest this many are re-scored"
     )
 
 

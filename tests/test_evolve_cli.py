@@ -48,8 +48,10 @@ def test_writes_every_file_and_reruns_byte_identical(tmp_path: Path) -> None:
 
     doc = ControllerDocument.from_json((tmp_path / "a" / "best.json").read_text())
     assert doc.spec == PRESETS["paper-best"]
-    assert doc.fitness == float(rows[-1][1])  # best.json is rank 0 of the last generation
-    assert doc.provenance["generation"] == 3
+    # best.json is the validated champion of the last generation: training fitness and rank
+    assert doc.validation is not None and doc.provenance["rank"] == doc.validation.training_rank
+    assert doc.fitness is not None and float(rows[-1][3]) <= doc.fitness <= float(rows[-1][1])
+    assert doc.provenance["generation"] == 3 and doc.world == config.world
 
 
 def test_config_file_with_flag_override_and_files_for_maze_and_network(tmp_path: Path) -> None:

@@ -115,3 +115,8 @@ def test_generated_mazes_depend_on_seed() -> None:
     assert len(grids) == 5
     with pytest.raises(ValueError):
         generate_maze(0, 0)
+
+
+def test_a_name_no_file_system_accepts_is_an_unknown_maze() -> None:
+    with pytest.raises(MazeError, match="unknown maze"):
+        load_maze("x" * 5000)
