@@ -63,7 +63,8 @@ class IndividualOut(BaseModel):
     )
     sha256: str = Field(
         description="the controller's identity (docs/controller.md), as a push of this rank "
-        "or GET /api/runs/{id}/best stores it"
+        "stores it; a completed run's champion (GET /api/runs/{id}/best) is the individual of "
+        "its validation.training_rank"
     )
 
 
