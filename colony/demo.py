@@ -348,7 +348,7 @@ def _demo(
             push = client.post(f"/api/robots/{robot}/controller", json={"run_id": run["id"]})
             if push.is_error or not push.json()["accepted"]:
                 raise DemoError(f"push to {robot} refused: {push.text}")
-        console.print(f"pushed run {run['id']} rank 0 to {robots} robots; exploring")
+        console.print(f"pushed run {run['id']}'s champion to {robots} robots; exploring")
         with Progress(
             "exploring", BarColumn(), TimeElapsedColumn(), console=console, transient=True
         ) as bar:

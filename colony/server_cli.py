@@ -496,18 +496,24 @@ def robot_push(
     ctx: typer.Context,
     robot: str,
     run: Annotated[int | None, typer.Option("--run", help="push this run's individual")] = None,
-    rank: Annotated[int, typer.Option(help="rank in the run's latest generation")] = 0,
+    rank: Annotated[
+        int | None,
+        typer.Option(help="training rank in the run's latest generation (default: its best)"),
+    ] = None,
     sha: Annotated[str | None, typer.Option("--sha", help="push a stored controller")] = None,
     server: ServerOpt = DEFAULT_SERVER,
     token: TokenOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Push a run's ranked individual (--run, --rank) or a stored controller (--sha).
+    """Push a run's best (--run: its validated champion once completed), a training rank of its
+    latest generation (--run --rank N), or a stored controller (--sha).
 
     Exit status 1 unless the robot accepted it."""
     if (run is None) == (sha is None):
         raise typer.BadParameter("give exactly one of --run or --sha")
-    body: dict[str, Any] = {"run_id": run, "rank": rank} if run is not None else {"sha256": sha}
+    body: dict[str, Any] = {"sha256": sha}
+    if run is not None:
+        body = {"run_id": run} if rank is None else {"run_id": run, "rank": rank}
     _pushed(
         call_server(ctx, server, token, "POST", f"/api/robots/{robot}/controller", body), as_json
     )
