@@ -44,6 +44,12 @@ def agent_command(
     ),
     seed: Annotated[int, typer.Option(help="--emulate: seed of the start pose and gap")] = 0,
     index: Annotated[int, typer.Option(help="--emulate: robot index within the seed")] = 0,
+    world: Annotated[
+        Path | None,
+        typer.Option(
+            help="--emulate: the body's world, a JSON world or a run's config.json / best.json"
+        ),
+    ] = None,
     baud: Annotated[int, typer.Option(help="serial baud rate")] = 115_200,
     server_key: Annotated[
         Path | None,
@@ -62,12 +68,14 @@ def agent_command(
     log_format: LogFormatOpt = "text",
 ) -> None:
     """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck."""
+    from evorobotics.sim import DEFAULT_WORLD
     from robot_agent.agent import Agent, AgentSettings
     from robot_agent.driver import BasicXDriver
     from robot_agent.emulator import BasicXEmulator
     from robot_agent.errors import AgentError
     from robot_agent.sim_body import SimBody
     from schemas.security import ZenohClientAuth
+    from schemas.world import world_from_json
     from server.logs import as_format, configure
 
     try:
@@ -89,7 +97,14 @@ def agent_command(
             auth=auth,
         )
         emulator = (
-            BasicXEmulator(SimBody.create(maze, seed=seed, index=index)).start()
+            BasicXEmulator(
+                SimBody.create(
+                    maze,
+                    seed=seed,
+                    index=index,
+                    world=DEFAULT_WORLD if world is None else world_from_json(world.read_bytes()),
+                )
+            ).start()
             if emulate
             else None
         )

@@ -26,6 +26,7 @@ import threading
 import time
 import tty
 from dataclasses import dataclass
+from pathlib import Path
 from types import FrameType, TracebackType
 from typing import Protocol
 
@@ -315,7 +316,9 @@ def _ints(args: list[str], count: int, lo: int, hi: int) -> list[int] | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one virtual EvBot as a process: print the pty path, serve until SIGTERM/SIGINT."""
+    from evorobotics.sim import DEFAULT_WORLD
     from robot_agent.sim_body import SimBody
+    from schemas.world import world_from_json
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--maze", default="paper", help="maze name, gen:SIZE:SEED or path")
@@ -323,8 +326,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--index", type=int, default=0, help="robot index within the seed")
     parser.add_argument("--watchdog-ms", type=int, default=500)
     parser.add_argument("--no-gap", action="store_true", help="nominal whiskers and motors")
+    parser.add_argument(
+        "--world", help="JSON file: a world, or a config.json / best.json with one (default World)"
+    )
     args = parser.parse_args(argv)
-    body = SimBody.create(args.maze, seed=args.seed, index=args.index, gap=not args.no_gap)
+    world = DEFAULT_WORLD
+    if args.world is not None:
+        try:
+            world = world_from_json(Path(args.world).read_bytes())
+        except (OSError, ValueError) as exc:
+            parser.error(f"--world {args.world}: {exc}")
+    body = SimBody.create(
+        args.maze, seed=args.seed, index=args.index, gap=not args.no_gap, world=world
+    )
     done = threading.Event()
 
     def _on_signal(signum: int, frame: FrameType | None) -> None:

@@ -7,6 +7,7 @@ paper (section 2.2 and 4); lengths in metres, times in seconds, angles in degree
 
 from __future__ import annotations
 
+import json
 import math
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -88,3 +89,17 @@ class World(BaseModel):
     def half_diagonal(self) -> float:
         """Radius of the circle around the body: bounds every cell the body can touch."""
         return math.hypot(self.body_length / 2, self.body_width / 2)
+
+
+def world_from_json(text: str | bytes) -> World:
+    """The world in a JSON text: a World object, or any document with a `world` member (a
+    run's config.json, a champion's best.json). ValueError naming the problem."""
+    try:
+        obj = json.loads(text)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ValueError(f"invalid JSON: {exc}") from None
+    if isinstance(obj, dict) and isinstance(obj.get("world"), dict):
+        obj = obj["world"]
+    if not isinstance(obj, dict):
+        raise ValueError("expected a world object or a document with a 'world' member")
+    return World.model_validate(obj)

@@ -6,6 +6,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,9 +16,11 @@ from evorobotics.maze import load_maze
 from evorobotics.sim import DEFAULT_WORLD, whisker_bits
 from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import FIRMWARE_VERSION, BasicXEmulator, FirmwareConfig
+from robot_agent.emulator import main as emulator_main
 from robot_agent.serial_protocol import UNKNOWN_SEQ, Frame, LineDecoder, encode
 from robot_agent.sim_body import SimBody, draw_gap
-from schemas.world import World
+from schemas.run import RunConfig
+from schemas.world import World, world_from_json
 
 
 @pytest.fixture
@@ -152,3 +155,20 @@ def test_emulator_as_a_separate_process() -> None:
             proc.wait(timeout=10)
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def test_a_virtual_robot_takes_the_world_of_a_run_config_or_champion(tmp_path: Path) -> None:
+    world = World(dt=0.05, max_speed=0.2, whisker_range=0.08, stuck_after=3)
+    config = RunConfig(world=world)
+    assert world_from_json(config.model_dump_json()) == world
+    assert world_from_json(world.model_dump_json()) == world
+    body = SimBody.create("paper", seed=3, index=1, world=world)
+    assert body.params == world and body.dt == 0.05
+    for bad, reason in (("[1]", "world object"), ("{", "invalid JSON"), ('{"dt": -1}', "dt")):
+        with pytest.raises(ValueError, match=reason):
+            world_from_json(bad)
+    broken = tmp_path / "world.json"
+    broken.write_text('{"world": {"whisker_angles": [0, 0]}}')
+    with pytest.raises(SystemExit) as exc:
+        emulator_main(["--world", str(broken)])
+    assert exc.value.code == 2
