@@ -10,7 +10,7 @@ stuck and roaming, then roaming, stuck by 40/200/H steps, confined; per network:
 and mean with a 95 % t confidence interval; the wall time of validation against the whole run
 (issue 23 wants at most 20 %); and the random Eq 7 population (generation 0) as a reference.
 
-Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G]
+Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G] [--trial-steps T]
 [--poses P] [--steps H] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
 """
 
@@ -81,8 +81,9 @@ def measure(config: RunConfig, weights: np.ndarray, poses: int, steps: int) -> E
     )
 
 
-def evolved(config: RunConfig, poses: int, steps: int) -> tuple[Row, float, float]:
-    """The champion's row, and the run's wall time in training and in validation (s).
+def evolved(config: RunConfig, poses: int, steps: int) -> tuple[Row, Row, float, float]:
+    """The champion's row, training rank 0's row (what a run exported without validation), and
+    the run's wall time in training and in validation (s).
 
     Validation is what `evolve` does after the last generation's summary (`champion`).
     """
@@ -103,7 +104,33 @@ def evolved(config: RunConfig, poses: int, steps: int) -> tuple[Row, float, floa
         None if v is None else (v.score, v.stuck, v.roaming),
         measure(config, np.asarray(best.weights), poses, steps),
     )
-    return row, told_at[-1] - t0, t1 - told_at[-1]
+    fitness = np.where(np.isfinite(result.fitness), result.fitness, -np.inf)
+    top = int(np.argmax(fitness))  # training rank 0: the fittest, ties to the lower index
+    rank0 = Row(
+        f"{config.network} rank 0",
+        config.seed,
+        float(result.fitness[top]),
+        None,
+        measure(config, np.asarray(result.genomes[top]), poses, steps),
+    )
+    return row, rank0, told_at[-1] - t0, t1 - told_at[-1]
+
+
+def effect(label: str, a: list[float], b: list[float], *, paired: bool) -> None:
+    """Mean difference a - b with its 95 % t interval, and Cohen's d (paired: mean / sd of the
+    differences; unpaired: over the pooled sd)."""
+    x, y = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if paired:
+        d = x - y
+        diff, sd, df = float(d.mean()), float(d.std(ddof=1)), len(d) - 1
+        half = t_quantile_975(df) * sd / math.sqrt(len(d))
+    else:
+        diff = float(x.mean() - y.mean())
+        vx, vy = float(x.var(ddof=1)), float(y.var(ddof=1))
+        sd = math.sqrt(((len(x) - 1) * vx + (len(y) - 1) * vy) / (len(x) + len(y) - 2))
+        half = t_quantile_975(len(x) + len(y) - 2) * sd * math.sqrt(1 / len(x) + 1 / len(y))
+    cohen = f"{diff / sd:+.2f}" if sd > 0 else "n/a (no spread)"
+    print(f"  {label:46s} {diff:+.3f} +- {half:.3f} (95 % CI), Cohen's d {cohen}")
 
 
 def print_rows(rows: list[Row], steps: int) -> None:
@@ -144,6 +171,9 @@ def main() -> None:
     parser.add_argument("--generations", type=int, default=None, help="(the default run's)")
     parser.add_argument("--poses", type=int, default=1000)
     parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument(
+        "--trial-steps", type=int, default=None, help="training trial length (the crossing rule)"
+    )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 30 generations")
     args = parser.parse_args()
     if args.steps < 200:
@@ -152,13 +182,17 @@ def main() -> None:
     generations = args.generations or (30 if args.quick else RunConfig().generations)
 
     rows: dict[str, list[Row]] = {}
+    unvalidated: dict[str, list[Row]] = {}
     training = validation = 0.0
     for network in args.networks:
-        rows[network] = []
+        rows[network], unvalidated[network] = [], []
         for seed in range(seeds):
-            config = RunConfig(seed=seed, network=network, generations=generations)
-            row, trained_s, validated_s = evolved(config, args.poses, args.steps)
+            config = RunConfig(
+                seed=seed, network=network, generations=generations, steps=args.trial_steps
+            )
+            row, rank0, trained_s, validated_s = evolved(config, args.poses, args.steps)
             rows[network].append(row)
+            unvalidated[network].append(rank0)
             training += trained_s
             validation += validated_s
             print(
@@ -182,10 +216,31 @@ def main() -> None:
         f"stream, seed {TEST_SEED}, maze {base.maze!r}, each run's world)"
     )
     print_rows([r for network in args.networks for r in rows[network]], args.steps)
+    print_rows([r for network in args.networks for r in unvalidated[network]], args.steps)
     print()
     for network in args.networks:
-        print_summary(f"evolved {network}", rows[network], args.steps)
+        print_summary(f"evolved {network}, validated champion", rows[network], args.steps)
+        print_summary(
+            f"evolved {network}, training rank 0 (no validation)", unvalidated[network], args.steps
+        )
     print_summary(f"random {args.networks[0]} (generation 0 of seed 0, Eq 7)", randoms, args.steps)
+    if seeds >= 2:
+        print()
+        print("effects on roaming (fraction of unseen trials):")
+        for network in args.networks:
+            effect(
+                f"{network}: champion - training rank 0 (paired)",
+                [r.e.roaming for r in rows[network]],
+                [r.e.roaming for r in unvalidated[network]],
+                paired=True,
+            )
+        for other in args.networks[1:]:
+            effect(
+                f"{args.networks[0]} - {other} (champions)",
+                [r.e.roaming for r in rows[args.networks[0]]],
+                [r.e.roaming for r in rows[other]],
+                paired=False,
+            )
     total = training + validation
     print()
     print(
