@@ -10,13 +10,14 @@ stuck and roaming, then roaming, stuck by 40/200/H steps, confined; per network:
 and mean with a 95 % t confidence interval; the wall time of validation against the whole run
 (issue 23 wants at most 20 %); and the random Eq 7 population (generation 0) as a reference.
 
-Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G] [--trial-steps T]
+Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G] [--config JSON]
 [--poses P] [--steps H] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 from dataclasses import dataclass
@@ -172,12 +173,19 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=1000)
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument(
-        "--trial-steps", type=int, default=None, help="training trial length (the crossing rule)"
+        "--config",
+        default="{}",
+        help="RunConfig fields every run sets, as JSON, e.g. '{\"steps\": 240}' (default: none)",
     )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 30 generations")
     args = parser.parse_args()
     if args.steps < 200:
         parser.error("--steps must be >= 200 (stuck is reported at 40 and 200 steps too)")
+    try:
+        overrides = json.loads(args.config)
+        RunConfig.model_validate(overrides)
+    except ValueError as exc:
+        parser.error(f"--config: {' '.join(str(exc).split()[:20])}")
     seeds = args.seeds if args.seeds is not None else 2 if args.quick else 10
     generations = args.generations or (30 if args.quick else RunConfig().generations)
 
@@ -187,8 +195,8 @@ def main() -> None:
     for network in args.networks:
         rows[network], unvalidated[network] = [], []
         for seed in range(seeds):
-            config = RunConfig(
-                seed=seed, network=network, generations=generations, steps=args.trial_steps
+            config = RunConfig.model_validate(
+                {**overrides, "seed": seed, "network": network, "generations": generations}
             )
             row, rank0, trained_s, validated_s = evolved(config, args.poses, args.steps)
             rows[network].append(row)
