@@ -8,7 +8,8 @@ it is evaluated in:
   heading, rejected until the body is clear of walls and no whisker touches one;
 - with `reality_gap` on, per trial t from rng(seed, generation, Purpose.REALITY_GAP, t): one
   whisker trigger distance and two wheel gains in the world's gap ranges (by default 25-100 mm
-  and 0.85-1.15, section 4).
+  and 0.85-1.15, section 4); with the world's "step" gap model, every whisker's trigger
+  distance of every step besides.
 
 A run's validation set (`validate`) and exploration reports (`evorobotics.explore`) draw the
 same way from streams of their own, so they never reuse a training pose.
@@ -28,7 +29,7 @@ from evorobotics.maze import Maze, load_maze
 from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import DEFAULT_WORLD, Gap, SimResult, clear_of_walls, simulate
 from schemas.run import RunConfig
-from schemas.world import World
+from schemas.world import N_WHISKERS, World
 
 _CANDIDATES = 64
 _MAX_ROUNDS = 1000
@@ -109,30 +110,55 @@ def draw_gap(
     trials: int,
     world: World = DEFAULT_WORLD,
     purpose: Purpose = Purpose.REALITY_GAP,
+    steps: int | None = None,
 ) -> Gap:
-    """Per-trial reality-gap draws (trials,), (trials, 2) from `purpose`'s stream (read-only).
+    """Reality-gap draws of `trials` trials from `purpose`'s stream (read-only arrays).
 
     Trial t draws from rng(seed, generation, purpose, t): a whisker trigger distance uniform in
-    `world.gap_whisker_range`, two wheel gains uniform in 1 +- `world.gap_motor_gain`. Cached
-    like `start_poses` (every job of a generation draws the same); read-only views.
+    `world.gap_whisker_range`, then two wheel gains uniform in 1 +- `world.gap_motor_gain`;
+    whisker_range (trials,), motor_gain (trials, 2). With `world.gap_model == "step"` the
+    stream goes on to draw every whisker's distance of every step, step by step, and
+    whisker_range is (trials, steps, 5): `steps`, the trial length, is then required. The gains
+    are the trial model's either way, and a shorter trial's draws are a longer one's first
+    steps. Cached like `start_poses` (every job of a generation draws the same), except
+    step-model draws over GAP_CACHE_STEPS robot-steps (a validation set, an exploration report:
+    drawn once per use, 40 bytes a robot-step); read-only views.
     """
     if trials < 0:
         raise ValueError(f"trials must be >= 0, got {trials}")
-    cached = _cached_gap(seed, generation, trials, world, purpose)
+    if world.gap_model == "trial":
+        steps = 0  # not drawn: one cache entry whatever the trial length
+    elif steps is None or steps < 0:
+        raise ValueError(f"the 'step' gap model needs the trial length: steps >= 0, got {steps}")
+    if trials * steps > GAP_CACHE_STEPS:
+        return _draw_gap(seed, generation, trials, world, purpose, steps)
+    cached = _cached_gap(seed, generation, trials, world, purpose, steps)
     return Gap(cached.whisker_range.view(), cached.motor_gain.view())
 
 
-@lru_cache(maxsize=START_CACHE)
-def _cached_gap(seed: int, generation: int, trials: int, world: World, purpose: Purpose) -> Gap:
-    ranges = np.empty(trials)
+GAP_CACHE_STEPS = 20_000
+"""Step-model gap draws of at most this many robot-steps (800 kB) are cached."""
+
+
+def _draw_gap(
+    seed: int, generation: int, trials: int, world: World, purpose: Purpose, steps: int
+) -> Gap:
+    """`draw_gap` without the cache: the draws themselves, in read-only arrays."""
+    lo, hi = world.gap_whisker_range
+    per_step = world.gap_model == "step"
+    ranges = np.empty((trials, steps, N_WHISKERS) if per_step else trials)
     gains = np.empty((trials, 2))
     for t in range(trials):
         gen = rng(seed, generation, purpose, t)
-        ranges[t] = gen.uniform(*world.gap_whisker_range)
+        shared = gen.uniform(lo, hi)  # drawn by both models: the step model's gains stay equal
         gains[t] = gen.uniform(1.0 - world.gap_motor_gain, 1.0 + world.gap_motor_gain, 2)
+        ranges[t] = gen.uniform(lo, hi, (steps, N_WHISKERS)) if per_step else shared
     ranges.flags.writeable = False
     gains.flags.writeable = False
     return Gap(ranges, gains)
+
+
+_cached_gap = lru_cache(maxsize=START_CACHE)(_draw_gap)
 
 
 def crossing_steps(maze: Maze, world: World = DEFAULT_WORLD) -> int:
@@ -146,10 +172,11 @@ def crossing_steps(maze: Maze, world: World = DEFAULT_WORLD) -> int:
 
 
 def trial_steps(config: RunConfig) -> int:
-    """Steps of each training trial: `config.steps`, or the crossing rule for its maze."""
+    """Steps of each training trial: `config.steps`, or `config.crossings` crossings of its
+    maze (`crossing_steps`)."""
     if config.steps is not None:
         return config.steps
-    return crossing_steps(load_maze(config.maze), config.world)
+    return config.crossings * crossing_steps(load_maze(config.maze), config.world)
 
 
 def robot_steps(config: RunConfig, individuals: int) -> int:
@@ -170,9 +197,6 @@ def _trials(
     if g.ndim != 2 or g.shape[1] != spec.weight_count:
         raise ValueError(f"genomes must be (k, {spec.weight_count}), got {g.shape}")
     k, trials = g.shape[0], poses.shape[0]
-    gap = None
-    if per_trial is not None:
-        gap = Gap(np.tile(per_trial.whisker_range, k), np.tile(per_trial.motor_gain, (k, 1)))
     result = simulate(
         spec,
         np.repeat(g, trials, axis=0),
@@ -180,7 +204,7 @@ def _trials(
         np.tile(poses, (k, 1)),
         steps,
         params=config.world,
-        gap=gap,
+        gap=None if per_trial is None else per_trial.tile(k),
     )
     components = result.components.reshape(k, trials, 4)
     return Evaluation(mean_fitness(components, config.fitness), components)
@@ -190,12 +214,13 @@ def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluat
     """Eq 12 of k genomes (k, n_weights) on the generation's training trials."""
     maze = load_maze(config.maze)
     poses = start_poses(maze, config.seed, generation, config.trials, config.world)
+    steps = trial_steps(config)
     gap = (
-        draw_gap(config.seed, generation, config.trials, config.world)
+        draw_gap(config.seed, generation, config.trials, config.world, steps=steps)
         if config.reality_gap
         else None
     )
-    return _trials(config, genomes, poses, gap, trial_steps(config))
+    return _trials(config, genomes, poses, gap, steps)
 
 
 def validation_set(config: RunConfig) -> tuple[np.ndarray, Gap | None]:
@@ -210,7 +235,7 @@ def validation_set(config: RunConfig) -> tuple[np.ndarray, Gap | None]:
     poses = start_poses(maze, config.seed, 0, v.poses, config.world, Purpose.VALIDATION).copy()
     if not config.reality_gap:
         return poses, None
-    drawn = draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP)
+    drawn = draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP, v.steps)
     return poses, Gap(drawn.whisker_range.copy(), drawn.motor_gain.copy())
 
 

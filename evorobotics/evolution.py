@@ -25,7 +25,7 @@ from evorobotics.fitness import mean_fitness
 from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from evorobotics.maze import load_maze
-from evorobotics.sim import Gap, simulate
+from evorobotics.sim import simulate
 from schemas.run import RunConfig, ValidationScore
 
 
@@ -124,7 +124,10 @@ def validate(config: RunConfig, genomes: np.ndarray) -> Validated:
     g = np.asarray(genomes, dtype=np.float64)
     poses, gap = validation_set(config)
     maze = load_maze(config.maze)
-    per_candidate = v.poses * (v.steps + 1) * 3 * 8
+    # a candidate's recorded poses and its copy of the gap's whisker draws (step model: big)
+    per_candidate = v.poses * (v.steps + 1) * 3 * 8 + (
+        0 if gap is None else gap.whisker_range.nbytes
+    )
     chunk = max(1, VALIDATION_CHUNK_BYTES // per_candidate)
     score, stuck, roaming = (np.empty(len(g)) for _ in range(3))
     for a in range(0, len(g), chunk):
@@ -137,9 +140,7 @@ def validate(config: RunConfig, genomes: np.ndarray) -> Validated:
             np.tile(poses, (k, 1)),
             v.steps,
             params=config.world,
-            gap=None
-            if gap is None
-            else Gap(np.tile(gap.whisker_range, k), np.tile(gap.motor_gain, (k, 1))),
+            gap=None if gap is None else gap.tile(k),
             record=True,
         )
         assert result.poses is not None

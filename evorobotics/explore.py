@@ -180,7 +180,7 @@ def explore(
     w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
     loaded = load_maze(maze)
     starts = start_poses(loaded, seed, 0, poses, world, Purpose.EXPLORATION)
-    gap = draw_gap(seed, 0, poses, world, Purpose.EXPLORATION_GAP) if reality_gap else None
+    gap = draw_gap(seed, 0, poses, world, Purpose.EXPLORATION_GAP, steps) if reality_gap else None
     result = simulate(
         spec,
         np.repeat(w, poses, axis=0),

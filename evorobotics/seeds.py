@@ -25,6 +25,7 @@ class Purpose(IntEnum):
     VALIDATION_GAP = 8
     EXPLORATION = 9
     EXPLORATION_GAP = 10
+    BODY_GAP = 11
 
 
 def rng(seed: int, generation: int, purpose: Purpose, index: int = 0) -> np.random.Generator:

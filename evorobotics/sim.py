@@ -55,7 +55,9 @@ DEFAULT_WORLD = World()
 
 @dataclass(frozen=True)
 class Gap:
-    """Reality-gap draws per robot: whisker trigger distance (B,) m and wheel gains (B, 2)."""
+    """Reality-gap draws per robot: wheel gains (B, 2) and whisker trigger distances in m,
+    either (B,) one per trial shared by the five whiskers, or (B, steps, 5) one per step and
+    whisker (`World.gap_model`)."""
 
     whisker_range: np.ndarray
     motor_gain: np.ndarray
@@ -64,6 +66,11 @@ class Gap:
     def nominal(cls, batch: int, params: World = DEFAULT_WORLD) -> Gap:
         """No gap: every robot at the nominal whisker range and unit gains."""
         return cls(np.full(batch, params.whisker_range), np.ones((batch, 2)))
+
+    def tile(self, k: int) -> Gap:
+        """The batch repeated k times, in order: each of k individuals meets the same draws."""
+        reps = (k,) + (1,) * (self.whisker_range.ndim - 1)
+        return Gap(np.tile(self.whisker_range, reps), np.tile(self.motor_gain, (k, 1)))
 
 
 @dataclass(frozen=True)
@@ -139,10 +146,18 @@ def whisker_bits(
     params: World = DEFAULT_WORLD,
     ranges: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(B, 5) uint8: 1 where a wall lies within `ranges` (B,) of a whisker's attachment point."""
+    """(B, 5) uint8: 1 where a wall lies within range of a whisker's attachment point.
+
+    `ranges` is the trigger distance per robot (B,) or per robot and whisker (B, 5); by default
+    the world's nominal `whisker_range`.
+    """
     poses = np.asarray(poses, dtype=np.float64)
     batch = poses.shape[0]
-    r = np.full(batch, params.whisker_range) if ranges is None else np.asarray(ranges, float)
+    r = np.full((batch, 1), params.whisker_range) if ranges is None else np.asarray(ranges, float)
+    if r.ndim == 1:
+        r = r[:, None]
+    if r.shape not in ((batch, 1), (batch, N_WHISKERS)):
+        raise ValueError(f"ranges must be ({batch},) or ({batch}, {N_WHISKERS}), got {r.shape}")
     cell = maze.cell_size
     x, y, th = poses[:, 0:1], poses[:, 1:2], poses[:, 2:3]
     c, s = np.cos(th), np.sin(th)
@@ -152,7 +167,7 @@ def whisker_bits(
     ca, sa = np.cos(np.array(params.whisker_angle)), np.sin(np.array(params.whisker_angle))
     ux = c * ca - s * sa  # direction = heading rotated by the whisker angle
     uy = s * ca + c * sa
-    r2 = r[:, None] + 0.0 * px
+    r2 = r + 0.0 * px
     i0 = np.floor(np.minimum(px, px + r2 * ux) / cell).astype(np.int64)
     j0 = np.floor(np.minimum(py, py + r2 * uy) / cell).astype(np.int64)
     k = math.ceil(float(r.max(initial=0.0)) / cell) + 2
@@ -239,10 +254,10 @@ def _prepare(
         return w, poses, Gap.nominal(batch, params)
     ranges = _kernel_array(gap.whisker_range)
     gains = _kernel_array(gap.motor_gain)
-    if ranges.shape != (batch,) or gains.shape != (batch, 2):
+    if ranges.shape not in ((batch,), (batch, steps, N_WHISKERS)) or gains.shape != (batch, 2):
         raise ValueError(
-            f"gap must hold whisker_range ({batch},) and motor_gain ({batch}, 2), got "
-            f"{ranges.shape} and {gains.shape}"
+            f"gap must hold whisker_range ({batch},) or ({batch}, {steps}, {N_WHISKERS}) and "
+            f"motor_gain ({batch}, 2), got {ranges.shape} and {gains.shape}"
         )
     if not (np.isfinite(ranges).all() and (ranges >= 0).all() and np.isfinite(gains).all()):
         raise ValueError("gap values must be finite, whisker ranges >= 0")
@@ -273,8 +288,11 @@ def simulate_reference(
     curve = np.zeros(batch)
     max_off = np.zeros(batch)
     trace_p, trace_w, trace_m = [pose.copy()], [], []
+    per_step = gap.whisker_range.ndim == 3
     for k in range(steps):
-        bits = whisker_bits(maze, pose, params, gap.whisker_range)
+        bits = whisker_bits(
+            maze, pose, params, gap.whisker_range[:, k] if per_step else gap.whisker_range
+        )
         out, state = network.step_reference(spec, w, bits.astype(np.float64), state)
         motors = network.motor_commands(spec, out)
         cand = move(pose, motors, gap.motor_gain, params)
@@ -445,6 +463,9 @@ def _episodes(
     per-spec wrapper (`_episode_kernel`), where `kernel` is a module global: a dispatcher passed
     as a value would make the wrapper uncacheable. Not disk-cached itself; the wrapper's cache
     key covers this file, so an edit here is never served stale from disk.
+
+    `ranges` (B, S, W) holds the whiskers' trigger distances: S = 1, fixed for the trial, or
+    S = steps, one row per step; W = 1, shared by the five whiskers, or W = 5.
     """
     dt = world[0]
     vmax = world[1]
@@ -457,6 +478,9 @@ def _episodes(
     inputs = np.empty(wx.shape[0])
     out = np.empty(2)
     motor = np.empty(2)
+    rq = np.empty(wx.shape[0])
+    per_step = ranges.shape[1] != 1
+    last = ranges.shape[2] - 1
     for r in range(weights.shape[0]):
         w = weights[r]
         state[:] = 0.0
@@ -465,7 +489,11 @@ def _episodes(
         x = x0
         y = y0
         th = starts[r, 2]
-        rng_r = ranges[r]
+        r_max = 0.0  # the longest whisker: the body's early out must cover all five
+        if not per_step:
+            for q in range(wx.shape[0]):
+                rq[q] = ranges[r, 0, min(q, last)]
+                r_max = max(r_max, rq[q])
         gl = gains[r, 0]
         gr = gains[r, 1]
         blocked = 0
@@ -482,19 +510,24 @@ def _episodes(
         for k in range(steps):
             if stuck and not record:
                 break  # frozen for good: its fitness terms are final
+            if per_step:
+                r_max = 0.0
+                for q in range(wx.shape[0]):
+                    rq[q] = ranges[r, k, min(q, last)]
+                    r_max = max(r_max, rq[q])
             # early outs: no wall within reach of the centre / of an attachment point
-            far = _clearance(clear, cell, x, y) > reach + rng_r
+            far = _clearance(clear, cell, x, y) > reach + r_max
             for q in range(wx.shape[0]):
                 inputs[q] = 0.0
                 if far:
                     continue
                 px = x + c * wx[q] - s * wy[q]
                 py = y + s * wx[q] + c * wy[q]
-                if _clearance(clear, cell, px, py) > rng_r:
+                if _clearance(clear, cell, px, py) > rq[q]:
                     continue
                 ux = c * ca[q] - s * sa[q]
                 uy = s * ca[q] + c * sa[q]
-                if _whisker(solid, cell, px, py, ux, uy, rng_r):
+                if _whisker(solid, cell, px, py, ux, uy, rq[q]):
                     inputs[q] = 1.0
             kernel(w, state, inputs, out, scratch)
             motor_one(out, linear_output, motor)
@@ -721,6 +754,9 @@ def simulate(
     rec_p = np.zeros((*shape[:1], steps + 1 if record else 0, 3))
     rec_w = np.zeros((*shape, N_WHISKERS), dtype=np.uint8)
     rec_m = np.zeros((*shape, 2))
+    ranges = gap.whisker_range
+    if ranges.ndim == 1:  # one per trial: the kernel's (B, S, W) with S = W = 1, a view
+        ranges = ranges.reshape(batch, 1, 1)
     _episode_kernel(spec)(
         w,
         network.kernel_plan(spec).linear_output,
@@ -738,7 +774,7 @@ def simulate(
         _clearance_map(maze),
         reach,
         params.stuck_after,
-        gap.whisker_range,
+        ranges,
         gap.motor_gain,
         record,
         final,

@@ -8,7 +8,10 @@ records `blocked` so traces carry the ground truth the stuck detector is measure
 
 The start pose and reality gap of robot `index` are those `evorobotics.evaluate` gives trial
 `index` of generation 0 (`start_poses`, `draw_gap`): a free pose with no whisker touching, whisker
-trigger distance uniform in 25-100 mm, each wheel's gain within +/-15 % (paper section 4).
+trigger distance uniform in 25-100 mm, each wheel's gain within +/-15 % (paper section 4). With
+the world's "step" gap model a virtual robot runs for as long as it is driven, so its whiskers'
+distances cannot be drawn in advance: the body draws five anew on every step from
+rng(seed, 0, Purpose.BODY_GAP, index).
 """
 
 from __future__ import annotations
@@ -18,18 +21,25 @@ import numpy as np
 from evorobotics.evaluate import draw_gap as draw_trial_gaps
 from evorobotics.evaluate import start_poses
 from evorobotics.maze import Maze, load_maze
+from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import DEFAULT_WORLD, Gap, body_hits_wall, move, whisker_bits
-from schemas.world import World
+from schemas.world import N_WHISKERS, World
 
 
 def draw_gap(seed: int, index: int, world: World = DEFAULT_WORLD) -> Gap:
-    """The reality gap of robot `index` under `seed` in `world`'s ranges, a batch-of-one Gap."""
-    gaps = draw_trial_gaps(seed, 0, index + 1, world)
+    """The per-trial reality gap of robot `index` under `seed` in `world`'s ranges, a
+    batch-of-one Gap (the trial model's draws, whatever `world.gap_model`)."""
+    gaps = draw_trial_gaps(seed, 0, index + 1, world.model_copy(update={"gap_model": "trial"}))
     return Gap(gaps.whisker_range[index:], gaps.motor_gain[index:])
 
 
 class SimBody:
-    """One simulated EvBot: pose, gap, and whether its last move was blocked by a wall."""
+    """One simulated EvBot: pose, gap, and whether its last move was blocked by a wall.
+
+    With `whisker_draws`, each whisker's trigger distance is drawn from it uniformly in
+    `params.gap_whisker_range` anew on every step (the "step" gap model), in place of the
+    gap's one distance.
+    """
 
     def __init__(
         self,
@@ -37,6 +47,7 @@ class SimBody:
         pose: np.ndarray,
         gap: Gap | None = None,
         params: World | None = None,
+        whisker_draws: np.random.Generator | None = None,
     ) -> None:
         self.params = params or World()
         self.maze = maze
@@ -48,6 +59,9 @@ class SimBody:
         if self.gap.whisker_range.shape != (1,) or self.gap.motor_gain.shape != (1, 2):
             raise ValueError("SimBody needs a batch-of-one Gap: shapes (1,) and (1, 2)")
         self.blocked = False
+        self._whisker_draws = whisker_draws
+        self.whisker_range = self._next_ranges()
+        """The trigger distances of this step: (1,) one for all whiskers, or (1, 5)."""
 
     @classmethod
     def create(
@@ -62,11 +76,14 @@ class SimBody:
         """Robot `index` of `seed` in the named maze at a random free pose, gap on by default.
 
         `world` is the run's (its config.json or champion document carry it), so a virtual
-        robot has the body, whiskers and speed the controller was evolved with.
+        robot has the body, whiskers, speed and gap model the controller was evolved with.
         """
         loaded = load_maze(maze)
         pose = start_poses(loaded, seed, 0, index + 1, world)[index]
-        return cls(loaded, pose, draw_gap(seed, index, world) if gap else None, world)
+        if not gap:
+            return cls(loaded, pose, None, world)
+        draws = rng(seed, 0, Purpose.BODY_GAP, index) if world.gap_model == "step" else None
+        return cls(loaded, pose, draw_gap(seed, index, world), world, draws)
 
     @property
     def dt(self) -> float:
@@ -79,7 +96,13 @@ class SimBody:
         self.blocked = bool(body_hits_wall(self.maze, moved, self.params)[0])
         if not self.blocked:
             self.pose = moved
+        self.whisker_range = self._next_ranges()
 
     def whiskers(self) -> tuple[bool, ...]:
-        bits = whisker_bits(self.maze, self.pose, self.params, self.gap.whisker_range)
+        bits = whisker_bits(self.maze, self.pose, self.params, self.whisker_range)
         return tuple(bool(b) for b in bits[0])
+
+    def _next_ranges(self) -> np.ndarray:
+        if self._whisker_draws is None:
+            return self.gap.whisker_range
+        return self._whisker_draws.uniform(*self.params.gap_whisker_range, (1, N_WHISKERS))

@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import math
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 N_WHISKERS = 5
@@ -56,6 +58,14 @@ class World(BaseModel):
     )
     gap_motor_gain: float = Field(
         0.15, ge=0.0, lt=1.0, description="reality gap: wheel gains drawn in 1 +- this"
+    )
+    gap_model: Literal["trial", "step"] = Field(
+        "trial",
+        description=(
+            "reality gap: 'trial' draws one trigger distance per trial shared by the five "
+            "whiskers; 'step' draws each whisker's anew every step (noisy switches); wheel "
+            "gains are per trial either way"
+        ),
     )
 
     @model_validator(mode="after")

@@ -172,3 +172,27 @@ def test_a_virtual_robot_takes_the_world_of_a_run_config_or_champion(tmp_path: P
     with pytest.raises(SystemExit) as exc:
         emulator_main(["--world", str(broken)])
     assert exc.value.code == 2
+
+
+def test_a_virtual_robot_under_the_step_gap_model_draws_its_whiskers_every_step() -> None:
+    world = World(gap_model="step")
+    a, b = (SimBody.create("paper", seed=5, index=2, world=world) for _ in range(2))
+    assert np.array_equal(a.gap.motor_gain, draw_gap(5, 2).motor_gain)
+    seen = []
+    for _ in range(30):
+        assert np.array_equal(a.whisker_range, b.whisker_range)  # a pure function of the seed
+        expected = whisker_bits(a.maze, a.pose, world, a.whisker_range)[0]
+        assert a.whiskers() == tuple(bool(bit) for bit in expected)
+        seen.append(a.whisker_range[0])
+        a.step(0.5, 0.6)
+        b.step(0.5, 0.6)
+    ranges = np.array(seen)
+    lo, hi = world.gap_whisker_range
+    assert ranges.shape == (30, 5) and ((ranges >= lo) & (ranges <= hi)).all()
+    assert (ranges[1:] != ranges[:-1]).all() and (ranges[:, 1:] != ranges[:, :-1]).all()
+    other = SimBody.create("paper", seed=5, index=3, world=world)
+    assert not np.array_equal(other.whisker_range, ranges[:1])
+    trial = SimBody.create("paper", seed=5, index=2)
+    assert trial.whisker_range.shape == (1,)
+    trial.step(0.5, 0.6)
+    assert np.array_equal(trial.whisker_range, draw_gap(5, 2).whisker_range)

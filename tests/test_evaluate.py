@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from evorobotics.errors import MazeError
 from evorobotics.evaluate import (
+    GAP_CACHE_STEPS,
     START_CACHE,
     _cached_start_poses,
     draw_gap,
@@ -14,12 +15,16 @@ from evorobotics.evaluate import (
     record_path,
     start_poses,
     trial_steps,
+    validation_set,
 )
+from evorobotics.evolution import validate
+from evorobotics.explore import explore
 from evorobotics.fitness import COMPONENTS, fitness, mean_fitness
 from evorobotics.maze import Maze, load_maze, parse_maze
 from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import DEFAULT_WORLD, body_hits_wall, whisker_bits
-from schemas.run import FitnessWeights, RunConfig
+from schemas.network import PRESETS
+from schemas.run import FitnessWeights, RunConfig, ValidationConfig
 from schemas.world import World
 
 
@@ -140,9 +145,10 @@ def genomes(n: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).normal(0.0, 1.5, (n, 222))
 
 
-@pytest.mark.parametrize("gap", [False, True])
-def test_evaluate_is_deterministic_and_slice_independent(gap: bool) -> None:
-    config = RunConfig(seed=11, reality_gap=gap)
+@pytest.mark.parametrize("gap", [None, "trial", "step"])
+def test_evaluate_is_deterministic_and_slice_independent(gap: str | None) -> None:
+    world = World(gap_model="trial" if gap is None else gap)
+    config = RunConfig(seed=11, reality_gap=gap is not None, world=world)
     pop = genomes(30)
     whole = evaluate(config, 4, pop)
     assert whole.fitness.shape == (30,)
@@ -184,3 +190,80 @@ def test_record_path_matches_evaluation() -> None:
 def test_bad_genome_shape() -> None:
     with pytest.raises(ValueError, match="genomes"):
         evaluate(RunConfig(), 0, np.zeros((2, 10)))
+
+
+STEP = World(gap_model="step")
+
+
+def test_the_trial_gap_model_draws_as_documented() -> None:
+    # one distance per trial, then two gains, from the trial's own stream: never reordered
+    gap = draw_gap(8, 2, 3, steps=50)
+    for t in range(3):
+        gen = rng(8, 2, Purpose.REALITY_GAP, t)
+        assert gap.whisker_range[t] == gen.uniform(0.025, 0.1)
+        assert gap.motor_gain[t].tobytes() == gen.uniform(0.85, 1.15, 2).tobytes()
+    assert draw_gap(8, 2, 3).whisker_range.tobytes() == gap.whisker_range.tobytes()
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**40),
+    generation=st.integers(0, 1000),
+    trials=st.integers(1, 6),
+    steps=st.integers(2, 60),
+)
+def test_step_gap_model_draws_per_step_and_whisker(
+    seed: int, generation: int, trials: int, steps: int
+) -> None:
+    gap = draw_gap(seed, generation, trials, STEP, steps=steps)
+    r = gap.whisker_range
+    assert r.shape == (trials, steps, 5) and gap.motor_gain.shape == (trials, 2)
+    assert ((r >= 0.025) & (r <= 0.1)).all()
+    assert (r[:, 1:] != r[:, :-1]).all() and (r[..., 1:] != r[..., :-1]).all()
+    assert not r.flags.writeable and not gap.motor_gain.flags.writeable
+    # the gains are the trial model's; a longer trial extends a shorter one's draws
+    trial = draw_gap(seed, generation, trials)
+    assert gap.motor_gain.tobytes() == trial.motor_gain.tobytes()
+    longer = draw_gap(seed, generation, trials, STEP, steps=steps + 7)
+    assert longer.whisker_range[:, :steps].tobytes() == r.tobytes()
+    assert draw_gap(seed, generation, trials, STEP, steps=steps).whisker_range.tobytes() == (
+        r.tobytes()
+    )
+
+
+def test_step_gap_draws_beyond_the_cache_are_the_same_draws() -> None:
+    big = GAP_CACHE_STEPS // 2 + 1
+    uncached = draw_gap(3, 1, 2, STEP, Purpose.VALIDATION_GAP, big)
+    cached = draw_gap(3, 1, 2, STEP, Purpose.VALIDATION_GAP, 10)
+    assert (
+        uncached.whisker_range.shape == (2, big, 5) and not uncached.whisker_range.flags.writeable
+    )
+    assert uncached.whisker_range[:, :10].tobytes() == cached.whisker_range.tobytes()
+    with pytest.raises(ValueError, match="steps"):
+        draw_gap(3, 1, 2, STEP)
+
+
+def test_the_step_gap_model_changes_fitness() -> None:
+    pop = genomes(20, seed=4)
+    trial = evaluate(RunConfig(seed=2, reality_gap=True), 0, pop)
+    step = evaluate(RunConfig(seed=2, reality_gap=True, world=STEP), 0, pop)
+    assert not np.array_equal(trial.fitness, step.fitness)
+
+
+def test_validation_and_exploration_take_the_step_gap_model() -> None:
+    v = ValidationConfig(poses=6, steps=60, candidates=3)
+    config = RunConfig(seed=4, reality_gap=True, world=STEP, validation=v)
+    poses, gap = validation_set(config)
+    assert poses.shape == (6, 3) and gap is not None and gap.whisker_range.shape == (6, 60, 5)
+    pop = genomes(3, seed=6)
+    together = validate(config, pop)
+    for i in range(3):
+        alone = validate(config, pop[i : i + 1])
+        assert alone.score[0] == together.score[i] and alone.roaming[0] == together.roaming[i]
+    trial = validate(config.model_copy(update={"world": World()}), pop)
+    assert not np.array_equal(trial.score, together.score)
+    spec = PRESETS["paper-best"]
+    e = explore(spec, pop[0], poses=5, steps=60, seed=2, reality_gap=True, world=STEP)
+    again = explore(spec, pop[0], poses=5, steps=60, seed=2, reality_gap=True, world=STEP)
+    assert e == again
+    assert e != explore(spec, pop[0], poses=5, steps=60, seed=2, reality_gap=True)

@@ -18,7 +18,6 @@ from evorobotics.maze import load_maze
 from evorobotics.sim import (
     DEFAULT_WORLD,
     Gap,
-    World,
     _episode_kernel,
     body_hits_wall,
     clear_of_walls,
@@ -27,6 +26,7 @@ from evorobotics.sim import (
     whisker_bits,
 )
 from schemas.network import PRESETS, NetworkSpec
+from schemas.world import World
 
 ARENA = load_maze("arena")  # 2 m room, inner faces at 0.1 and 1.9
 CONST = NetworkSpec(hidden=(), delays=0, output_activation="linear")
@@ -420,3 +420,126 @@ def test_diverging_linear_feedback_never_puts_nan_in_poses_or_motors() -> None:
         assert np.isfinite(res.motors).all() and np.abs(res.motors).max() <= 1.0
         assert (res.motors[0, 20:] == [1.0, -1.0]).all()  # saturated for good: it spins
         assert not res.stuck[0] and res.poses[0, -1, 2] != res.poses[0, 0, 2]
+
+
+def step_gap(g: np.random.Generator, batch: int, steps: int) -> Gap:
+    """The "step" gap model's shapes: a trigger distance per robot, step and whisker."""
+    return Gap(g.uniform(0.025, 0.1, (batch, steps, 5)), g.uniform(0.85, 1.15, (batch, 2)))
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), preset=st.sampled_from(["paper-best", "recurrent-small"]))
+def test_kernel_agrees_with_reference_under_per_step_whisker_ranges(seed: int, preset: str) -> None:
+    spec = PRESETS[preset]
+    maze = load_maze("paper")
+    g = np.random.default_rng(seed)
+    batch, steps = 16, 30
+    weights = g.normal(0.0, 1.0, (batch, spec.weight_count))
+    starts = np.tile(start_poses(maze, seed % 1000, 0, 8), (2, 1))
+    gap = step_gap(g, batch, steps)
+    fast = simulate(spec, weights, maze, starts, steps, gap=gap, record=True)
+    ref = simulate_reference(spec, weights, maze, starts, steps, gap=gap, record=True)
+    assert fast.poses is not None and ref.poses is not None
+    assert fast.whiskers is not None and ref.whiskers is not None
+    assert np.array_equal(fast.whiskers, ref.whiskers)
+    assert np.array_equal(fast.stuck_step, ref.stuck_step)
+    assert np.allclose(fast.poses, ref.poses, atol=1e-9)
+    assert np.allclose(fast.components, ref.components, atol=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    x=st.floats(-0.1, 2.5),
+    y=st.floats(-0.1, 2.5),
+    th=st.floats(-math.pi, math.pi),
+    ranges=st.lists(st.floats(0.0, 0.1), min_size=5, max_size=5),
+)
+def test_kernel_whiskers_of_unequal_lengths_match_reference_anywhere(
+    x: float, y: float, th: float, ranges: list[float]
+) -> None:
+    # the early out near the centre must hold for the longest whisker of the step
+    maze = load_maze("paper")
+    poses = np.array([[x, y, th]])
+    ref = whisker_bits(maze, poses, ranges=np.array([ranges]))
+    gap = Gap(np.array([[ranges]]), np.ones((1, 2)))
+    res = simulate(CONST, const_weights(0, 0), maze, poses, 1, gap=gap, record=True)
+    assert res.whiskers is not None
+    assert np.array_equal(res.whiskers[:, 0], ref)
+
+
+def test_per_step_ranges_are_read_each_step_and_per_whisker() -> None:
+    # robot 0 faces a wall 60 mm beyond its whisker tips; robot 1 stands in the open, 0.8 m
+    # from the nearest wall: only its long whiskers feel one, and the early out near its
+    # centre must allow for the longest of the five
+    poses = np.array([[1.9 - 0.0825 - 0.06, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    ranges = np.full((2, 3, 5), 0.01)
+    ranges[0, 1, 2] = 0.08  # step 2, middle whisker: reaches the wall ahead
+    ranges[0, 2, 0] = 0.5  # step 3, left whisker: reaches it at 60 degrees
+    ranges[1, 1, 2] = 0.85
+    ranges[1, 2, 4] = 0.99  # right whisker: reaches the wall below
+    gap = Gap(ranges, np.ones((2, 2)))
+    res = simulate(CONST, const_weights(0, 0, 2), ARENA, poses, 3, gap=gap, record=True)
+    assert res.whiskers is not None
+    assert res.whiskers.tolist() == [
+        [[0, 0, 0, 0, 0], [0, 0, 1, 0, 0], [1, 0, 0, 0, 0]],
+        [[0, 0, 0, 0, 0], [0, 0, 1, 0, 0], [0, 0, 0, 0, 1]],
+    ]
+    ref = simulate_reference(CONST, const_weights(0, 0, 2), ARENA, poses, 3, gap=gap, record=True)
+    assert ref.whiskers is not None and np.array_equal(ref.whiskers, res.whiskers)
+
+
+def test_constant_per_step_ranges_are_the_trial_model_bit_for_bit() -> None:
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    g = np.random.default_rng(3)
+    weights = g.normal(0.0, 1.5, (24, spec.weight_count))
+    starts = np.tile(start_poses(maze, 5, 0, 8), (3, 1))
+    trial = Gap(g.uniform(0.025, 0.1, 24), g.uniform(0.85, 1.15, (24, 2)))
+    step = Gap(np.repeat(trial.whisker_range, 40 * 5).reshape(24, 40, 5), trial.motor_gain)
+    for run in (simulate, simulate_reference):
+        a = run(spec, weights, maze, starts, 40, gap=trial, record=True)
+        b = run(spec, weights, maze, starts, 40, gap=step, record=True)
+        assert a.whiskers is not None and a.whiskers.any()
+        for name in ("poses_final", "curve_length", "stuck_step", "poses", "whiskers", "motors"):
+            assert getattr(a, name).tobytes() == getattr(b, name).tobytes(), name
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), cut=st.integers(1, 19))
+def test_per_step_gap_results_do_not_depend_on_batch(seed: int, cut: int) -> None:
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    g = np.random.default_rng(seed)
+    weights = g.normal(0.0, 1.5, (20, spec.weight_count))
+    starts = np.tile(start_poses(maze, 0, 0, 4), (5, 1))
+    gap = step_gap(g, 20, 40)
+    whole = simulate(spec, weights, maze, starts, 40, gap=gap)
+    parts = [
+        simulate(
+            spec,
+            weights[a:b],
+            maze,
+            starts[a:b],
+            40,
+            gap=Gap(gap.whisker_range[a:b], gap.motor_gain[a:b]),
+        )
+        for a, b in ((0, cut), (cut, 20))
+    ]
+    assert whole.components.tobytes() == np.concatenate([p.components for p in parts]).tobytes()
+    assert whole.poses_final.tobytes() == np.concatenate([p.poses_final for p in parts]).tobytes()
+
+
+def test_per_step_gap_shapes_are_checked() -> None:
+    spec = PRESETS["paper-best"]
+    w = np.zeros((2, spec.weight_count))
+    poses = np.tile([[1.0, 1.0, 0.0]], (2, 1))
+    for ranges in (np.full((2, 4, 5), 0.05), np.full((2, 5, 4), 0.05), np.full((2, 5), 0.05)):
+        with pytest.raises(ValueError, match="gap must hold"):
+            simulate(spec, w, ARENA, poses, 5, gap=Gap(ranges, np.ones((2, 2))))
+    with pytest.raises(ValueError, match="gap values"):
+        simulate(spec, w, ARENA, poses, 5, gap=Gap(np.full((2, 5, 5), -0.01), np.ones((2, 2))))
+    with pytest.raises(ValueError, match="ranges"):
+        whisker_bits(ARENA, poses, ranges=np.full((2, 3), 0.05))
+    assert simulate(
+        spec, w, ARENA, poses, 0, gap=Gap(np.empty((2, 0, 5)), np.ones((2, 2)))
+    ).stuck.shape == (2,)
