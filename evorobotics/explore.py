@@ -27,7 +27,7 @@ from evorobotics.evaluate import draw_gap, start_poses
 from evorobotics.fitness import fitness
 from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose
-from evorobotics.sim import Gap, SimResult, simulate
+from evorobotics.sim import SimResult, simulate
 from schemas.network import NetworkSpec
 from schemas.run import FitnessWeights
 from schemas.world import World
@@ -43,7 +43,8 @@ PAPER_TRIAL = 40
 HORIZONS = (40, 200)
 """Stuck fractions and offsets are also reported at these steps (when within the horizon)."""
 MAX_ROBOT_STEPS = 20_000_000
-"""Upper bound on poses x steps of one report, so no request can exhaust memory (~0.5 GB)."""
+"""Upper bound on poses x steps of one report, so no request can exhaust memory: 24 bytes a
+robot-step of recorded poses (0.5 GB at the bound), 40 more with the per-step gap model."""
 
 
 @dataclass(frozen=True)
@@ -188,7 +189,7 @@ def explore(
         starts,
         steps,
         params=world,
-        gap=None if gap is None else Gap(gap.whisker_range.copy(), gap.motor_gain.copy()),
+        gap=gap,
         record=True,
     )
     measured = report(result, fitness_weights or FitnessWeights(), steps)

@@ -63,10 +63,10 @@ class ValidationConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    poses: int = Field(50, ge=0, le=10_000, description="validation start poses; 0: off")
-    steps: int = Field(400, ge=1, le=100_000, description="steps of each validation trial")
+    poses: int = Field(40, ge=0, le=10_000, description="validation start poses; 0: off")
+    steps: int = Field(1000, ge=1, le=100_000, description="steps of each validation trial")
     candidates: int = Field(
-        50, ge=1, le=10_000, description="the final population's fittest this many are re-scored"
+        100, ge=1, le=10_000, description="the final population's fittest this many are re-scored"
     )
 
 
@@ -101,7 +101,14 @@ class RunConfig(BaseModel):
         None,
         ge=1,
         le=100_000,
-        description="steps of each training trial; None: the crossing rule (docs/simulator.md)",
+        description="steps of each training trial; None: `crossings` x the crossing rule",
+    )
+    crossings: int = Field(
+        3,
+        ge=1,
+        le=100,
+        description="with steps None, trials last this many maze crossings at full speed "
+        "(1 is the paper's rule; docs/simulator.md)",
     )
     seed: int = Field(0, ge=0, lt=2**63)
     maze: str = Field("paper", min_length=1, max_length=4096, description="maze name or text")

@@ -74,7 +74,11 @@ def test_impossible_specs_are_rejected_with_a_message(
 def test_run_config_defaults_are_the_paper_experiment() -> None:
     cfg = RunConfig()
     assert (cfg.population, cfg.generations, cfg.trials) == (100, 350, 3)
-    assert cfg.steps is None and trial_steps(cfg) == 80  # the crossing rule: 2.4 m at 30 mm/step
+    # the crossing rule: 2.4 m at 30 mm/step is 80 steps; three crossings by default
+    assert cfg.steps is None and cfg.crossings == 3 and trial_steps(cfg) == 240
+    assert trial_steps(RunConfig(crossings=1)) == 80 and trial_steps(RunConfig(steps=40)) == 40
+    slow = RunConfig(crossings=1, world={"max_speed": 0.15})
+    assert trial_steps(slow) == 160 and trial_steps(RunConfig(maze="arena", crossings=1)) == 67
     assert (cfg.fitness.k1, cfg.fitness.k2, cfg.fitness.k3, cfg.fitness.k4) == (0, 20, 20, 50)
     assert cfg.replacement_count == 25
     assert cfg.network_spec.weight_count == 222
