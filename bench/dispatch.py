@@ -8,18 +8,19 @@
    the scheduler's settle and lease: the part of the per-job CPU that is this project's
    Python, not zenoh's).
 2. `colony evolve` alone and two side by side: how much two processes get from the cores.
-3. The paper's experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
+3. The default experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
    zenoh on loopback, two local worker processes), against `evolve` in this process, with the
    best controllers compared, and the CPU seconds each side used: what the machine's cores
    must run for the distributed run, against what `colony evolve` runs on one.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--windows 3] [--rounds 5000] [--workers 2]
-        [--generations 350] [--steps 40] [--repeats 3] [--sweep] [--span-below SECONDS]
+        [--generations 350] [--steps 240] [--repeats 3] [--sweep] [--span-below SECONDS]
         [--only throughput|paper]
 
-`--steps 400 --generations 35` is the same number of robot-steps with ten times the work per
-generation: the coordination cost per generation weighs a tenth as much. `--sweep` also times
-100 to 1,600 steps (generations scaled to the same robot-steps) on the same server and
+`--steps 240` is the default trial (three crossings of the paper maze); `--steps 2400
+--generations 35` is the same number of robot-steps with ten times the work per generation:
+the coordination cost per generation weighs a tenth as much. `--sweep` also times 400 to
+1,600 steps (generations scaled to the same robot-steps) on the same server and
 prints where the distributed run catches up with `colony evolve`. `--span-below` sets the
 server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no spans).
 """
@@ -42,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from evorobotics.evaluate import trial_steps
 from evorobotics.evolution import RunLoop
 from schemas.run import RunConfig
 from schemas.wire import Ack, Result, decode, decode_result_reply, encode
@@ -401,8 +403,8 @@ def bench_paper(
                     caught_up = (generations, steps)
                 paper = RunConfig()
                 name = (
-                    "paper experiment: "
-                    if (generations, steps) == (paper.generations, paper.steps)
+                    "default experiment: "
+                    if (generations, steps) == (paper.generations, trial_steps(paper))
                     else ""
                 )
                 print(
@@ -445,7 +447,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5_000, help="per-job cost rounds")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--generations", type=int, default=350)
-    parser.add_argument("--steps", type=int, default=40)
+    parser.add_argument(
+        "--steps", type=int, default=trial_steps(RunConfig()), help="(the default trial's)"
+    )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sweep", action="store_true")
     parser.add_argument("--span-below", type=float, default=None)

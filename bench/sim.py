@@ -23,7 +23,7 @@ from functools import partial
 
 import numpy as np
 
-from evorobotics.evaluate import evaluate, start_poses
+from evorobotics.evaluate import evaluate, start_poses, trial_steps
 from evorobotics.evolution import evolve
 from evorobotics.maze import load_maze
 from evorobotics.sim import DEFAULT_WORLD, simulate, simulate_reference
@@ -121,13 +121,16 @@ def evaluate_calls() -> None:
     early, so they are unrepresentatively fast); then the whole default run."""
     config = RunConfig()
     pop = evolve(RunConfig(generations=50)).genomes
-    print(f"evaluate() calls, paper config, population of generation 50 ({config.trials} trials):")
+    print(
+        f"evaluate() calls, default config, population of generation 50 ({config.trials} trials "
+        f"of {trial_steps(config)} steps):"
+    )
     for k in (1, 25, config.population):
         seconds = best_of(partial(evaluate, config, 7, pop[:k]), max(20, 2000 // k))
         robots = k * config.trials
         print(
             f"  {k:3d} individuals, same generation (cached draws): {seconds * 1e3:6.3f} ms "
-            f"= {robots * config.steps / seconds / 1e6:.3f} M robot-steps/s"
+            f"= {robots * trial_steps(config) / seconds / 1e6:.3f} M robot-steps/s"
         )
     for k in (1, 25):
         seconds = best_of(each_call_a_new_generation(config, pop[:k]), 200)
