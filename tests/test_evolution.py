@@ -49,7 +49,9 @@ def test_job_slices_reject_bad_arguments(population: int, job_size: int) -> None
 SMALL = RunConfig(population=12, generations=4, steps=20, job_size=5, seed=7)
 
 
-def _manual(config: RunConfig) -> tuple[np.ndarray, np.ndarray, list[tuple[int, float]], int]:
+def _manual(
+    config: RunConfig,
+) -> tuple[np.ndarray, np.ndarray, list[tuple[int, float]], np.ndarray]:
     """The documented loop, each generation evaluated job by job as the server dispatches it."""
     lay = layout(config.network_spec)
     params = GAParams.from_config(config)
