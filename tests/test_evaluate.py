@@ -180,8 +180,8 @@ def test_record_path_matches_evaluation() -> None:
     pose = start_poses(load_maze("paper"), 9, 2, 3)[1]
     rec = record_path(config, pop[2], pose, trial_steps(config))
     assert rec.poses is not None and rec.whiskers is not None and rec.motors is not None
-    assert rec.poses.shape == (1, 81, 3) and rec.whiskers.shape == (1, 80, 5)
-    assert rec.whiskers.dtype == np.uint8 and rec.motors.shape == (1, 80, 2)
+    assert rec.poses.shape == (1, 241, 3) and rec.whiskers.shape == (1, 240, 5)
+    assert rec.whiskers.dtype == np.uint8 and rec.motors.shape == (1, 240, 2)
     assert np.array_equal(rec.poses[0, 0], pose)
     assert np.abs(rec.motors).max() <= 1.0
     assert rec.components[0].tobytes() == ev.components[2, 1].tobytes()
