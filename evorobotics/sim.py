@@ -721,7 +721,7 @@ def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
         "from numba import njit\n\n"
         "from evorobotics.sim import _episodes\n"
         f"from {network.kernel_module(spec)} import kernel\n\n\n"
-        "@njit(cache=True)\n"
+        "@njit(cache=True, nogil=True)\n"
         f"def episodes({_EPISODE_ARGS}):\n"
         f"    _episodes(kernel, {_EPISODE_ARGS})\n"
     )
