@@ -12,60 +12,20 @@ import json
 from pathlib import Path
 from typing import Annotated
 
-import httpx
 import typer
 from rich.console import Console
 from rich.table import Table
 
+from colony.documents import load_document
 from evorobotics.analysis import RESOLUTION_MM, TOLERANCE_MM, Analysis, analyze
 from evorobotics.document import ControllerDocument
-from evorobotics.errors import ControllerDocumentError, EvoError
+from evorobotics.errors import EvoError
 from evorobotics.maze import load_maze
-
-TIMEOUT_S = 30.0
 
 
 def _fail(message: str) -> typer.Exit:
     typer.echo(f"colony analyze: {message}", err=True)
     return typer.Exit(code=2)
-
-
-def fetch_document(
-    server: str, *, run: int | None = None, sha: str | None = None
-) -> ControllerDocument:
-    """GET a run's best or a controller by sha256; ValueError with the server's reason."""
-    if (run is None) == (sha is None):
-        raise ValueError("give exactly one of run and sha")
-    path = f"/api/runs/{run}/best" if run is not None else f"/api/controllers/{sha}"
-    url = server.rstrip("/") + path
-    try:
-        response = httpx.get(url, timeout=TIMEOUT_S)
-    except httpx.HTTPError as exc:
-        raise ValueError(f"cannot reach {server}: {exc}") from None
-    if response.is_error:
-        raise ValueError(f"GET {url}: {response.status_code} {response.text}")
-    try:
-        return ControllerDocument.from_json(response.content)
-    except ControllerDocumentError as exc:
-        raise ValueError(f"GET {url}: {exc}") from None
-
-
-def _load(
-    controller: Path | None, server: str | None, run: int | None, sha: str | None
-) -> ControllerDocument:
-    if controller is not None:
-        if server is not None or run is not None or sha is not None:
-            raise _fail("give CONTROLLER or --server with --run/--sha, not both")
-        try:
-            return ControllerDocument.from_json(controller.read_bytes())
-        except (OSError, ControllerDocumentError) as exc:
-            raise _fail(f"{controller}: {exc}") from None
-    if server is None or (run is None) == (sha is None):
-        raise _fail("give a CONTROLLER file, or --server URL with exactly one of --run, --sha")
-    try:
-        return fetch_document(server, run=run, sha=sha)
-    except ValueError as exc:
-        raise _fail(str(exc)) from None
 
 
 def _steps(value: int | None) -> str:
@@ -155,7 +115,10 @@ def analyze_command(
     step in the default world). With --out, also the paper's Fig 5 before and after training
     and a Fig 7 close-up of one wall encounter (in the paper maze unless --maze).
     """
-    doc = _load(controller, server, run, sha)
+    try:
+        doc = load_document(controller, server, run, sha)
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
     if out is not None:
         try:
             load_maze(maze)

@@ -16,9 +16,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from colony.analyze_cli import fetch_document
+from colony.documents import load_document
 from evorobotics.document import ControllerDocument
-from evorobotics.errors import ControllerDocumentError, EvoError
+from evorobotics.errors import EvoError
 from evorobotics.explore import COVERAGE_CELL, MAX_ROBOT_STEPS, PAPER_TRIAL, Exploration, explore
 from evorobotics.maze import load_maze
 
@@ -26,24 +26,6 @@ from evorobotics.maze import load_maze
 def _fail(message: str) -> typer.Exit:
     typer.echo(f"colony evaluate: {message}", err=True)
     return typer.Exit(code=2)
-
-
-def _load(
-    controller: Path | None, server: str | None, run: int | None, sha: str | None
-) -> ControllerDocument:
-    if controller is not None:
-        if server is not None or run is not None or sha is not None:
-            raise _fail("give CONTROLLER or --server with --run/--sha, not both")
-        try:
-            return ControllerDocument.from_json(controller.read_bytes())
-        except (OSError, ControllerDocumentError) as exc:
-            raise _fail(f"{controller}: {exc}") from None
-    if server is None or (run is None) == (sha is None):
-        raise _fail("give a CONTROLLER file, or --server URL with exactly one of --run, --sha")
-    try:
-        return fetch_document(server, run=run, sha=sha)
-    except ValueError as exc:
-        raise _fail(str(exc)) from None
 
 
 def report_dict(doc: ControllerDocument, e: Exploration) -> dict[str, Any]:
@@ -136,7 +118,10 @@ def evaluate_command(
         raise _fail(f"--poses x --steps = {poses * steps} exceeds {MAX_ROBOT_STEPS} robot steps")
     if seed < 0:
         raise _fail(f"--seed must be >= 0, got {seed}")
-    doc = _load(controller, server, run, sha)
+    try:
+        doc = load_document(controller, server, run, sha)
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
     try:
         load_maze(maze)
     except (EvoError, OSError, ValueError) as exc:

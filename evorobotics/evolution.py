@@ -72,8 +72,10 @@ def best_document(
     *,
     generation: int,
     run: str | int = "local",
+    rank: int = 0,
+    validation: ValidationScore | None = None,
 ) -> ControllerDocument:
-    """The controller document of rank 0 (`order[0]`) of a completed generation.
+    """The controller document of training rank `rank` (`order[rank]`) of a completed generation.
 
     `order` is the ranking from `tell` (TellMetrics.order); a caller holding genomes already
     sorted fittest first passes `np.arange(n)`. The provenance says where it came from.
@@ -84,17 +86,18 @@ def best_document(
         raise ValueError(
             f"genomes must be (n, w) with fitness (n,), got {genomes.shape} and {fitness.shape}"
         )
-    if len(order) == 0:
-        raise ValueError("order is empty: no individual to choose")
+    if not 0 <= rank < len(order):
+        raise ValueError(f"rank {rank} is outside the {len(order)} ranked individuals")
     if generation < 0:
         raise ValueError(f"generation must be >= 0, got {generation}")
-    top = int(order[0])
+    top = int(order[rank])
     value = float(fitness[top])
     return ControllerDocument(
         spec=config.network_spec,
         weights=np.array(genomes[top], dtype=np.float64),
         fitness=value if np.isfinite(value) else None,
-        provenance={"seed": config.seed, "generation": generation, "rank": 0, "run": run},
+        provenance={"seed": config.seed, "generation": generation, "rank": rank, "run": run},
+        validation=validation,
         world=config.world,
     )
 
@@ -176,13 +179,14 @@ def champion(
     scored = validate(config, np.asarray(genomes)[candidates])
     # lexicographic: roaming, then Eq 12, then training rank (lexsort's last key is primary)
     pick = int(np.lexsort((np.arange(len(candidates)), -scored.score, -scored.roaming))[0])
-    top = int(candidates[pick])
-    value = float(fitness[top])
-    return ControllerDocument(
-        spec=config.network_spec,
-        weights=np.array(genomes[top], dtype=np.float64),
-        fitness=value if np.isfinite(value) else None,
-        provenance={"seed": config.seed, "generation": generation, "rank": pick, "run": run},
+    return best_document(
+        config,
+        genomes,
+        fitness,
+        order,
+        generation=generation,
+        run=run,
+        rank=pick,
         validation=ValidationScore(
             poses=v.poses,
             steps=v.steps,
@@ -193,7 +197,6 @@ def champion(
             stuck=float(scored.stuck[pick]),
             roaming=float(scored.roaming[pick]),
         ),
-        world=config.world,
     )
 
 

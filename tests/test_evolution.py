@@ -110,12 +110,16 @@ def test_best_document_takes_rank_zero() -> None:
     assert doc.fitness == 3.0
     assert doc.provenance == {"seed": 7, "generation": 5, "rank": 0, "run": 42}
     assert doc.spec == SMALL.network_spec
+    second = best_document(SMALL, genomes, fitness, np.array([1, 2, 0]), generation=5, rank=1)
+    assert np.array_equal(second.weights, genomes[2]) and second.provenance["rank"] == 1
 
 
 def test_best_document_rejects_bad_arguments() -> None:
     genomes = np.zeros((3, 222))
-    with pytest.raises(ValueError, match="empty"):
+    with pytest.raises(ValueError, match="outside the 0 ranked"):
         best_document(SMALL, genomes, np.zeros(3), np.array([], dtype=int), generation=0)
+    with pytest.raises(ValueError, match="rank 3 is outside"):
+        best_document(SMALL, genomes, np.zeros(3), np.array([0, 1, 2]), generation=0, rank=3)
     with pytest.raises(ValueError, match="fitness"):
         best_document(SMALL, genomes, np.zeros(2), np.array([0]), generation=0)
     with pytest.raises(ValueError, match="generation"):
