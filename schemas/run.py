@@ -17,7 +17,7 @@ from schemas.world import World
 class FitnessWeights(BaseModel):
     """Eq 12: F = k1 total_curve_length + k2 net_offset + k3 max_offset - k4 stuck (metres)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     k1: float = 0.0
     k2: float = 20.0
@@ -28,7 +28,7 @@ class FitnessWeights(BaseModel):
 class GAConfig(BaseModel):
     """Genetic algorithm parameters (Eqs 7, 9-11)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     replacement: float = Field(
         0.25, gt=0.0, lt=0.5, description="m/n: fraction kept unchanged and fraction mutated"
@@ -61,7 +61,7 @@ class ValidationConfig(BaseModel):
     `poses = 0` turns validation off: the champion is training rank 0.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     poses: int = Field(40, ge=0, le=10_000, description="validation start poses; 0: off")
     steps: int = Field(1000, ge=1, le=100_000, description="steps of each validation trial")
@@ -73,7 +73,7 @@ class ValidationConfig(BaseModel):
 class ValidationScore(BaseModel):
     """How a champion did on its run's validation set: the `validation` member of its document."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     poses: int = Field(ge=1, le=10_000)
     steps: int = Field(ge=1, le=100_000)
@@ -92,7 +92,7 @@ class ValidationScore(BaseModel):
 class RunConfig(BaseModel):
     """One evolutionary experiment; defaults are the paper's (section 4)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     population: int = Field(100, ge=4, le=10_000)
     generations: int = Field(350, ge=1, le=100_000)

@@ -20,7 +20,7 @@ N_WHISKERS = 5
 class World(BaseModel):
     """Every physical constant of the simulated world; frozen and hashable (a cache key)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     dt: float = Field(0.1, gt=0.0, le=10.0, description="control period, s (the agent's 10 Hz)")
     max_speed: float = Field(

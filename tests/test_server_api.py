@@ -38,6 +38,12 @@ def test_errors_name_the_problem(base_url: str) -> None:
         assert bad.status_code == 422 and "population" in bad.json()["detail"]
         unknown = client.post("/api/runs", json={"bogus": 1})
         assert unknown.status_code == 422 and "bogus" in unknown.json()["detail"]
+        for field, value in (("fitness", '{"k2": NaN}'), ("world", '{"dt": Infinity}')):
+            body = '{"%s": %s}' % (field, value)  # JSON extensions Python's parser accepts
+            headers = {"content-type": "application/json"}
+            refused = client.post("/api/runs", content=body, headers=headers)
+            assert refused.status_code == 422 and "finite" in refused.json()["detail"], body
+        assert client.get("/api/runs").status_code == 200  # nothing non-finite was stored
         assert client.get("/api/runs/9999").status_code == 404
         assert client.post("/api/runs/9999/pause").status_code == 404
         assert client.get("/api/controllers/" + "0" * 64).status_code == 404
