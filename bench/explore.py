@@ -10,8 +10,8 @@ stuck and roaming, then roaming, stuck by 40/200/H steps, confined; per network:
 and mean with a 95 % t confidence interval; the wall time of validation against the whole run
 (issue 23 wants at most 20 %); and the random Eq 7 population (generation 0) as a reference.
 
-Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G] [--config JSON]
-[--poses P] [--steps H] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
+Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G]
+[--config JSON] [--poses P] [--steps H] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
 """
 
 from __future__ import annotations

@@ -55,10 +55,10 @@ def start_poses(
 
     Candidates are drawn in rounds of 64 and accepted in draw order, so the result is a pure
     function of (maze, seed, generation, trials, params, purpose): training poses come from
-    Purpose.START_POSES, validation and exploration poses from streams of their own. Every job of a generation asks for the
-    same poses, so the last START_CACHE draws of this process are kept (keyed by the Maze
-    object, as `load_maze` hands out one per spec); the array is a read-only view of the cached
-    one, so no caller can change another's poses.
+    Purpose.START_POSES, validation and exploration poses from streams of their own. Every job
+    of a generation asks for the same poses, so the last START_CACHE draws of this process are
+    kept (keyed by the Maze object, as `load_maze` hands out one per spec); the array is a
+    read-only view of the cached one, so no caller can change another's poses.
     """
     if trials < 0:
         raise ValueError(f"trials must be >= 0, got {trials}")

@@ -15,8 +15,9 @@ Every robot is independent (robots do not interact) and carries its own controll
    through its centre). If the moved body overlaps a wall cell (exact separating-axis test;
    touching is not overlap) the move is blocked and the pose stays unchanged. A robot blocked
    on `stuck_after` consecutive steps (default 1, our rule rather than a quote from the paper:
-   stuck as soon as its body would enter a wall) is stuck: it stays immobile for the rest of the trial (its controller keeps
-   running so recordings stay complete) and its trial scores stuck = 1.
+   stuck as soon as its body would enter a wall) is stuck: it stays immobile for the rest of
+   the trial (its controller keeps running so recordings stay complete) and its trial scores
+   stuck = 1.
 
 Fitness terms (Eq 12) are accumulated on the way: curve_length sums the straight distance of
 every accepted move, net_offset is the final distance from the start position, max_offset the
