@@ -159,9 +159,6 @@ class BasicXDriver:
             if reply is None:
                 continue
             if reply.body.startswith("ERR "):
-                code = reply.body[4:]
-                if code == ErrorCode.CHECKSUM:
-                    continue
                 raise FirmwareError(f"firmware refused {body!r}: {reply.body}")
             return reply.body
         raise LinkDeadError(
@@ -189,9 +186,12 @@ class BasicXDriver:
         return self._seq
 
     def _await_reply(self, sent: set[int]) -> Frame | None:
-        """The first valid reply to one of `sent` (or an ERR CK for an unreadable request).
+        """The first valid reply to one of `sent`; None when the attempt is over: resend.
 
-        None on timeout or on a reply line that arrived corrupt: either way, resend.
+        An attempt ends at its timeout, or at once on a reply line that arrived corrupt. An
+        ERR CK (a request the firmware could not read) names no request, so it may answer
+        noise on the line rather than ours: the attempt goes on waiting for our reply until
+        its timeout, and a burst of them cannot use up the attempts.
         """
         deadline = time.monotonic() + self.config.reply_timeout
         while time.monotonic() < deadline:
@@ -201,10 +201,10 @@ class BasicXDriver:
                 if isinstance(item, FrameError):
                     self.stats.bad_lines += 1
                     corrupt = corrupt or item.checksum_failed
-                elif item.seq in sent or (
-                    item.seq == UNKNOWN_SEQ and item.body == f"ERR {ErrorCode.CHECKSUM}"
-                ):
+                elif item.seq in sent:
                     return item
+                elif item.seq == UNKNOWN_SEQ and item.body == f"ERR {ErrorCode.CHECKSUM}":
+                    self.stats.stale_replies += 1
                 else:
                     self.stats.stale_replies += 1
             if corrupt:
