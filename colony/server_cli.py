@@ -98,6 +98,10 @@ def serve(
         Path | None,
         typer.Option(help="zenoh user:password file clients must match [COLONY_ZENOH_USERS_FILE]"),
     ] = None,
+    zenoh_roles: Annotated[
+        Path | None,
+        typer.Option(help="JSON of zenoh users per role (colony lab init) [COLONY_ZENOH_ROLES_FILE]"),
+    ] = None,
     zenoh_tls_cert: Annotated[
         Path | None, typer.Option(help="PEM certificate for tls/ endpoints")
     ] = None,
@@ -126,6 +130,7 @@ def serve(
         "read_open": False if read_closed else None,
         "server_key": server_key,
         "zenoh_users_file": zenoh_users,
+        "zenoh_roles_file": zenoh_roles,
         "zenoh_tls_certificate": zenoh_tls_cert,
         "zenoh_tls_private_key": zenoh_tls_key,
     }

@@ -66,6 +66,9 @@ class Settings(BaseSettings):
     zenoh_users_file: Path | None = Field(
         None, description="user:password lines; zenoh clients must present one of them"
     )
+    zenoh_roles_file: Path | None = Field(
+        None, description="JSON {workers: [...], robots: [...]}: what each zenoh user may do"
+    )
     zenoh_user: str | None = Field(
         None, description="credentials for local workers and for --zenoh-connect routers"
     )
