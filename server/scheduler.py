@@ -13,11 +13,19 @@ which asks the next generation at once. A span lets the worker holding a generat
 job evolve the following ones itself (ask and tell are pure functions of the GA state and the
 seed): each accepted generation moves the lease on to the next, and the worker proves with a
 digest that it evaluated the genomes asked here.
+
+Spot-checks: runs are deterministic, so the scheduler re-evaluates `Policy.spot_checks`
+individuals of every result of a listed worker, chosen with `secrets` (never the run's seed
+stream), and compares them bit for bit. A mismatch quarantines the worker for the life of the
+process (no more jobs, its results dropped) and returns every result of it in the generations
+in flight to pending, so honest workers evaluate them (docs/reliability.md, "Spot-checks").
 """
 
 from __future__ import annotations
 
 import heapq
+import logging
+import secrets
 import threading
 import time
 from collections import deque
@@ -26,10 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evorobotics.evaluate import robot_steps
+from evorobotics.evaluate import evaluate, robot_steps
 from evorobotics.evolution import RunLoop, Told, job_slices
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus, genome_digest
+from server.logs import context
+
+log = logging.getLogger(__name__)
 
 SPEED_MIN = 1.0
 SPEED_MAX = 1e9
@@ -37,6 +48,10 @@ SPEED_MAX = 1e9
 beyond `lease_max_s` or a span beyond the run (numba reaches about 1e7 on one core)."""
 TOTALS = ("leased", "done", "requeued", "duplicates_dropped")
 """Keys of `Scheduler.totals()`."""
+SPOT_TOTALS = ("results_checked", "individuals_checked", "robot_steps_checked", "mismatches")
+"""Keys of `Scheduler.spot_totals()`."""
+_CHOOSE = secrets.SystemRandom()
+"""Picks the individuals to re-evaluate: a worker cannot predict them from the run's seed."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +83,10 @@ class Policy:
     writer takes told generations every 0.05 s and writes them in milliseconds."""
     write_now: int = 4
     """Told generations of one run that make the store write at once (`told_many`)."""
+    spot_checks: int = 0
+    """Individuals of each result of a listed worker re-evaluated here (0: none). The server
+    sets it from COLONY_SPOT_CHECKS (default 1); a bare scheduler trusts every result, so tests
+    and benches may stand a fake evaluator in for the science."""
 
     def __post_init__(self) -> None:
         for name in ("lease_min_s", "lease_factor", "lease_unknown_s", "span_s"):
@@ -75,8 +94,8 @@ class Policy:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not self.lease_max_s >= self.lease_min_s:
             raise ValueError(f"lease_max_s must be >= lease_min_s, got {self.lease_max_s}")
-        if self.span_below_s < 0 or self.gone_keep_s < 0:
-            raise ValueError("span_below_s and gone_keep_s must be >= 0")
+        if self.span_below_s < 0 or self.gone_keep_s < 0 or self.spot_checks < 0:
+            raise ValueError("span_below_s, gone_keep_s and spot_checks must be >= 0")
         if self.jobs_per_worker < 1 or self.max_attempts < 1 or self.write_now < 1:
             raise ValueError("jobs_per_worker, max_attempts and write_now must be >= 1")
         if not self.store_lag_s > 0:
@@ -122,6 +141,8 @@ class _Slot:
     status: str = "pending"
     """pending, leased or done."""
     attempts: int = 0
+    worker: str | None = None
+    """Whose result filled it (done): discarded if that worker fails a spot-check."""
 
 
 @dataclass
@@ -166,7 +187,10 @@ class _Worker:
     spans: bool = True
     """False for in-process evaluators, and once it evaluated genomes other than asked."""
     listed: bool = True
-    """False for in-process evaluators: not shown as workers."""
+    """False for in-process evaluators: not shown as workers, never spot-checked (they run
+    this process's own code)."""
+    quarantine: str | None = None
+    """Why it failed a spot-check: no more jobs, its results dropped, kept listed for good."""
 
 
 class Scheduler:
@@ -194,6 +218,7 @@ class Scheduler:
         self._failed: dict[int, str] = {}
         self._sequence = 0
         self._totals = dict.fromkeys(TOTALS, 0)
+        self._spot = dict.fromkeys(SPOT_TOTALS, 0)
         self._listeners: list[Callable[[], None]] = []
 
     def now(self) -> float:
@@ -299,7 +324,8 @@ class Scheduler:
         return released
 
     def workers(self) -> list[WorkerStatus]:
-        """Every known worker, gone ones too until `gone_keep_s` after they left."""
+        """Every known worker, gone ones too until `gone_keep_s` after they left (quarantined
+        ones for good)."""
         with self._lock:
             busy = {lease.worker for lease in self._leases.values()}
             return [
@@ -315,6 +341,12 @@ class Scheduler:
                 if w.listed
             ]
 
+    def quarantined(self) -> dict[str, str]:
+        """Workers that failed a spot-check: name -> why (worker, run, generation, individual,
+        claimed and recomputed fitness)."""
+        with self._lock:
+            return {w.name: w.quarantine for w in self._workers.values() if w.quarantine}
+
     # jobs ------------------------------------------------------------------------------------
 
     def lease(self, worker: str) -> Job | None:
@@ -323,6 +355,8 @@ class Scheduler:
         with self._lock:
             record = self._touch(worker)
             self._release_where(lambda lease: lease.worker == worker)
+            if record.quarantine is not None:
+                return None
             chosen: _Run | None = None
             for run in self._runs.values():
                 if self._leasable(run) and (
@@ -356,50 +390,65 @@ class Scheduler:
         """Take a result: each of its generations in order while the worker holds the lease
         (a span's lease then moves on); an error is retried or fails the run."""
         with self._lock:
-            record = self._touch(result.worker, revive=False)
-            if result.robot_steps_per_s > 0:
-                record.speed = clamp_speed(result.robot_steps_per_s)
-            ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
-            following = result.key
-            for i in range(result.generations):
-                key = result.key.at(result.key.generation + i)
-                lease = self._leases.get(key)
-                if (
-                    lease is None
-                    or lease.worker != result.worker
-                    or (
-                        result.start is not None
-                        and (result.start, result.stop) != (lease.start, lease.stop)
-                    )
-                ):
-                    self._totals["duplicates_dropped"] += result.generations - i
-                    break
-                del self._leases[key]
-                error = result.error or self._digest_error(result, i, lease, record)
-                if error is not None:
-                    self._fail_job(key, f"{result.worker}: {error}")
-                    ack = Ack(key=result.key, accepted=True, reason="error recorded")
-                    break
-                fitness, components = result.fitness, result.components
-                if fitness is None or components is None:  # an error result: handled above
-                    break
-                self._complete(key, lease, fitness[i], components[i])
-                record.jobs_done += 1
-                ack = Ack(key=result.key, accepted=True)
-                following = key.at(key.generation + 1)
-            if ack.accepted and self._store_lags(result.key.run_id):
-                # a span ends with the message that took its run too far ahead of the store
-                self._release_where(lambda lease: lease.key == following)
+            ack = self._settle(result)
         self._announce()
         return ack
 
+    def _settle(self, result: Result) -> Ack:
+        record = self._touch(result.worker, revive=False)
+        if record.quarantine is not None:
+            return Ack(key=result.key, accepted=False, reason="worker quarantined")
+        if result.robot_steps_per_s > 0:
+            record.speed = clamp_speed(result.robot_steps_per_s)
+        mismatch = self._spot_check(result, record)
+        if mismatch is not None:
+            self._quarantine(record, mismatch)
+            return Ack(key=result.key, accepted=False, reason="spot-check failed: quarantined")
+        ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
+        following = result.key
+        for i in range(result.generations):
+            key = result.key.at(result.key.generation + i)
+            lease = self._leases.get(key)
+            if (
+                lease is None
+                or lease.worker != result.worker
+                or (
+                    result.start is not None
+                    and (result.start, result.stop) != (lease.start, lease.stop)
+                )
+            ):
+                self._totals["duplicates_dropped"] += result.generations - i
+                break
+            del self._leases[key]
+            error = result.error or self._digest_error(result, i, lease, record)
+            if error is not None:
+                self._fail_job(key, f"{result.worker}: {error}")
+                ack = Ack(key=result.key, accepted=True, reason="error recorded")
+                break
+            fitness, components = result.fitness, result.components
+            if fitness is None or components is None:  # an error result: handled above
+                break
+            self._complete(key, lease, fitness[i], components[i])
+            record.jobs_done += 1
+            ack = Ack(key=result.key, accepted=True)
+            following = key.at(key.generation + 1)
+        if ack.accepted and self._store_lags(result.key.run_id):
+            # a span ends with the message that took its run too far ahead of the store
+            self._release_where(lambda lease: lease.key == following)
+        return ack
+
     def expire(self) -> int:
-        """Return every lease past its deadline; forget workers gone long ago. The count."""
+        """Return every lease past its deadline; forget workers gone long ago (but the
+        quarantined). The count."""
         now = self._clock()
         with self._lock:
             released = self._release_where(lambda lease: lease.deadline <= now)
             for name, w in list(self._workers.items()):
-                if w.gone_at is not None and now - w.gone_at > self.policy.gone_keep_s:
+                if (
+                    w.gone_at is not None
+                    and w.quarantine is None
+                    and now - w.gone_at > self.policy.gone_keep_s
+                ):
                     del self._workers[name]
         if released:
             self._announce()
@@ -415,6 +464,12 @@ class Scheduler:
         (`requeued`) and results dropped as late or duplicate (`duplicates_dropped`)."""
         with self._lock:
             return dict(self._totals)
+
+    def spot_totals(self) -> dict[str, int]:
+        """Since construction: results spot-checked, individuals and robot-steps re-evaluated,
+        and mismatches (each quarantined a worker)."""
+        with self._lock:
+            return dict(self._spot)
 
     def counts(self) -> dict[str, int]:
         """Jobs of the generations in flight by status: pending, leased, done."""
@@ -475,7 +530,11 @@ class Scheduler:
         """One job per live worker (`jobs_per_worker` each, at least the run's `job_size`), or
         the whole generation when whoever leases it will get a span: a whole generation
         leased without one would keep the other workers idle."""
-        live = [w for w in self._workers.values() if w.gone_at is None and w.serving]
+        live = [
+            w
+            for w in self._workers.values()
+            if w.gone_at is None and w.serving and w.quarantine is None
+        ]
         if not live:
             return config.job_size
         speeds = [w.speed if w.spans else None for w in live]
@@ -536,6 +595,7 @@ class Scheduler:
         run.fitness[slot.start : slot.stop] = fitness
         run.components[slot.start : slot.stop] = components
         slot.status = "done"
+        slot.worker = lease.worker
         run.remaining -= 1
         self._totals["done"] += 1
         if run.remaining:
@@ -557,6 +617,81 @@ class Scheduler:
             self._lease(
                 following, 0, lease.worker, span_left=lease.span_left - 1, asked_by_worker=True
             )
+
+    def _spot_check(self, result: Result, record: _Worker) -> str | None:
+        """Re-evaluate `spot_checks` individuals of `result`, drawn with `secrets` among the
+        generations it may complete; why it fails (worker, run, generation, individual,
+        claimed and recomputed), or None (it passed, or it counts for nothing anyway)."""
+        wanted = self.policy.spot_checks
+        lease = self._leases.get(result.key)
+        run = self._runs.get(result.key.run_id)
+        fitness, components = result.fitness, result.components
+        if (
+            wanted == 0
+            or not record.listed
+            or fitness is None
+            or components is None
+            or lease is None
+            or run is None
+            or lease.worker != result.worker
+            or (result.start, result.stop) != (lease.start, lease.stop)
+        ):
+            return None  # off, this process's own evaluator, an error, or dropped below
+        n = lease.stop - lease.start
+        generations = min(result.generations, lease.span_left + 1)
+        picks = sorted(_CHOOSE.sample(range(generations * n), min(wanted, generations * n)))
+        loop = run.loop
+        config = loop.config
+        asked, shadow = loop.ask(), None
+        self._spot["results_checked"] += 1
+        for i in range(picks[-1] // n + 1):
+            if i > 0:  # a span's later generation: the genomes its claimed fitness leads to
+                shadow = shadow or RunLoop(config, state=loop.state)
+                shadow.tell(fitness[i - 1])
+                asked = shadow.ask()
+            rows = [p % n for p in picks if p // n == i]
+            if not rows:
+                continue
+            generation = loop.generation + i
+            again = evaluate(config, generation, asked[lease.start + np.array(rows)])
+            self._spot["individuals_checked"] += len(rows)
+            self._spot["robot_steps_checked"] += robot_steps(config, len(rows))
+            for row, f, c in zip(rows, again.fitness, again.components, strict=True):
+                if _same_bits(fitness[i, row], f) and _same_bits(components[i, row], c):
+                    continue
+                what = "fitness" if not _same_bits(fitness[i, row], f) else "components"
+                return (
+                    f"worker {result.worker} run {run.run_id} generation {generation} "
+                    f"individual {lease.start + row}: claimed {what} "
+                    f"{_show(fitness[i, row], components[i, row], what)}, recomputed "
+                    f"{_show(f, c, what)}"
+                )
+        return None
+
+    def _quarantine(self, record: _Worker, why: str) -> None:
+        """No more jobs for `record`'s worker; its leases and every result of it in the
+        generations in flight return to pending."""
+        record.quarantine = why
+        self._spot["mismatches"] += 1
+        released = self._release_where(lambda lease: lease.worker == record.name)
+        discarded = 0
+        for run in self._runs.values():
+            for index, slot in enumerate(run.slots):
+                if slot.status == "done" and slot.worker == record.name:
+                    run.fitness[slot.start : slot.stop] = np.nan
+                    run.components[slot.start : slot.stop] = np.nan
+                    run.remaining += 1
+                    slot.worker = None
+                    self._make_pending(run, index)
+                    discarded += 1
+        context(log, worker=record.name).warning(
+            "spot-check failed, worker %s quarantined: %s; %d leases and %d results of it "
+            "returned to pending",
+            record.name,
+            why,
+            len(released),
+            discarded,
+        )
 
     def _fail_job(self, key: JobKey, message: str) -> None:
         run = self._runs.get(key.run_id)
@@ -593,3 +728,14 @@ class Scheduler:
         if slot.status != "pending":
             slot.status = "pending"
             heapq.heappush(run.pending, index)
+
+
+def _same_bits(claimed: np.ndarray, recomputed: np.ndarray) -> bool:
+    """Bit for bit: a deterministic evaluation repeats every byte (-0.0 and NaN payloads too)."""
+    a = np.ascontiguousarray(claimed, dtype="<f8")
+    b = np.ascontiguousarray(recomputed, dtype="<f8")
+    return a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def _show(fitness: np.ndarray, components: np.ndarray, what: str) -> str:
+    return repr(float(fitness)) if what == "fitness" else repr(np.asarray(components).tolist())
