@@ -100,6 +100,13 @@ class Settings(BaseSettings):
         120.0, gt=0.0, description="lease before a worker's speed is known (compiling)"
     )
     max_attempts: int = Field(3, ge=1, description="failed evaluations before a run fails")
+    spot_checks: int = Field(
+        1,
+        ge=0,
+        le=64,
+        description="individuals of each worker result re-evaluated by the server; a mismatch "
+        "quarantines the worker (0: off)",
+    )
     housekeeping_seconds: float = Field(
         1.0, gt=0.0, description="period of lease expiry and queued-run promotion"
     )
@@ -158,4 +165,5 @@ class Settings(BaseSettings):
             span_below_s=self.span_below_seconds,
             span_s=self.span_seconds,
             max_attempts=self.max_attempts,
+            spot_checks=self.spot_checks,
         )
