@@ -42,10 +42,9 @@ from evorobotics.errors import ControllerDocumentError
 from robot_agent.errors import SerialLinkError
 from robot_agent.stuck import StuckConfig, StuckDetector
 from robot_agent.verify import Verifier, pin_key, pinned_key
+from schemas.answer import CONSOLIDATION, TARGET, one_answer
 from schemas.robots import (
     ESCAPE,
-    KEY_REPLACE,
-    KEY_TRACES,
     WHISKERS,
     AgentState,
     ControllerPush,
@@ -63,6 +62,8 @@ from schemas.robots import (
     decode_message,
     encode_message,
     encode_trace,
+    replace_key,
+    traces_key,
 )
 from schemas.security import ZenohClientAuth
 from schemas.wire import WireError
@@ -640,7 +641,12 @@ class Agent:
         )
 
     def _ask_replacement(self, session: zenoh.Session, request: StuckRequest) -> None:
-        reply = _ask(session, KEY_REPLACE, encode_message(request), self.settings.request_timeout)
+        reply = _ask(
+            session,
+            replace_key(request.robot),
+            encode_message(request),
+            self.settings.request_timeout,
+        )
         if reply is None:
             log.info("robot %s: no server for a replacement; escaping", request.robot)
             return
@@ -673,7 +679,9 @@ class Agent:
             samples = list(itertools.islice(self._buffer, limit))
             status = self._status()
         batch = _batch(self.settings.robot_id, self.boot, samples, status)
-        reply = _ask(session, KEY_TRACES, encode_trace(batch), self.settings.request_timeout)
+        reply = _ask(
+            session, traces_key(batch.robot), encode_trace(batch), self.settings.request_timeout
+        )
         if reply is None:
             return False
         try:
@@ -741,10 +749,9 @@ def _batch(robot: str, boot: int, samples: list[_Sample], status: RobotStatus) -
 
 
 def _ask(session: zenoh.Session, key: str, payload: bytes, timeout: float) -> bytes | None:
-    """The first successful reply's payload, or None (no server, timeout or error reply)."""
-    for reply in session.get(key, payload=payload, timeout=timeout):
-        if reply.ok is not None:
-            return reply.ok.payload.to_bytes()
-        if reply.err is not None:
-            log.warning("server error on %s: %s", key, reply.err.payload.to_bytes()[:200])
-    return None
+    """The server's successful reply's payload, or None (no server, timeout, error reply, or
+    more than one answerer)."""
+    replies = session.get(
+        key, payload=payload, timeout=timeout, target=TARGET, consolidation=CONSOLIDATION
+    )
+    return one_answer(replies, key, log)

@@ -87,6 +87,14 @@ class WorkerOut(BaseModel):
     jobs_done: int = Field(description="results accepted from it since the server started")
     robot_steps_per_s: float | None = Field(description="its last measured speed")
     last_seen: datetime
+    quarantined: bool = Field(
+        False, description="it failed a spot-check: no more jobs while this server runs"
+    )
+    quarantine_reason: str | None = Field(
+        None,
+        description="the spot-check it failed: run, generation, individual, claimed and "
+        "recomputed fitness",
+    )
 
 
 class JobCounts(BaseModel):
@@ -110,11 +118,15 @@ class ColonyOut(BaseModel):
 
 
 class HealthOut(BaseModel):
-    """`ok`, or (with HTTP 503) `unhealthy` and the server loops that stopped."""
+    """`ok`, or (with HTTP 503) `unhealthy` and the server loops that stopped, or `degraded`
+    and why the store refuses writes."""
 
-    status: Literal["ok", "unhealthy"] = "ok"
+    status: Literal["ok", "degraded", "unhealthy"] = "ok"
     version: str
     stopped: list[str] = Field(default_factory=list, description="loops that no longer run")
+    problems: list[str] = Field(
+        default_factory=list, description="why the store refuses writes (runs paused meanwhile)"
+    )
 
 
 class ErrorOut(BaseModel):

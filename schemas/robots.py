@@ -7,11 +7,14 @@ compares them bit for bit with what the same controller computes from the same w
 
 | key | kind | declared by |
 | --- | --- | --- |
-| `evocolony/robots/alive/{id}` | liveliness token | agent |
+| `evocolony/robots/{id}/alive` | liveliness token | agent |
 | `evocolony/robots/{id}/command` | subscriber (pushes, stop) | agent |
 | `evocolony/robots/{id}/ack` | publication (push acknowledgements) | agent |
-| `evocolony/robots/traces` | queryable (trace batches, acknowledged) | server |
-| `evocolony/robots/replace` | queryable (a stuck robot asks for a controller) | server |
+| `evocolony/robots/{id}/traces` | queryable `*` (trace batches, acknowledged) | server |
+| `evocolony/robots/{id}/replace` | queryable `*` (a stuck robot asks for a controller) | server |
+
+Every key carries the robot id, so zenoh's access control can confine robot `id`'s credentials
+to `evocolony/robots/{id}/**`; the server refuses a message whose robot differs from its key's.
 
 Traces go by `get` rather than `put` so the agent knows what arrived: a `put` while the router is
 down is lost silently, an unacknowledged batch stays in the agent's bounded buffer.
@@ -28,11 +31,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES, MAX_TRACE_SAMPLES
 from schemas.wire import NAME_PATTERN, WireError, decode_frame, encode_frame
 
-KEY_ROBOTS_ALIVE = "evocolony/robots/alive/*"
+KEY_ROBOTS_ALIVE = "evocolony/robots/*/alive"
 """Liveliness key expression matching every robot's token."""
-KEY_TRACES = "evocolony/robots/traces"
+KEY_TRACES = "evocolony/robots/*/traces"
 """Queryable (server): a `get` carries one TraceBatch; the reply is a TraceAck."""
-KEY_REPLACE = "evocolony/robots/replace"
+KEY_REPLACE = "evocolony/robots/*/replace"
 """Queryable (server): a stuck robot's `get` carries a StuckRequest; the reply a Replacement."""
 KEY_ACKS = "evocolony/robots/*/ack"
 """Key expression the server subscribes to for every robot's push acknowledgements."""
@@ -50,7 +53,15 @@ def check_robot_id(robot_id: str) -> str:
 
 
 def alive_key(robot_id: str) -> str:
-    return f"evocolony/robots/alive/{check_robot_id(robot_id)}"
+    return f"evocolony/robots/{check_robot_id(robot_id)}/alive"
+
+
+def traces_key(robot_id: str) -> str:
+    return f"evocolony/robots/{check_robot_id(robot_id)}/traces"
+
+
+def replace_key(robot_id: str) -> str:
+    return f"evocolony/robots/{check_robot_id(robot_id)}/replace"
 
 
 def command_key(robot_id: str) -> str:
@@ -61,12 +72,13 @@ def ack_key(robot_id: str) -> str:
     return f"evocolony/robots/{check_robot_id(robot_id)}/ack"
 
 
+ROBOT_KEY_KINDS = frozenset({"alive", "command", "ack", "traces", "replace"})
+
+
 def robot_from_key(key: str) -> str:
-    """The robot id of a liveliness or ack key; ValueError for any other key."""
+    """The robot id of a robot's key (`evocolony/robots/{id}/{kind}`); ValueError otherwise."""
     parts = key.split("/")
-    if len(parts) == 4 and parts[:3] == ["evocolony", "robots", "alive"]:
-        return check_robot_id(parts[3])
-    if len(parts) == 4 and parts[:2] == ["evocolony", "robots"] and parts[3] == "ack":
+    if len(parts) == 4 and parts[:2] == ["evocolony", "robots"] and parts[3] in ROBOT_KEY_KINDS:
         return check_robot_id(parts[2])
     raise ValueError(f"{key!r} is not a robot key")
 

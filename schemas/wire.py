@@ -32,10 +32,13 @@ from schemas.run import RunConfig
 PROTOCOL = 10
 """Wire protocol version, sent in every job request; the server idles other versions."""
 
-KEY_JOB_NEXT = "evocolony/jobs/next"
-"""Queryable (server): a worker's `get` asks for its next job; reply is a job or idle."""
-KEY_JOB_RESULT = "evocolony/jobs/result"
-"""Queryable (server): a worker's `get` carries a result; reply is an Ack or the next job."""
+KEY_JOB_NEXT = "evocolony/jobs/next/*"
+"""Queryable (server): a worker's `get` on `next_key(name)` asks for its next job; the reply is
+a job or idle."""
+KEY_JOB_RESULT = "evocolony/jobs/result/*"
+"""Queryable (server): a worker's `get` on `result_key(name)` carries a result; the reply is an
+Ack or the next job. The worker's name in the key lets zenoh's access control bind it to the
+worker's credentials (docs/security.md); the server refuses a message naming another worker."""
 KEY_WORKERS = "evocolony/workers/*"
 """Liveliness key expression matching every worker's token."""
 ERROR_MAX = 65536
@@ -75,6 +78,16 @@ def worker_key(name: str) -> str:
     """The liveliness key of the worker called `name`."""
     check_worker_name(name)
     return f"evocolony/workers/{name}"
+
+
+def next_key(name: str) -> str:
+    """Where the worker called `name` asks for jobs."""
+    return f"evocolony/jobs/next/{check_worker_name(name)}"
+
+
+def result_key(name: str) -> str:
+    """Where the worker called `name` delivers results."""
+    return f"evocolony/jobs/result/{check_worker_name(name)}"
 
 
 def check_worker_name(name: str) -> str:

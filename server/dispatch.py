@@ -220,6 +220,7 @@ class Dispatcher:
     def _on_next(self, query: zenoh.Query) -> None:
         try:
             request = decode(_payload(query), JobRequest)
+            _check_sender(request.worker, query)
         except WireError as exc:
             self._reject(query, exc)
             return
@@ -234,6 +235,7 @@ class Dispatcher:
     def _on_result(self, query: zenoh.Query) -> None:
         try:
             result = decode(_payload(query), Result)
+            _check_sender(result.worker, query)
         except WireError as exc:
             self._reject(query, exc)
             return
@@ -246,9 +248,9 @@ class Dispatcher:
             self._serve_held()  # requests held waited longer: they go first
             job = None if self._held else self._scheduler.lease(result.worker)
             if job is not None:
-                self._send(query, KEY_JOB_RESULT, job, result.worker, ack)
+                self._send(query, job, result.worker, ack)
                 return
-        query.reply(KEY_JOB_RESULT, encode(ack))
+        query.reply(query.key_expr, encode(ack))
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -290,14 +292,15 @@ class Dispatcher:
         if job is None:
             return False
         with held.query as query:
-            self._send(query, KEY_JOB_NEXT, job, held.worker, None)
+            self._send(query, job, held.worker, None)
         return True
 
-    def _send(self, query: zenoh.Query, key: str, job: Job, worker: str, ack: Ack | None) -> None:
+    def _send(self, query: zenoh.Query, job: Job, worker: str, ack: Ack | None) -> None:
         """Reply `job` (with `ack` if it answers a result). If the reply cannot go, the lease
         returns when the worker asks again, leaves, or its deadline passes."""
         try:
-            query.reply(key, encode(job if ack is None else job.model_copy(update={"ack": ack})))
+            reply = job if ack is None else job.model_copy(update={"ack": ack})
+            query.reply(query.key_expr, encode(reply))
         except zenoh.ZError:
             context(log, worker=worker).warning("could not send %s to %s", job.key.label(), worker)
             return
@@ -308,7 +311,7 @@ class Dispatcher:
 
     def _answer_idle(self, held: _Held, reason: str) -> None:
         with contextlib.suppress(zenoh.ZError), held.query as query:
-            query.reply(KEY_JOB_NEXT, encode(Idle(reason=reason)))
+            query.reply(query.key_expr, encode(Idle(reason=reason)))
 
     def _reject(self, query: zenoh.Query, exc: Exception) -> None:
         self.malformed += 1
@@ -321,6 +324,14 @@ def _log(result: Result) -> logging.LoggerAdapter[logging.Logger]:
     key = result.key
     job = f"{key.run_id}/{key.generation}/{key.index}"
     return context(log, run=key.run_id, job=job, worker=result.worker)
+
+
+def _check_sender(worker: str, query: zenoh.Query) -> None:
+    """WireError unless `worker` is the worker whose key the query came on: zenoh's access
+    control lets only that worker's credentials use its keys (docs/security.md)."""
+    key = str(query.key_expr)
+    if worker != key.rsplit("/", 1)[-1]:
+        raise WireError(f"worker {worker} may not send on {key}")
 
 
 def _payload(query: zenoh.Query) -> bytes:

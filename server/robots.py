@@ -216,6 +216,9 @@ class RobotService:
             return
         if not isinstance(ack, PushAck):
             return
+        if ack.robot != str(sample.key_expr).split("/")[2]:
+            log.warning("dropping an ack for robot %s sent on %s", ack.robot, sample.key_expr)
+            return
         robot_log = context(log, robot=ack.robot)
         if ack.accepted:
             robot_log.info("robot %s accepted push %s (%s)", ack.robot, ack.push_id, ack.sha256)
@@ -236,12 +239,13 @@ class RobotService:
         with query:
             try:
                 batch = decode_trace(_payload(query))
+                _check_sender(batch.robot, query)
             except WireError as exc:
                 query.reply_err(f"malformed: {exc}".encode())
                 return
             last = self._store(batch)
             ack = TraceAck(robot=batch.robot, last=last)
-            query.reply(KEY_TRACES, encode_message(ack))
+            query.reply(query.key_expr, encode_message(ack))
 
     def _on_replace(self, query: zenoh.Query) -> None:
         with query:
@@ -249,6 +253,7 @@ class RobotService:
                 request = decode_message(_payload(query))
                 if not isinstance(request, StuckRequest):
                     raise WireError(f"expected a stuck request, got {request.kind}")
+                _check_sender(request.robot, query)
             except WireError as exc:
                 query.reply_err(f"malformed: {exc}".encode())
                 return
@@ -262,7 +267,7 @@ class RobotService:
                 seq=seq,
                 signature=signature,
             )
-            query.reply(KEY_REPLACE, encode_message(reply))
+            query.reply(query.key_expr, encode_message(reply))
 
     # ------------------------------------------------------------------ traces
 
@@ -633,6 +638,14 @@ def _field_row(db: Session, sha256: str) -> FieldStatsRow:
         row = FieldStatsRow(sha256=sha256, steps=0, stuck_events=0)
         db.add(row)
     return row
+
+
+def _check_sender(robot: str, query: zenoh.Query) -> None:
+    """WireError unless `robot` is the robot whose key the query came on: zenoh's access
+    control lets only that robot's credentials use its keys (docs/security.md)."""
+    key = str(query.key_expr)
+    if robot != key.split("/")[2]:
+        raise WireError(f"robot {robot} may not send on {key}")
 
 
 def _payload(query: zenoh.Query) -> bytes:

@@ -17,8 +17,6 @@ from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
 from schemas.run import RunConfig
 from schemas.wire import (
-    KEY_JOB_NEXT,
-    KEY_JOB_RESULT,
     KEY_WORKERS,
     PROTOCOL,
     Ack,
@@ -31,6 +29,8 @@ from schemas.wire import (
     encode,
     encode_frame,
     genome_digest,
+    next_key,
+    result_key,
     worker_key,
 )
 from server.dispatch import Dispatcher, DispatchSettings
@@ -127,11 +127,11 @@ def ok(found: list[zenoh.Reply]) -> bytes:
 
 def ask_next(session: zenoh.Session, worker: str, **fields: object) -> Job | Idle:
     request = JobRequest(worker=worker, **fields)
-    return decode_next_reply(ok(replies(session, KEY_JOB_NEXT, encode(request))))
+    return decode_next_reply(ok(replies(session, next_key(worker), encode(request))))
 
 
 def send(session: zenoh.Session, result: Result) -> tuple[Ack, Job | None]:
-    return decode_result_reply(ok(replies(session, KEY_JOB_RESULT, encode(result))))
+    return decode_result_reply(ok(replies(session, result_key(result.worker), encode(result))))
 
 
 def result_of(job: Job, worker: str, genomes: np.ndarray | None = None, **update: object) -> Result:
@@ -166,11 +166,12 @@ def test_two_workers_finish_a_run_each_job_exactly_once() -> None:
 def test_malformed_messages_are_dropped_and_serving_goes_on() -> None:
     with serve() as served, client(served.port) as session:
         bad = [
-            (KEY_JOB_NEXT, b"garbage"),
-            (KEY_JOB_RESULT, b""),
-            (KEY_JOB_NEXT, encode(Idle(reason="not a request"))),
-            (KEY_JOB_RESULT, encode(JobRequest(worker="w"))),
-            (KEY_JOB_NEXT, encode_frame({"kind": "next", "worker": "bad name!"})),
+            (next_key("w"), b"garbage"),
+            (result_key("w"), b""),
+            (next_key("w"), encode(Idle(reason="not a request"))),
+            (result_key("w"), encode(JobRequest(worker="w"))),
+            (next_key("w"), encode_frame({"kind": "next", "worker": "bad name!"})),
+            (next_key("w"), encode(JobRequest(worker="someone-else"))),
         ]
         for key, payload in bad:
             found = replies(session, key, payload)
@@ -219,7 +220,7 @@ def test_a_held_request_is_served_as_soon_as_jobs_appear() -> None:
     with serve(long_poll_s=10.0) as served, client(served.port) as session:
         request = encode(JobRequest(worker="waiting"))
         began = time.monotonic()
-        pending = session.get(KEY_JOB_NEXT, payload=request, timeout=WAIT)
+        pending = session.get(next_key("waiting"), payload=request, timeout=WAIT)
         assert eventually(lambda: len(served.scheduler.workers()) == 1)
         served.scheduler.add(1, RunLoop(CONFIG), running=True)  # notifies the dispatcher
         reply = decode_next_reply(ok(list(pending)))
@@ -274,7 +275,7 @@ def test_a_worker_whose_ga_differs_has_its_span_refused_and_gets_no_more() -> No
     with serve(long_poll_s=10.0) as served, client(served.port) as session:
         token = session.liveliness().declare_token(worker_key("skewed"))
         request = encode(JobRequest(worker="skewed", robot_steps_per_s=FAST))
-        pending = session.get(KEY_JOB_NEXT, payload=request, timeout=WAIT)
+        pending = session.get(next_key("skewed"), payload=request, timeout=WAIT)
         assert eventually(
             lambda: [w.robot_steps_per_s for w in served.scheduler.workers()] == [FAST]
         )
@@ -338,7 +339,7 @@ def test_the_dispatcher_thread_survives_a_failing_scheduler_call() -> None:
         Dispatcher(dispatch_settings(port, long_poll_s=LONG_POLL_S), scheduler) as dispatcher,
         client(port) as session,
     ):
-        session.get(KEY_JOB_NEXT, payload=encode(JobRequest(worker="crash")), timeout=1.0)
+        session.get(next_key("crash"), payload=encode(JobRequest(worker="crash")), timeout=1.0)
         job = ask_next(session, "fine")
         assert isinstance(job, Job)
         assert dispatcher.alive()

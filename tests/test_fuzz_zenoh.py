@@ -27,7 +27,6 @@ from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
 from schemas.robots import (
-    KEY_REPLACE,
     KEY_TRACES,
     ControllerPush,
     PushAck,
@@ -41,6 +40,8 @@ from schemas.robots import (
     decode_message,
     decode_trace,
     encode_trace,
+    replace_key,
+    traces_key,
 )
 from schemas.robots import encode_message as encode_robot_message
 from schemas.run import RunConfig
@@ -62,6 +63,8 @@ from schemas.wire import (
     decode_result_reply,
     encode,
     encode_frame,
+    next_key,
+    result_key,
 )
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, DispatchSettings
@@ -255,7 +258,7 @@ def dispatcher() -> Iterator[tuple[Dispatcher, Scheduler, zenoh.Session]]:
 def lease(session: zenoh.Session, worker: str = "fuzzer", speed: float | None = None) -> Job:
     """A valid request: a job of the run (asking again releases what the worker held)."""
     request = JobRequest(worker=worker, robot_steps_per_s=speed)
-    reply = ask(session, KEY_JOB_NEXT, encode(request))
+    reply = ask(session, next_key(worker), encode(request))
     assert reply.ok is not None, reply.err and reply.err.payload.to_bytes()
     job = decode_next_reply(reply.ok.payload.to_bytes())
     assert isinstance(job, Job) and job.key.run_id == RUN
@@ -264,7 +267,7 @@ def lease(session: zenoh.Session, worker: str = "fuzzer", speed: float | None = 
 
 
 def settle(session: zenoh.Session, result: Result) -> tuple[Ack, Job | None]:
-    reply = ask(session, KEY_JOB_RESULT, encode(result))
+    reply = ask(session, result_key(result.worker), encode(result))
     assert reply.ok is not None, reply.err and reply.err.payload.to_bytes()
     ack, job = decode_result_reply(reply.ok.payload.to_bytes())
     assert ack.key == result.key
@@ -278,7 +281,7 @@ def of_this_protocol(key: str, reply: zenoh.Reply) -> None:
     if reply.ok is None:
         return
     payload = reply.ok.payload.to_bytes()
-    if key == KEY_JOB_NEXT:
+    if key == next_key("fuzzer"):
         assert isinstance(decode_next_reply(payload), Job | Idle)
     else:
         decode_result_reply(payload)
@@ -290,7 +293,7 @@ def test_job_queryables_drop_garbage_and_keep_serving(
     dispatcher: tuple[Dispatcher, Scheduler, zenoh.Session], payload: bytes
 ) -> None:
     disp, _, session = dispatcher
-    for key in (KEY_JOB_NEXT, KEY_JOB_RESULT):
+    for key in (next_key("fuzzer"), result_key("fuzzer")):
         before = disp.malformed
         reply = ask(session, key, payload)
         if refused_or_valid(reply):
@@ -373,16 +376,16 @@ def test_robot_queryables_and_ack_subscriber_drop_garbage_and_keep_serving(
     robots: tuple[RobotService, zenoh.Session], payload: bytes
 ) -> None:
     _, session = robots
-    refused_or_valid(ask(session, KEY_TRACES, payload))
-    refused_or_valid(ask(session, KEY_REPLACE, payload))
+    refused_or_valid(ask(session, traces_key("fuzz-bot"), payload))
+    refused_or_valid(ask(session, replace_key("fuzz-bot"), payload))
     session.put(ack_key("fuzz-bot"), payload)
     batch = trace("fuzz-bot", next(STEP))
-    reply = ask(session, KEY_TRACES, encode_trace(batch))
+    reply = ask(session, traces_key("fuzz-bot"), encode_trace(batch))
     assert reply.ok is not None
     ack = decode_message(reply.ok.payload.to_bytes())
     assert isinstance(ack, TraceAck) and ack.last == batch.last
     request = StuckRequest(robot="fuzz-bot", sha256="f" * 64, reason="fuzz", step=batch.last)
-    reply = ask(session, KEY_REPLACE, encode_robot_message(request))
+    reply = ask(session, replace_key("fuzz-bot"), encode_robot_message(request))
     assert reply.ok is not None
     answer = decode_message(reply.ok.payload.to_bytes())
     assert answer.kind == "replacement" and answer.robot == "fuzz-bot"
@@ -393,13 +396,13 @@ def test_bad_robot_liveliness_names_are_ignored(
 ) -> None:
     service, session = robots
     bad = ["bad name", "é", "x" * 129, "a:b", "~!@%+"]
-    tokens = [session.liveliness().declare_token(f"evocolony/robots/alive/{n}") for n in bad]
+    tokens = [session.liveliness().declare_token(f"evocolony/robots/{n}/alive") for n in bad]
     good = session.liveliness().declare_token(alive_key("fuzz-alive"))
     try:
         assert eventually(lambda: service.is_online("fuzz-alive"))
         ids = {r.id for r in service.robots()}
         assert not any(n in ids for n in bad)
-        reply = ask(session, KEY_TRACES, encode_trace(trace("fuzz-alive", 0)))
+        reply = ask(session, traces_key("fuzz-alive"), encode_trace(trace("fuzz-alive", 0)))
         assert reply.ok is not None
     finally:
         for token in [*tokens, good]:
@@ -439,17 +442,17 @@ def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) ->
 
     def on_next(query: zenoh.Query) -> None:
         with query:
-            query.reply(KEY_JOB_NEXT, next_junk.pop() if next_junk else encode(job))
+            query.reply(query.key_expr, next_junk.pop() if next_junk else encode(job))
 
     def on_result(query: zenoh.Query) -> None:
         with query:
             if result_junk:
-                query.reply(KEY_JOB_RESULT, result_junk.pop())
+                query.reply(query.key_expr, result_junk.pop())
                 return
             assert query.payload is not None
             result = decode(query.payload.to_bytes(), Result)
             delivered.put(result)
-            query.reply(KEY_JOB_RESULT, encode(Ack(key=result.key, accepted=True)))
+            query.reply(query.key_expr, encode(Ack(key=result.key, accepted=True)))
 
     with zenoh.open(router_config(port)) as session:
         nxt = session.declare_queryable(KEY_JOB_NEXT, on_next)
@@ -485,12 +488,12 @@ def agent_link(
     def on_trace(query: zenoh.Query) -> None:
         with query:
             if trace_junk:
-                query.reply(KEY_TRACES, trace_junk.pop())
+                query.reply(query.key_expr, trace_junk.pop())
                 return
             assert query.payload is not None
             batch = decode_trace(query.payload.to_bytes())
             ack = TraceAck(robot=batch.robot, last=batch.last)
-            query.reply(KEY_TRACES, encode_robot_message(ack))
+            query.reply(query.key_expr, encode_robot_message(ack))
 
     with (
         zenoh.open(router_config(port)) as router,

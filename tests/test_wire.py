@@ -42,6 +42,8 @@ from schemas.wire import (
     encode,
     encode_frame,
     genome_digest,
+    next_key,
+    result_key,
     worker_key,
 )
 
@@ -131,7 +133,9 @@ def test_a_frame_refuses_object_arrays_and_its_reserved_key() -> None:
 
 def test_the_protocol_and_its_keys() -> None:
     assert PROTOCOL == 10 and JobRequest(worker="w").protocol == PROTOCOL
-    assert (KEY_JOB_NEXT, KEY_JOB_RESULT) == ("evocolony/jobs/next", "evocolony/jobs/result")
+    assert (next_key("w"), result_key("w")) == ("evocolony/jobs/next/w", "evocolony/jobs/result/w")
+    assert next_key("w-1").startswith(KEY_JOB_NEXT.removesuffix("*"))
+    assert result_key("w-1").startswith(KEY_JOB_RESULT.removesuffix("*"))
     assert worker_key("w-1").startswith(KEY_WORKERS.removesuffix("*"))
 
 

@@ -71,11 +71,11 @@ def serve_one_job(
     def on_next(query: zenoh.Query) -> None:
         with query:
             if not got.is_set() and not inbox:
-                query.reply(KEY_JOB_NEXT, frame)
+                query.reply(query.key_expr, frame)
                 return
             if got.is_set():
                 asked_again.set()  # the worker lives on after the result
-            query.reply(KEY_JOB_NEXT, encode(Idle()) if after is None else after)
+            query.reply(query.key_expr, encode(Idle()) if after is None else after)
 
     def on_result(query: zenoh.Query) -> None:
         with query:
@@ -83,7 +83,7 @@ def serve_one_job(
             payload = query.payload.to_bytes()
             inbox.append(payload)
             key = decode(payload, Result).key
-            query.reply(KEY_JOB_RESULT, encode(Ack(key=key, accepted=True)))
+            query.reply(query.key_expr, encode(Ack(key=key, accepted=True)))
             got.set()
 
     with zenoh.open(router_config(port)) as session:

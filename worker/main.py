@@ -33,6 +33,7 @@ import zenoh
 from evorobotics.evaluate import robot_steps
 from evorobotics.evolution import RunLoop
 from evorobotics.ga import GAState
+from schemas.answer import CONSOLIDATION, TARGET, one_answer
 from schemas.run import RunConfig
 from schemas.security import ZenohClientAuth
 from schemas.wire import (
@@ -50,6 +51,8 @@ from schemas.wire import (
     decode_result_reply,
     encode,
     genome_digest,
+    next_key,
+    result_key,
     worker_key,
 )
 
@@ -195,8 +198,13 @@ class _Link:
     ) -> None:
         self.settings, self.stop, self.stats = settings, stop, stats
         self._queriers = {
-            key: session.declare_querier(key, timeout=settings.request_timeout_s)
-            for key in (KEY_JOB_NEXT, KEY_JOB_RESULT)
+            key: session.declare_querier(
+                name, timeout=settings.request_timeout_s, target=TARGET, consolidation=CONSOLIDATION
+            )
+            for key, name in (
+                (KEY_JOB_NEXT, next_key(settings.name)),
+                (KEY_JOB_RESULT, result_key(settings.name)),
+            )
         }
 
     def get(self, key: str, payload: bytes) -> zenoh.Handler[zenoh.Reply]:
@@ -204,8 +212,8 @@ class _Link:
         return self._queriers[key].get(payload=payload)
 
     def ask(self, key: str, payload: bytes) -> bytes | None:
-        """The first successful reply's payload (waiting for it), or None."""
-        return _first_ok(self.get(key, payload), key)
+        """The server's successful reply's payload (waiting for it), or None."""
+        return one_answer(self.get(key, payload), key, log)
 
     def close(self) -> None:
         for querier in self._queriers.values():
@@ -367,7 +375,7 @@ def _span_acks(in_flight: deque[tuple[Job, zenoh.Handler[zenoh.Reply]]], keep: i
     while in_flight:
         job, replies = in_flight[0]
         if len(in_flight) > keep:
-            payload = _first_ok(replies, KEY_JOB_RESULT)
+            payload = one_answer(replies, KEY_JOB_RESULT, log)
         else:
             try:
                 reply = replies.try_recv()
@@ -420,16 +428,6 @@ def _deliver(link: _Link, result: Result) -> Job | None:
             tries_after_stop += 1
         link.stop.wait(backoff.next())
     log.warning("gave up delivering %s while stopping", result.key.label())
-    return None
-
-
-def _first_ok(replies: zenoh.Handler[zenoh.Reply], key: str) -> bytes | None:
-    """Wait for the first successful reply's payload; None on an error reply or none at all."""
-    for reply in replies:
-        if reply.ok is not None:
-            return reply.ok.payload.to_bytes()
-        if reply.err is not None:
-            log.warning("server error on %s: %s", key, reply.err.payload.to_bytes()[:200])
     return None
 
 
