@@ -120,7 +120,9 @@ def test_scheduler_totals_count_leases_results_requeues_and_duplicates(tmp_path:
     """The scheduler keeps its own running totals; /metrics reads them at scrape time."""
     engine = make_engine(f"sqlite:///{tmp_path / 'q.db'}")
     upgrade(engine)
-    manager = RunManager(engine, Settings(db_url="unused", lease_unknown_seconds=0.5))
+    # a result of zero fitness stands in for evaluation: no spot-checks (test_spotcheck.py)
+    settings = Settings(db_url="unused", lease_unknown_seconds=0.5, spot_checks=0)
+    manager = RunManager(engine, settings)
     config = RunConfig(population=8, generations=2, steps=10, trials=1, job_size=4)
     try:
         manager.create_run(config)

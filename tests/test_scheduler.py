@@ -636,3 +636,150 @@ def test_a_span_ends_with_the_message_that_finds_its_store_lagging() -> None:
     sched.written(told)
     following, _ = span_job(sched)  # the run goes on from the last recorded generation
     assert following.key.generation == 3
+
+
+# spot-checks -----------------------------------------------------------------------------------
+
+CHECKED = Policy(spot_checks=64)
+"""Every individual of a result re-evaluated (at most 64 a result): a forgery cannot pass."""
+
+
+def honest(job: Job, worker: str) -> Result:
+    """What an honest worker returns: the real evaluation of the job's slice."""
+    return run_job(job, worker)
+
+
+def forged(job: Job, worker: str, value: float = 1e6) -> Result:
+    """An honest result with every fitness replaced by `value`."""
+    real = honest(job, worker)
+    assert real.fitness is not None
+    return real.model_copy(update={"fitness": np.full_like(real.fitness, value)})
+
+
+def real_span(job: Job, k: int, worker: str, forge_from: int | None = None) -> Result:
+    """`k` generations of a span evaluated for real, sent as one message; from generation
+    `forge_from` on its fitness is forged (and the GA follows the forgery, as a rogue's)."""
+    assert job.state is not None
+    loop = RunLoop(job.config, GAState.from_arrays(job.state))
+    fitness, components, digests = [], [], []
+    for i in range(k):
+        genomes = loop.ask()
+        f, c = evaluate_population(job.config, loop.generation, genomes)
+        if forge_from is not None and i >= forge_from:
+            f = np.full_like(f, 1e6)
+        fitness.append(f)
+        components.append(c)
+        digests.append(genome_digest(genomes))
+        loop.tell(f, c)
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=0,
+        stop=job.config.population,
+        fitness=np.stack(fitness),
+        components=np.stack(components),
+        digests=tuple(digests),
+    )
+
+
+def drain_honestly(sched: Scheduler, worker: str) -> list[Written]:
+    """`worker` evaluates every job left; the generations told (stored at once)."""
+    told: list[Written] = []
+    while (job := sched.lease(worker)) is not None:
+        assert sched.settle(honest(job, worker)).accepted
+        taken = sched.take_told()
+        sched.written(taken)
+        told += taken
+    return told
+
+
+def test_an_honest_result_passes_its_spot_check() -> None:
+    sched, _ = make(Policy(spot_checks=1))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("w")
+    assert job is not None
+    assert sched.settle(honest(job, "w")).accepted
+    steps = CONFIG.trials * (CONFIG.steps or 0)
+    assert sched.spot_totals() == {
+        "results_checked": 1,
+        "individuals_checked": 1,
+        "robot_steps_checked": steps,
+        "mismatches": 0,
+    }
+    assert sched.quarantined() == {}
+
+
+def test_a_forged_result_quarantines_its_worker_and_requeues_its_generation() -> None:
+    sched, _ = make(CHECKED)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    first, other, last = sched.lease("rogue"), sched.lease("honest"), sched.lease("rogue2")
+    assert first is not None and other is not None and last is not None
+    assert sched.settle(honest(first, "rogue")).accepted  # honest once: it passes
+    sched.leave("rogue2")  # the third slice returns, and goes to the rogue
+    again = sched.lease("rogue")
+    assert again is not None and (again.start, again.stop) == (6, 8)
+    ack = sched.settle(forged(again, "rogue"))
+    assert not ack.accepted and "spot-check" in ack.reason
+    why = sched.quarantined()["rogue"]
+    assert "run 1 generation 0 individual 6" in why and "claimed fitness 1000000.0" in why
+    # its passed result of this generation is discarded too: slices 0:3 and 6:8 pending again
+    assert sched.counts() == {"pending": 2, "leased": 1, "done": 0}
+    assert sched.lease("rogue") is None  # no more jobs, ever
+    assert not sched.settle(honest(first, "rogue")).accepted
+    assert sched.spot_totals()["mismatches"] == 1
+    assert sched.settle(honest(other, "honest")).accepted
+    told = drain_honestly(sched, "honest")
+    expected = RunLoop(CONFIG)
+    fitness, _ = evaluate_population(CONFIG, 0, expected.ask())
+    assert told[0].told.fitness.tobytes() == fitness.tobytes()
+    assert [w.name for w in sched.workers()] == ["honest", "rogue", "rogue2"]
+
+
+def test_quarantine_outlives_gone_keep_and_the_worker_stays_listed() -> None:
+    sched, clock = make(Policy(spot_checks=3, gone_keep_s=1.0))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("rogue")
+    assert job is not None and not sched.settle(forged(job, "rogue")).accepted
+    sched.leave("rogue")
+    clock.t += 10.0
+    sched.expire()
+    assert [w.name for w in sched.workers()] == ["rogue"] and "rogue" in sched.quarantined()
+    sched.join("rogue")  # coming back changes nothing
+    assert sched.lease("rogue") is None
+
+
+def test_with_spot_checks_off_a_forgery_is_accepted() -> None:
+    sched, _ = make(Policy(spot_checks=0))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("w")
+    assert job is not None and sched.settle(forged(job, "w")).accepted
+    assert sched.spot_totals()["results_checked"] == 0 and sched.quarantined() == {}
+
+
+def test_the_servers_own_evaluators_are_not_spot_checked() -> None:
+    sched, _ = make(CHECKED)
+    sched.join("local-0", spans=False, listed=False)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("local-0")
+    assert job is not None and sched.settle(forged(job, "local-0")).accepted
+    assert sched.spot_totals()["results_checked"] == 0
+
+
+def test_a_spans_later_generations_are_checked_before_any_is_told() -> None:
+    config = CONFIG.model_copy(update={"generations": 6})
+    sched, _ = make(CHECKED)
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(config), running=True)
+    job = sched.lease("fast")
+    assert job is not None and job.span > 2
+    # honest for two generations, every individual checked: the GA on the claims is replayed
+    assert sched.settle(real_span(job, 2, "fast")).accepted
+    told = sched.take_told()
+    assert [w.told.generation for w in told] == [0, 1]
+    sched.written(told)
+    following = sched.lease("fast")  # the span's lease moved on: asking again returns it
+    assert following is not None and following.key.generation == 2 and following.span > 1
+    ack = sched.settle(real_span(following, 3, "fast", forge_from=2))
+    assert not ack.accepted and "generation 4" in sched.quarantined()["fast"]
+    assert sched.take_told() == []  # generations 2 and 3 (honest) not told either
+    assert sched.counts() == {"pending": 1, "leased": 0, "done": 0}

@@ -55,6 +55,7 @@ BASE: dict[str, Any] = {
     "span_below_seconds": 0.0,  # no spans unless a test asks: cuts do not follow measured speeds
     "lease_min_seconds": 0.05,
     "lease_unknown_seconds": 0.5,  # leases expire only when a test calls expire()
+    "spot_checks": 0,  # results of zero fitness stand in for evaluation (test_spotcheck.py)
 }
 
 
