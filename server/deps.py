@@ -31,6 +31,7 @@ SessionDep = Annotated[Session, Depends(get_session)]
 def get_workers(request: Request) -> list[WorkerOut]:
     """The scheduler's worker table (zenoh workers and in-process evaluators), by name."""
     manager: RunManager = request.app.state.manager
+    quarantined = manager.scheduler.quarantined()
     return [
         WorkerOut(
             name=w.name,
@@ -39,6 +40,8 @@ def get_workers(request: Request) -> list[WorkerOut]:
             jobs_done=w.jobs_done,
             robot_steps_per_s=w.robot_steps_per_s,
             last_seen=datetime.fromtimestamp(w.last_seen, UTC),
+            quarantined=w.name in quarantined,
+            quarantine_reason=quarantined.get(w.name),
         )
         for w in manager.scheduler.workers()
     ]

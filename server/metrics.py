@@ -88,6 +88,18 @@ class ColonyCollector(Collector):
             "Worker messages dropped as malformed",
             value=dispatcher.malformed if dispatcher is not None else 0,
         )
+        spot = manager.scheduler.spot_totals()
+        for name, meaning in (
+            ("individuals_checked", "Individuals of worker results re-evaluated (spot-checks)"),
+            ("robot_steps_checked", "Robot-steps the spot-checks simulated"),
+            ("mismatches", "Spot-checks a worker's result failed (each quarantined it)"),
+        ):
+            yield CounterMetricFamily(f"colony_spot_check_{name}", meaning, value=spot[name])
+        yield GaugeMetricFamily(
+            "colony_workers_quarantined",
+            "Workers quarantined after a failed spot-check (for the server's life)",
+            value=len(manager.scheduler.quarantined()),
+        )
         workers = manager.scheduler.workers()
         alive = GaugeMetricFamily("colony_workers", "Simulation workers by state", labels=["state"])
         for worker_state in ("idle", "busy", "gone"):
