@@ -382,7 +382,15 @@ def run_cancel(
 
 def _workers_table(workers: list[dict[str, Any]]) -> Table:
     table = Table(title="workers")
-    for column in ("name", "host", "state", "jobs done", "robot-steps/s", "last seen"):
+    for column in (
+        "name",
+        "host",
+        "state",
+        "jobs done",
+        "robot-steps/s",
+        "last seen",
+        "quarantined",
+    ):
         table.add_column(column)
     for w in workers:
         table.add_row(
@@ -392,6 +400,7 @@ def _workers_table(workers: list[dict[str, Any]]) -> Table:
             str(w["jobs_done"]),
             _fmt(w["robot_steps_per_s"]),
             _fmt(w["last_seen"]),
+            "yes" if w.get("quarantined") else "-",
         )
     return table
 
