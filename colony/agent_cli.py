@@ -18,7 +18,10 @@ from colony.server_cli import DEFAULT_SERVER, ServerOpt, TokenOpt, call_server
 
 def agent_command(
     robot_id: Annotated[
-        str, typer.Option("--robot-id", help="this robot's id (a zenoh key chunk)")
+        str,
+        typer.Option(
+            "--robot-id", envvar="COLONY_ROBOT_ID", help="this robot's id (a zenoh key chunk)"
+        ),
     ],
     serial: Annotated[
         str | None,
@@ -53,7 +56,10 @@ def agent_command(
     baud: Annotated[int, typer.Option(help="serial baud rate")] = 115_200,
     server_key: Annotated[
         Path | None,
-        typer.Option(help="the server's public key (PEM, GET /api/server-key); pinned"),
+        typer.Option(
+            envvar="COLONY_SERVER_PUBLIC_KEY",
+            help="the server's public key (PEM, GET /api/server-key); pinned",
+        ),
     ] = None,
     server: Annotated[
         str, typer.Option("--server", help="without --server-key or a pinned key: fetch it here")
@@ -84,6 +90,10 @@ def agent_command(
         raise typer.BadParameter(str(exc)) from exc
     if (serial is None) == (not emulate):
         raise typer.BadParameter("give exactly one of --serial PORT or --emulate")
+    if zenoh_user is not None and zenoh_user != robot_id:
+        raise typer.BadParameter(
+            f"the zenoh user {zenoh_user} may only act as robot {zenoh_user}, not {robot_id}"
+        )
     try:
         auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
         probe = AgentSettings(robot_id=robot_id, state_dir=state_dir)
