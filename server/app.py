@@ -18,6 +18,7 @@ import zenoh
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
 
 from schemas.api import ErrorOut
 from server import metrics, signing
@@ -136,6 +137,12 @@ def create_app(
     async def _invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
         return JSONResponse(status_code=422, content={"detail": validation_message(exc)})
 
+    @app.exception_handler(OperationalError)
+    async def _store_refused(_request: Request, exc: OperationalError) -> JSONResponse:
+        # a full disk, a locked or unreachable database: nothing the client can fix
+        reason = (str(exc.orig).strip().splitlines() or ["unknown"])[0]
+        return JSONResponse(status_code=503, content={"detail": f"database unavailable: {reason}"})
+
     @app.exception_handler(ServerError)
     async def _server_error(_request: Request, exc: ServerError) -> JSONResponse:
         # not found, impossible transition, robot offline: each class carries its status
@@ -161,5 +168,7 @@ def create_app(
         token=settings.api_token,
         read_open=settings.read_open,
         max_body_bytes=settings.max_body_bytes,
+        bind_host=settings.host,
+        extra_hosts=settings.allowed_hosts,
     )
     return app

@@ -7,16 +7,26 @@ dashboard shell (/, /static/...), which holds no data and asks the user for the 
 EventSource API cannot set headers, so a GET may carry the token as `?access_token=`.
 A middleware rather than per-route dependencies so that a route added later is closed by
 default. Bodies over the limit get 413 before any route reads them (docs/security.md).
+
+Before the token, every request's Host must name this server (loopback, the bind address or
+COLONY_ALLOWED_HOSTS: a DNS-rebinding page's name is none of them), and a mutating request
+must not come from another site (its Origin, when sent, is the server's own; not
+`Sec-Fetch-Site: cross-site`): a tokenless loopback server cannot be driven by a web page the
+operator visits. After the body is read, a JSON body with NaN or Infinity (which Python's
+parser accepts and JSON does not have) is a 422 before any route sees it.
 """
 
 from __future__ import annotations
 
+import email.message
 import hmac
 import ipaddress
 import json
-from collections.abc import Awaitable, Callable, MutableMapping
+import math
+import socket
+from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from typing import Any
-from urllib.parse import parse_qs
+from urllib.parse import parse_qs, urlsplit
 
 from evorobotics.errors import MazeError
 from evorobotics.evaluate import robot_steps
@@ -32,6 +42,7 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 OPEN_PATHS = frozenset({"/healthz", "/metrics", "/", "/favicon.ico"})
 OPEN_PREFIXES = ("/static/",)
+DEFAULT_PORTS = {"http": 80, "https": 443}
 
 
 def is_loopback(host: str) -> bool:
@@ -58,6 +69,121 @@ def token_matches(expected: str, given: str | None) -> bool:
     if given is None:
         return False
     return hmac.compare_digest(expected.encode(), given.encode())
+
+
+def allowed_hosts(bind_host: str, extra: Iterable[str]) -> frozenset[str] | None:
+    """The host names (lower case, no port) a request's Host may give; None allows any (`*`).
+
+    Loopback names are always allowed, and the bind address; a wildcard bind (0.0.0.0, ::)
+    allows this machine's own host name too (IP literals are checked apart: `host_allowed`).
+    """
+    names = {name.strip().lower().strip("[]") for name in extra if name.strip()}
+    if "*" in names:
+        return None
+    names |= {"localhost", bind_host.lower().strip("[]")}
+    if bind_host in ("0.0.0.0", "::", ""):
+        names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
+    return frozenset(names)
+
+
+def host_allowed(host: str, allowed: frozenset[str] | None, *, wildcard_bind: bool) -> bool:
+    """Whether a Host header's name (port stripped) may reach this server.
+
+    Loopback addresses always may; on a wildcard bind any IP literal may too, since a request
+    reaches such a server by an address only when the address is its own (DNS rebinding needs
+    a name the attacker controls)."""
+    if allowed is None:
+        return True
+    name = _host_name(host)
+    if name is None:
+        return False
+    if name in allowed or is_loopback(name):
+        return True
+    if wildcard_bind:
+        try:
+            ipaddress.ip_address(name)
+        except ValueError:
+            return False
+        return True
+    return False
+
+
+def _host_name(host: str) -> str | None:
+    """`example.org:8000` -> `example.org`, `[::1]:8000` -> `::1`; None if malformed."""
+    try:
+        parsed = urlsplit(f"//{host}")
+        name = parsed.hostname
+        _ = parsed.port  # ValueError on a port that is not a number
+    except ValueError:
+        return None
+    return name or None
+
+
+def same_origin(origin: str, host: str, scheme: str) -> bool:
+    """Whether an Origin header names the server the Host header names, by the request's
+    scheme: the same scheme, host and port (default ports filled in)."""
+    try:
+        mine = urlsplit(f"{scheme}://{host}")
+        theirs = urlsplit(origin)
+        return (
+            theirs.scheme == scheme
+            and theirs.hostname is not None
+            and theirs.hostname == mine.hostname
+            and (theirs.port or DEFAULT_PORTS.get(scheme))
+            == (mine.port or DEFAULT_PORTS.get(scheme))
+        )
+    except ValueError:
+        return False
+
+
+def _header(scope: Scope, wanted: bytes) -> str | None:
+    for name, value in scope.get("headers", ()):
+        if name == wanted:
+            text: str = value.decode("latin-1")
+            return text
+    return None
+
+
+class _NonFiniteError(ValueError):
+    """A NaN or infinite number in a JSON body; its text is the token refused."""
+
+
+def _refuse_constant(name: str) -> float:
+    raise _NonFiniteError(name)
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if math.isinf(value):
+        raise _NonFiniteError(text)  # e.g. 1e999, which Python's parser makes infinite
+    return value
+
+
+def non_finite_error(body: bytes) -> str | None:
+    """Why a JSON body is refused (`NaN`, `Infinity`, `-Infinity` or an overflowing number),
+    or None: malformed JSON is left to the route's own parser and its 422."""
+    try:
+        json.loads(body, parse_constant=_refuse_constant, parse_float=_finite_float)
+    except _NonFiniteError as exc:
+        return (
+            f"body: {exc} is not a finite number (JSON has no NaN or Infinity; "
+            "send a finite number or null)"
+        )
+    except ValueError:  # not JSON, or not UTF-8: the route says so
+        return None
+    return None
+
+
+def _is_json(content_type: str | None) -> bool:
+    """FastAPI's rule for parsing a body as JSON: no content type, or application/[*+]json."""
+    if content_type is None:
+        return True
+    message = email.message.Message()
+    message["content-type"] = content_type
+    subtype = message.get_content_subtype()
+    return message.get_content_maintype() == "application" and (
+        subtype == "json" or subtype.endswith("+json")
+    )
 
 
 def _bearer(scope: Scope) -> str | None:
@@ -96,10 +222,18 @@ async def _reply(
 
 
 class SecurityMiddleware:
-    """Bearer-token check and body-size limit (pure ASGI, so event streams pass untouched)."""
+    """Host and Origin checks, bearer token, body-size limit and finite JSON numbers (pure
+    ASGI, so event streams pass untouched)."""
 
     def __init__(
-        self, app: ASGIApp, *, token: str | None, read_open: bool, max_body_bytes: int
+        self,
+        app: ASGIApp,
+        *,
+        token: str | None,
+        read_open: bool,
+        max_body_bytes: int,
+        bind_host: str = "127.0.0.1",
+        extra_hosts: Iterable[str] = (),
     ) -> None:
         if token is not None and not token.strip():
             raise ValueError("the API token must not be empty")
@@ -109,6 +243,24 @@ class SecurityMiddleware:
         self.token = token
         self.read_open = read_open
         self.max_body_bytes = max_body_bytes
+        self.hosts = allowed_hosts(bind_host, extra_hosts)
+        self.wildcard_bind = bind_host in ("0.0.0.0", "::", "")
+
+    def _foreign(self, scope: Scope) -> str | None:
+        """Why a request from outside this server's own names or pages is refused, or None."""
+        host = _header(scope, b"host")
+        if host is None or not host_allowed(host, self.hosts, wildcard_bind=self.wildcard_bind):
+            return (
+                f"Host header {host!r} is not a name of this server: add it to COLONY_ALLOWED_HOSTS"
+            )
+        if scope["method"] not in MUTATING:
+            return None
+        origin = _header(scope, b"origin")
+        if origin is not None and not same_origin(origin, host, scope.get("scheme", "http")):
+            return f"Origin header {origin!r} is not this server's: cross-site requests refused"
+        if _header(scope, b"sec-fetch-site") == "cross-site":
+            return "Sec-Fetch-Site header is cross-site: cross-site requests refused"
+        return None
 
     def _needs_token(self, method: str, path: str) -> bool:
         if self.token is None or path in OPEN_PATHS or path.startswith(OPEN_PREFIXES):
@@ -120,6 +272,10 @@ class SecurityMiddleware:
             await self.app(scope, receive, send)
             return
         method = scope["method"]
+        foreign = self._foreign(scope)
+        if foreign is not None:
+            await _reply(send, 403, foreign)
+            return
         if self.token is not None and self._needs_token(method, scope["path"]):
             given = _bearer(scope)
             if given is None and method == "GET":
@@ -171,13 +327,19 @@ class SecurityMiddleware:
             chunks.append(chunk)
             if not message.get("more_body", False):
                 break
+        body = b"".join(chunks)
+        if body and _is_json(_header(scope, b"content-type")):
+            refused = non_finite_error(body)
+            if refused is not None:
+                await _reply(send, 422, refused)
+                return
         replayed = False
 
         async def replay() -> Message:
             nonlocal replayed
             if not replayed:
                 replayed = True
-                return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+                return {"type": "http.request", "body": body, "more_body": False}
             return await receive()
 
         await self.app(scope, replay, send)

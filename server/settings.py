@@ -14,6 +14,7 @@ from schemas.security import (
     MAX_GENERATION_STEPS,
     MAX_POPULATION_WEIGHTS,
     MAX_ZENOH_MESSAGE,
+    ZenohRoles,
     ZenohRouterAuth,
 )
 from server.scheduler import Policy
@@ -29,7 +30,8 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="HTTP port")
     zenoh: bool = Field(True, description="serve jobs to workers over zenoh (docs/protocol.md)")
     zenoh_listen: list[str] = Field(
-        ["tcp/0.0.0.0:7447"], description="endpoints the server's zenoh router listens on"
+        ["tcp/127.0.0.1:7447"],
+        description="endpoints the server's zenoh router listens on (off loopback: users and roles)",
     )
     zenoh_connect: list[str] = Field(
         [], description="routers to join, e.g. a lab's zenohd at tcp/HOST:7447"
@@ -53,6 +55,10 @@ class Settings(BaseSettings):
         None, repr=False, description="bearer token for mutating requests (and reads if closed)"
     )
     read_open: bool = Field(True, description="GET endpoints without the token")
+    allowed_hosts: list[str] = Field(
+        [],
+        description="Host names requests may use besides loopback and --host ('*': any)",
+    )
     max_body_bytes: int = Field(MAX_BODY_BYTES, ge=1, description="larger bodies get 413")
     max_population_weights: int = Field(
         MAX_POPULATION_WEIGHTS, ge=1, description="population x weights of a run (memory)"
@@ -130,9 +136,12 @@ class Settings(BaseSettings):
         return Path.home() / ".evocolony" / "server-key.pem"
 
     def zenoh_router_auth(self) -> ZenohRouterAuth:
-        """ValueError when a certificate comes without its key, or a user without a password."""
+        """ValueError when a certificate comes without its key, a user without a password, a
+        users file without a roles file, or a roles file that cannot be read."""
+        roles = self.zenoh_roles_file
         return ZenohRouterAuth(
             dictionary_file=self.zenoh_users_file,
+            roles=None if roles is None else ZenohRoles.from_file(roles),
             certificate=self.zenoh_tls_certificate,
             private_key=self.zenoh_tls_private_key,
             root_ca=self.zenoh_tls_root_ca,
