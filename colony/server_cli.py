@@ -100,7 +100,9 @@ def serve(
     ] = None,
     zenoh_roles: Annotated[
         Path | None,
-        typer.Option(help="JSON of zenoh users per role (colony lab init) [COLONY_ZENOH_ROLES_FILE]"),
+        typer.Option(
+            help="JSON of zenoh users per role (colony lab init) [COLONY_ZENOH_ROLES_FILE]"
+        ),
     ] = None,
     zenoh_tls_cert: Annotated[
         Path | None, typer.Option(help="PEM certificate for tls/ endpoints")
@@ -143,15 +145,36 @@ def serve(
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    try:
-        app = create_app(settings)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    typer.echo(f"robot pushes are signed with {settings.server_key_path() or 'an in-memory key'}")
-    from server.logs import configure
+    from sqlalchemy.exc import OperationalError
 
-    configure(settings.log_level, settings.log_format)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_config=None)
+    from server.db import ServerLock, StoreUnusableError, check_sqlite_file
+
+    # one line and a non-zero exit, so a restart policy shows why (docs/reliability.md)
+    try:
+        lock = ServerLock.acquire(settings.db_url)
+    except StoreUnusableError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    except OperationalError as exc:
+        typer.echo(f"error: cannot reach the database: {str(exc.orig).strip()}", err=True)
+        raise typer.Exit(1) from exc
+    try:
+        check_sqlite_file(settings.db_url)
+        try:
+            app = create_app(settings)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from exc
+        key_path = settings.server_key_path() or "an in-memory key"
+        typer.echo(f"robot pushes are signed with {key_path}")
+        from server.logs import configure
+
+        configure(settings.log_level, settings.log_format)
+        uvicorn.run(app, host=settings.host, port=settings.port, log_config=None)
+    except StoreUnusableError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    finally:
+        lock.close()
 
 
 def _client(ctx: typer.Context, server: str, token: str | None) -> httpx.Client:

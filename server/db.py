@@ -1,17 +1,26 @@
-"""Engine factory and schema migration: the database a lab keeps across upgrades."""
+"""Engine factory and schema migration: the database a lab keeps across upgrades; the checks a
+server makes before it uses one (an intact SQLite file, no other server on it)."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
+import os
+import sqlite3
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.pool import NullPool
+
+from server.errors import ServerError
 
 log = logging.getLogger(__name__)
 
@@ -116,3 +125,134 @@ def upgrade(engine: Engine) -> None:
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
+
+
+class StoreUnusableError(ServerError):
+    """The database cannot be served (damaged, empty by accident, or in use by another server);
+    the message is one line for the operator, naming the database and the problem."""
+
+    status_code = 503
+
+
+def sqlite_path(url: str) -> Path | None:
+    """The file of an SQLite URL; None for any other database."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
+        return None
+    return Path(parsed.database).expanduser()
+
+
+def check_sqlite_file(url: str) -> None:
+    """StoreUnusableError for an existing SQLite file that is empty (0 bytes: never a colony a
+    server made, which starts with its schema) or fails `PRAGMA quick_check`; a missing file
+    is fine (a new colony). quick_check reads every page once, without the index cross-checks
+    of a full integrity_check."""
+    path = sqlite_path(url)
+    if path is None or not path.exists():
+        return
+    if path.stat().st_size == 0:
+        raise StoreUnusableError(
+            f"database {path} is empty (0 bytes): restore it from a backup, or delete it to "
+            "start a new colony"
+        )
+    problems: list[str]
+    try:
+        with contextlib.closing(
+            sqlite3.connect(f"{path.resolve().as_uri()}?mode=rw", uri=True)
+        ) as conn:
+            rows = [str(row[0]) for row in conn.execute("PRAGMA quick_check")]
+        # a row may hold several lines, under a "*** in database main ***" heading
+        problems = [
+            line.strip()
+            for row in rows
+            for line in row.splitlines()
+            if line.strip() and not line.startswith("***")
+        ]
+    except sqlite3.Error as exc:
+        problems = [str(exc)]
+    if problems != ["ok"]:
+        problems = problems or ["quick_check gave no answer"]
+        more = f" (and {len(problems) - 1} more problems)" if len(problems) > 1 else ""
+        raise StoreUnusableError(
+            f"database {path} is damaged: {problems[0]}{more}; restore it from a backup"
+        )
+
+
+PG_LOCK_KEY = (0x436F6C6F, 0x6E790001)
+"""The session advisory lock (two int4 keys) a server holds on its PostgreSQL database."""
+
+
+class ServerLock:
+    """Held for the life of one server so that a second on the same database is refused: an
+    exclusive `flock` on `FILE.lock` beside an SQLite file (the kernel drops it when the process
+    dies, even by kill -9), a session advisory lock on PostgreSQL (dropped with the session).
+    Other databases get no lock."""
+
+    def __init__(self, release: Callable[[], None]) -> None:
+        self._release: Callable[[], None] | None = release
+
+    @classmethod
+    def acquire(cls, url: str) -> ServerLock:
+        """The lock of the database at `url`; StoreUnusableError naming the holder's pid when
+        another server holds it."""
+        path = sqlite_path(url)
+        if path is not None:
+            return cls._flock(path)
+        if make_url(url).get_backend_name() == "postgresql":
+            return cls._advisory(url)
+        return cls(lambda: None)
+
+    @classmethod
+    def _flock(cls, database: Path) -> ServerLock:
+        lock = database.with_name(database.name + ".lock")
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise StoreUnusableError(
+                f"database {database} is in use by another colony server (pid {holder})"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        return cls(lambda: os.close(fd))
+
+    @classmethod
+    def _advisory(cls, url: str) -> ServerLock:
+        name = f"colony-server {os.getpid()}"
+        engine = create_engine(url, poolclass=NullPool, connect_args={"application_name": name})
+        conn = engine.connect()
+        keys = {"a": PG_LOCK_KEY[0], "b": PG_LOCK_KEY[1]}
+        if conn.scalar(
+            text("SELECT pg_try_advisory_lock(CAST(:a AS integer), CAST(:b AS integer))"), keys
+        ):
+            conn.commit()  # the lock is the session's: it outlives the transaction
+
+            def release() -> None:
+                conn.close()
+                engine.dispose()
+
+            return cls(release)
+        holder = conn.scalar(
+            text(
+                "SELECT a.application_name FROM pg_locks l JOIN pg_stat_activity a "
+                "ON a.pid = l.pid WHERE l.locktype = 'advisory' AND l.granted "
+                "AND l.classid = :a AND l.objid = :b AND l.objsubid = 2"
+            ),
+            keys,
+        )
+        conn.close()
+        engine.dispose()
+        pid = str(holder).removeprefix("colony-server ") if holder else "unknown"
+        raise StoreUnusableError(
+            f"database {make_url(url).render_as_string(hide_password=True)} is in use by "
+            f"another colony server (pid {pid})"
+        )
+
+    def close(self) -> None:
+        """Release the lock (also released when the process exits)."""
+        if self._release is not None:
+            self._release()
+            self._release = None
