@@ -35,6 +35,7 @@ from typing import cast
 
 import numpy as np
 from sqlalchemy import Engine, Table, bindparam, func, insert, select, update
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 from evorobotics.document import ControllerDocument
@@ -221,6 +222,12 @@ class RunManager:
         """Whether the writer thread runs (`/healthz`)."""
         return self._thread is not None and self._thread.is_alive()
 
+    def write_refused(self) -> dict[int, str]:
+        """run id -> why the store refused its generation, for the runs stopped by a refused
+        write that the store does not yet show paused (it refuses that update too, e.g. while
+        the disk is full): the REST views and `/healthz` show them from here."""
+        return dict(self._write_failures)
+
     def stop(self) -> None:
         """Stop the thread and write the generations told but not yet written (a restart
         would recompute them, bit for bit, but need not)."""
@@ -237,6 +244,7 @@ class RunManager:
         """Every WRITE_AFTER_S write what was told; every housekeeping period expire leases
         and promote queued runs. Survives any error (logged), e.g. a database that is down."""
         housekept = time.monotonic()
+        failing: str | None = None  # the last error, logged once with its traceback
         while not self._stop.is_set():
             self.scheduler.told_many.wait(WRITE_AFTER_S)
             self.scheduler.told_many.clear()
@@ -246,8 +254,14 @@ class RunManager:
                     housekept = time.monotonic()
                     self.scheduler.expire()
                     self.promote()
-            except Exception:
-                log.exception("writer step failed; retrying")
+            except Exception as exc:
+                if str(exc) != failing:
+                    log.exception("writer step failed; retrying")
+                failing = str(exc)
+            else:
+                if failing is not None:
+                    log.info("writer steps succeed again")
+                failing = None
 
     def flush(self) -> None:
         """Write the told generations, oldest first, in one transaction; then fail the runs
@@ -293,7 +307,9 @@ class RunManager:
                     )
 
     def _stall(self, told: list[Written], exc: Exception) -> None:
-        message = f"database write failed: {type(exc).__name__}: {exc}"[:500]
+        reason = exc.orig if isinstance(exc, DBAPIError) else exc  # not SQLAlchemy's SQL text
+        message = f"database write failed: {type(reason).__name__}: {reason}".splitlines()[0]
+        message = message[:500]
         for item in told:
             if item.run_id not in self._write_failures:
                 context(log, run=item.run_id).error(
@@ -409,7 +425,10 @@ class RunManager:
         context(log, run=run_id).info("run %d paused", run_id)
 
     def resume(self, run_id: int) -> None:
+        """paused -> running. A run stopped by a refused write is written first (the store's
+        error propagates while it still refuses), so it resumes from a stored generation."""
         with self._lock:
+            self.flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
                 if run.status != "paused":

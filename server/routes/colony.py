@@ -10,6 +10,7 @@ from fastapi.responses import JSONResponse
 from schemas.api import ColonyOut, HealthOut, JobCounts
 from server import crud
 from server.deps import SessionDep, WorkersDep
+from server.manager import RunManager
 from server.robots import RobotService, robot_summaries
 from server.routes.runs import run_out
 
@@ -26,16 +27,27 @@ def _version() -> str:
 @router.get(
     "/healthz",
     response_model=HealthOut,
-    responses={503: {"model": HealthOut, "description": "a loop the server needs stopped"}},
+    responses={
+        503: {
+            "model": HealthOut,
+            "description": "a loop the server needs stopped, or the store refuses writes",
+        }
+    },
 )
 def healthz(request: Request) -> HealthOut | JSONResponse:
-    """ok while every loop the server needs runs: the run manager's writer, the zenoh
-    dispatcher and the in-process evaluators."""
+    """ok while every loop the server needs runs (the run manager's writer, the zenoh
+    dispatcher, the in-process evaluators) and the store takes the manager's writes;
+    unhealthy (a restart may help) when a loop stopped, else degraded (the store refuses
+    writes, e.g. a full disk: runs are paused until it takes them again)."""
     state = request.app.state
     loops = {name: getattr(state, name, None) for name in ("manager", "dispatcher", "executor")}
     stopped = [name for name, part in loops.items() if part is not None and not part.alive()]
-    health = HealthOut(version=_version(), status="unhealthy" if stopped else "ok", stopped=stopped)
-    if stopped:
+    manager: RunManager | None = loops["manager"]
+    refused = manager.write_refused() if manager is not None else {}
+    problems = sorted(set(refused.values()))
+    status = "unhealthy" if stopped else "degraded" if problems else "ok"
+    health = HealthOut(version=_version(), status=status, stopped=stopped, problems=problems)
+    if status != "ok":
         return JSONResponse(status_code=503, content=health.model_dump())
     return health
 
@@ -45,9 +57,10 @@ def colony(request: Request, session: SessionDep, workers: WorkersDep) -> Colony
     """Runs by status, the active runs, job counts, workers and robots."""
     robots: RobotService | None = getattr(request.app.state, "robots", None)
     active = crud.list_runs(session, statuses=("queued", "running", "paused"), limit=1000)
+    refused = request.app.state.manager.write_refused()
     return ColonyOut(
         runs=crud.count_runs_by_status(session),
-        active=[run_out(r) for r in active],
+        active=[run_out(r, refused) for r in active],
         jobs=JobCounts(**crud.job_counts(session)),
         workers=workers,
         robots=robot_summaries(session, robots.is_online if robots else _offline),

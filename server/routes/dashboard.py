@@ -114,12 +114,14 @@ class Watch:
                 Run.started_at,
                 Run.finished_at,
             )
+            refused = manager.write_refused()
             for run_id, *key in session.execute(progress.order_by(Run.id.desc()).limit(RUNS_LIMIT)):
-                if self._runs.get(run_id) != tuple(key):
-                    self._runs[run_id] = tuple(key)
+                seen = (*key, refused.get(run_id))
+                if self._runs.get(run_id) != seen:
+                    self._runs[run_id] = seen
                     run = session.get(Run, run_id)  # the whole row (config) only when it changed
                     if run is not None:
-                        events.append(sse("run", run_out(run).model_dump(mode="json")))
+                        events.append(sse("run", run_out(run, refused).model_dump(mode="json")))
         workers = [w.model_dump(mode="json") for w in get_workers(self._request)]
         if workers != self._workers:
             self._workers = workers

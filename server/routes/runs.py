@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from typing import Annotated
 
@@ -28,14 +29,20 @@ def aware(moment: datetime | None) -> datetime | None:
     return moment.replace(tzinfo=UTC)
 
 
-def run_out(run: Run) -> RunOut:
+def run_out(run: Run, refused: Mapping[int, str] | None = None) -> RunOut:
+    """The run as stored, except that a run in `refused` (`RunManager.write_refused`: its
+    generation could not be written, nor could the pause that follows) shows as paused with
+    the store's error, the state the store will show once it accepts writes again."""
     config = RunConfig.model_validate_json(run.config)
     created = aware(run.created_at)
     if created is None:
         raise ValueError(f"run {run.id} has no creation time")
+    status, error = run.status, run.error
+    if refused and run.id in refused and status == "running":
+        status, error = "paused", refused[run.id]
     return RunOut(
         id=run.id,
-        status=run.status,  # the manager writes only RunStatus values
+        status=status,  # the manager writes only RunStatus values
         seed=run.seed,
         config=config,
         generation=run.generation,
@@ -45,7 +52,7 @@ def run_out(run: Run) -> RunOut:
         created_at=created,
         started_at=aware(run.started_at),
         finished_at=aware(run.finished_at),
-        error=run.error,
+        error=error,
     )
 
 
@@ -77,19 +84,21 @@ def create_run(
 
 @router.get("", response_model=list[RunOut])
 def list_runs(
+    manager: ManagerDep,
     session: SessionDep,
     status_: Annotated[list[RunStatus] | None, Query(alias="status")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**63 - 1)] = 0,
 ) -> list[RunOut]:
-    """Newest first; `?status=running&status=paused` filters."""
+    """Newest first; `?status=running&status=paused` filters by the stored status."""
     runs = crud.list_runs(session, statuses=status_, limit=limit, offset=offset)
-    return [run_out(r) for r in runs]
+    refused = manager.write_refused()
+    return [run_out(r, refused) for r in runs]
 
 
 @router.get("/{run_id}", response_model=RunOut)
-def get_run(session: SessionDep, run_id: RunId) -> RunOut:
-    return run_out(_run(session, run_id))
+def get_run(manager: ManagerDep, session: SessionDep, run_id: RunId) -> RunOut:
+    return run_out(_run(session, run_id), manager.write_refused())
 
 
 @router.get("/{run_id}/generations", response_model=list[GenerationOut])
@@ -155,7 +164,7 @@ def best(manager: ManagerDep, run_id: RunId) -> Response:
 def _steer(manager: ManagerDep, session: SessionDep, run_id: RunId, action: str) -> RunOut:
     getattr(manager, action)(run_id)
     session.expire_all()
-    return run_out(_run(session, run_id))
+    return run_out(_run(session, run_id), manager.write_refused())
 
 
 @router.post("/{run_id}/pause", response_model=RunOut)
