@@ -1,0 +1,134 @@
+"""A rogue worker returning forged fitness cannot win a run: the server's spot-checks catch it.
+
+A real server (uvicorn, SQLite in a temp dir, its zenoh router on a loopback port), an honest
+worker thread evaluating for real, and a rogue: a plain zenoh client speaking the wire
+protocol that answers its first job honestly, then claims fitness 1e6 for every individual.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import zenoh
+
+from evorobotics.evolution import evolve
+from schemas.run import RunConfig
+from schemas.wire import (
+    Ack,
+    Idle,
+    JobRequest,
+    Result,
+    decode_next_reply,
+    decode_result_reply,
+    encode,
+    next_key,
+    result_key,
+    worker_key,
+)
+from server.settings import Settings
+from tests.helpers import (
+    WAIT,
+    client_config,
+    eventually,
+    free_port,
+    serving,
+    wait_status,
+    worker_thread,
+)
+from worker.main import evaluate_slice
+
+CONFIG = {"population": 16, "generations": 6, "steps": 20, "trials": 2, "job_size": 4, "seed": 5}
+FORGED = 1e6
+
+
+@contextmanager
+def rogue_worker(port: int, name: str = "rogue") -> Iterator[list[Ack]]:
+    """The rogue in a thread until exit: the Acks its results got, in order."""
+    acks: list[Ack] = []
+    stop = threading.Event()
+    session = zenoh.open(client_config(port))
+    token = session.liveliness().declare_token(worker_key(name))
+
+    def body() -> None:
+        while not stop.is_set():
+            request = encode(JobRequest(worker=name))
+            answers = [r.ok for r in session.get(next_key(name), payload=request, timeout=WAIT)]
+            if not answers or answers[0] is None:
+                continue
+            job = decode_next_reply(answers[0].payload.to_bytes())
+            if isinstance(job, Idle):
+                continue
+            fitness, components = evaluate_slice(job.config, job.key.generation, job.genomes)
+            if acks:  # honest once, so a result of it is accepted before it forges
+                fitness = np.full_like(fitness, FORGED)
+            result = Result(
+                key=job.key,
+                worker=name,
+                start=job.start,
+                stop=job.stop,
+                fitness=fitness[None],
+                components=components[None],
+            )
+            replies = list(session.get(result_key(name), payload=encode(result), timeout=WAIT))
+            if replies and replies[0].ok is not None:
+                acks.append(decode_result_reply(replies[0].ok.payload.to_bytes())[0])
+
+    thread = threading.Thread(target=body, name=f"rogue-{name}")
+    thread.start()
+    try:
+        yield acks
+    finally:
+        stop.set()
+        thread.join(WAIT)
+        token.undeclare()  # type: ignore[no-untyped-call]
+        session.close()  # type: ignore[no-untyped-call]
+    assert not thread.is_alive()
+
+
+def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    honest = evolve(RunConfig(**CONFIG))
+    zenoh_port = free_port()
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{zenoh_port}"],
+        workers=0,
+        jobs_per_worker=2,
+        span_below_seconds=0.0,  # parallel slices: the rogue gets jobs of every generation
+        housekeeping_seconds=0.2,
+    )
+    assert settings.spot_checks == 1  # the default
+    with (
+        serving(settings) as (url, _app),
+        httpx.Client(base_url=url, timeout=30) as client,
+        rogue_worker(zenoh_port) as acks,
+        worker_thread(zenoh_port, "honest", evaluate_slice),
+    ):
+        assert eventually(lambda: len(client.get("/api/workers").json()) == 2, WAIT)
+        run_id = client.post("/api/runs", json=CONFIG).json()["id"]
+        run = wait_status(client, run_id, {"completed", "failed"})
+        assert run["status"] == "completed", run["error"]
+        workers = {w["name"]: w for w in client.get("/api/workers").json()}
+        metrics = client.get("/metrics").text
+        best = client.get(f"/api/runs/{run_id}/best").json()
+    assert acks[0].accepted  # its honest result passed its spot-check
+    assert not acks[1].accepted and "spot-check" in acks[1].reason
+    rogue = workers["rogue"]
+    assert rogue["quarantined"] is True
+    reason = rogue["quarantine_reason"]
+    assert f"run {run_id} generation " in reason and f"claimed fitness {FORGED!r}" in reason
+    assert workers["honest"]["quarantined"] is False
+    warned = [r.getMessage() for r in caplog.records if r.name == "server.scheduler"]
+    assert len(warned) == 1 and "worker rogue quarantined" in warned[0] and reason in warned[0]
+    assert "colony_workers_quarantined 1.0" in metrics
+    assert "colony_spot_check_mismatches_total 1.0" in metrics
+    assert best["sha256"] == honest.best.sha256
+    assert run["best_fitness"] == honest.history[-1].best
