@@ -16,5 +16,6 @@ router = APIRouter(tags=["workers"])
 
 @router.get("/api/workers", response_model=list[WorkerOut])
 def list_workers(workers: WorkersDep) -> list[WorkerOut]:
-    """Every worker seen: idle, busy, or gone (listed until `gone_keep_s` after it left)."""
+    """Every worker seen: idle, busy, or gone (listed until `gone_keep_s` after it left), and
+    whether it is quarantined (it failed a spot-check: listed while this server runs)."""
     return workers
