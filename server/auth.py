@@ -232,8 +232,8 @@ class SecurityMiddleware:
         token: str | None,
         read_open: bool,
         max_body_bytes: int,
-        bind_host: str = "127.0.0.1",
-        extra_hosts: Iterable[str] = (),
+        bind_host: str,
+        extra_hosts: Iterable[str],
     ) -> None:
         if token is not None and not token.strip():
             raise ValueError("the API token must not be empty")
