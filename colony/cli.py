@@ -9,6 +9,7 @@ from colony.analyze_cli import analyze_command
 from colony.demo import demo_command
 from colony.evaluate_cli import evaluate_command
 from colony.evolve import evolve_command
+from colony.lab_cli import lab_app
 from colony.server_cli import register as register_server_commands
 from colony.worker_cli import worker_command
 
@@ -41,6 +42,7 @@ app.command(name="worker")(worker_command)
 register_agent_commands(app)
 app.command(name="analyze")(analyze_command)
 app.command(name="evaluate")(evaluate_command)
+app.add_typer(lab_app, name="lab")
 
 
 def main() -> None:

@@ -21,7 +21,7 @@ def worker_command(
     ] = ["tcp/127.0.0.1:7447"],  # noqa: B006 - typer reads the default, never mutates it
     name: Annotated[
         str | None,
-        typer.Option(help="worker name shown in GET /api/workers (default: hostname-pid)"),
+        typer.Option(help="worker name in GET /api/workers (default: [ZENOH_USER.]hostname-pid)"),
     ] = None,
     zenoh_user: ZenohUserOpt = None,
     zenoh_password: ZenohPasswordOpt = None,
@@ -49,7 +49,9 @@ def worker_command(
 
     try:
         auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
-        settings = WorkerSettings(connect=tuple(connect), name=name or default_name(), auth=auth)
+        settings = WorkerSettings(
+            connect=tuple(connect), name=name or default_name(auth.user), auth=auth
+        )
         configure(log_level, as_format(log_format), ids={"worker": settings.name})
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

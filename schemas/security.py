@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,12 +65,113 @@ class ZenohClientAuth:
         return out
 
 
+_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
+"""A zenoh user of a role is a worker or robot name (one key chunk; schemas.wire.NAME_PATTERN)."""
+_ROBOT_KEYS = ("alive", "command", "ack", "traces", "replace")
+_SERVER_JOB_QUERYABLES = ("evocolony/jobs/next/*", "evocolony/jobs/result/*")
+_SERVER_ROBOT_QUERYABLES = ("evocolony/robots/*/traces", "evocolony/robots/*/replace")
+"""The server's queryables (schemas.wire / schemas.robots KEY_*): their declarations must reach
+the clients that ask them, or a querier, and a query with target ALL, finds no answerer."""
+
+
+def _allow(rule: str, messages: list[str], flow: str, keys: list[str]) -> dict[str, object]:
+    return {
+        "id": rule,
+        "messages": messages,
+        "flows": [flow],
+        "permission": "allow",
+        "key_exprs": keys,
+    }
+
+
+@dataclass(frozen=True)
+class ZenohRoles:
+    """Which zenoh users are workers and which are robots: the router's access control.
+
+    Everything not allowed here is denied, so an authenticated client can only do its role's
+    part: worker `W` (and its processes `W.anything`) asks on its own job keys and declares its
+    own liveliness token; robot `R` declares `evocolony/robots/R/alive`, subscribes to its own
+    commands, publishes its own acks and asks on its own trace and replace keys. Only the
+    server, inside the router, declares queryables and subscribers on others' keys.
+    """
+
+    workers: tuple[str, ...] = ()
+    robots: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        names = [*self.workers, *self.robots]
+        for name in names:
+            if not _NAME.match(name):
+                raise ValueError(f"zenoh user {name!r} must match {_NAME.pattern}")
+        if len(set(names)) != len(names):
+            raise ValueError("a zenoh user appears twice in the roles")
+
+    @classmethod
+    def from_file(cls, path: Path) -> ZenohRoles:
+        """ValueError, naming the file, unless it is JSON {"workers": [...], "robots": [...]}."""
+        try:
+            data = json.loads(path.read_text())
+            if not isinstance(data, dict) or set(data) - {"workers", "robots"}:
+                raise ValueError('expected {"workers": [...], "robots": [...]}')
+            lists = [data.get(role, []) for role in ("workers", "robots")]
+            if not all(isinstance(v, list) and all(isinstance(n, str) for n in v) for v in lists):
+                raise ValueError("workers and robots must be lists of names")
+            return cls(workers=tuple(lists[0]), robots=tuple(lists[1]))
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"zenoh roles file {path}: {exc}") from exc
+
+    def access_control(self) -> dict[str, object]:
+        """zenoh's `access_control` config (default deny) granting each user its role."""
+        rules: list[dict[str, object]] = []
+        subjects: list[dict[str, object]] = []
+        policies: list[dict[str, object]] = []
+        for n, worker in enumerate(self.workers):
+            own = [worker, f"{worker}.$*"]
+            jobs = [f"evocolony/jobs/{kind}/{name}" for kind in ("next", "result") for name in own]
+            ids = [f"w{n}-{part}" for part in ("ask", "reply", "alive", "see")]
+            rules += [
+                _allow(ids[0], ["query"], "ingress", jobs),
+                _allow(ids[1], ["reply"], "egress", jobs),
+                _allow(
+                    ids[2], ["liveliness_token"], "ingress", [f"evocolony/workers/{o}" for o in own]
+                ),
+                _allow(ids[3], ["declare_queryable"], "egress", list(_SERVER_JOB_QUERYABLES)),
+            ]
+            subjects.append({"id": f"w{n}", "usernames": [worker]})
+            policies.append({"id": f"w{n}", "rules": ids, "subjects": [f"w{n}"]})
+        for n, robot in enumerate(self.robots):
+            key = {kind: f"evocolony/robots/{robot}/{kind}" for kind in _ROBOT_KEYS}
+            asks = [key["traces"], key["replace"]]
+            ids = [f"r{n}-{part}" for part in ("alive", "sub", "cmd", "ack", "ask", "reply", "see")]
+            rules += [
+                _allow(ids[0], ["liveliness_token"], "ingress", [key["alive"]]),
+                _allow(ids[1], ["declare_subscriber"], "ingress", [key["command"]]),
+                _allow(ids[2], ["put"], "egress", [key["command"]]),
+                _allow(ids[3], ["put"], "ingress", [key["ack"]]),
+                _allow(ids[4], ["query"], "ingress", asks),
+                _allow(ids[5], ["reply"], "egress", asks),
+                _allow(ids[6], ["declare_queryable"], "egress", list(_SERVER_ROBOT_QUERYABLES)),
+            ]
+            subjects.append({"id": f"r{n}", "usernames": [robot]})
+            policies.append({"id": f"r{n}", "rules": ids, "subjects": [f"r{n}"]})
+        return {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": subjects,
+            "policies": policies,
+        }
+
+
 @dataclass(frozen=True)
 class ZenohRouterAuth:
     """What the server's router adds: a user:password dictionary file, TLS certificate and key."""
 
     dictionary_file: Path | None = None
     """One `user:password` line per client; with it, clients without a valid pair are refused."""
+    roles: ZenohRoles | None = None
+    """What each user may do (required with `dictionary_file`: authentication without roles
+    would let a robot's password act as a worker)."""
     certificate: Path | None = None
     private_key: Path | None = None
     root_ca: Path | None = None
@@ -86,6 +188,15 @@ class ZenohRouterAuth:
             raise ValueError("zenoh user and password go together: give both or neither")
         if self.max_message_size < 1 << 16:
             raise ValueError(f"max_message_size must be >= 65536, got {self.max_message_size}")
+        if (self.dictionary_file is None) != (self.roles is None):
+            raise ValueError(
+                "a zenoh users file and a roles file go together (colony lab init writes both)"
+            )
+
+    @property
+    def authenticates(self) -> bool:
+        """Whether clients must present a user:password pair of the lab."""
+        return self.dictionary_file is not None
 
     def entries(self) -> list[tuple[str, str]]:
         """(key, json5 value) pairs for `zenoh.Config.insert_json5`."""
@@ -97,6 +208,8 @@ class ZenohRouterAuth:
             usrpwd.update(user=self.user, password=self.password)
         if usrpwd:
             out.append(("transport/auth/usrpwd", _json5(usrpwd)))
+        if self.roles is not None:
+            out.append(("access_control", _json5(self.roles.access_control())))
         tls: dict[str, str] = {}
         if self.certificate is not None and self.private_key is not None:
             tls.update(listen_certificate=str(self.certificate))

@@ -38,6 +38,7 @@ from schemas.wire import (
     decode,
     encode,
 )
+from server.auth import is_loopback
 from server.logs import context
 from server.scheduler import Scheduler
 from server.settings import Settings
@@ -49,7 +50,7 @@ log = logging.getLogger(__name__)
 class DispatchSettings:
     """Zenoh endpoints of the server's router; the defaults serve a lab network."""
 
-    listen: tuple[str, ...] = ("tcp/0.0.0.0:7447",)
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     connect: tuple[str, ...] = ()
     """Optional routers to join (a lab's zenohd); empty means this process is the router."""
     multicast_scouting: bool = False
@@ -63,6 +64,18 @@ class DispatchSettings:
             raise ValueError("a dispatcher needs at least one listen or connect endpoint")
         if not self.long_poll_s > 0:
             raise ValueError(f"long_poll_s must be > 0, got {self.long_poll_s}")
+        public = [e for e in self.listen if not is_loopback(endpoint_host(e))]
+        if public and not self.auth.authenticates:
+            raise ValueError(
+                f"refusing to listen for zenoh on {public[0]} without authentication: give "
+                "the server a lab's users and roles (colony lab init; docs/deployment.md) or "
+                "listen on tcp/127.0.0.1:7447"
+            )
+        if self.connect and self.auth.roles is not None:
+            raise ValueError(
+                "zenoh roles are enforced by the router clients connect to: with --zenoh-connect "
+                "that router is the lab's zenohd, which needs the access control itself"
+            )
 
     @classmethod
     def from_settings(cls, settings: Settings) -> DispatchSettings:
@@ -87,6 +100,12 @@ class DispatchSettings:
         for key, value in self.auth.entries():
             conf.insert_json5(key, value)
         return conf
+
+
+def endpoint_host(endpoint: str) -> str:
+    """The host of a zenoh endpoint such as `tcp/0.0.0.0:7447` or `tls/[::1]:7448#iface=lo`."""
+    address = endpoint.split("/", 1)[-1].split("#", 1)[0].split("?", 1)[0]
+    return address.rsplit(":", 1)[0].strip("[]")
 
 
 def _json_list(items: tuple[str, ...]) -> str:

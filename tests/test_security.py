@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime
-import ipaddress
 import json
 import stat
 import tempfile
@@ -13,10 +12,6 @@ from pathlib import Path
 import httpx
 import pytest
 import zenoh
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
@@ -25,8 +20,9 @@ from colony.cli import app as cli
 from evorobotics.evolution import RunLoop
 from robot_agent.verify import Verifier
 from schemas.run import RunConfig
-from schemas.security import ZenohClientAuth, ZenohRouterAuth
+from schemas.security import ZenohClientAuth, ZenohRoles, ZenohRouterAuth
 from server.dispatch import Dispatcher
+from server.lab import certificates
 from server.scheduler import Scheduler, Written
 from server.settings import Settings
 from server.signing import Signer, load_or_create_key
@@ -168,7 +164,7 @@ def _run_worker(port: int, auth: ZenohClientAuth, scheduler: Scheduler) -> list[
 
     stop = threading.Event()
     settings = WorkerSettings(
-        connect=(f"tcp/127.0.0.1:{port}",), name="w", backoff_max_s=0.2, auth=auth
+        connect=(f"tcp/127.0.0.1:{port}",), name=auth.user or "w", backoff_max_s=0.2, auth=auth
     )
     stats: list[WorkerStats] = []
     thread = threading.Thread(
@@ -196,10 +192,10 @@ def test_zenoh_usrpwd_right_password_gets_jobs_wrong_cannot_connect(tmp_path: Pa
     users.write_text("worker:right-pass\n")
     port = free_port()
     scheduler = _scheduler()
-    router = ZenohRouterAuth(dictionary_file=users)
+    router = ZenohRouterAuth(dictionary_file=users, roles=ZenohRoles(workers=("worker",)))
     with Dispatcher(dispatch_settings(port, auth=router), scheduler) as dispatcher:
         bad = WorkerSettings(
-            connect=(f"tcp/127.0.0.1:{port}",), name="bad", auth=ZenohClientAuth("worker", "x")
+            connect=(f"tcp/127.0.0.1:{port}",), name="worker", auth=ZenohClientAuth("worker", "x")
         )
         with pytest.raises(zenoh.ZError):
             zenoh.open(bad.zenoh_config())
@@ -209,49 +205,17 @@ def test_zenoh_usrpwd_right_password_gets_jobs_wrong_cannot_connect(tmp_path: Pa
         told = _run_worker(port, ZenohClientAuth("worker", "right-pass"), scheduler)
         assert dispatcher.alive()
     assert [(w.run_id, w.told.generation, w.last) for w in told] == [(1, 0, True)]
-    assert [w.name for w in scheduler.workers()] == ["w"]
+    assert [w.name for w in scheduler.workers()] == ["worker"]
 
 
 def _certificates(tmp_path: Path) -> tuple[Path, Path, Path]:
-    """A self-signed CA and a server certificate for localhost / 127.0.0.1 signed by it."""
+    """A new CA and a router certificate for localhost / 127.0.0.1 signed by it (as
+    `colony lab init --tls` makes them)."""
     now = datetime.datetime(2024, 1, 1, tzinfo=datetime.UTC)
-    later = now + datetime.timedelta(days=3650)
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "colony test CA")])
-    ca = (
-        x509.CertificateBuilder()
-        .subject_name(ca_name)
-        .issuer_name(ca_name)
-        .public_key(ca_key.public_key())
-        .serial_number(1)
-        .not_valid_before(now)
-        .not_valid_after(later)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
-        .sign(ca_key, hashes.SHA256())
-    )
-    key = ec.generate_private_key(ec.SECP256R1())
-    names = [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "localhost")]))
-        .issuer_name(ca_name)
-        .public_key(key.public_key())
-        .serial_number(2)
-        .not_valid_before(now)
-        .not_valid_after(later)
-        .add_extension(x509.SubjectAlternativeName(names), critical=False)
-        .sign(ca_key, hashes.SHA256())
-    )
+    ca, _ca_key, cert, key = certificates(["localhost", "127.0.0.1"], now)
     paths = tmp_path / "ca.pem", tmp_path / "cert.pem", tmp_path / "key.pem"
-    paths[0].write_bytes(ca.public_bytes(serialization.Encoding.PEM))
-    paths[1].write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-    paths[2].write_bytes(
-        key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.PKCS8,
-            serialization.NoEncryption(),
-        )
-    )
+    for path, pem in zip(paths, (ca, cert, key), strict=True):
+        path.write_text(pem)
     return paths
 
 

@@ -85,10 +85,12 @@ def evaluate_slice(
     return evaluation.fitness, evaluation.components
 
 
-def default_name() -> str:
-    """hostname-pid, reduced to the characters a key chunk allows."""
+def default_name(user: str | None = None) -> str:
+    """hostname-pid, reduced to the characters a key chunk allows; `user.hostname-pid` with a
+    zenoh user, the names that user's credentials may use (docs/security.md)."""
     host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:100] or "worker"
-    return f"{host}-{os.getpid()}"
+    name = f"{host}-{os.getpid()}"
+    return name if user is None else f"{user}.{name}"[:128]
 
 
 @dataclass(frozen=True)
@@ -107,6 +109,12 @@ class WorkerSettings:
 
     def __post_init__(self) -> None:
         check_worker_name(self.name)
+        user = self.auth.user
+        if user is not None and self.name != user and not self.name.startswith(f"{user}."):
+            raise ValueError(
+                f"worker name {self.name!r} must be {user!r} or start with '{user}.': the zenoh "
+                f"user {user} may only act under its own names"
+            )
         if not self.connect:
             raise ValueError("a worker needs at least one connect endpoint")
         for name in ("request_timeout_s", "backoff_initial_s", "backoff_max_s"):

@@ -1,0 +1,223 @@
+"""Roles on zenoh: a lab from `colony lab init`, a real server, worker and robot with their
+own credentials, and each credential tried at what its role may not do (docs/security.md)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+import zenoh
+from typer.testing import CliRunner
+
+from colony.cli import app as cli
+from robot_agent.agent import Agent, AgentSettings
+from robot_agent.driver import BasicXDriver
+from robot_agent.emulator import BasicXEmulator
+from robot_agent.sim_body import SimBody
+from schemas.robots import ack_key, alive_key, traces_key
+from schemas.security import ZenohClientAuth, ZenohRoles
+from schemas.wire import JobRequest, encode, next_key
+from server.lab import init_lab
+from server.settings import Settings
+from tests.helpers import eventually, free_port, online, serving, wait_status
+from worker.main import WorkerSettings, run_worker
+
+WAIT = 30.0
+RUN = {"population": 8, "generations": 3, "trials": 1, "steps": 20, "seed": 4, "job_size": 2}
+
+
+@dataclass
+class LabServer:
+    url: str
+    token: str
+    endpoint: str
+    env: dict[str, dict[str, str]]
+    """Each process's env file as a dict: "server", "wk", "bot1", "bot2"."""
+
+
+def read_env(path: Path) -> dict[str, str]:
+    return dict(line.split("=", 1) for line in path.read_text().splitlines() if line)
+
+
+def auth(env: dict[str, str]) -> ZenohClientAuth:
+    return ZenohClientAuth(env["COLONY_ZENOH_USER"], env["COLONY_ZENOH_PASSWORD"])
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LabServer]:
+    tmp = tmp_path_factory.mktemp("lab")
+    made = init_lab(tmp / "lab", workers=["wk"], robots=["bot1", "bot2"], server_host="127.0.0.1")
+    env = {"server": read_env(made.server_env)}
+    env |= {name: read_env(path) for name, path in {**made.worker_envs, **made.robot_envs}.items()}
+    server = env["server"]
+    zport = free_port()
+    settings = Settings(
+        db_url=f"sqlite:///{tmp / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{zport}"],
+        workers=0,
+        api_token=server["COLONY_API_TOKEN"],
+        server_key=Path(server["COLONY_SERVER_KEY"]),
+        zenoh_users_file=Path(server["COLONY_ZENOH_USERS_FILE"]),
+        zenoh_roles_file=Path(server["COLONY_ZENOH_ROLES_FILE"]),
+    )
+    with serving(settings) as (url, _app):
+        yield LabServer(url, server["COLONY_API_TOKEN"], f"tcp/127.0.0.1:{zport}", env)
+
+
+@contextmanager
+def session_of(lab: LabServer, env: dict[str, str]) -> Iterator[zenoh.Session]:
+    settings = WorkerSettings(
+        connect=(lab.endpoint,), name=env["COLONY_ZENOH_USER"], auth=auth(env)
+    )
+    with zenoh.open(settings.zenoh_config()) as session:
+        yield session
+
+
+@contextmanager
+def worker(lab: LabServer) -> Iterator[None]:
+    stop = threading.Event()
+    settings = WorkerSettings(
+        connect=(lab.endpoint,), name="wk.host-1", backoff_max_s=0.2, auth=auth(lab.env["wk"])
+    )
+    thread = threading.Thread(target=run_worker, args=(settings, stop))
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(WAIT)
+
+
+@contextmanager
+def robot(lab: LabServer, name: str, state: Path) -> Iterator[Agent]:
+    key = Path(lab.env[name]["COLONY_SERVER_PUBLIC_KEY"]).read_bytes()
+    settings = AgentSettings(
+        robot_id=name,
+        connect=(lab.endpoint,),
+        state_dir=state,
+        server_key=key,
+        require_signature=True,
+        request_timeout=1.0,
+        auth=auth(lab.env[name]),
+    )
+    with (
+        BasicXEmulator(SimBody.create("paper", seed=1)) as emulator,
+        BasicXDriver.open(emulator.port_path) as driver,
+        Agent(settings, driver) as agent,
+    ):
+        yield agent
+
+
+def client(lab: LabServer) -> httpx.Client:
+    return httpx.Client(
+        base_url=lab.url, headers={"Authorization": f"Bearer {lab.token}"}, timeout=WAIT
+    )
+
+
+def no_answer(session: zenoh.Session, key: str, payload: bytes) -> bool:
+    """True when the router refused the query: no reply of any kind before the timeout."""
+    return not list(session.get(key, payload=payload, timeout=1.0))
+
+
+def test_roles_let_each_credential_do_its_part_and_nothing_else(
+    lab: LabServer, tmp_path: Path
+) -> None:
+    anonymous = WorkerSettings(connect=(lab.endpoint,), name="anon")
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(anonymous.zenoh_config())
+
+    heard: list[str] = []
+    with (
+        session_of(lab, lab.env["wk"]) as rogue_worker,
+        session_of(lab, lab.env["bot1"]) as rogue_robot,
+        client(lab) as http,
+        robot(lab, "bot2", tmp_path / "bot2"),
+    ):
+        # a worker's credentials cannot act as another worker
+        assert no_answer(rogue_worker, next_key("other"), encode(JobRequest(worker="other")))
+        # a worker's credentials listen to everything and hold every query open: nothing
+        # reaches them, and the run below completes regardless
+        listener = rogue_worker.declare_subscriber("evocolony/**", lambda s: heard.append(str(s)))
+        holder = rogue_worker.declare_queryable("evocolony/**", lambda q: heard.append(str(q)))
+        # a robot's credentials cannot act as a worker, or as another robot
+        assert no_answer(rogue_robot, next_key("bot1"), encode(JobRequest(worker="bot1")))
+        assert no_answer(rogue_robot, traces_key("bot2"), b"")
+        rogue_robot.put(ack_key("bot2"), b"")
+        fake_alive = rogue_robot.liveliness().declare_token(alive_key("bot3"))
+
+        with worker(lab):
+            run_id = http.post("/api/runs", json=RUN).json()["id"]
+            done = wait_status(http, run_id, {"completed", "failed"})
+        assert done["status"] == "completed", done
+        workers = {w["name"] for w in http.get("/api/workers").json()}
+        assert "bot1" not in workers and "other" not in workers
+
+        assert eventually(lambda: online(http, "bot2"), timeout=WAIT)
+        pushed = http.post("/api/robots/bot2/controller", json={"run_id": run_id})
+        assert pushed.status_code == 200 and pushed.json()["accepted"], pushed.text
+        assert http.get("/api/robots/bot3").status_code == 404
+        fake_alive.undeclare()  # type: ignore[no-untyped-call]
+        listener.undeclare()  # type: ignore[no-untyped-call]
+        holder.undeclare()  # type: ignore[no-untyped-call]
+    assert heard == []
+
+
+def test_a_public_zenoh_listen_needs_a_lab(tmp_path: Path) -> None:
+    public = Settings(db_url=f"sqlite:///{tmp_path / 'c.db'}", zenoh_listen=["tcp/0.0.0.0:7447"])
+    from server.app import create_app
+
+    with pytest.raises(ValueError, match=r"without authentication: .*colony lab init"):
+        create_app(public)
+    result = CliRunner().invoke(
+        cli, ["server", "--db", f"sqlite:///{tmp_path / 'c.db'}", "--zenoh-listen", "tcp/[::]:7447"]
+    )
+    assert result.exit_code == 2 and "colony lab init" in result.output
+    users = tmp_path / "users"
+    users.write_text("w:p\n")
+    with pytest.raises(ValueError, match="users file and a roles file go together"):
+        create_app(public.model_copy(update={"zenoh_users_file": users}))
+
+
+def test_lab_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: Path) -> None:
+    result = CliRunner().invoke(
+        cli,
+        [
+            "lab",
+            "init",
+            str(tmp_path / "lab"),
+            "--server-host",
+            "10.0.0.1",
+            "--tls",
+            "--robots",
+            "2",
+            "--workers",
+            "1",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    lab = tmp_path / "lab"
+    roles = ZenohRoles.from_file(lab / "zenoh-roles.json")
+    assert roles == ZenohRoles(workers=("local", "worker-1"), robots=("evbot-1", "evbot-2"))
+    for secret in [
+        "zenoh-users",
+        "server.env",
+        "ca-key.pem",
+        "zenoh-key.pem",
+        "server-key.pem",
+        "robots/evbot-1.env",
+        "workers/worker-1.env",
+    ]:
+        assert (lab / secret).stat().st_mode & 0o077 == 0, secret
+    robot_env = read_env(lab / "robots" / "evbot-1.env")
+    assert robot_env["COLONY_CONNECT"] == "tls/10.0.0.1:7447"
+    assert robot_env["COLONY_ROBOT_ID"] == robot_env["COLONY_ZENOH_USER"] == "evbot-1"
+    passwords = [line.split(":", 1)[1] for line in (lab / "zenoh-users").read_text().splitlines()]
+    assert len(set(passwords)) == len(passwords) == 4
+    again = CliRunner().invoke(cli, ["lab", "init", str(lab), "--server-host", "h"])
+    assert again.exit_code == 2 and "not empty" in again.output
