@@ -44,8 +44,8 @@ def serve(
         list[str] | None,
         typer.Option(
             "--zenoh-listen",
-            help="zenoh endpoint to listen on, repeatable (default tcp/0.0.0.0:7447) "
-            "[COLONY_ZENOH_LISTEN, a JSON list]",
+            help="zenoh endpoint to listen on, repeatable (default tcp/127.0.0.1:7447; off "
+            "loopback it needs a lab's users and roles) [COLONY_ZENOH_LISTEN, a JSON list]",
         ),
     ] = None,
     zenoh_connect: Annotated[
@@ -576,3 +576,26 @@ def register(app: typer.Typer) -> None:
     app.command(name="workers")(workers_command)
     app.command(name="robots")(robots_command)
     app.add_typer(robot_app, name="robot")
+
+
+def robot_forget(
+    ctx: typer.Context,
+    robot: str,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+) -> None:
+    """Forget a stale robot: its entry, last report, stuck events and traces (stop its agent
+    first; the controllers' field statistics stay)."""
+    try:
+        with _client(ctx, server, token) as client:
+            response = client.delete(f"/api/robots/{robot}")
+    except httpx.HTTPError as exc:
+        typer.echo(f"error: cannot reach {server}: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    if response.is_error:
+        typer.echo(f"error {response.status_code}: {response.json().get('detail')}", err=True)
+        raise typer.Exit(1)
+    typer.echo(f"robot {robot} forgotten")
+
+
+robot_app.command("forget")(robot_forget)
