@@ -46,13 +46,20 @@ def metric(text: str, name: str) -> float:
     return float(found.group(1)) if found else 0.0
 
 
-def one_run(workers: int, checks: int, config: dict[str, Any], tmp: Path) -> dict[str, Any]:
-    """A fresh server with `workers` local workers runs `config`: its figures."""
+def one_run(
+    workers: int, checks: int, config: dict[str, Any], tmp: Path, env: dict[str, str]
+) -> dict[str, Any]:
+    """A fresh server with `workers` local workers (and `env`) runs `config`: its figures."""
     http, zenoh_port = free_port(), free_port()
     db = tmp / f"w{workers}-c{checks}-{time.monotonic_ns()}.db"
     argv = [*COLONY, "server", "--db", f"sqlite:///{db}", "--port", str(http)]
     argv += ["--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}", "--workers", str(workers)]
-    env = {**os.environ, "COLONY_SPOT_CHECKS": str(checks), "COLONY_HOUSEKEEPING_SECONDS": "0.2"}
+    env = {
+        **os.environ,
+        **env,
+        "COLONY_SPOT_CHECKS": str(checks),
+        "COLONY_HOUSEKEEPING_SECONDS": "0.2",
+    }
     with (tmp / "server.log").open("ab") as log:
         proc = subprocess.Popen(argv, env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
@@ -100,7 +107,14 @@ def main() -> None:
     parser.add_argument("--workers", default="1,2", help="comma-separated local worker counts")
     parser.add_argument("--repeats", type=int, default=3, help="on/off pairs per worker count")
     parser.add_argument("--generations", type=int, default=None, help="default: the paper's")
+    parser.add_argument(
+        "--span-below",
+        type=float,
+        default=None,
+        help="COLONY_SPAN_BELOW_SECONDS (default the server's: 0.02); e.g. 1 to force spans",
+    )
     args = parser.parse_args()
+    env = {} if args.span_below is None else {"COLONY_SPAN_BELOW_SECONDS": str(args.span_below)}
     with tempfile.TemporaryDirectory() as name:
         tmp = Path(name)
         for workers in (int(w) for w in args.workers.split(",")):
@@ -110,7 +124,7 @@ def main() -> None:
                 if args.generations is not None:
                     config["generations"] = args.generations
                 for checks in (1, 0) if r % 2 == 0 else (0, 1):
-                    got = one_run(workers, checks, config, tmp)
+                    got = one_run(workers, checks, config, tmp, env)
                     runs[checks].append(got)
                     print(
                         f"workers {workers} seed {r} spot_checks {checks}: {got['seconds']:.2f} s, "
