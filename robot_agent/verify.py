@@ -1,8 +1,11 @@
 """Verification of the server's signed commands on the robot (docs/security.md).
 
-An agent with a server key refuses a push, stop or replacement that is unsigned, whose
-Ed25519 signature over schemas.security.signed_bytes fails, or whose sequence number is not
-above the highest it has accepted (kept in the state dir, so a restart does not reopen replay).
+An agent with a server key refuses a push, stop or replacement that is unsigned or whose
+Ed25519 signature over schemas.security.signed_bytes fails. A push or replacement must also
+carry a sequence number above the highest it has accepted (kept in the state dir, so a restart
+does not reopen replay). A stop needs only its signature: it is applied whatever its sequence
+number and never moves the highest one, so no clock can lock a robot's STOP out and a replayed
+STOP can only stop the robot, never let a push be replayed.
 The key comes from `colony agent --server-key FILE`, or is fetched once from
 GET /api/server-key and pinned in the state dir (trust on first use).
 """
@@ -73,7 +76,8 @@ class Verifier:
     def check(
         self, *, kind: str, push_id: str, seq: int, signature: str, document: str | None
     ) -> str | None:
-        """None if the command is authentic and fresh (its seq is then recorded), else why not."""
+        """None if the command is authentic and, unless a stop, fresh (its seq is then
+        recorded), else why not."""
         if not signature:
             return "unsigned command refused: this robot verifies the server's signature"
         try:
@@ -87,6 +91,8 @@ class Verifier:
             self._key.verify(raw, message)
         except (InvalidSignature, ValueError):
             return "bad signature: the command was not signed by the pinned server key"
+        if kind == "stop":
+            return None
         with self._lock:
             if seq <= self._last:
                 return f"replayed command: seq {seq} is not above the last accepted {self._last}"
