@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import queue
+import secrets
 import threading
 import time
 from collections import deque
@@ -400,6 +401,7 @@ class Agent:
                             sha256=sha,
                             reason=str(reason),
                             step=sample.step,
+                            nonce=secrets.token_hex(16),
                         )
                     )
                     self._wake.set()
@@ -654,15 +656,18 @@ class Agent:
             message = decode_message(reply)
             if not isinstance(message, Replacement):
                 raise WireError(f"expected a replacement, got {message.kind}")
+            if message.robot != request.robot:
+                raise ValueError(f"it names robot {message.robot}")
             if message.document is None:
                 log.info("robot %s: no replacement: %s", request.robot, message.reason)
                 return
-            refused = self._verify("replacement", "replacement", message, message.document)
+            # signed over this request's nonce: an answer to another request is refused
+            refused = self._verify("replacement", request.nonce, message, message.document)
             if refused is not None:
                 raise ValueError(refused)
             doc = validate_document(message.document)
         except ValueError as exc:
-            log.warning("robot %s: bad replacement: %s", request.robot, exc)
+            log.warning("robot %s: refusing the replacement: %s", request.robot, exc)
             return
         with self._lock:
             if self._state == "escaping":

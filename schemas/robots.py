@@ -23,7 +23,7 @@ down is lost silently, an unacknowledged batch stays in the agent's bounded buff
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -154,8 +154,10 @@ class RobotStatus(_Model):
 
 class TraceHeader(_RobotMessage):
     kind: Literal["trace"] = "trace"
-    boot: int = Field(ge=0, description="agent start count: (boot, step) names a sample")
-    controllers: list[str] = Field(description="sha256 of each controller index in the batch")
+    boot: int = Field(ge=0, lt=2**31, description="agent start count: (boot, step) names a sample")
+    controllers: list[Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]] = Field(
+        max_length=MAX_TRACE_SAMPLES, description="sha256 of each controller index in the batch"
+    )
     status: RobotStatus
 
 
@@ -163,8 +165,9 @@ class TraceHeader(_RobotMessage):
 class TraceBatch:
     """Consecutive control samples of one robot during one agent start (`boot`).
 
-    steps (n,) int64 (one more per sample: a gap means lost samples), whiskers (n, 5) uint8, motors (n, 2) float64 exactly as the controller
-    computed them (before the wire's 1/1000 quantisation), controller (n,) int32 index into
+    steps (n,) int64 (one more per sample: the agent sends consecutive samples), whiskers (n, 5)
+    uint8, motors (n, 2) float64 in [-1, 1] exactly as the controller computed them (before the
+    wire's 1/1000 quantisation), controller (n,) int32 index into
     `controllers` or ESCAPE, fresh (n,) bool: the controller's state was reset before this step.
     """
 
@@ -201,8 +204,8 @@ class TraceBatch:
             raise WireError("trace steps must increase")
         if np.any(self.whiskers > 1):
             raise WireError("whisker bits must be 0 or 1")
-        if not np.isfinite(self.motors).all():
-            raise WireError("motor commands must be finite")
+        if not np.isfinite(self.motors).all() or np.any(np.abs(self.motors) > 1.0):
+            raise WireError("motor commands must be finite and within [-1, 1]")
         bad = (self.controller < ESCAPE) | (self.controller >= len(self.controllers))
         if np.any(bad):
             raise WireError("controller index out of range")
@@ -272,6 +275,11 @@ class StuckRequest(_RobotMessage):
     sha256: str | None
     reason: str = Field(max_length=64)
     step: int = Field(ge=0)
+    nonce: str = Field(
+        pattern=r"^[0-9a-f]{32}$",
+        description="fresh random hex of this request: the replacement is signed over it (as its "
+        "push id), so it answers this request and no other",
+    )
 
 
 class Replacement(_RobotMessage):

@@ -21,15 +21,18 @@ import json
 import logging
 import queue
 import threading
+import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 import zenoh
 from fastapi import FastAPI
 from sqlalchemy import Engine, delete, func, select
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics import network
@@ -80,6 +83,12 @@ class RobotOfflineError(ServerError):
     status_code = 409
 
 
+class RobotOnlineError(ServerError):
+    """The robot holds a liveliness token: it cannot be forgotten while it runs (HTTP 409)."""
+
+    status_code = 409
+
+
 @dataclass(frozen=True)
 class RobotSettings:
     """Retention and timing of the robot side."""
@@ -91,13 +100,49 @@ class RobotSettings:
     recent_failures: int = 5
     """A stuck robot gets no controller it failed with in its last this-many stuck events."""
     dt: float = World().dt
-    """Seconds of one control step, for robot-hours."""
+    """Seconds of one control step, for robot-hours and the plausibility of trace steps."""
+    max_backlog: int = 36_000
+    """Samples an agent may buffer before the server hears of its boot (its buffer_samples)."""
+    request_slack: float = 5.0
+    """Seconds a trace batch may spend in flight (the agent's request timeout, with margin)."""
 
     def __post_init__(self) -> None:
-        if self.retention_samples < 1 or self.recent_failures < 1:
-            raise ValueError("retention_samples and recent_failures must be >= 1")
-        if not self.push_timeout > 0 or not self.dt > 0:
-            raise ValueError("push_timeout and dt must be > 0")
+        if min(self.retention_samples, self.recent_failures, self.max_backlog) < 1:
+            raise ValueError("retention_samples, recent_failures and max_backlog must be >= 1")
+        if not self.push_timeout > 0 or not self.dt > 0 or not self.request_slack >= 0:
+            raise ValueError("push_timeout and dt must be > 0, request_slack >= 0")
+
+
+MAX_STEPS = 2**32
+"""Steps of one boot beyond any agent's life (13 years at 10 Hz)."""
+STEP_RATE_MARGIN = 1.25
+"""An agent runs at most one step per dt (its loop never bursts to catch up); the margin covers
+the clocks' disagreement, and makes a bound that is too tight catch up with a real robot."""
+SLACK_STEPS = 100
+"""Steps of slack on every time bound (transit, a step due at the instant of a batch)."""
+MIN_BOOT_SECONDS = 0.1
+"""An agent start takes longer than this: boot numbers cannot rise faster."""
+
+
+class TraceRefusedError(ValueError):
+    """A trace batch the robot's agent could not have sent; nothing of it is stored."""
+
+
+@dataclass(frozen=True)
+class _Boot:
+    """What is committed of one (robot, boot), and the bound on its steps.
+
+    Steps run at most `STEP_RATE_MARGIN / dt` a second from (`anchor_step`, `anchor_at`), plus
+    `backlog` samples the agent may hold from before the server heard of the boot.
+    """
+
+    last: int
+    """Last step stored; -1 none."""
+    at: float
+    """Monotonic time `last` was committed."""
+    anchor_step: int
+    anchor_at: float
+    backlog: int
 
 
 class _Waiter:
@@ -130,7 +175,9 @@ class RobotService:
         self._online: set[str] = set()
         self._waiters: dict[str, _Waiter] = {}
         self._stored: dict[str, int] = {}
-        self._last: dict[tuple[str, int], int] = {}
+        """Samples stored per robot, as committed."""
+        self._boots: dict[tuple[str, int], _Boot] = {}
+        """Per (robot, boot), as committed."""
         self._entities: list[Any] = []
         self._thread: threading.Thread | None = None
         self.traces_received = 0
@@ -195,18 +242,18 @@ class RobotService:
             log.warning("ignoring robot liveliness key %s", sample.key_expr)
             return
         online = sample.kind == zenoh.SampleKind.PUT
-        with self._lock:
-            was_online = robot in self._online
-            (self._online.add if online else self._online.discard)(robot)
-        if online != was_online:
-            context(log, robot=robot).info("robot %s %s", robot, "online" if online else "offline")
-        with self.sessions.begin() as db:
+        with self.sessions.begin() as db:  # registered before it is online: pushable
             row = db.get(Robot, robot)
             if row is None:
                 row = Robot(id=robot, status="online")
                 db.add(row)
             row.status = "online" if online else "offline"
             row.last_seen = utcnow()
+        with self._lock:
+            was_online = robot in self._online
+            (self._online.add if online else self._online.discard)(robot)
+        if online != was_online:
+            context(log, robot=robot).info("robot %s %s", robot, "online" if online else "offline")
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         try:
@@ -243,7 +290,23 @@ class RobotService:
             except WireError as exc:
                 query.reply_err(f"malformed: {exc}".encode())
                 return
-            last = self._store(batch)
+            try:
+                last = self._store(batch)
+            except TraceRefusedError as exc:
+                context(log, robot=batch.robot).warning(
+                    "refusing a trace batch of robot %s (boot %d, steps %d-%d): %s",
+                    batch.robot,
+                    batch.boot,
+                    batch.first,
+                    batch.last,
+                    exc,
+                )
+                query.reply_err(f"refused: {exc}".encode())
+                return
+            except SQLAlchemyError as exc:
+                context(log, robot=batch.robot).error("storing traces failed: %s", exc)
+                query.reply_err(b"not stored: the database failed; send the samples again")
+                return
             ack = TraceAck(robot=batch.robot, last=last)
             query.reply(query.key_expr, encode_message(ack))
 
@@ -259,7 +322,7 @@ class RobotService:
                 return
             doc, reason = self._replace(request)
             text = doc.to_json() if doc else None
-            seq, signature = self._sign("replacement", request.robot, "replacement", text)
+            seq, signature = self._sign("replacement", request.robot, request.nonce, text)
             reply = Replacement(
                 robot=request.robot,
                 document=text,
@@ -272,44 +335,133 @@ class RobotService:
     # ------------------------------------------------------------------ traces
 
     def _store(self, batch: TraceBatch) -> int:
-        """Store the samples not seen before; the last step stored for (robot, boot)."""
+        """Store the samples not seen before; the last step stored for (robot, boot), once
+        committed. TraceRefusedError for an implausible batch (nothing stored); a failed commit
+        raises and leaves the caches as the database is, so the agent's re-sent samples land."""
         robot, key = batch.robot, (batch.robot, batch.boot)
-        with self.sessions.begin() as db:
-            if key not in self._last:
-                found = db.scalar(
-                    select(func.max(TraceRow.last)).where(
-                        TraceRow.robot_id == robot, TraceRow.boot == batch.boot
-                    )
-                )
-                self._last[key] = -1 if found is None else int(found)
-            new = batch.steps > self._last[key]
-            self._report(db, batch)
-            if not new.any():
-                return self._last[key]
-            steps, controller = batch.steps[new], batch.controller[new]
-            db.add(
-                TraceRow(
-                    robot_id=robot,
-                    boot=batch.boot,
-                    first=int(steps[0]),
-                    last=int(steps[-1]),
-                    count=int(steps.shape[0]),
-                    controllers=json.dumps(list(batch.controllers)),
-                    steps=steps.astype("<i8").tobytes(),
-                    whiskers=batch.whiskers[new].tobytes(),
-                    motors=batch.motors[new].astype("<f8").tobytes(),
-                    controller=controller.astype("<i4").tobytes(),
-                    fresh=batch.fresh[new].tobytes(),
-                )
-            )
-            for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
-                if index != ESCAPE:
-                    stats = _field_row(db, batch.controllers[int(index)])
-                    stats.steps += int(count)
-            self._retain(db, robot, int(steps.shape[0]))
-            self._last[key] = int(steps[-1])
+        now = time.monotonic()
+        try:
+            with self.sessions.begin() as db:
+                boot = self._boots.get(key) or self._load_boot(db, batch, now)
+                self._check_plausible(batch, boot, now)
+                new = batch.steps > boot.last
+                self._report(db, batch)
+                steps = batch.steps[new]
+                if steps.shape[0] == 0:  # all seen before (a lost ack): acknowledged again
+                    stored = self._stored.get(robot)
+                else:
+                    self._add(db, batch, new)
+                    stored = self._retain(db, robot, int(steps.shape[0]))
+        except TraceRefusedError:
+            raise
+        except Exception:
+            self._forget_cache(robot)
+            raise
+        # committed: only now may the caches (and so the acknowledgement) include the samples
+        if steps.shape[0] > 0:
+            boot = replace(boot, last=int(steps[-1]), at=time.monotonic())
             self.traces_received += int(steps.shape[0])
-            return self._last[key]
+        self._boots[key] = boot
+        if stored is not None:
+            self._stored[robot] = stored
+        return boot.last
+
+    def _add(self, db: Session, batch: TraceBatch, new: np.ndarray) -> None:
+        """The `new` samples of `batch` as a row, and their steps in the field statistics."""
+        steps, controller = batch.steps[new], batch.controller[new]
+        db.add(
+            TraceRow(
+                robot_id=batch.robot,
+                boot=batch.boot,
+                first=int(steps[0]),
+                last=int(steps[-1]),
+                count=int(steps.shape[0]),
+                controllers=json.dumps(list(batch.controllers)),
+                steps=steps.astype("<i8").tobytes(),
+                whiskers=batch.whiskers[new].tobytes(),
+                motors=batch.motors[new].astype("<f8").tobytes(),
+                controller=controller.astype("<i4").tobytes(),
+                fresh=batch.fresh[new].tobytes(),
+            )
+        )
+        for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
+            if index != ESCAPE:
+                _field_row(db, batch.controllers[int(index)]).steps += int(count)
+
+    def _forget_cache(self, robot: str) -> None:
+        """Drop what is cached of `robot`: it is read again from the database when needed."""
+        self._stored.pop(robot, None)
+        for key in [k for k in self._boots if k[0] == robot]:
+            del self._boots[key]
+
+    def _load_boot(self, db: Session, batch: TraceBatch, now: float) -> _Boot:
+        """What the database says of (robot, boot), with the bound its steps must keep."""
+        robot, wall = batch.robot, time.time()
+
+        def monotonic(at: datetime) -> float:
+            stamp = (at if at.tzinfo else at.replace(tzinfo=UTC)).timestamp()
+            return now - max(0.0, wall - stamp)
+
+        mine = TraceRow.robot_id == robot
+        this_boot = mine & (TraceRow.boot == batch.boot)
+        latest = db.execute(
+            select(TraceRow.last, TraceRow.received_at)
+            .where(this_boot)
+            .order_by(TraceRow.first.desc())
+            .limit(1)
+        ).first()
+        if latest is not None:  # a known boot (the server restarted): the loosest bound
+            earliest = db.execute(
+                select(TraceRow.first, TraceRow.received_at)
+                .where(this_boot)
+                .order_by(TraceRow.first)
+                .limit(1)
+            ).first()
+            assert earliest is not None
+            return _Boot(
+                last=int(latest[0]),
+                at=monotonic(latest[1]),
+                anchor_step=int(earliest[0]),
+                anchor_at=monotonic(earliest[1]),
+                backlog=self.settings.max_backlog,
+            )
+        newest = db.execute(
+            select(func.max(TraceRow.boot), func.max(TraceRow.received_at)).where(mine)
+        ).first()
+        if newest is None or newest[1] is None:  # the robot's first batch ever
+            return _Boot(-1, now, batch.first, now, self.settings.max_backlog)
+        # a new boot starts after the robot's previous process last reported: its steps
+        # cannot run ahead of the time since
+        heard = monotonic(newest[1])
+        starts = 1 + int((now - heard) / MIN_BOOT_SECONDS)
+        if batch.boot > int(newest[0]) + starts:
+            raise TraceRefusedError(
+                f"boot {batch.boot} jumps from {newest[0]}: at most {starts} agent starts "
+                f"fit in the {now - heard:.1f} s since that boot last reported"
+            )
+        return _Boot(-1, heard, 0, heard, 0)
+
+    def _check_plausible(self, batch: TraceBatch, boot: _Boot, now: float) -> None:
+        """TraceRefusedError unless the agent could have sent `batch` (docs/robots.md)."""
+        if np.any(np.diff(batch.steps) != 1):
+            raise TraceRefusedError("steps are not consecutive: an agent sends consecutive samples")
+        if batch.last >= MAX_STEPS:
+            raise TraceRefusedError(f"step {batch.last} is beyond {MAX_STEPS} of one boot")
+        rate = STEP_RATE_MARGIN / self.settings.dt
+        ahead = boot.anchor_step + boot.backlog + SLACK_STEPS + (now - boot.anchor_at) * rate
+        if batch.last > ahead:
+            raise TraceRefusedError(
+                f"step {batch.last} is ahead of the robot's clock: at most {int(ahead)} for "
+                f"boot {batch.boot} now"
+            )
+        if boot.last < 0:
+            return
+        lost = SLACK_STEPS + (now - boot.at + self.settings.request_slack) * rate
+        if batch.first > boot.last + 1 + lost:
+            raise TraceRefusedError(
+                f"steps are not contiguous: step {batch.first} follows {boot.last}, and at most "
+                f"{int(lost)} samples can have been dropped since"
+            )
 
     def _report(self, db: Session, batch: TraceBatch) -> None:
         state = db.get(RobotStateRow, batch.robot)
@@ -327,21 +479,22 @@ class RobotService:
             db.add(robot)
         robot.controller_sha256, robot.last_seen = status.sha256, utcnow()
 
-    def _retain(self, db: Session, robot: str, added: int) -> None:
-        """Delete the robot's oldest batches beyond `retention_samples` (newest batch kept)."""
+    def _retain(self, db: Session, robot: str, added: int) -> int:
+        """Delete the robot's oldest batches beyond `retention_samples` (newest batch kept);
+        the samples it then has stored."""
         if robot in self._stored:
-            self._stored[robot] += added
+            stored = self._stored[robot] + added
         else:  # autoflush puts the new batch in the sum
             total = db.scalar(select(func.sum(TraceRow.count)).where(TraceRow.robot_id == robot))
-            self._stored[robot] = int(total or 0)
-        while self._stored[robot] > self.settings.retention_samples:
+            stored = int(total or 0)
+        while stored > self.settings.retention_samples:
             oldest = db.execute(
                 select(TraceRow.boot, TraceRow.first, TraceRow.count)
                 .where(TraceRow.robot_id == robot)
                 .order_by(TraceRow.boot, TraceRow.first)
                 .limit(1)
             ).first()
-            if oldest is None or self._stored[robot] - int(oldest[2]) < 1:
+            if oldest is None or stored - int(oldest[2]) < 1:
                 break
             db.execute(
                 delete(TraceRow).where(
@@ -350,7 +503,8 @@ class RobotService:
                     TraceRow.first == oldest[1],
                 )
             )
-            self._stored[robot] -= int(oldest[2])
+            stored -= int(oldest[2])
+        return stored
 
     # ------------------------------------------------------------------ replacement
 
@@ -440,6 +594,22 @@ class RobotService:
 
     def _summary(self, row: Robot, state: RobotStateRow | None) -> RobotOut:
         return _summary(row, state, self.is_online(row.id))
+
+    def forget(self, robot_id: str) -> None:
+        """Remove an offline robot: its registry row, last report, stuck events and traces.
+
+        The field statistics stay: they are the controllers' record over the whole colony.
+        """
+        with self.sessions.begin() as db:
+            if db.get(Robot, robot_id) is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            if self.is_online(robot_id):
+                raise RobotOnlineError(f"robot {robot_id} is online: stop its agent first")
+            for table in (TraceRow, StuckEventRow, RobotStateRow):
+                db.execute(delete(table).where(table.robot_id == robot_id))
+            db.execute(delete(Robot).where(Robot.id == robot_id))
+        self._forget_cache(robot_id)
+        context(log, robot=robot_id).info("robot %s forgotten", robot_id)
 
     def push(
         self,

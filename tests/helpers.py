@@ -35,9 +35,10 @@ if TYPE_CHECKING:
     from schemas.wire import Result
     from server.dispatch import DispatchSettings
     from server.manager import RunManager
-    from server.robots import RobotService
+    from server.robots import RobotService, RobotSettings
     from server.scheduler import Written
     from server.settings import Settings
+    from server.signing import Signer
     from worker.main import Evaluator, WorkerStats
 
 SERVER_START_S = 60.0
@@ -383,8 +384,15 @@ class Link:
 
 
 @contextmanager
-def robot_link(colony: Colony, port: int | None = None) -> Iterator[Link]:
-    """A router session and a RobotService on the app's database, installed in the app."""
+def robot_link(
+    colony: Colony,
+    port: int | None = None,
+    *,
+    signer: Signer | None = None,
+    settings: RobotSettings | None = None,
+) -> Iterator[Link]:
+    """A router session and a RobotService on the app's database, installed in the app; it
+    signs with `signer` if given."""
     import zenoh
 
     from server.db import make_engine
@@ -394,7 +402,8 @@ def robot_link(colony: Colony, port: int | None = None) -> Iterator[Link]:
     engine = make_engine(colony.db_url)
     router = zenoh.open(router_config(port))
     try:
-        service = RobotService(router, engine, RobotSettings(push_timeout=5.0)).start()
+        settings = settings or RobotSettings(push_timeout=5.0)
+        service = RobotService(router, engine, settings, signer).start()
         colony.app.state.robots = service
         try:
             yield Link(router, service, f"tcp/127.0.0.1:{port}", port)

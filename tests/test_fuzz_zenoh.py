@@ -137,7 +137,9 @@ VALID: list[bytes] = [
     encode(Ack(key=_job().key, accepted=True)),
     encode(Idle(reason="no job")),
     encode_trace(trace("template-bot", 0)),
-    encode_robot_message(StuckRequest(robot="template-bot", sha256=None, reason="x", step=1)),
+    encode_robot_message(
+        StuckRequest(robot="template-bot", sha256=None, reason="x", step=1, nonce="0" * 32)
+    ),
     encode_robot_message(TraceAck(robot="template-bot", last=5)),
     encode_robot_message(ControllerPush(push_id="p", sha256="0" * 64, document="{}")),
 ]
@@ -384,7 +386,9 @@ def test_robot_queryables_and_ack_subscriber_drop_garbage_and_keep_serving(
     assert reply.ok is not None
     ack = decode_message(reply.ok.payload.to_bytes())
     assert isinstance(ack, TraceAck) and ack.last == batch.last
-    request = StuckRequest(robot="fuzz-bot", sha256="f" * 64, reason="fuzz", step=batch.last)
+    request = StuckRequest(
+        robot="fuzz-bot", sha256="f" * 64, reason="fuzz", step=batch.last, nonce="1" * 32
+    )
     reply = ask(session, replace_key("fuzz-bot"), encode_robot_message(request))
     assert reply.ok is not None
     answer = decode_message(reply.ok.payload.to_bytes())

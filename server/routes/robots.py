@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from schemas.robots import PushBody, PushOut, ReplayOut, RobotDetail, RobotOut, TracesOut
 from server.robots import RobotService
@@ -34,6 +34,18 @@ def list_robots(robots: RobotsDep) -> list[RobotOut]:
 @router.get("/{robot_id}", response_model=RobotDetail)
 def get_robot(robots: RobotsDep, robot_id: str) -> RobotDetail:
     return robots.robot(robot_id)
+
+
+@router.delete(
+    "/{robot_id}",
+    status_code=204,
+    responses={404: {"description": "unknown robot"}, 409: {"description": "robot online"}},
+)
+def forget_robot(robots: RobotsDep, robot_id: str) -> Response:
+    """Forget a stale robot: its registry entry, last report, stuck events and traces (the
+    controllers' field statistics stay). Refused (409) while its agent is online."""
+    robots.forget(robot_id)
+    return Response(status_code=204)
 
 
 @router.post("/{robot_id}/controller", response_model=PushOut)
