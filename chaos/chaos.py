@@ -1,7 +1,10 @@
 """Chaos suite (`make chaos`): a run disturbed by real failures must end as if undisturbed.
 
 Real processes on loopback: `colony server` on an SQLite file, `colony worker`s, and virtual
-robots (`colony agent --emulate`). During the run, on a schedule drawn from a seeded generator
+robots (`colony agent --emulate`), all authenticated with a lab from `colony lab init --tls`:
+zenoh over TLS with a user per role (one worker user, its processes named `chaos.wN`; one per
+robot) and the router's access control, the REST token, and robots verifying signed
+replacements with the pinned server key. During the run, on a schedule drawn from a seeded generator
 (reproducible with `--chaos-seed`): a random worker the server lists as serving is SIGKILLed
 every few seconds (and a fresh one started), the server is SIGKILLed and restarted twice (which also cuts every robot's
 link), and the store refuses writes for a while (an exclusive SQLite lock held by this script:
@@ -36,6 +39,8 @@ from evorobotics.evolution import evolve
 from schemas.run import RunConfig
 
 COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
+WORKER_USER = "chaos"
+"""The lab's worker user: every worker process runs under it as `chaos.wN`."""
 TICK = threading.Event()
 
 
@@ -55,19 +60,36 @@ def wait_until(predicate: Callable[[], bool], what: str, timeout: float = 120.0)
         TICK.wait(0.1)
 
 
-class Lab:
-    """Server, workers and robots as subprocesses, logs in a temp dir; all killed at the end."""
+def read_env(path: Path) -> dict[str, str]:
+    return dict(line.split("=", 1) for line in path.read_text().splitlines() if line)
 
-    def __init__(self, tmp: Path) -> None:
+
+class Lab:
+    """Server, workers and robots as subprocesses with the credentials of a lab made by
+    `colony lab init`, logs in a temp dir; all killed at the end."""
+
+    def __init__(self, tmp: Path, robots: list[str]) -> None:
         self.tmp = tmp
         self.db = tmp / "colony.db"
         self.http, self.zenoh = free_port(), free_port()
         self.url = f"http://127.0.0.1:{self.http}"
-        self.endpoint = f"tcp/127.0.0.1:{self.zenoh}"
+        creds = tmp / "lab"
+        init = [*COLONY, "lab", "init", str(creds), "--server-host", "127.0.0.1", "--tls"]
+        init += ["--port", str(self.zenoh), "--worker", WORKER_USER]
+        for robot in robots:
+            init += ["--robot", robot]
+        subprocess.run(init, check=True, stdout=subprocess.DEVNULL)
+        self.server_env = read_env(creds / "server.env")
+        self.worker_env = read_env(creds / "workers" / f"{WORKER_USER}.env")
+        self.robot_envs = {robot: read_env(creds / "robots" / f"{robot}.env") for robot in robots}
+        self.endpoint = self.worker_env["COLONY_CONNECT"]
         self.server: subprocess.Popen[bytes] | None = None
         self.workers: dict[str, subprocess.Popen[bytes]] = {}
         self.procs: list[subprocess.Popen[bytes]] = []
-        self.client = httpx.Client(base_url=self.url, timeout=10)
+        token = self.server_env["COLONY_API_TOKEN"]
+        self.client = httpx.Client(
+            base_url=self.url, headers={"Authorization": f"Bearer {token}"}, timeout=10
+        )
 
     def spawn(self, argv: list[str], log: str, env: dict[str, str] | None = None) -> Any:
         with (self.tmp / f"{log}.log").open("ab") as out:
@@ -83,8 +105,9 @@ class Lab:
 
     def start_server(self) -> None:
         argv = [*COLONY, "server", "--db", f"sqlite:///{self.db}", "--port", str(self.http)]
-        argv += ["--zenoh-listen", self.endpoint, "--workers", "0"]
-        env = {"COLONY_HOUSEKEEPING_SECONDS": "0.5"}
+        # the lab's server listens on every interface: this script keeps it on loopback
+        argv += ["--host", "127.0.0.1", "--zenoh-listen", self.endpoint, "--workers", "0"]
+        env = {**self.server_env, "COLONY_HOUSEKEEPING_SECONDS": "0.5"}
         self.server = self.spawn(argv, "server", env)
         wait_until(self.healthy, "server health", 60)
 
@@ -105,15 +128,15 @@ class Lab:
         self.server.wait(timeout=30)
         return counters
 
-    def start_worker(self, name: str) -> None:
-        argv = [*COLONY, "worker", "--connect", self.endpoint, "--name", name]
-        self.workers[name] = self.spawn(argv, name)
+    def start_worker(self, serial: int) -> None:
+        name = f"{WORKER_USER}.w{serial}"
+        argv = [*COLONY, "worker", "--name", name]
+        self.workers[name] = self.spawn(argv, name, self.worker_env)
 
     def start_robot(self, robot: str, seed: int) -> None:
-        argv = [*COLONY, "agent", "--robot-id", robot, "--emulate", "--seed", str(seed)]
-        argv += ["--connect", self.endpoint, "--state-dir", str(self.tmp / robot)]
-        argv += ["--insecure-no-verify"]
-        self.spawn(argv, robot)
+        argv = [*COLONY, "agent", "--emulate", "--seed", str(seed)]
+        argv += ["--state-dir", str(self.tmp / robot)]
+        self.spawn(argv, robot, self.robot_envs[robot])
 
     def serving(self) -> list[str]:
         """This script's live workers the server lists as idle or busy: killing one that is
@@ -180,7 +203,8 @@ def chaos(args: argparse.Namespace) -> dict[str, Any]:
     refuse_at = int(schedule.integers(g // 2 + 2, 3 * g // 4))
     report: dict[str, Any] = {"server_kills_at": list(server_kills), "refuse_at": refuse_at}
     totals = {"requeued": 0.0, "duplicates_dropped": 0.0}
-    lab = Lab(Path(tempfile.mkdtemp(prefix="colony-chaos-")))
+    robots = [f"chaos-{i}" for i in range(args.robots)]
+    lab = Lab(Path(tempfile.mkdtemp(prefix="colony-chaos-")), robots)
     print(f"logs in {lab.tmp}; schedule: server kills at generations {server_kills}, "
           f"store refuses writes from generation {refuse_at}")  # fmt: skip
     worker_kills = 0
@@ -189,8 +213,7 @@ def chaos(args: argparse.Namespace) -> dict[str, Any]:
         lab.start_server()
         serial = iter(range(10**6))
         for _ in range(args.workers):
-            lab.start_worker(f"w{next(serial)}")
-        robots = [f"chaos-{i}" for i in range(args.robots)]
+            lab.start_worker(next(serial))
         for i, robot in enumerate(robots):
             lab.start_robot(robot, i)
         run_id = int(lab.client.post("/api/runs", json=config.model_dump(mode="json")).json()["id"])
@@ -219,7 +242,7 @@ def chaos(args: argparse.Namespace) -> dict[str, Any]:
             elif time.monotonic() >= next_kill and (serving := lab.serving()):
                 name = str(schedule.choice(serving))
                 lab.workers.pop(name).kill()
-                lab.start_worker(f"w{next(serial)}")
+                lab.start_worker(next(serial))
                 worker_kills += 1
                 print(f"  gen {gen}: worker {name} SIGKILLed, a fresh one started")
                 next_kill = time.monotonic() + float(schedule.uniform(2, 5))
