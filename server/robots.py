@@ -391,8 +391,9 @@ class RobotService:
     def _forget_cache(self, robot: str) -> None:
         """Drop what is cached of `robot`: it is read again from the database when needed."""
         self._stored.pop(robot, None)
-        for key in [k for k in self._boots if k[0] == robot]:
-            del self._boots[key]
+        for key in list(self._boots):  # a snapshot: the HTTP thread may call this too
+            if key[0] == robot:
+                self._boots.pop(key, None)
 
     def _load_boot(self, db: Session, batch: TraceBatch, now: float) -> _Boot:
         """What the database says of (robot, boot), with the bound its steps must keep."""
