@@ -211,6 +211,12 @@ def test_no_insecure_flag_and_no_literal_secret() -> None:
     assert robots and all("--emulate" in s["command"] for s in robots)
 
 
+def test_lab_and_dotenv_stay_out_of_git_and_the_image() -> None:
+    for name, lab in ((".gitignore", "/lab/"), (".dockerignore", "lab/")):
+        lines = (ROOT / name).read_text().splitlines()
+        assert lab in lines and any(line in (".env", "/.env") for line in lines), name
+
+
 def test_the_documented_commands_are_in_the_docs() -> None:
     docs = DEPLOYMENT.read_text()
     assert LAB_INIT in COMPOSE.read_text() and LAB_INIT in docs
