@@ -65,9 +65,10 @@ def _key_pem(key: ec.EllipticCurvePrivateKey) -> str:
     ).decode()
 
 
-def certificates(hosts: Sequence[str], now: datetime.datetime) -> tuple[str, str, str, str]:
-    """PEMs of a new CA, its key, and a router certificate and key valid for `hosts`
-    (DNS names or IP addresses, as clients will connect to them)."""
+def certificates(hosts: Sequence[str], now: datetime.datetime) -> tuple[str, str, str]:
+    """PEMs of a new CA, and a router certificate and key it signed, valid for `hosts` (DNS
+    names or IP addresses, as clients will connect to them). The CA's key is dropped: nothing
+    needs it once the one certificate is signed, and a kept key could mint others."""
     if not hosts:
         raise ValueError("a TLS certificate needs at least one host name or address")
     later = now + datetime.timedelta(days=CERT_DAYS)
@@ -102,7 +103,7 @@ def certificates(hosts: Sequence[str], now: datetime.datetime) -> tuple[str, str
         .add_extension(x509.SubjectAlternativeName(names), critical=False)
         .sign(ca_key, hashes.SHA256())
     )
-    return _pem(ca), _key_pem(ca_key), _pem(cert), _key_pem(key)
+    return _pem(ca), _pem(cert), _key_pem(key)
 
 
 def init_lab(
@@ -151,9 +152,8 @@ def init_lab(
     client = {"COLONY_CONNECT": f"{scheme}/{server_host}:{port}"}
     if tls:
         hosts = list(dict.fromkeys([server_host, "localhost", "127.0.0.1"]))
-        ca, ca_key, cert, cert_key = certificates(hosts, now or datetime.datetime.now(datetime.UTC))
+        ca, cert, cert_key = certificates(hosts, now or datetime.datetime.now(datetime.UTC))
         _write(root / "ca.pem", ca, secret=False)
-        _write(root / "ca-key.pem", ca_key, secret=True)
         _write(root / "zenoh-cert.pem", cert, secret=False)
         _write(root / "zenoh-key.pem", cert_key, secret=True)
         server["COLONY_ZENOH_TLS_CERTIFICATE"] = f"{seen}/zenoh-cert.pem"

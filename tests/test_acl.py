@@ -207,7 +207,6 @@ def test_lab_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: 
     for secret in [
         "zenoh-users",
         "server.env",
-        "ca-key.pem",
         "zenoh-key.pem",
         "server-key.pem",
         "robots/evbot-1.env",
@@ -219,5 +218,6 @@ def test_lab_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: 
     assert robot_env["COLONY_ROBOT_ID"] == robot_env["COLONY_ZENOH_USER"] == "evbot-1"
     passwords = [line.split(":", 1)[1] for line in (lab / "zenoh-users").read_text().splitlines()]
     assert len(set(passwords)) == len(passwords) == 4
+    assert not (lab / "ca-key.pem").exists()  # nothing may mint more certificates
     again = CliRunner().invoke(cli, ["lab", "init", str(lab), "--server-host", "h"])
     assert again.exit_code == 2 and "not empty" in again.output

@@ -212,7 +212,7 @@ def _certificates(tmp_path: Path) -> tuple[Path, Path, Path]:
     """A new CA and a router certificate for localhost / 127.0.0.1 signed by it (as
     `colony lab init --tls` makes them)."""
     now = datetime.datetime(2024, 1, 1, tzinfo=datetime.UTC)
-    ca, _ca_key, cert, key = certificates(["localhost", "127.0.0.1"], now)
+    ca, cert, key = certificates(["localhost", "127.0.0.1"], now)
     paths = tmp_path / "ca.pem", tmp_path / "cert.pem", tmp_path / "key.pem"
     for path, pem in zip(paths, (ca, cert, key), strict=True):
         path.write_text(pem)
