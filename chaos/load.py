@@ -1,9 +1,10 @@
 """Load test (`make load`): 64 virtual robots, 4 workers evolving, 50 status queries a second.
 
-A real `colony server` (SQLite file, zenoh on loopback) and 4 `colony worker` processes run an
-evolution (a new run whenever one ends); 64 virtual EvBots (BasicX emulator on a pty + driver +
+A real `colony server` (SQLite file, zenoh over TLS on loopback) and 4 `colony worker` processes
+run an evolution (a new run whenever one ends); 64 virtual EvBots (BasicX emulator on a pty + driver +
 agent with a random paper-best controller, each) run in `--procs` spawned processes, as in
-bench/colony.py; a thread issues 50 GET/s alternating /api/colony and /api/robots. Reports: trace
+bench/colony.py; every process authenticates with a lab from `colony lab init --tls` (a user per
+robot, one worker user, the REST token; robots verify signed pushes with the pinned key); a thread issues 50 GET/s alternating /api/colony and /api/robots. Reports: trace
 samples stored and gaps (steps missing below each robot's highest stored step: must be 0),
 status latency p50/p99/max, generations evolved, and the RSS of every process sampled every
 `--sample-seconds` (a series: flat, bounded growth or a leak are told apart by its shape).
@@ -39,8 +40,11 @@ from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
 from schemas.network import NetworkSpec
+from schemas.security import ZenohClientAuth
 
 COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
+WORKER_USER = "load"
+"""The lab's worker user: the worker processes run under it as `load.wN`."""
 RUN = {"population": 40, "job_size": 5, "generations": 200, "steps": 400}
 TRACED_SERVER = """
 import os, sys, threading, tracemalloc
@@ -97,8 +101,13 @@ def rss_mib(pid: int, field: str = "VmRSS") -> float:
     return 0.0
 
 
-def robots_process(first: int, count: int, endpoint: str, state: str, halt: Any, out: Any) -> None:
-    """Run `count` virtual robots until `halt`; report produced/unsent/dropped on `out`."""
+def read_env(path: Path) -> dict[str, str]:
+    return dict(line.split("=", 1) for line in path.read_text().splitlines() if line)
+
+
+def robots_process(first: int, count: int, lab: str, state: str, halt: Any, out: Any) -> None:
+    """Run `count` virtual robots with their credentials in the lab directory `lab` until
+    `halt`; report produced/unsent/dropped on `out`."""
     sys.setswitchinterval(0.001)  # many threads share one GIL: hand it over sooner
     spec = NetworkSpec()
     rigs = []
@@ -109,7 +118,19 @@ def robots_process(first: int, count: int, endpoint: str, state: str, halt: Any,
         (state_dir / "controller.json").write_text(doc.to_json())
         emulator = BasicXEmulator(SimBody.create("paper", seed=0, index=i)).start()
         driver = BasicXDriver.open(emulator.port_path)
-        settings = AgentSettings(f"load-{i}", connect=(endpoint,), state_dir=state_dir)
+        env = read_env(Path(lab) / "robots" / f"load-{i}.env")
+        settings = AgentSettings(
+            f"load-{i}",
+            connect=(env["COLONY_CONNECT"],),
+            state_dir=state_dir,
+            server_key=Path(env["COLONY_SERVER_PUBLIC_KEY"]).read_bytes(),
+            require_signature=True,
+            auth=ZenohClientAuth(
+                env["COLONY_ZENOH_USER"],
+                env["COLONY_ZENOH_PASSWORD"],
+                Path(env["COLONY_ZENOH_ROOT_CA"]),
+            ),
+        )
         rigs.append((emulator, driver, Agent(settings, driver).start()))
     for _, _, agent in rigs:
         agent.connected.wait(60)
@@ -161,14 +182,26 @@ def main() -> None:
     args = parser.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="colony-load-"))
     db = tmp / "colony.db"
-    http, port = free_port(), free_port()
-    url, endpoint = f"http://127.0.0.1:{http}", f"tcp/127.0.0.1:{port}"
+    http, port, local = free_port(), free_port(), free_port()
+    lab = tmp / "lab"
+    init = [*COLONY, "lab", "init", str(lab), "--server-host", "127.0.0.1", "--tls"]
+    init += ["--port", str(port), "--worker", WORKER_USER]
+    for i in range(args.robots):
+        init += ["--robot", f"load-{i}"]
+    subprocess.run(init, check=True, stdout=subprocess.DEVNULL)
+    server_env = read_env(lab / "server.env")
+    worker_env = read_env(lab / "workers" / f"{WORKER_USER}.env")
+    url, endpoint = f"http://127.0.0.1:{http}", worker_env["COLONY_CONNECT"]
     procs: dict[str, subprocess.Popen[bytes]] = {}
 
-    def spawn(name: str, argv: list[str]) -> None:
+    def spawn(name: str, argv: list[str], env: dict[str, str]) -> None:
         with (tmp / f"{name}.log").open("ab") as log:
             procs[name] = subprocess.Popen(
-                argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+                argv,
+                env={**os.environ, **env},
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
             )
 
     ctx = mp.get_context("spawn")
@@ -178,8 +211,14 @@ def main() -> None:
         os.environ["LOAD_TRACEMALLOC"] = str(tmp / "tracemalloc.txt")
         os.environ["LOAD_TRACEMALLOC_EVERY"] = str(args.sample_seconds)
         argv = [*server, "server", "--db", f"sqlite:///{db}", "--port", str(http)]
-        spawn("server", [*argv, "--zenoh-listen", endpoint])
-        client = httpx.Client(base_url=url, timeout=10)
+        # the lab's server listens on every interface: this script keeps it on loopback (its
+        # local workers, user `local` of the lab, connect over tcp as the lab's do)
+        argv += ["--host", "127.0.0.1", "--zenoh-listen", endpoint]
+        spawn("server", [*argv, "--zenoh-listen", f"tcp/127.0.0.1:{local}"], server_env)
+        token = server_env["COLONY_API_TOKEN"]
+        client = httpx.Client(
+            base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=10
+        )
         deadline = time.monotonic() + (300 if args.tracemalloc else 60)
         while True:
             try:
@@ -193,7 +232,7 @@ def main() -> None:
                 raise TimeoutError("server did not start")
             threading.Event().wait(0.1)
         for w in range(args.workers):
-            spawn(f"worker{w}", [*COLONY, "worker", "--connect", endpoint, "--name", f"w{w}"])
+            spawn(f"worker{w}", [*COLONY, "worker", "--name", f"{WORKER_USER}.w{w}"], worker_env)
         halt, out = ctx.Event(), ctx.Queue()
         shares = [
             args.robots // args.procs + (k < args.robots % args.procs) for k in range(args.procs)
@@ -202,7 +241,7 @@ def main() -> None:
         for k, count in enumerate(shares):
             p = ctx.Process(
                 target=robots_process,
-                args=(first, count, endpoint, f"{tmp}/p{k}", halt, out),
+                args=(first, count, str(lab), f"{tmp}/p{k}", halt, out),
             )
             p.start()
             robot_procs.append(p)
