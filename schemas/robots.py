@@ -283,7 +283,8 @@ class StuckRequest(_RobotMessage):
 
 
 class Replacement(_RobotMessage):
-    """Server -> agent, reply on KEY_REPLACE: a new document, or None with the reason."""
+    """Server -> agent, reply on KEY_REPLACE: a new document, or None with the reason; signed
+    with the request's nonce as push id, so it answers that request only."""
 
     kind: Literal["replacement"] = "replacement"
     document: str | None

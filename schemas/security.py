@@ -229,7 +229,8 @@ SIGNING_CONTEXT = b"evocolony-signed-command-v1"
 def signed_bytes(*, kind: str, robot: str, push_id: str, seq: int, document: str | None) -> bytes:
     """The exact bytes the server signs for one command to one robot.
 
-    context, kind (push, stop, replacement), robot id, push id, sequence number and the sha256
+    context, kind (push, stop, replacement), robot id, push id (for a replacement: the nonce of
+    the stuck request it answers), sequence number and the sha256
     of the document's UTF-8 bytes (empty for a stop), newline-separated: a signature binds the
     document to this robot and this sequence number, so it cannot be replayed to another robot
     or, since agents keep the highest sequence seen, to the same robot later.
