@@ -103,6 +103,9 @@ class ZenohRoles:
         for name in names:
             if not _NAME.match(name):
                 raise ValueError(f"zenoh user {name!r} must match {_NAME.pattern}")
+        for name in self.workers:
+            if "." in name:  # else worker user "a" could take the names of worker user "a.b"
+                raise ValueError(f"worker user {name!r} must not contain '.'")
         if len(set(names)) != len(names):
             raise ValueError("a zenoh user appears twice in the roles")
 
