@@ -638,10 +638,16 @@ class Scheduler:
         ):
             return None  # off, this process's own evaluator, an error, or dropped below
         n = lease.stop - lease.start
-        generations = min(result.generations, lease.span_left + 1)
-        picks = sorted(_CHOOSE.sample(range(generations * n), min(wanted, generations * n)))
         loop = run.loop
         config = loop.config
+        generations = 1  # then those `_complete` will move the span's lease on to
+        while (
+            generations < min(result.generations, lease.span_left + 1)
+            and run.running
+            and self._job_size(config, loop.generation + generations) >= config.population
+        ):
+            generations += 1
+        picks = sorted(_CHOOSE.sample(range(generations * n), min(wanted, generations * n)))
         asked, shadow = loop.ask(), None
         self._spot["results_checked"] += 1
         for i in range(picks[-1] // n + 1):

@@ -783,3 +783,17 @@ def test_a_spans_later_generations_are_checked_before_any_is_told() -> None:
     assert not ack.accepted and "generation 4" in sched.quarantined()["fast"]
     assert sched.take_told() == []  # generations 2 and 3 (honest) not told either
     assert sched.counts() == {"pending": 1, "leased": 0, "done": 0}
+
+
+def test_a_span_message_is_checked_among_the_generations_it_can_complete() -> None:
+    config = CONFIG.model_copy(update={"generations": 6})
+    sched, _ = make(CHECKED)
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(config), running=True)
+    job = sched.lease("fast")
+    assert job is not None and job.span > 2
+    sched.set_running(1, False)  # paused: generation 0 completes, the span ends there
+    assert sched.settle(real_span(job, 2, "fast", forge_from=1)).accepted
+    assert [w.told.generation for w in sched.take_told()] == [0]
+    assert sched.quarantined() == {}  # generation 1 was dropped, never counted
+    assert sched.spot_totals()["individuals_checked"] == config.population
