@@ -16,9 +16,10 @@ digest that it evaluated the genomes asked here.
 
 Spot-checks: runs are deterministic, so the scheduler re-evaluates `Policy.spot_checks`
 individuals of every result of a listed worker, chosen with `secrets` (never the run's seed
-stream), and compares them bit for bit. A mismatch quarantines the worker for the life of the
-process (no more jobs, its results dropped) and returns every result of it in the generations
-in flight to pending, so honest workers evaluate them (docs/reliability.md, "Spot-checks").
+stream), and compares them bit for bit. A mismatch quarantines the worker's credential for the
+life of the process: every worker named USER or USER.* (the names zenoh's roles let one
+credential use) gets no more jobs and its results in the generations in flight return to
+pending, so honest workers evaluate them (docs/reliability.md, "Spot-checks").
 """
 
 from __future__ import annotations
@@ -118,6 +119,12 @@ class Policy:
         return max(1, int(self.span_s / seconds))
 
 
+def credential(worker: str) -> str:
+    """The zenoh user a worker's name belongs to: `USER` of `USER` or `USER.anything`
+    (schemas.security.ZenohRoles; worker users contain no '.')."""
+    return worker.partition(".")[0]
+
+
 def clamp_speed(speed: float) -> float:
     """A reported speed within [SPEED_MIN, SPEED_MAX] (NaN counts as the minimum)."""
     return min(max(speed, SPEED_MIN), SPEED_MAX) if speed == speed else SPEED_MIN
@@ -210,6 +217,8 @@ class Scheduler:
         self._runs: dict[int, _Run] = {}
         self._leases: dict[JobKey, _Lease] = {}
         self._workers: dict[str, _Worker] = {}
+        self._banned: dict[str, str] = {}
+        """Quarantined credentials (`credential(name)`) and why: a new name under one is too."""
         self._told: list[Written] = []
         self._unwritten: dict[int, deque[float]] = {}
         """run id -> when each generation told and not yet written was told, oldest first."""
@@ -505,6 +514,7 @@ class Scheduler:
         record = self._workers.get(worker)
         if record is None:
             record = self._workers[worker] = _Worker(worker)
+            record.quarantine = self._banned.get(credential(worker))
         record.last_seen = self._wall()
         if revive:
             record.gone_at = None
@@ -675,15 +685,19 @@ class Scheduler:
         return None
 
     def _quarantine(self, record: _Worker, why: str) -> None:
-        """No more jobs for `record`'s worker; its leases and every result of it in the
-        generations in flight return to pending."""
-        record.quarantine = why
+        """No more jobs for any worker of `record`'s credential; their leases and every result
+        of them in the generations in flight return to pending."""
+        banned = credential(record.name)
+        self._banned[banned] = why
         self._spot["mismatches"] += 1
-        released = self._release_where(lambda lease: lease.worker == record.name)
+        for other in self._workers.values():
+            if credential(other.name) == banned:
+                other.quarantine = why
+        released = self._release_where(lambda lease: credential(lease.worker) == banned)
         discarded = 0
         for run in self._runs.values():
             for index, slot in enumerate(run.slots):
-                if slot.status == "done" and slot.worker == record.name:
+                if slot.status == "done" and slot.worker and credential(slot.worker) == banned:
                     run.fitness[slot.start : slot.stop] = np.nan
                     run.components[slot.start : slot.stop] = np.nan
                     run.remaining += 1

@@ -748,6 +748,22 @@ def test_quarantine_outlives_gone_keep_and_the_worker_stays_listed() -> None:
     assert sched.lease("rogue") is None
 
 
+def test_quarantine_covers_every_name_of_the_credential() -> None:
+    """Roles let zenoh user `lab` act as `lab` and `lab.*`: a forgery by one of its names
+    stops them all, discards their results in flight, and a new name under it gets nothing."""
+    sched, _ = make(CHECKED)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    sibling, rogue = sched.lease("lab.pc-1"), sched.lease("lab.pc-2")
+    assert sibling is not None and rogue is not None
+    assert sched.settle(honest(sibling, "lab.pc-1")).accepted
+    assert not sched.settle(forged(rogue, "lab.pc-2")).accepted
+    assert set(sched.quarantined()) == {"lab.pc-1", "lab.pc-2"}
+    assert sched.counts()["done"] == 0  # the sibling's result is discarded too
+    for name in ("lab", "lab.pc-1", "lab.new"):
+        assert sched.lease(name) is None
+    assert sched.lease("laboratory") is not None  # another credential
+
+
 def test_with_spot_checks_off_a_forgery_is_accepted() -> None:
     sched, _ = make(Policy(spot_checks=0))
     sched.add(1, RunLoop(CONFIG), running=True)
