@@ -219,7 +219,7 @@ def test_lab_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: 
     passwords = [line.split(":", 1)[1] for line in (lab / "zenoh-users").read_text().splitlines()]
     assert len(set(passwords)) == len(passwords) == 4
     assert not (lab / "ca-key.pem").exists()  # nothing may mint more certificates
-    with pytest.raises(ValueError, match="must not contain '.'"):
+    with pytest.raises(ValueError, match=r"must not contain '\.'"):
         ZenohRoles(workers=("lab.pc",))
     again = CliRunner().invoke(cli, ["lab", "init", str(lab), "--server-host", "h"])
     assert again.exit_code == 2 and "not empty" in again.output
