@@ -3,6 +3,7 @@ own credentials, and each credential tried at what its role may not do (docs/sec
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -19,12 +20,21 @@ from robot_agent.agent import Agent, AgentSettings
 from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
+from schemas.answer import CONSOLIDATION, TARGET, one_answer
 from schemas.robots import ack_key, alive_key, traces_key
 from schemas.security import ZenohClientAuth, ZenohRoles
-from schemas.wire import JobRequest, encode, next_key
+from schemas.wire import KEY_JOB_NEXT, JobRequest, encode, next_key
 from server.lab import init_lab
 from server.settings import Settings
-from tests.helpers import eventually, free_port, online, serving, wait_status
+from tests.helpers import (
+    client_config,
+    eventually,
+    free_port,
+    online,
+    router_config,
+    serving,
+    wait_status,
+)
 from worker.main import WorkerSettings, run_worker
 
 WAIT = 30.0
@@ -223,3 +233,28 @@ def test_lab_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: 
         ZenohRoles(workers=("lab.pc",))
     again = CliRunner().invoke(cli, ["lab", "init", str(lab), "--server-host", "h"])
     assert again.exit_code == 2 and "not empty" in again.output
+
+
+def test_answers_from_two_answerers_are_refused_not_raced(caplog: pytest.LogCaptureFixture) -> None:
+    """A second queryable on the server's key (without roles, e.g. on the server host) makes
+    the answer an error in the log, never the winner of a race."""
+    port = free_port()
+    with zenoh.open(router_config(port)) as server, zenoh.open(client_config(port)) as rogue:
+        server.declare_queryable(KEY_JOB_NEXT, lambda q: q.reply(q.key_expr, b"server"))
+        assert (
+            one_answer(
+                server.get(next_key("w"), target=TARGET, consolidation=CONSOLIDATION),
+                next_key("w"),
+                logging.getLogger("test"),
+            )
+            == b"server"
+        )
+        rogue.declare_queryable(KEY_JOB_NEXT, lambda q: q.reply(q.key_expr, b"rogue"))
+        with zenoh.open(client_config(port)) as worker:
+
+            def two_answerers() -> bool:
+                replies = worker.get(next_key("w"), target=TARGET, consolidation=CONSOLIDATION)
+                return one_answer(replies, next_key("w"), logging.getLogger("test")) is None
+
+            assert eventually(two_answerers, timeout=WAIT)
+    assert "2 answerers replied where only the server may" in caplog.text
