@@ -49,6 +49,9 @@ class Settings(BaseSettings):
     log_format: Literal["text", "json"] = Field(
         "text", description="text, or json: one JSON object per line with run/job/robot ids"
     )
+    tensorboard_dir: Path | None = Field(
+        None, description="write TensorBoard event files of each run under DIR/run-ID"
+    )
 
     # security (docs/security.md)
     api_token: str | None = Field(
