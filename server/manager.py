@@ -52,6 +52,7 @@ from server.models import Generation, Run, utcnow
 from server.population import Population
 from server.scheduler import Scheduler, Written
 from server.settings import Settings
+from server.tracking import Tracker
 
 log = logging.getLogger(__name__)
 
@@ -208,6 +209,12 @@ class RunManager:
         per generation (see `_genome_at`)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._tracker = (
+            None
+            if settings.tensorboard_dir is None
+            else Tracker(settings.tensorboard_dir, self.best)
+        )
+        """TensorBoard event files of the runs (COLONY_TENSORBOARD_DIR), if set."""
 
     # lifecycle of the manager -------------------------------------------------------------
 
@@ -277,6 +284,8 @@ class RunManager:
                 self._stall(told, exc)
                 raise
             self.scheduler.written(told)
+            if self._tracker is not None:
+                self._tracker.written(told)
             self._settle_write_failures()
             failed = self.scheduler.take_failed()
             if failed:
