@@ -196,6 +196,10 @@ def evolve_command(
         Path | None, typer.Option("--config", metavar="FILE", help="a RunConfig JSON")
     ] = None,
     out: Annotated[Path, typer.Option(help="output directory")] = Path("out"),
+    tensorboard: Annotated[
+        Path | None,
+        typer.Option(metavar="DIR", help="also write TensorBoard event files into DIR"),
+    ] = None,
 ) -> None:
     """Evolve a controller in one process (defaults: the paper's experiment) and plot it."""
     overrides: dict[str, Any] = {
@@ -219,8 +223,23 @@ def evolve_command(
         f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}"
     )
     started = time.perf_counter()
+    events = None
+    if tensorboard is not None:
+        from server.tracking import RunEvents  # tensorboardX only when asked for
+
+        events = RunEvents(tensorboard)
     with _progress(cfg.generations) as report:
-        result = evolve(cfg, on_generation=report)
+
+        def on_generation(s: GenerationSummary) -> None:
+            report(s)
+            if events is not None:
+                events.generation(s.generation, best=s.best, mean=s.mean)
+
+        result = evolve(cfg, on_generation=on_generation)
+    if events is not None:
+        if result.best.validation is not None:
+            events.validation(result.history[-1].generation, result.best.validation)
+        events.close()
     evolved = time.perf_counter() - started
     files = write_outputs(out, cfg, result)
     total = time.perf_counter() - started
