@@ -1,18 +1,36 @@
 """Request and response bodies of the server's REST API (see docs/api.md).
 
-Requests: `POST /api/runs` takes a `schemas.run.RunConfig` as is (every field optional).
+Requests: `POST /api/runs` takes a `RunCreate`: a `schemas.run.RunConfig` (every field
+optional) with an optional `name` and `tags`; studies are in `schemas.study`.
 Controller documents are returned as the document's own JSON (evorobotics.document).
 """
 
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from schemas.robots import RobotOut
 from schemas.run import RunConfig
+
+TAG = r"^[A-Za-z0-9_.:=-]{1,64}$"
+MAX_TAGS = 16
+
+
+class RunCreate(RunConfig):
+    """The body of `POST /api/runs`: the run's config plus how a person finds it again."""
+
+    name: str | None = Field(None, min_length=1, max_length=128, description="free text")
+    tags: list[Annotated[str, StringConstraints(pattern=TAG)]] = Field(
+        default_factory=list, max_length=MAX_TAGS, description="e.g. `study:NAME`"
+    )
+
+    def run_config(self) -> RunConfig:
+        """The pure RunConfig (what is stored and what the run is a function of)."""
+        return RunConfig.model_validate(self.model_dump(exclude={"name", "tags"}))
+
 
 RunStatus = Literal["queued", "running", "paused", "completed", "failed", "cancelled"]
 TERMINAL: frozenset[str] = frozenset({"completed", "failed", "cancelled"})
@@ -35,6 +53,10 @@ class RunOut(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     error: str | None
+    name: str | None = None
+    tags: list[str] = Field(default_factory=list)
+    study_id: int | None = Field(None, description="the study it belongs to, if any")
+    condition: str | None = Field(None, description="its condition in that study")
 
 
 class GenerationOut(BaseModel):

@@ -29,7 +29,16 @@ from server.errors import ServerError
 from server.executor import InProcessExecutor
 from server.manager import RunManager
 from server.robots import robot_service
-from server.routes import colony, controllers, dashboard, images, robots, runs, workers
+from server.routes import (
+    colony,
+    controllers,
+    dashboard,
+    images,
+    robots,
+    runs,
+    studies,
+    workers,
+)
 from server.settings import Settings
 from server.signing import Signer
 from worker.local import LocalWorkers, local_endpoint
@@ -156,6 +165,7 @@ def create_app(
     app.openapi = openapi  # type: ignore[method-assign]
     metrics.install(app)
     app.include_router(runs.router)
+    app.include_router(studies.router)
     app.include_router(controllers.router)
     app.include_router(colony.router)
     app.include_router(workers.router)

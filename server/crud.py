@@ -8,12 +8,13 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 
 import numpy as np
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
+from schemas.api import TERMINAL
 from server import population
 from server.errors import NotFoundError, ServerError
-from server.models import Controller, Generation, Run
+from server.models import Controller, Generation, Run, Study, utcnow
 from server.population import Population
 from server.scheduler import Scheduler
 
@@ -141,6 +142,57 @@ def put_controller(
     )
     session.add(row)
     return row
+
+
+def get_study(session: Session, *, study_id: int) -> Study | None:
+    return session.get(Study, study_id)
+
+
+def list_studies(session: Session) -> list[Study]:
+    """Newest first."""
+    return list(session.scalars(select(Study).order_by(Study.id.desc())))
+
+
+def study_runs(session: Session, *, study_id: int) -> list[Run]:
+    """The study's runs in creation order (condition by condition, seed by seed)."""
+    return list(session.scalars(select(Run).where(Run.study_id == study_id).order_by(Run.id)))
+
+
+def study_status(statuses: Iterable[str]) -> str:
+    """A study's status from its runs': running while any is unfinished, then failed if any
+    failed, cancelled if any was cancelled, else completed."""
+    found = set(statuses)
+    if found - TERMINAL:
+        return "running"
+    for status in ("failed", "cancelled"):
+        if status in found:
+            return status
+    return "completed"
+
+
+def settle_study(session: Session, *, study_id: int | None) -> None:
+    """Store the study's status derived from its runs' (called as one of them changes), and
+    when it finished."""
+    if study_id is None:
+        return
+    study = session.get(Study, study_id)
+    if study is None:
+        return
+    statuses = session.scalars(select(Run.status).where(Run.study_id == study_id))
+    status = study_status(statuses)
+    if status != study.status:
+        study.status = status
+        study.finished_at = None if status == "running" else utcnow()
+
+
+def delete_runs(session: Session, *, run_ids: Sequence[int]) -> None:
+    """Delete runs and their generations; controllers stay, no longer naming them."""
+    if not run_ids:
+        return
+    ids = list(run_ids)
+    session.execute(delete(Generation).where(Generation.run_id.in_(ids)))
+    session.execute(update(Controller).where(Controller.run_id.in_(ids)).values(run_id=None))
+    session.execute(delete(Run).where(Run.id.in_(ids)))
 
 
 def job_counts(session: Session) -> dict[str, int]:

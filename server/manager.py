@@ -25,11 +25,12 @@ never hold the database.
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -48,7 +49,7 @@ from server import crud, population
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
 from server.logs import context
-from server.models import Generation, Run, utcnow
+from server.models import Generation, Run, Study, utcnow
 from server.population import Population
 from server.scheduler import Scheduler, Written
 from server.settings import Settings
@@ -380,19 +381,80 @@ class RunManager:
 
     # run lifecycle ---------------------------------------------------------------------------
 
-    def create_run(self, config: RunConfig) -> int:
+    def create_run(
+        self,
+        config: RunConfig,
+        *,
+        name: str | None = None,
+        tags: Sequence[str] = (),
+        study_id: int | None = None,
+        condition: str | None = None,
+    ) -> int:
         """Queue a run; it starts at once when fewer than `max_active_runs` are running."""
         with self._lock, self.sessions.begin() as session:
-            run = Run(
-                config=config.model_dump_json(),
-                seed=config.seed,
-                status="queued",
-                generation=0,
-                evaluations=0,
+            run = self._add_run(
+                session, config, name=name, tags=tags, study_id=study_id, condition=condition
             )
-            session.add(run)
-            session.flush()
             run_id = run.id
+        self._log_created(run_id, config)
+        self.promote()
+        return run_id
+
+    def create_study(
+        self, *, name: str, spec: str, runs: Sequence[tuple[RunConfig, str, str]]
+    ) -> tuple[int, list[int]]:
+        """Store a study and queue its runs ((config, run name, condition) each, tagged
+        `study:NAME`) in one transaction, so a study exists whole or not at all; its id and
+        its runs' ids. They queue with every other run (`promote`: oldest first)."""
+        with self._lock, self.sessions.begin() as session:
+            study = Study(name=name, spec=spec, status="running")
+            session.add(study)
+            session.flush()
+            study_id = study.id
+            added = [
+                self._add_run(
+                    session,
+                    config,
+                    name=run_name,
+                    tags=[f"study:{name}"],
+                    study_id=study_id,
+                    condition=condition,
+                )
+                for config, run_name, condition in runs
+            ]
+            run_ids = [run.id for run in added]
+        log.info("study %d %r created: %d runs", study_id, name, len(run_ids))
+        for run_id, (config, _, _) in zip(run_ids, runs, strict=True):
+            self._log_created(run_id, config)
+        self.promote()
+        return study_id, run_ids
+
+    def _add_run(
+        self,
+        session: Session,
+        config: RunConfig,
+        *,
+        name: str | None,
+        tags: Sequence[str],
+        study_id: int | None,
+        condition: str | None,
+    ) -> Run:
+        run = Run(
+            config=config.model_dump_json(),
+            seed=config.seed,
+            status="queued",
+            generation=0,
+            evaluations=0,
+            name=name,
+            tags=json.dumps(list(tags)),
+            study_id=study_id,
+            condition=condition,
+        )
+        session.add(run)
+        session.flush()
+        return run
+
+    def _log_created(self, run_id: int, config: RunConfig) -> None:
         context(log, run=run_id).info(
             "run %d created: population %d, %d generations, seed %d",
             run_id,
@@ -400,8 +462,6 @@ class RunManager:
             config.generations,
             config.seed,
         )
-        self.promote()
-        return run_id
 
     def promote(self) -> None:
         """Start queued runs, oldest first, up to `max_active_runs` running at once."""
@@ -459,8 +519,59 @@ class RunManager:
                 if run.status in TERMINAL:
                     raise TransitionError(f"run {run_id} is already {run.status}")
                 run.status, run.finished_at = "cancelled", utcnow()
+                crud.settle_study(session, study_id=run.study_id)
             self._forget(run_id)
         context(log, run=run_id).info("run %d cancelled", run_id)
+        self.promote()
+
+    def cancel_study(self, study_id: int) -> None:
+        """Cancel the study's unfinished runs (one transaction); NotFoundError if none such."""
+        with self._lock:
+            self.flush()
+            with self.sessions.begin() as session:
+                if crud.get_study(session, study_id=study_id) is None:
+                    raise NotFoundError(f"no study with id {study_id}")
+                runs = crud.study_runs(session, study_id=study_id)
+                live = [r for r in runs if r.status not in TERMINAL]
+                now = utcnow()
+                for run in live:
+                    run.status, run.finished_at = "cancelled", now
+                crud.settle_study(session, study_id=study_id)
+            for run in live:
+                self._forget(run.id)
+        log.info("study %d cancelled: %d runs", study_id, len(live))
+        self.promote()
+
+    def delete_run(self, run_id: int) -> None:
+        """Cancel the run if it is live, then delete it and its generations; its controllers
+        stay (robots may run them), no longer naming it."""
+        with self._lock:
+            self.flush()
+            with self.sessions.begin() as session:
+                run = self._get(session, run_id)
+                live = run.status not in TERMINAL
+                study_id = run.study_id
+                crud.delete_runs(session, run_ids=[run_id])
+                crud.settle_study(session, study_id=study_id)
+            self._forget(run_id)
+        context(log, run=run_id).info("run %d deleted", run_id)
+        if live:
+            self.promote()
+
+    def delete_study(self, study_id: int) -> None:
+        """Cancel what still runs of the study, then delete it and its runs."""
+        with self._lock:
+            self.flush()
+            with self.sessions.begin() as session:
+                study = crud.get_study(session, study_id=study_id)
+                if study is None:
+                    raise NotFoundError(f"no study with id {study_id}")
+                run_ids = [r.id for r in crud.study_runs(session, study_id=study_id)]
+                crud.delete_runs(session, run_ids=run_ids)
+                session.delete(study)
+            for run_id in run_ids:
+                self._forget(run_id)
+        log.info("study %d deleted with its %d runs", study_id, len(run_ids))
         self.promote()
 
     def _transition(self, run_id: int, allowed: set[str], target: str) -> None:
@@ -621,11 +732,13 @@ class RunManager:
     ) -> None:
         run.status, run.finished_at = "completed", utcnow()
         sha = self.store_champion(session, run, config, document)
+        crud.settle_study(session, study_id=run.study_id)
         self._forget(run.id)
         context(log, run=run.id).info("run %d completed; champion %s", run.id, sha)
 
     def _fail(self, session: Session, run: Run, message: str) -> None:
         run.status, run.error, run.finished_at = "failed", message, utcnow()
+        crud.settle_study(session, study_id=run.study_id)
         self._forget(run.id)
         context(log, run=run.id).error("run %d failed: %s", run.id, message)
 

@@ -29,6 +29,21 @@ class Base(DeclarativeBase):
     pass
 
 
+class Study(Base):
+    """Conditions x seeds runs of one base config (`schemas.study`); its runs point to it."""
+
+    __tablename__ = "studies"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    name: Mapped[str] = mapped_column(String(64))
+    spec: Mapped[str] = mapped_column(Text)
+    """JSON: {"base": RunConfig, "conditions": {name: overrides} in order, "seeds": [...]}."""
+    status: Mapped[str] = mapped_column(String(16))
+    """Derived from its runs whenever one finishes (`crud.settle_study`)."""
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+
+
 class Run(Base):
     """One evolutionary run: its config, lifecycle and running totals."""
 
@@ -50,6 +65,14 @@ class Run(Base):
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
     champion_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
     """A completed run's validated champion in `controllers` (`RunManager.best`)."""
+    name: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    tags: Mapped[str] = mapped_column(Text, default="[]", server_default="[]")
+    """JSON list of strings."""
+    study_id: Mapped[int | None] = mapped_column(
+        ForeignKey("studies.id", ondelete="SET NULL"), nullable=True, index=True
+    )
+    condition: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    """Its condition in its study."""
 
 
 class Generation(Base):

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import json
-from functools import lru_cache
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 
-from evorobotics.document import ControllerDocument
 from evorobotics.errors import EvoError
-from evorobotics.explore import explore
 from evorobotics.maze import load_maze, maze_names
 from server import crud
 from server.deps import ManagerDep, SessionDep
+from server.evaluation import EVALUATIONS, Params
 
 router = APIRouter(prefix="/api/controllers", tags=["controllers"])
 
@@ -21,8 +19,6 @@ MAX_EVALUATION_POSES = 1000
 MAX_EVALUATION_STEPS = 2000
 MAX_EVALUATION_ROBOT_STEPS = 1_000_000
 """poses x steps of one evaluation request: about 1 s of one core (docs/api.md)."""
-EVALUATION_CACHE = 8
-"""Evaluations kept, keyed by (document, parameters): a dashboard re-asking costs nothing."""
 
 
 @router.get(
@@ -92,27 +88,7 @@ def get_evaluation(
     except (EvoError, ValueError) as exc:
         raise HTTPException(422, detail=f"maze: {exc}") from None
     try:
-        body = _evaluation(document, poses, steps, maze, seed, reality_gap)
+        body = EVALUATIONS.report(document, Params(poses, steps, maze, seed, reality_gap))
     except (EvoError, ValueError) as exc:
         raise HTTPException(422, detail=str(exc)) from None
     return Response(content=body, media_type="application/json")
-
-
-@lru_cache(maxsize=EVALUATION_CACHE)
-def _evaluation(
-    document: str, poses: int, steps: int, maze: str, seed: int, reality_gap: bool
-) -> str:
-    """The report's JSON; pure in its arguments (the stored document text included)."""
-    doc = ControllerDocument.from_json(document)
-    report = explore(
-        doc.spec,
-        doc.weights,
-        poses=poses,
-        steps=steps,
-        maze=maze,
-        seed=seed,
-        reality_gap=reality_gap,
-        world=doc.world,
-    )
-    body = {**report.as_dict(), "sha256": doc.sha256}
-    return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from datetime import UTC, datetime
 from typing import Annotated
@@ -9,7 +10,14 @@ from typing import Annotated
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
 
 from evorobotics.document import controller_sha256
-from schemas.api import GenerationOut, IndividualOut, IndividualsOut, RunOut, RunStatus
+from schemas.api import (
+    GenerationOut,
+    IndividualOut,
+    IndividualsOut,
+    RunCreate,
+    RunOut,
+    RunStatus,
+)
 from schemas.run import RunConfig
 from server import crud
 from server.auth import run_limit_error
@@ -53,6 +61,10 @@ def run_out(run: Run, refused: Mapping[int, str] | None = None) -> RunOut:
         started_at=aware(run.started_at),
         finished_at=aware(run.finished_at),
         error=error,
+        name=run.name,
+        tags=json.loads(run.tags or "[]"),
+        study_id=run.study_id,
+        condition=run.condition,
     )
 
 
@@ -67,10 +79,12 @@ def _run(session: SessionDep, run_id: RunId) -> Run:
 def create_run(
     manager: ManagerDep,
     session: SessionDep,
-    config: Annotated[RunConfig | None, Body()] = None,
+    body: Annotated[RunCreate | None, Body()] = None,
 ) -> RunOut:
-    """Start a run; every config field is optional and defaults to the paper's experiment."""
-    config = config or RunConfig()
+    """Start a run; every config field is optional and defaults to the paper's experiment;
+    `name` and `tags` label it."""
+    body = body or RunCreate()
+    config = body.run_config()
     refused = run_limit_error(
         config,
         max_population_weights=manager.settings.max_population_weights,
@@ -78,7 +92,7 @@ def create_run(
     )
     if refused is not None:
         raise HTTPException(422, refused)
-    run_id = manager.create_run(config)
+    run_id = manager.create_run(config, name=body.name, tags=body.tags)
     return run_out(_run(session, run_id))
 
 
@@ -183,3 +197,10 @@ def resume(manager: ManagerDep, session: SessionDep, run_id: RunId) -> RunOut:
 def cancel(manager: ManagerDep, session: SessionDep, run_id: RunId) -> RunOut:
     """queued, running or paused -> cancelled; its pending jobs are dropped."""
     return _steer(manager, session, run_id, "cancel")
+
+
+@router.delete("/{run_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_run(manager: ManagerDep, run_id: RunId) -> Response:
+    """Delete the run and its generations (cancelled first if live); its controllers stay."""
+    manager.delete_run(run_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -1,0 +1,339 @@
+"""Studies: create their runs, report their status and statistics (docs/studies.md).
+
+A study's runs are ordinary runs (`RunManager.create_study`), so the scheduler serves them
+fairly with every other run. Its statistics are computed on read from the store and kept
+while its runs' states stay the same: a GET while nothing changed costs one query. Summaries
+of a generation whose values did not change are reused, so a GET while runs evolve summarises
+only the new generations.
+
+A completed run's metrics come from its champion: `validation_score`, `roaming` and `stuck`
+from the document's `validation` member, `max_offset` and `coverage` from its exploration
+report at `colony evaluate`'s defaults (`server.evaluation`, the cache that serves
+`GET /api/controllers/{sha}/evaluation`). A report costs about a second of one core, so it is
+computed by one background thread; until then those metrics are None.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import threading
+from collections.abc import Hashable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from evorobotics.errors import EvoError
+from evorobotics.stats import METRICS, Summary, compare, summarize, verdicts
+from schemas.study import ComparisonOut, StudyCreate, StudyOut, StudyRun, StudySummary
+from server import crud
+from server.auth import run_limit_error
+from server.errors import NotFoundError, ServerError
+from server.evaluation import EVALUATIONS, Evaluations, Params
+from server.manager import RunManager
+from server.models import Controller, Generation, Study
+from server.routes.runs import aware
+
+log = logging.getLogger(__name__)
+
+EXPLORATION = Params()
+"""`colony evaluate`'s defaults: 1000 unseen poses x 1000 steps in the paper maze."""
+
+
+class StudyRefusedError(ServerError):
+    """A study body the server will not run: a condition beyond its limits (HTTP 422)."""
+
+    status_code = 422
+
+
+class StudyConflictError(ServerError):
+    """A study of that name exists (its runs' names and tag would be ambiguous; HTTP 409)."""
+
+    status_code = 409
+
+
+@dataclass(frozen=True)
+class _RunState:
+    id: int
+    condition: str
+    seed: int
+    status: str
+    name: str
+    champion: str | None
+
+
+@dataclass
+class _Cached:
+    key: Hashable
+    out: StudyOut
+    summaries: dict[tuple[str, int, str], tuple[tuple[float, ...], Summary]]
+
+
+def _finite(x: Any) -> float | None:
+    return float(x) if isinstance(x, int | float) and math.isfinite(x) else None
+
+
+def _summary_dict(summary: Summary) -> dict[str, Any]:
+    return {k: _finite(v) if isinstance(v, float) else v for k, v in asdict(summary).items()}
+
+
+class StudyService:
+    """Creates, reads, cancels and deletes studies through the run manager."""
+
+    def __init__(self, manager: RunManager, evaluations: Evaluations = EVALUATIONS) -> None:
+        self.manager = manager
+        self.evaluations = evaluations
+        self._lock = threading.Lock()
+        self._cache: dict[int, _Cached] = {}
+        self._queued: set[str] = set()
+        """Documents whose report is queued, being computed, or failed (never retried)."""
+        self._todo: queue.Queue[str] = queue.Queue()
+        self._thread = threading.Thread(target=self._explore, name="study-explore", daemon=True)
+        self._thread.start()
+
+    # lifecycle ---------------------------------------------------------------------------
+
+    def create(self, body: StudyCreate) -> int:
+        """Check every condition against the server's limits, then store the study and queue
+        its runs (condition by condition, seed by seed); its id."""
+        settings = self.manager.settings
+        configs = body.configs()
+        for condition, config in configs.items():
+            refused = run_limit_error(
+                config,
+                max_population_weights=settings.max_population_weights,
+                max_generation_steps=settings.max_generation_steps,
+            )
+            if refused is not None:
+                raise StudyRefusedError(f"conditions.{condition}: {refused}")
+        with self.manager.sessions() as session:
+            taken = session.scalar(select(Study.id).where(Study.name == body.name).limit(1))
+        if taken is not None:
+            raise StudyConflictError(f"study {taken} is named {body.name!r}; pick another name")
+        spec = {
+            "base": body.base.model_dump(mode="json"),
+            "conditions": body.expanded(),
+            "seeds": body.seeds,
+        }
+        runs = [
+            (config.model_copy(update={"seed": seed}), f"{body.name}/{condition}/{seed}", condition)
+            for condition, config in configs.items()
+            for seed in body.seeds
+        ]
+        study_id, _ = self.manager.create_study(name=body.name, spec=json.dumps(spec), runs=runs)
+        return study_id
+
+    def cancel(self, study_id: int) -> StudyOut:
+        self.manager.cancel_study(study_id)
+        return self.get(study_id)
+
+    def delete(self, study_id: int) -> None:
+        self.manager.delete_study(study_id)
+        with self._lock:
+            self._cache.pop(study_id, None)
+
+    # reads --------------------------------------------------------------------------------
+
+    def get(self, study_id: int) -> StudyOut:
+        with self.manager.sessions() as session:
+            study = crud.get_study(session, study_id=study_id)
+            if study is None:
+                raise NotFoundError(f"no study with id {study_id}")
+            return self._out(session, study)
+
+    def all(self) -> list[StudyOut]:
+        """Newest first."""
+        with self.manager.sessions() as session:
+            return [self._out(session, s) for s in crud.list_studies(session)]
+
+    def _out(self, session: Session, study: Study) -> StudyOut:
+        rows = crud.study_runs(session, study_id=study.id)
+        runs = [
+            _RunState(r.id, r.condition or "", r.seed, r.status, r.name or "", r.champion_sha256)
+            for r in rows
+        ]
+        documents = self._documents(session, runs)
+        known = tuple(
+            sorted(s for s, d in documents.items() if self.evaluations.peek(d, EXPLORATION))
+        )
+        progress = tuple((r.id, r.status, r.generation) for r in rows)
+        key = (study.status, study.finished_at, progress, tuple(r.champion for r in runs), known)
+        with self._lock:
+            cached = self._cache.get(study.id)
+        if cached is not None and cached.key == key:
+            return cached.out
+        summaries = cached.summaries if cached is not None else {}
+        out = self._compute(session, study, runs, documents, summaries)
+        with self._lock:
+            self._cache[study.id] = _Cached(key, out, summaries)
+        return out
+
+    def _documents(self, session: Session, runs: Sequence[_RunState]) -> dict[str, str]:
+        """Champion sha256 -> its document text, for the completed runs (one query)."""
+        shas = {r.champion for r in runs if r.champion is not None}
+        if not shas:
+            return {}
+        query = select(Controller.sha256, Controller.document).where(
+            Controller.sha256.in_(sorted(shas))
+        )
+        return {sha: document for sha, document in session.execute(query)}
+
+    def _compute(
+        self,
+        session: Session,
+        study: Study,
+        runs: list[_RunState],
+        documents: dict[str, str],
+        summaries: dict[tuple[str, int, str], tuple[tuple[float, ...], Summary]],
+    ) -> StudyOut:
+        spec = json.loads(study.spec)
+        conditions: dict[str, dict[str, Any]] = spec["conditions"]
+        history: dict[int, list[tuple[int, float, float]]] = {r.id: [] for r in runs}
+        query = (
+            select(Generation.run_id, Generation.generation, Generation.best, Generation.mean)
+            .where(Generation.run_id.in_([r.id for r in runs]))
+            .order_by(Generation.run_id, Generation.generation)
+        )
+        for run_id, g, best, mean in session.execute(query):
+            history[run_id].append((g, best, mean))
+        metrics = {
+            r.id: self._metrics(r, history[r.id], documents)
+            for r in runs
+            if r.status == "completed"
+        }
+        summary = []
+        samples: dict[str, dict[str, list[float]]] = {}
+        for condition in conditions:
+            mine = [r for r in runs if r.condition == condition]
+            finals = {
+                m: [v for r in mine if (v := metrics.get(r.id, {}).get(m)) is not None]
+                for m in METRICS
+            }
+            samples[condition] = {m: values for m, values in finals.items() if values}
+            summary.append(
+                StudySummary(
+                    condition=condition,
+                    runs=len(mine),
+                    completed=sum(r.status == "completed" for r in mine),
+                    generations=self._curves(condition, [history[r.id] for r in mine], summaries),
+                    final={
+                        m: _summary_dict(summarize(values))
+                        for m, values in samples[condition].items()
+                    },
+                )
+            )
+        comparisons = compare(samples)
+        created = aware(study.created_at)
+        if created is None:
+            raise ValueError(f"study {study.id} has no creation time")
+        return StudyOut(
+            id=study.id,
+            name=study.name,
+            status=study.status,
+            created_at=created,
+            finished_at=aware(study.finished_at),
+            base=spec["base"],
+            conditions=conditions,
+            seeds=spec["seeds"],
+            runs=[
+                StudyRun(
+                    run_id=r.id,
+                    condition=r.condition,
+                    seed=r.seed,
+                    status=r.status,
+                    name=r.name,
+                    metrics=metrics.get(r.id, dict.fromkeys(METRICS)),
+                )
+                for r in runs
+            ],
+            summary=summary,
+            comparisons=[
+                ComparisonOut(
+                    a=c.a,
+                    b=c.b,
+                    metric=c.metric,
+                    u=c.u,
+                    p_value=c.p_value,
+                    p_holm=c.p_holm,
+                    a12=c.a12,
+                )
+                for c in comparisons
+            ],
+            verdicts=verdicts(comparisons),
+        )
+
+    def _curves(
+        self,
+        condition: str,
+        histories: list[list[tuple[int, float, float]]],
+        summaries: dict[tuple[str, int, str], tuple[tuple[float, ...], Summary]],
+    ) -> list[dict[str, Any]]:
+        """Per generation: the Summary of best and of mean fitness over the runs that reached
+        it, reused while its values stay the same."""
+        reached = max((len(h) for h in histories), default=0)
+        curves = []
+        for g in range(reached):
+            row: dict[str, Any] = {"generation": g}
+            for column, kind in ((1, "best"), (2, "mean")):
+                values = tuple(h[g][column] for h in histories if len(h) > g)
+                known = summaries.get((condition, g, kind))
+                if known is None or known[0] != values:
+                    known = (values, summarize(values))
+                    summaries[(condition, g, kind)] = known
+                row[kind] = _summary_dict(known[1])
+            curves.append(row)
+        return curves
+
+    def _metrics(
+        self, run: _RunState, history: list[tuple[int, float, float]], documents: dict[str, str]
+    ) -> dict[str, float | None]:
+        """A completed run's final metrics; the exploration's are queued when unknown."""
+        found: dict[str, float | None] = dict.fromkeys(METRICS)
+        if history:
+            found["best_fitness"] = _finite(history[-1][1])
+        document = documents.get(run.champion or "")
+        if document is None:
+            return found
+        validation = json.loads(document).get("validation")
+        if validation is not None:
+            found["validation_score"] = _finite(validation["score"])
+            found["roaming"] = _finite(validation["roaming"])
+            found["stuck"] = _finite(validation["stuck"])
+        report = self.evaluations.peek(document, EXPLORATION)
+        if report is None:
+            self._queue(document)
+        else:
+            exploration = json.loads(report)
+            found["max_offset"] = _finite(exploration["max_offset"][str(EXPLORATION.steps)])
+            found["coverage"] = _finite(exploration["coverage"])
+        return found
+
+    # exploration in the background ------------------------------------------------------
+
+    def _queue(self, document: str) -> None:
+        with self._lock:
+            if document in self._queued:
+                return
+            self._queued.add(document)
+        self._todo.put(document)
+
+    def _explore(self) -> None:
+        """Compute queued reports until the manager stops (a report is the manager's data)."""
+        while True:
+            try:
+                document = self._todo.get(timeout=0.5)
+            except queue.Empty:
+                if not self.manager.alive():
+                    return
+                continue
+            try:
+                self.evaluations.report(document, EXPLORATION)
+            except (EvoError, ValueError) as exc:  # its metrics stay None, as it stays queued
+                log.warning("study champion exploration failed: %s", exc)
+                continue
+            with self._lock:
+                self._queued.discard(document)
