@@ -11,6 +11,7 @@ from colony.evaluate_cli import evaluate_command
 from colony.evolve import evolve_command
 from colony.lab_cli import lab_app
 from colony.server_cli import register as register_server_commands
+from colony.study_cli import study_app
 from colony.worker_cli import worker_command
 
 app = typer.Typer(
@@ -43,6 +44,7 @@ register_agent_commands(app)
 app.command(name="analyze")(analyze_command)
 app.command(name="evaluate")(evaluate_command)
 app.add_typer(lab_app, name="lab")
+app.add_typer(study_app, name="study")
 
 
 def main() -> None:

@@ -186,15 +186,18 @@ def _client(ctx: typer.Context, server: str, token: str | None) -> httpx.Client:
     )
 
 
-def call_server(
+def request(
     ctx: typer.Context,
     server: str,
     token: str | None,
     method: str,
     path: str,
     body: Any = None,
-) -> Any:
-    """One request; the server's error message and exit status 1 on failure."""
+    *,
+    invalid_exit: int = 1,
+) -> httpx.Response:
+    """One request; on failure the server's error message and exit status 1 (`invalid_exit`
+    for a 422)."""
     try:
         with _client(ctx, server, token) as client:
             response = client.request(method, path, json=body)
@@ -207,8 +210,20 @@ def call_server(
         except ValueError:
             detail = response.text
         typer.echo(f"error {response.status_code}: {detail}", err=True)
-        raise typer.Exit(1)
-    return response.json()
+        raise typer.Exit(invalid_exit if response.status_code == 422 else 1)
+    return response
+
+
+def call_server(
+    ctx: typer.Context,
+    server: str,
+    token: str | None,
+    method: str,
+    path: str,
+    body: Any = None,
+) -> Any:
+    """One request's JSON; the server's error message and exit status 1 on failure."""
+    return request(ctx, server, token, method, path, body).json()
 
 
 def _fmt(value: Any) -> str:
@@ -219,19 +234,47 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+def _network(config: dict[str, Any]) -> str:
+    """A preset's name, or a spec's layer sizes."""
+    network = config.get("network")
+    if isinstance(network, dict):
+        return f"spec {network.get('hidden', [])}"
+    return str(network)
+
+
+def _maze(config: dict[str, Any]) -> str:
+    """A maze's name, or "custom" for maze text."""
+    maze = str(config.get("maze"))
+    return "custom" if "\n" in maze else maze
+
+
+def _study(run: dict[str, Any]) -> str:
+    """STUDY_ID/CONDITION of a study's run, "-" otherwise."""
+    if run.get("study_id") is None:
+        return "-"
+    return f"{run['study_id']}/{run.get('condition') or '-'}"
+
+
 def _runs_table(runs: list[dict[str, Any]], title: str) -> Table:
     table = Table(title=title)
-    for column in ("id", "status", "generation", "best", "evaluations", "started", "error"):
+    for column in (
+        "id", "name", "status", "network", "maze", "seed", "strategy", "study", "generation",
+        "best",
+    ):  # fmt: skip
         table.add_column(column)
     for run in runs:
+        config = run["config"]
         table.add_row(
             str(run["id"]),
+            _fmt(run.get("name")),
             run["status"],
+            _network(config),
+            _maze(config),
+            str(run["seed"]),
+            str(config.get("strategy") or "paper-ga"),
+            _study(run),
             f"{run['generation']}/{run['generations']}",
             _fmt(run["best_fitness"]),
-            str(run["evaluations"]),
-            _fmt(run["started_at"]),
-            _fmt(run["error"]),
         )
     return table
 
@@ -372,6 +415,51 @@ def run_show(
     for g in generations:
         table.add_row(str(g["generation"]), _fmt(g["best"]), _fmt(g["mean"]), _fmt(g["worst"]))
     console.print(table)
+
+
+@run_app.command("export")
+def run_export(
+    ctx: typer.Context,
+    run_id: int,
+    out: Annotated[Path, typer.Option("--out", help="directory for the files (created)")],
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+) -> None:
+    """The run's generations and its latest generation's individuals, as CSV and Parquet."""
+    from colony.export import export_run
+
+    run = call_server(ctx, server, token, "GET", f"/api/runs/{run_id}")
+    study = None
+    if run.get("study_id") is not None:
+        study = call_server(ctx, server, token, "GET", f"/api/studies/{run['study_id']}")["name"]
+    try:
+        written = export_run(
+            run, study, lambda path: call_server(ctx, server, token, "GET", path), out
+        )
+    except OSError as exc:
+        typer.echo(f"error: cannot write {out}: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    for path in written:
+        typer.echo(str(path))
+
+
+@run_app.command("best")
+def run_best(
+    ctx: typer.Context,
+    run_id: int,
+    out: Annotated[Path, typer.Option("--out", help="the controller document's file")],
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+) -> None:
+    """Save the run's best controller document (a completed run's validated champion), byte
+    for byte as the server sends it."""
+    response = request(ctx, server, token, "GET", f"/api/runs/{run_id}/best")
+    try:
+        out.write_bytes(response.content)
+    except OSError as exc:
+        typer.echo(f"error: cannot write {out}: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    typer.echo(f"{out}: {response.json()['sha256']}")
 
 
 def _steer(ctx: typer.Context, server: str, token: str | None, run_id: int, action: str) -> None:
