@@ -60,8 +60,9 @@ def condition_config(base: RunConfig, name: str, overrides: dict[str, Any]) -> R
         return RunConfig.model_validate(merge(base.model_dump(mode="json"), overrides))
     except ValidationError as exc:
         error = exc.errors()[0]
-        field = ".".join(str(p) for p in error["loc"]) or "config"
-        raise ValueError(f"{name}: {field}: {error['msg']}") from None
+        message = str(error["msg"]).removeprefix("Value error, ")
+        field = ".".join(str(p) for p in error["loc"])
+        raise ValueError(f"{name}: {field}: {message}" if field else f"{name}: {message}") from None
 
 
 def _label(value: Any) -> str:
