@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -186,6 +187,19 @@ def _client(ctx: typer.Context, server: str, token: str | None) -> httpx.Client:
     )
 
 
+def _checked(response: httpx.Response, invalid_exit: int = 1) -> httpx.Response:
+    """The response, or the server's error message and exit status 1 (`invalid_exit` for a
+    422)."""
+    if response.is_error:
+        try:
+            detail = response.json().get("detail", response.text)
+        except ValueError:
+            detail = response.text
+        typer.echo(f"error {response.status_code}: {detail}", err=True)
+        raise typer.Exit(invalid_exit if response.status_code == 422 else 1)
+    return response
+
+
 def request(
     ctx: typer.Context,
     server: str,
@@ -204,14 +218,23 @@ def request(
     except httpx.HTTPError as exc:
         typer.echo(f"error: cannot reach {server}: {exc}", err=True)
         raise typer.Exit(1) from exc
-    if response.is_error:
-        try:
-            detail = response.json().get("detail", response.text)
-        except ValueError:
-            detail = response.text
-        typer.echo(f"error {response.status_code}: {detail}", err=True)
-        raise typer.Exit(invalid_exit if response.status_code == 422 else 1)
-    return response
+    return _checked(response, invalid_exit)
+
+
+@contextmanager
+def fetching(ctx: typer.Context, server: str, token: str | None) -> Iterator[Callable[[str], Any]]:
+    """GET path -> JSON over one connection (exports make many requests); failures exit 1."""
+    with _client(ctx, server, token) as client:
+
+        def fetch(path: str) -> Any:
+            try:
+                response = client.get(path)
+            except httpx.HTTPError as exc:
+                typer.echo(f"error: cannot reach {server}: {exc}", err=True)
+                raise typer.Exit(1) from exc
+            return _checked(response).json()
+
+        yield fetch
 
 
 def call_server(
@@ -433,9 +456,8 @@ def run_export(
     if run.get("study_id") is not None:
         study = call_server(ctx, server, token, "GET", f"/api/studies/{run['study_id']}")["name"]
     try:
-        written = export_run(
-            run, study, lambda path: call_server(ctx, server, token, "GET", path), out
-        )
+        with fetching(ctx, server, token) as fetch:
+            written = export_run(run, study, fetch, out)
     except OSError as exc:
         typer.echo(f"error: cannot write {out}: {exc}", err=True)
         raise typer.Exit(1) from exc

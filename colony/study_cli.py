@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
@@ -22,11 +23,15 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedCo
 from rich.table import Table
 
 from colony.export import METRIC_ORDER, export_study
-from colony.server_cli import DEFAULT_SERVER, FINAL, JsonOpt, ServerOpt, TokenOpt, request
+from colony.server_cli import DEFAULT_SERVER, FINAL, JsonOpt, ServerOpt, TokenOpt, fetching, request
 from schemas.study import StudyCreate
 
 STUDY_POLL_S = 0.5
 """A study's view carries every run and its statistics: poll it gently."""
+EXPLORATION = ("max_offset", "coverage")
+"""Final metrics the server computes in the background after a run completes."""
+EXPLORE_STALL_S = 60.0
+"""--follow stops waiting for exploration figures when none has arrived for this long."""
 
 study_app = typer.Typer(
     help="Studies: many runs over conditions and seeds, compared with statistics.",
@@ -189,11 +194,23 @@ def _print_study(study: dict[str, Any]) -> None:
         console.print(line, highlight=False)
 
 
+def _unexplored(study: dict[str, Any]) -> int:
+    """Completed runs whose champion's exploration figures the server has not computed yet."""
+    return sum(
+        r["status"] == "completed" and any(r["metrics"].get(m) is None for m in EXPLORATION)
+        for r in study["runs"]
+    )
+
+
 def follow_study(
     ctx: typer.Context, server: str, token: str | None, study_id: int, console: Console
 ) -> dict[str, Any]:
-    """A progress bar of finished runs until the study is no longer running; its StudyOut."""
+    """A progress bar of finished runs until the study is no longer running, then of the
+    champions' exploration reports (the server computes them after the runs) until they are
+    known or none arrives for EXPLORE_STALL_S; its StudyOut."""
     tick = threading.Event()
+    stalled_at: float | None = None
+    pending = -1
     with Progress(
         "[progress.description]{task.description}",
         BarColumn(),
@@ -204,9 +221,22 @@ def follow_study(
         task = bar.add_task(f"study {study_id}", total=None)
         while True:
             study: dict[str, Any] = _request(ctx, server, token, "GET", f"/api/studies/{study_id}")
-            bar.update(task, total=len(study["runs"]), completed=_done(study))
-            if study["status"] != "running":
-                return study
+            if study["status"] == "running":
+                bar.update(task, total=len(study["runs"]), completed=_done(study))
+            else:
+                left = _unexplored(study)
+                completed = sum(r["status"] == "completed" for r in study["runs"])
+                bar.update(
+                    task,
+                    description=f"study {study_id} exploration",
+                    total=completed,
+                    completed=completed - left,
+                )
+                now = time.monotonic()
+                if left != pending:
+                    pending, stalled_at = left, now
+                if left == 0 or (stalled_at is not None and now - stalled_at > EXPLORE_STALL_S):
+                    return study
             tick.wait(STUDY_POLL_S)
 
 
@@ -333,7 +363,8 @@ def study_export(
     the figures fitness.png and metrics.png."""
     study = _request(ctx, server, token, "GET", f"/api/studies/{study_id}")
     try:
-        written = export_study(study, lambda path: _request(ctx, server, token, "GET", path), out)
+        with fetching(ctx, server, token) as fetch:
+            written = export_study(study, fetch, out)
     except OSError as exc:
         typer.echo(f"error: cannot write {out}: {exc}", err=True)
         raise typer.Exit(1) from exc

@@ -132,6 +132,8 @@ def test_export_writes_every_file_parquet_equal_to_csv(
     assert sorted((r["condition"], r["seed"]) for r in tables["champions"]) == [
         (c, s) for c in CONDITIONS for s in (0, 1)
     ]
+    for champion in tables["champions"]:  # --follow waited for the exploration figures too
+        assert None not in (champion["max_offset"], champion["coverage"]), champion
     assert {r["condition"] for r in tables["summary"]} == set(CONDITIONS)
     assert len(tables["comparisons"]) == len(study["comparisons"])
     for png in ("fitness.png", "metrics.png"):
