@@ -186,3 +186,71 @@ def test_with_a_token_the_page_steers_only_once_the_token_is_entered(
             page.wait_for_selector("[data-testid=run-status]:text-is('paused')")
             assert client.get(f"/api/runs/{run_id}").json()["status"] == "paused"
             client.post(f"/api/runs/{run_id}/cancel")
+
+
+STUDY = {
+    "name": "browser-study",
+    "base": {
+        "population": 8,
+        "generations": 12,
+        "steps": 20,
+        "trials": 1,
+        "job_size": 4,
+        "validation": {"poses": 3, "steps": 60, "candidates": 3},
+    },
+    "conditions": {"delays": {"network": "paper-best"}, "reactive": {"network": "reactive"}},
+    "seeds": [1, 2, 3],
+}
+"""Six short runs (a few seconds in all): two conditions with three seeds give comparisons."""
+
+
+def test_studies_page_drills_into_a_run_and_runs_overlay(
+    served: Served, page: Any, shots: Path
+) -> None:
+    with httpx.Client(base_url=served.url, timeout=30) as client:
+        reply = client.post("/api/studies", json=STUDY)
+        assert reply.status_code == 201, reply.text
+        study_id = reply.json()["id"]
+        assert eventually(
+            lambda: client.get(f"/api/studies/{study_id}").json()["status"] == "completed", 120
+        )
+        study = client.get(f"/api/studies/{study_id}").json()
+    assert study["comparisons"] and study["verdicts"]
+
+    page.goto(f"{served.url}/#studies")
+    row = page.locator(f'#studies-table tr[data-study="{study_id}"]')
+    row.filter(has_text="6 / 6").wait_for()  # name, status, runs done / total
+    assert "browser-study" in row.inner_text() and "completed" in row.inner_text()
+    row.click()
+    page.wait_for_selector('#study-curve[data-series="2"] canvas')
+    points = int(page.get_attribute("#study-curve", "data-points"))
+    assert points == len(study["summary"][0]["generations"]) == 12
+    table = page.locator("#comparisons-table tbody tr")
+    assert table.count() == len(study["comparisons"])
+    first = study["comparisons"][0]
+    assert table.first.inner_text().split("\t")[:3] == [first["a"], first["b"], first["metric"]]
+    page.locator("#verdicts li").filter(has_text=study["verdicts"][0]).wait_for()
+    page.screenshot(path=str(shots / "dashboard-studies.png"), full_page=True)
+
+    run = study["runs"][-1]
+    page.click(f'#study-runs-table tr[data-run="{run["run_id"]}"]')  # drill down to the run
+    page.wait_for_selector(f"#run-title:text-is('Run {run['run_id']}: {run['name']}')")
+    assert page.evaluate("location.hash") == "#runs"
+    page.wait_for_function("Number(document.querySelector('#curve').dataset.points) == 12")
+    cells = page.locator(f'#runs-table tr[data-run="{run["run_id"]}"] td').all_inner_texts()
+    assert cells[2:7] == [
+        run["name"],
+        "reactive",
+        "paper",
+        str(run["seed"]),
+        f"browser-study / {run['condition']}",
+    ]
+
+    a, b = study["runs"][0]["run_id"], study["runs"][3]["run_id"]  # one of each condition
+    assert page.is_disabled("[data-testid=overlay]")
+    page.check(f"[data-testid=check-{a}]")
+    page.check(f"[data-testid=check-{b}]")
+    page.click("[data-testid=overlay]")
+    page.wait_for_selector('#overlay-curve[data-series="2"] canvas')
+    legend = page.locator("#overlay-curve .u-legend").inner_text()
+    assert f"{a} browser-study/" in legend and f"{b} browser-study/" in legend

@@ -11,7 +11,21 @@ const state = {
   cards: new Map(), // robot id -> card elements
   figuresFor: null, // "run:generation" the figures were last asked for
   validationFor: null, // id of the completed run whose champion's validation is shown
+  checked: new Set(), // run ids whose best-fitness curves the overlay shows
+  overlay: null, // uPlot of the checked runs
+  studies: new Map(), // id -> StudyOut
+  study: null, // id of the study shown
+  studyChart: null, // uPlot of its conditions' curves
+  studyKey: null, // its conditions, "\n"-joined: the chart is rebuilt when they change
+  studiesTimer: null,
 };
+
+// Colours of the overlaid curves (a condition or a run each), cycled.
+const PALETTE = ["#1f5fbf", "#b3261e", "#1e7d3a", "#b26b00", "#6a3fb5", "#00838f", "#5d4037", "#c2185b"];
+function alpha(hex, a) {
+  const n = parseInt(hex.slice(1), 16);
+  return `rgba(${(n >> 16) & 255}, ${(n >> 8) & 255}, ${n & 255}, ${a})`;
+}
 
 const $ = (selector, root = document) => root.querySelector(selector);
 
@@ -63,7 +77,7 @@ function ago(seconds) {
 // ---- tabs ----------------------------------------------------------------------------------
 
 function showTab() {
-  const tab = (location.hash || "#runs").slice(1);
+  const [tab, arg] = (location.hash || "#runs").slice(1).split("/");
   for (const section of document.querySelectorAll(".tab")) {
     section.hidden = section.id !== `tab-${tab}`;
   }
@@ -71,6 +85,14 @@ function showTab() {
     link.classList.toggle("active", link.dataset.tab === tab);
   }
   if (tab === "runs") resizeChart();
+  clearInterval(state.studiesTimer);
+  state.studiesTimer = null;
+  if (tab === "studies") {
+    const id = Number(arg);
+    if (Number.isInteger(id) && id > 0) state.study = id;
+    loadStudies();
+    state.studiesTimer = setInterval(loadStudies, STUDIES_POLL_MS);
+  }
 }
 
 // ---- event stream --------------------------------------------------------------------------
@@ -113,15 +135,40 @@ function onRun(run) {
   for (const card of state.cards.values()) fillRunChoices(card.runSelect);
 }
 
+const networkName = (c) => (typeof c.network === "string" ? c.network : "custom");
+const mazeName = (c) => (c.maze.includes("\n") ? "custom" : c.maze);
+
+function studyLabel(run) {
+  if (run.study_id === null || run.study_id === undefined) return "";
+  const study = state.studies.get(run.study_id);
+  return `${study ? study.name : `#${run.study_id}`}${run.condition ? ` / ${run.condition}` : ""}`;
+}
+
 function renderRunsTable() {
   const body = $("#runs-table tbody");
   const runs = [...state.runs.values()].sort((a, b) => b.id - a.id);
   body.replaceChildren(
     ...runs.map((run) => {
+      const box = el("input", {
+        type: "checkbox", "aria-label": `overlay run ${run.id}`, "data-testid": `check-${run.id}`,
+      });
+      box.checked = state.checked.has(run.id);
+      box.addEventListener("click", (e) => e.stopPropagation());
+      box.addEventListener("change", () => {
+        if (box.checked) state.checked.add(run.id);
+        else state.checked.delete(run.id);
+        renderOverlayBar();
+      });
       const row = el(
         "tr",
         { "data-run": run.id },
+        el("td", {}, box),
         el("td", { text: run.id }),
+        el("td", { class: "name", text: run.name || "", title: run.name || "" }),
+        el("td", { text: networkName(run.config) }),
+        el("td", { text: mazeName(run.config) }),
+        el("td", { text: run.seed }),
+        el("td", { text: studyLabel(run) }),
         el("td", {}, el("span", { class: `status ${run.status}`, text: run.status })),
         el("td", { text: `${run.generation} / ${run.generations}` }),
         el("td", { text: fmt(run.best_fitness) }),
@@ -153,14 +200,13 @@ function renderRunDetail() {
   $("#run-body").hidden = !run;
   if (!run) return;
   const c = run.config;
-  $("#run-title").textContent = `Run ${run.id}`;
+  $("#run-title").textContent = run.name ? `Run ${run.id}: ${run.name}` : `Run ${run.id}`;
   const status = $("#run-status");
   status.textContent = run.status;
   status.className = `status ${run.status}`;
   $("#run-meta").textContent =
     `seed ${run.seed} · population ${c.population} · ${c.trials} trials × ${c.steps} steps · ` +
-    `network ${typeof c.network === "string" ? c.network : "custom"} · ` +
-    `maze ${c.maze.includes("\n") ? "custom" : c.maze} · generation ${run.generation}/` +
+    `network ${networkName(c)} · maze ${mazeName(c)} · generation ${run.generation}/` +
     `${run.generations} · ${run.evaluations} evaluations · ` +
     `training fitness ${fmt(run.best_fitness)} (rank 0)`;
   const error = $("#run-error");
@@ -171,7 +217,7 @@ function renderRunDetail() {
     resume: ["paused"],
     cancel: ["queued", "running", "paused"],
   };
-  for (const button of document.querySelectorAll(".controls button")) {
+  for (const button of document.querySelectorAll("#run-body .controls button")) {
     button.disabled = !allowed[button.dataset.action].includes(run.status);
   }
   refreshFigures(run);
@@ -272,6 +318,242 @@ function updateChart() {
 function resizeChart() {
   const width = $("#curve").clientWidth;
   if (state.chart && width > 0) state.chart.setSize({ width, height: 300 });
+}
+
+// ---- overlay of several runs ----------------------------------------------------------------
+
+function renderOverlayBar() {
+  const n = state.checked.size;
+  const button = $("#overlay-button");
+  button.disabled = n < 2;
+  button.textContent = n < 2 ? "Overlay checked runs" : `Overlay ${n} runs`;
+}
+
+async function showOverlay() {
+  const ids = [...state.checked].sort((a, b) => a - b);
+  const message = $("#overlay-message");
+  message.textContent = "loading…";
+  try {
+    const rows = await Promise.all(ids.map((id) => api("GET", `/api/runs/${id}/generations`)));
+    const curves = rows.map((gens) => new Map(gens.map((g) => [g.generation, g.best])));
+    const series = ids.map((id, i) => {
+      const run = state.runs.get(id);
+      return { label: run && run.name ? `${id} ${run.name}` : `run ${id}`, stroke: PALETTE[i % PALETTE.length], width: 2 };
+    });
+    const target = $("#overlay-curve");
+    $("#overlay-panel").hidden = false;
+    if (state.overlay) state.overlay.destroy();
+    state.overlay = new uPlot(
+      {
+        width: Math.max(300, target.clientWidth || 800),
+        height: 300,
+        scales: { x: { time: false } },
+        axes: [{ label: "generation" }, { label: "best fitness" }],
+        series: [{ label: "generation" }, ...series],
+      },
+      aligned(curves),
+      target,
+    );
+    target.dataset.series = String(ids.length);
+    message.textContent = "";
+  } catch (err) {
+    message.textContent = err.message;
+  }
+}
+
+// uPlot data from several curves (Map x -> y): their x values joined, null where one has none.
+function aligned(curves) {
+  const xs = [...new Set(curves.flatMap((c) => [...c.keys()]))].sort((a, b) => a - b);
+  return [xs, ...curves.map((c) => xs.map((x) => (c.has(x) ? c.get(x) : null)))];
+}
+
+// ---- studies -------------------------------------------------------------------------------
+
+const STUDIES_POLL_MS = 2000; // while the Studies page is open; studies change at run pace
+
+async function loadStudies() {
+  try {
+    const studies = await api("GET", "/api/studies");
+    state.studies = new Map(studies.map((s) => [s.id, s]));
+  } catch {
+    return; // the next tick asks again (the token may be missing)
+  }
+  renderStudiesTable();
+  renderStudy();
+  renderRunsTable(); // study names in the runs' study column
+}
+
+const doneRuns = (study) =>
+  study.runs.filter((r) => ["completed", "failed", "cancelled"].includes(r.status)).length;
+
+function renderStudiesTable() {
+  $("#studies-empty").hidden = state.studies.size > 0;
+  $("#studies-table tbody").replaceChildren(
+    ...[...state.studies.values()].map((study) => {
+      const row = el(
+        "tr",
+        { "data-study": study.id },
+        el("td", { text: study.id }),
+        el("td", { text: study.name }),
+        el("td", {}, el("span", { class: `status ${study.status}`, text: study.status })),
+        el("td", { text: `${doneRuns(study)} / ${study.runs.length}` }),
+      );
+      if (study.id === state.study) row.classList.add("selected");
+      row.addEventListener("click", () => {
+        location.hash = `#studies/${study.id}`;
+      });
+      return row;
+    }),
+  );
+}
+
+function renderStudy() {
+  const study = state.studies.get(state.study);
+  $("#study-empty").hidden = Boolean(study);
+  $("#study-body").hidden = !study;
+  if (!study) return;
+  $("#study-title").textContent = `Study ${study.id}: ${study.name}`;
+  const status = $("#study-status");
+  status.textContent = study.status;
+  status.className = `status ${study.status}`;
+  $("#study-cancel").disabled = study.status !== "running";
+  const conditions = study.summary.map((s) => s.condition);
+  $("#study-meta").textContent =
+    `${conditions.length} condition${conditions.length === 1 ? "" : "s"} (${conditions.join(", ")}) · ` +
+    `${study.seeds.length} seed${study.seeds.length === 1 ? "" : "s"} · ` +
+    `runs done ${doneRuns(study)} / ${study.runs.length} · created ${new Date(study.created_at).toLocaleString()}`;
+  renderStudyCurve(study);
+  $("#verdicts").replaceChildren(...study.verdicts.map((v) => el("li", { text: v })));
+  renderFinal(study);
+  $("#comparisons-table tbody").replaceChildren(
+    ...study.comparisons.map((c) =>
+      el(
+        "tr",
+        {},
+        el("td", { text: c.a }),
+        el("td", { text: c.b }),
+        el("td", { text: c.metric }),
+        el("td", { text: pValue(c.p_holm), class: c.p_holm < 0.05 ? "significant" : "" }),
+        el("td", { text: fmt(c.a12, 2) }),
+      ),
+    ),
+  );
+  $("#study-runs-table tbody").replaceChildren(
+    ...study.runs.map((r) => {
+      const row = el(
+        "tr",
+        { "data-run": r.run_id },
+        el("td", { text: r.run_id }),
+        el("td", { text: r.condition }),
+        el("td", { text: r.seed }),
+        el("td", {}, el("span", { class: `status ${r.status}`, text: r.status })),
+        el("td", { text: fmt(r.metrics.best_fitness) }),
+        el("td", { text: fmt(r.metrics.validation_score) }),
+        el("td", { text: r.metrics.roaming === null || r.metrics.roaming === undefined ? "–" : `${fmt(100 * r.metrics.roaming, 0)} %` }),
+      );
+      row.addEventListener("click", () => openRun(r.run_id));
+      return row;
+    }),
+  );
+}
+
+const pValue = (p) => (p === null || p === undefined ? "–" : p < 0.001 ? Number(p).toExponential(1) : fmt(p, 3));
+
+function renderFinal(study) {
+  const metrics = [...new Set(study.summary.flatMap((s) => Object.keys(s.final)))];
+  $("#final-table thead tr").replaceChildren(
+    el("th", { text: "condition" }), el("th", { text: "completed" }),
+    ...metrics.map((m) => el("th", { text: m })),
+  );
+  $("#final-table tbody").replaceChildren(
+    ...study.summary.map((s) =>
+      el(
+        "tr",
+        {},
+        el("td", { text: s.condition }),
+        el("td", { text: `${s.completed} / ${s.runs}` }),
+        ...metrics.map((m) => {
+          const v = s.final[m];
+          return el("td", { text: v ? `${fmt(v.median)} [${fmt(v.ci_low)}, ${fmt(v.ci_high)}]` : "–" });
+        }),
+      ),
+    ),
+  );
+}
+
+// Per condition three series (median, CI low, CI high) and a band between the last two.
+function renderStudyCurve(study) {
+  const target = $("#study-curve");
+  const summaries = study.summary;
+  const curves = summaries.flatMap((s) => {
+    const at = (key) => new Map(s.generations.map((g) => [g.generation, g.best[key]]));
+    return [at("median"), at("ci_low"), at("ci_high")];
+  });
+  const data = aligned(curves);
+  const key = `${study.id}\n${summaries.map((s) => s.condition).join("\n")}`;
+  if (state.studyChart && state.studyKey === key) {
+    state.studyChart.setData(data);
+  } else {
+    if (state.studyChart) state.studyChart.destroy();
+    state.studyKey = key;
+    const series = [{ label: "generation" }];
+    const bands = [];
+    summaries.forEach((s, i) => {
+      const color = PALETTE[i % PALETTE.length];
+      const first = series.length;
+      series.push(
+        { label: s.condition, stroke: color, width: 2 },
+        { label: `${s.condition} CI low`, stroke: alpha(color, 0.35), width: 1 },
+        { label: `${s.condition} CI high`, stroke: alpha(color, 0.35), width: 1 },
+      );
+      bands.push({ series: [first + 2, first + 1], fill: alpha(color, 0.15) });
+    });
+    state.studyChart = new uPlot(
+      {
+        width: Math.max(300, target.clientWidth || 800),
+        height: 320,
+        scales: { x: { time: false } },
+        axes: [{ label: "generation" }, { label: "best fitness (Eq 12)" }],
+        series,
+        bands,
+        legend: { live: false },
+      },
+      data,
+      target,
+    );
+    // The legend names each condition once: its median's entry (the band's are hidden).
+    const entries = state.studyChart.root.querySelectorAll(".u-legend .u-series");
+    const skipped = series.length - entries.length; // a legend that is not live omits x
+    entries.forEach((entry, i) => {
+      const index = i + skipped;
+      entry.hidden = index === 0 || (index - 1) % 3 !== 0;
+    });
+  }
+  target.dataset.series = String(summaries.length);
+  target.dataset.points = String(data[0].length);
+}
+
+async function openRun(id) {
+  // A study's run may be older than the newest 100 the stream follows: ask for it.
+  try {
+    onRun(await api("GET", `/api/runs/${id}`));
+  } catch {
+    // the stream brings it if it can
+  }
+  location.hash = "#runs";
+  selectRun(id);
+}
+
+async function cancelStudy() {
+  if (state.study === null) return;
+  try {
+    const study = await api("POST", `/api/studies/${state.study}/cancel`);
+    state.studies.set(study.id, study);
+    renderStudiesTable();
+    renderStudy();
+  } catch (err) {
+    $("#study-meta").textContent = `cancel: ${err.message}`;
+  }
 }
 
 // ---- colony --------------------------------------------------------------------------------
@@ -442,10 +724,15 @@ async function startRun(event) {
 
 function main() {
   makeChart();
-  for (const button of document.querySelectorAll(".controls button")) {
+  for (const button of document.querySelectorAll("#run-body .controls button")) {
     button.addEventListener("click", () => steer(button.dataset.action));
   }
   $("#new-run").addEventListener("submit", startRun);
+  $("#overlay-button").addEventListener("click", showOverlay);
+  $("#overlay-close").addEventListener("click", () => {
+    $("#overlay-panel").hidden = true;
+  });
+  $("#study-cancel").addEventListener("click", cancelStudy);
   window.addEventListener("hashchange", showTab);
   window.addEventListener("resize", resizeChart);
   showTab();
