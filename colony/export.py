@@ -276,11 +276,12 @@ def fitness_plot(summary: Sequence[Row], path: Path) -> None:
             alpha=0.2,
             linewidth=0,
         )
+    ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_xlabel("generation")
     ax.set_ylabel("best fitness (Eq 12), median and 95 % CI")
     ax.set_title("training performance per condition")
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="lower right")
+        ax.legend(loc="best")
     else:
         ax.text(0.5, 0.5, "no generation yet", ha="center", va="center", transform=ax.transAxes)
     ax.grid(alpha=0.3)
