@@ -280,11 +280,11 @@ def _study(run: dict[str, Any]) -> str:
 
 def _runs_table(runs: list[dict[str, Any]], title: str) -> Table:
     table = Table(title=title)
-    for column in (
-        "id", "name", "status", "network", "maze", "seed", "strategy", "study", "generation",
-        "best",
-    ):  # fmt: skip
-        table.add_column(column)
+    for column in ("id", "name", "status", "network", "maze", "seed", "strategy", "study"):
+        # on a narrow terminal the long texts fold; the status and numbers stay whole
+        table.add_column(column, no_wrap=column in ("id", "status", "seed"), overflow="fold")
+    table.add_column("generation", no_wrap=True)
+    table.add_column("best", no_wrap=True)
     for run in runs:
         config = run["config"]
         table.add_row(
