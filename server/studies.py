@@ -20,6 +20,7 @@ import logging
 import math
 import queue
 import threading
+import time
 from collections.abc import Hashable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -40,6 +41,12 @@ from server.routes.runs import aware
 
 log = logging.getLogger(__name__)
 
+CURVE_POINTS = 64
+"""Generations per condition's fitness curve: enough for a plot, few enough bootstraps that
+a GET of a 60-run paper study stays fast."""
+CURVES_REFRESH_S = 5.0
+"""While a study runs, its fitness curves are recomputed at most this often (every run's new
+generations change most points); its status, runs and final statistics are always current."""
 EXPLORATION = Params()
 """`colony evaluate`'s defaults: 1000 unseen poses x 1000 steps in the paper maze."""
 
@@ -56,6 +63,20 @@ class StudyConflictError(ServerError):
     status_code = 409
 
 
+_Summaries = dict[tuple[str, str], tuple[tuple[float, ...], Summary]]
+"""(condition, what) -> the values last summarised and their Summary."""
+
+
+def _summarize(known: _Summaries, key: tuple[str, str], values: tuple[float, ...]) -> Summary:
+    """`summarize(values)`, reused while the values stay the same (a bootstrap costs
+    milliseconds, mostly scipy's overhead, and a study has hundreds)."""
+    found = known.get(key)
+    if found is None or found[0] != values:
+        found = (values, summarize(values))
+        known[key] = found
+    return found[1]
+
+
 @dataclass(frozen=True)
 class _RunState:
     id: int
@@ -70,7 +91,9 @@ class _RunState:
 class _Cached:
     key: Hashable
     out: StudyOut
-    summaries: dict[tuple[str, int, str], tuple[tuple[float, ...], Summary]]
+    summaries: _Summaries
+    curves_at: float
+    """When its fitness curves were computed (time.monotonic)."""
 
 
 def _finite(x: Any) -> float | None:
@@ -166,10 +189,16 @@ class StudyService:
             cached = self._cache.get(study.id)
         if cached is not None and cached.key == key:
             return cached.out
+        now = time.monotonic()
         summaries = cached.summaries if cached is not None else {}
-        out = self._compute(session, study, runs, documents, summaries)
+        curves = None
+        fresh = cached is not None and now - cached.curves_at < CURVES_REFRESH_S
+        if cached is not None and fresh and study.status == "running":
+            curves = {s.condition: s.generations for s in cached.out.summary}
+        out = self._compute(session, study, runs, documents, summaries, curves)
         with self._lock:
-            self._cache[study.id] = _Cached(key, out, summaries)
+            at = now if curves is None or cached is None else cached.curves_at
+            self._cache[study.id] = _Cached(key, out, summaries, at)
         return out
 
     def _documents(self, session: Session, runs: Sequence[_RunState]) -> dict[str, str]:
@@ -188,8 +217,11 @@ class StudyService:
         study: Study,
         runs: list[_RunState],
         documents: dict[str, str],
-        summaries: dict[tuple[str, int, str], tuple[tuple[float, ...], Summary]],
+        summaries: _Summaries,
+        curves: dict[str, list[dict[str, Any]]] | None = None,
     ) -> StudyOut:
+        """The study from its runs' state; `curves` (condition -> generations) are reused
+        instead of computed when given."""
         spec = json.loads(study.spec)
         conditions: dict[str, dict[str, Any]] = spec["conditions"]
         history: dict[int, list[tuple[int, float, float]]] = {r.id: [] for r in runs}
@@ -219,9 +251,11 @@ class StudyService:
                     condition=condition,
                     runs=len(mine),
                     completed=sum(r.status == "completed" for r in mine),
-                    generations=self._curves(condition, [history[r.id] for r in mine], summaries),
+                    generations=curves[condition]
+                    if curves is not None and condition in curves
+                    else self._curves(condition, [history[r.id] for r in mine], summaries),
                     final={
-                        m: _summary_dict(summarize(values))
+                        m: _summary_dict(_summarize(summaries, (condition, m), tuple(values)))
                         for m, values in samples[condition].items()
                     },
                 )
@@ -267,24 +301,19 @@ class StudyService:
         )
 
     def _curves(
-        self,
-        condition: str,
-        histories: list[list[tuple[int, float, float]]],
-        summaries: dict[tuple[str, int, str], tuple[tuple[float, ...], Summary]],
+        self, condition: str, histories: list[list[tuple[int, float, float]]], known: _Summaries
     ) -> list[dict[str, Any]]:
-        """Per generation: the Summary of best and of mean fitness over the runs that reached
-        it, reused while its values stay the same."""
+        """At most about CURVE_POINTS evenly spaced generations (the first and the last
+        included): the Summary of best and of mean fitness over the runs that reached each."""
         reached = max((len(h) for h in histories), default=0)
+        stride = max(1, math.ceil(reached / CURVE_POINTS))
+        points = sorted({*range(0, reached, stride), reached - 1} - {-1})
         curves = []
-        for g in range(reached):
+        for g in points:
             row: dict[str, Any] = {"generation": g}
             for column, kind in ((1, "best"), (2, "mean")):
                 values = tuple(h[g][column] for h in histories if len(h) > g)
-                known = summaries.get((condition, g, kind))
-                if known is None or known[0] != values:
-                    known = (values, summarize(values))
-                    summaries[(condition, g, kind)] = known
-                row[kind] = _summary_dict(known[1])
+                row[kind] = _summary_dict(_summarize(known, (condition, f"{kind}@{g}"), values))
             curves.append(row)
         return curves
 
