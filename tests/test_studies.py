@@ -5,16 +5,18 @@ champion bit-identical to `colony evolve`'s."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 
 from evorobotics.evolution import evolve
 from evorobotics.stats import METRICS
 from schemas.run import RunConfig
 from server.settings import Settings
-from tests.helpers import eventually, free_port, serving
+from tests.helpers import eventually, free_port, serving, worker_thread
 
 TINY: dict[str, Any] = {
     "population": 6,
@@ -249,3 +251,36 @@ def test_runs_take_a_name_and_tags_and_are_deleted(url: str) -> None:
         best = client.get(f"/api/runs/{plain['id']}/best").json()["sha256"]
         assert client.delete(f"/api/runs/{plain['id']}").status_code == 204
         assert client.get(f"/api/controllers/{best}").status_code == 200  # controllers stay
+
+
+def broken(
+    config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    raise RuntimeError("simulated evaluator crash")
+
+
+def test_a_study_whose_runs_fail_ends_failed(tmp_path: Path) -> None:
+    """Every evaluation fails on a zenoh worker: the runs fail, and the study with them."""
+    zport = free_port()
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{zport}"],
+        workers=0,
+        executors=0,
+        max_attempts=1,
+    )
+    with (
+        serving(settings) as (base, _),
+        httpx.Client(base_url=base, timeout=60) as client,
+        worker_thread(zport, "crashy", broken),
+    ):
+        study = client.post(
+            "/api/studies", json={"name": "crashing", "base": TINY, "seeds": [1, 2]}
+        ).json()
+        assert eventually(lambda: study_status(client, study["id"], "failed"), 60)
+        failed = client.get(f"/api/studies/{study['id']}").json()
+    assert {r["status"] for r in failed["runs"]} == {"failed"}
+    assert failed["finished_at"] is not None
+    assert [s["completed"] for s in failed["summary"]] == [0]
+    assert failed["comparisons"] == [] and failed["verdicts"] == []
