@@ -1,4 +1,5 @@
-"""Annotated dependencies of the routes: the manager, a read session, the worker table."""
+"""Annotated dependencies of the routes: the manager, a read session, the worker table, the
+study service."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from sqlalchemy.orm import Session
 
 from schemas.api import WorkerOut
 from server.manager import RunManager
+from server.studies import StudyService
 
 
 def get_manager(request: Request) -> RunManager:
@@ -48,3 +50,15 @@ def get_workers(request: Request) -> list[WorkerOut]:
 
 
 WorkersDep = Annotated[list[WorkerOut], Depends(get_workers)]
+
+
+def get_studies(request: Request, manager: ManagerDep) -> StudyService:
+    """The app's study service, made on first use for the app's manager."""
+    service: StudyService | None = getattr(request.app.state, "studies", None)
+    if service is None or service.manager is not manager:
+        service = StudyService(manager)
+        request.app.state.studies = service
+    return service
+
+
+StudiesDep = Annotated[StudyService, Depends(get_studies)]

@@ -36,8 +36,7 @@ from server.auth import run_limit_error
 from server.errors import NotFoundError, ServerError
 from server.evaluation import EVALUATIONS, Evaluations, Params
 from server.manager import RunManager
-from server.models import Controller, Generation, Study
-from server.routes.runs import aware
+from server.models import Controller, Generation, Study, aware
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
@@ -22,19 +21,12 @@ from schemas.run import RunConfig
 from server import crud
 from server.auth import run_limit_error
 from server.deps import ManagerDep, SessionDep
-from server.models import Run
+from server.models import Run, aware
 
 RunId = Annotated[int, Path(ge=0, le=2**63 - 1, description="a run id (64-bit)")]
 """Bounded so an id beyond the database's integers is a 422, not an overflow."""
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
-
-
-def aware(moment: datetime | None) -> datetime | None:
-    """SQLite drops the zone of stored UTC times; put it back."""
-    if moment is None or moment.tzinfo is not None:
-        return moment
-    return moment.replace(tzinfo=UTC)
 
 
 def run_out(run: Run, refused: Mapping[int, str] | None = None) -> RunOut:

@@ -4,27 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Request, Response, status
+from fastapi import APIRouter, Path, Response, status
 
 from schemas.study import StudyCreate, StudyOut
-from server.deps import ManagerDep
-from server.studies import StudyService
+from server.deps import StudiesDep
 
 router = APIRouter(prefix="/api/studies", tags=["studies"])
 
 StudyId = Annotated[int, Path(ge=0, le=2**63 - 1, description="a study id (64-bit)")]
-
-
-def get_studies(request: Request, manager: ManagerDep) -> StudyService:
-    """The app's study service, made on first use for the app's manager."""
-    service: StudyService | None = getattr(request.app.state, "studies", None)
-    if service is None or service.manager is not manager:
-        service = StudyService(manager)
-        request.app.state.studies = service
-    return service
-
-
-StudiesDep = Annotated[StudyService, Depends(get_studies)]
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=StudyOut)
