@@ -6,9 +6,10 @@ while its runs' states stay the same: a GET while nothing changed costs one quer
 of a generation whose values did not change are reused, so a GET while runs evolve summarises
 only the new generations.
 
-A completed run's metrics come from its champion: `validation_score`, `roaming` and `stuck`
-from the document's `validation` member, `max_offset` and `coverage` from its exploration
-report at `colony evaluate`'s defaults (`server.evaluation`, the cache that serves
+A completed run's metrics come from its champion: `validation_score` from the document's
+`validation` member; `roaming`, `stuck` (by the report's horizon), `max_offset` and `coverage`
+from its exploration report on unseen start poses at `colony evaluate`'s defaults (not from
+the validation poses: the champion was chosen on those, so they flatter it) (`server.evaluation`, the cache that serves
 `GET /api/controllers/{sha}/evaluation`). A report costs about a second of one core, so it is
 computed by one background thread; until then those metrics are None.
 """
@@ -329,13 +330,13 @@ class StudyService:
         validation = json.loads(document).get("validation")
         if validation is not None:
             found["validation_score"] = _finite(validation["score"])
-            found["roaming"] = _finite(validation["roaming"])
-            found["stuck"] = _finite(validation["stuck"])
         report = self.evaluations.peek(document, EXPLORATION)
         if report is None:
             self._queue(document)
         else:
             exploration = json.loads(report)
+            found["roaming"] = _finite(exploration["roaming"])
+            found["stuck"] = _finite(exploration["stuck"][str(EXPLORATION.steps)])
             found["max_offset"] = _finite(exploration["max_offset"][str(EXPLORATION.steps)])
             found["coverage"] = _finite(exploration["coverage"])
         return found
