@@ -47,6 +47,11 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
             ],
             "per empty job",
         ),
+        (
+            "study.py",
+            ["--quick", "--seeds", "2", "--repeats", "1", "--big-seeds", "1"],
+            "workers busy at 10x the trial length",
+        ),
     ],
 )
 def test_a_bench_script_runs_on_a_tiny_size(script: str, args: list[str], printed: str) -> None:
