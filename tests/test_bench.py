@@ -49,7 +49,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
         ),
         (
             "study.py",
-            ["--quick", "--seeds", "2", "--repeats", "1", "--big-seeds", "1"],
+            ["--quick", "--seeds", "1", "--repeats", "1", "--big-seeds", "1", "--workers", "1"],
             "workers busy at 10x the trial length",
         ),
     ],
