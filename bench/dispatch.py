@@ -28,7 +28,6 @@ server's COLONY_SPAN_BELOW_SECONDS (0: every generation in parallel slices, no s
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import multiprocessing as mp
 import os
@@ -42,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _procs import children, cpu_seconds
 
 from evorobotics.evaluate import trial_steps
 from evorobotics.evolution import RunLoop
@@ -168,13 +168,13 @@ def bench_throughput(seconds: float, workers: int, windows: int) -> None:
                 warm.wait(0.05)
             for _ in range(windows):
                 before, began = runs.jobs, time.perf_counter()
-                server_before, workers_before = time.process_time(), _cpu_seconds(pids)
+                server_before, workers_before = time.process_time(), cpu_seconds(pids)
                 warm.wait(seconds)
                 done, elapsed = runs.jobs - before, time.perf_counter() - began
                 rates.append(done / elapsed)
                 if done:  # a window without a job (workers stalled) has no CPU per job
                     server_us.append((time.process_time() - server_before) / done * 1e6)
-                    workers_us.append((_cpu_seconds(pids) - workers_before) / done * 1e6)
+                    workers_us.append((cpu_seconds(pids) - workers_before) / done * 1e6)
             # Stopped workers leave holding the job they were given: expected, not a warning.
             logging.getLogger("server.dispatch").setLevel(logging.ERROR)
             stop_workers(procs, stop)
@@ -249,32 +249,6 @@ def bench_codec(rounds: int = 5_000) -> None:
         f"settle it: tell and ask; lease, write the job), worker {costs[1]:.1f} us (read the "
         f"job, write the result)"
     )
-
-
-def _stat(pid: int) -> list[str]:
-    """The fields of /proc/PID/stat after the command name (Linux); OSError once it is gone."""
-    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-
-
-def _cpu_seconds(pids: list[int]) -> float:
-    """User and system CPU seconds of the processes `pids` so far (0 for one that is gone)."""
-    total = 0
-    for pid in pids:
-        with contextlib.suppress(OSError):
-            fields = _stat(pid)
-            total += int(fields[11]) + int(fields[12])
-    return total / os.sysconf("SC_CLK_TCK")
-
-
-def _children(pid: int) -> list[int]:
-    """The processes `pid` started (the server's local workers)."""
-    found: list[int] = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            with contextlib.suppress(OSError):
-                if int(_stat(int(entry.name))[1]) == pid:
-                    found.append(int(entry.name))
-    return found
 
 
 def _timed_evolve(config: RunConfig, go: threading.Event, seconds: Any) -> None:
@@ -381,17 +355,17 @@ def bench_paper(
                 server_cpu: list[float] = []
                 workers_cpu: list[float] = []
                 shas: set[str] = set()
-                worker_pids = _children(server.pid)
+                worker_pids = children(server.pid)
                 for _ in range(repeats):
                     began, cpu = time.perf_counter(), time.process_time()
                     shas.add(evolve(config).best.sha256)
                     local_s.append(time.perf_counter() - began)
                     local_cpu.append(time.process_time() - cpu)
-                    server_before = _cpu_seconds([server.pid])
-                    workers_before = _cpu_seconds(worker_pids)
+                    server_before = cpu_seconds([server.pid])
+                    workers_before = cpu_seconds(worker_pids)
                     run = finish(config.model_dump(mode="json"))
-                    server_cpu.append(_cpu_seconds([server.pid]) - server_before)
-                    workers_cpu.append(_cpu_seconds(worker_pids) - workers_before)
+                    server_cpu.append(cpu_seconds([server.pid]) - server_before)
+                    workers_cpu.append(cpu_seconds(worker_pids) - workers_before)
                     started = datetime.fromisoformat(run["started_at"])
                     dist_s.append(
                         (datetime.fromisoformat(run["finished_at"]) - started).total_seconds()
