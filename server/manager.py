@@ -17,9 +17,10 @@ running -> completed | failed. Terminal: completed, failed, cancelled.
 
 A run completes with its validated champion (`evorobotics.evolution.champion`: the final
 population's best on the run's validation set), stored in `controllers` and named by
-`runs.champion_sha256` in the transaction that writes the last generation. Its validation is
-computed from the told generation before that transaction opens, so seconds of simulation
-never hold the database.
+`runs.champion_sha256` in the transaction that writes the last generation. Its validation
+(seconds of simulation) runs in a thread of its own on the told generation, outside any
+transaction: meanwhile the writer goes on writing the other runs' generations, so they never
+wait for it; the last generation joins the write after its champion is known.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import cast
 
@@ -210,6 +212,12 @@ class RunManager:
         per generation (see `_genome_at`)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._validator = ThreadPoolExecutor(1, thread_name_prefix="colony-champion")
+        """Validates the champions of runs' last generations, one at a time."""
+        self._validated: list[tuple[Written, ControllerDocument]] = []
+        """Last generations whose champion is known, for the next write (under `_lock`)."""
+        self._validating: set[int] = set()
+        """Runs whose last generation is with the validator (under `_lock`)."""
         self._tracker = (
             None
             if settings.tensorboard_dir is None
@@ -257,7 +265,7 @@ class RunManager:
             self.scheduler.told_many.wait(WRITE_AFTER_S)
             self.scheduler.told_many.clear()
             try:
-                self.flush()
+                self._flush()
                 if time.monotonic() - housekept >= self.settings.housekeeping_seconds:
                     housekept = time.monotonic()
                     self.scheduler.expire()
@@ -272,16 +280,31 @@ class RunManager:
                 failing = None
 
     def flush(self) -> None:
-        """Write the told generations, oldest first, in one transaction; then fail the runs
-        whose jobs failed. If the store refuses, the runs concerned stop leasing (what is
-        leased may still complete) and the write is retried at the next call; once it is in,
-        they are paused with the reason in `error`, so an operator sees it and resumes."""
+        """Write everything told, the last generations with their champions (this waits for
+        their validation): what `stop` and callers outside the writer thread want."""
+        self._flush()
+        self._validator.submit(lambda: None).result()  # one thread: the ones before are done
+        self._flush()
+
+    def _flush(self) -> None:
+        """Write the told generations, oldest first, in one transaction (a run's last one once
+        its champion is validated); then fail the runs whose jobs failed. If the store refuses,
+        the runs concerned stop leasing (what is leased may still complete) and the write is
+        retried at the next call; once it is in, they are paused with the reason in `error`,
+        so an operator sees it and resumes."""
         with self._lock:
-            told = self.scheduler.take_told()
+            taken = self.scheduler.take_told()
+            told = [item for item in taken if not item.last] + [i for i, _ in self._validated]
+            champions = {item.run_id: document for item, document in self._validated}
+            self._validated = []
+            for item in taken:
+                if item.last and item.run_id not in champions:
+                    self._validate(item)
             try:
-                self._write(told)
+                self._write(told, champions)
             except Exception as exc:
-                self.scheduler.put_back(told)
+                self._validated += [(i, champions[i.run_id]) for i in told if i.last]
+                self.scheduler.put_back([i for i in told if not i.last])
                 self._stall(told, exc)
                 raise
             self.scheduler.written(told)
@@ -295,10 +318,32 @@ class RunManager:
                         self._fail_id(session, run_id, message)
                 self.promote()
 
-    def _write(self, told: list[Written]) -> None:
+    def _validate(self, item: Written) -> None:
+        """Compute the champion of a run's last generation in the validator's thread; the
+        writer writes that generation once it is known. A failure fails the run, saying why."""
+        if item.run_id in self._validating:
+            return
+        self._validating.add(item.run_id)
+
+        def validate() -> None:
+            try:
+                document = _champion(item)
+            except Exception as exc:
+                log.exception("run %d: champion validation failed", item.run_id)
+                with self._lock, self.sessions.begin() as session:
+                    self._validating.discard(item.run_id)
+                    self._fail_id(session, item.run_id, f"champion validation failed: {exc}")
+                return
+            with self._lock:
+                self._validating.discard(item.run_id)
+                self._validated.append((item, document))
+            self.scheduler.told_many.set()
+
+        self._validator.submit(validate)
+
+    def _write(self, told: list[Written], champions: dict[int, ControllerDocument]) -> None:
         if not told:
             return
-        champions = {item.run_id: _champion(item) for item in told if item.last}
         try:
             with self.sessions.begin() as session:
                 for item in told:
@@ -497,7 +542,7 @@ class RunManager:
         """paused -> running. A run stopped by a refused write is written first (the store's
         error propagates while it still refuses), so it resumes from a stored generation."""
         with self._lock:
-            self.flush()
+            self._flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
                 if run.status != "paused":
@@ -513,7 +558,7 @@ class RunManager:
 
     def cancel(self, run_id: int) -> None:
         with self._lock:
-            self.flush()
+            self._flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
                 if run.status in TERMINAL:
@@ -527,7 +572,7 @@ class RunManager:
     def cancel_study(self, study_id: int) -> None:
         """Cancel the study's unfinished runs (one transaction); NotFoundError if none such."""
         with self._lock:
-            self.flush()
+            self._flush()
             with self.sessions.begin() as session:
                 if crud.get_study(session, study_id=study_id) is None:
                     raise NotFoundError(f"no study with id {study_id}")
@@ -546,7 +591,7 @@ class RunManager:
         """Cancel the run if it is live, then delete it and its generations; its controllers
         stay (robots may run them), no longer naming it."""
         with self._lock:
-            self.flush()
+            self._flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
                 live = run.status not in TERMINAL
@@ -561,7 +606,7 @@ class RunManager:
     def delete_study(self, study_id: int) -> None:
         """Cancel what still runs of the study, then delete it and its runs."""
         with self._lock:
-            self.flush()
+            self._flush()
             with self.sessions.begin() as session:
                 study = crud.get_study(session, study_id=study_id)
                 if study is None:
@@ -576,7 +621,7 @@ class RunManager:
 
     def _transition(self, run_id: int, allowed: set[str], target: str) -> None:
         with self._lock:
-            self.flush()
+            self._flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
                 if run.status not in allowed:

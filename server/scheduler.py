@@ -68,9 +68,11 @@ class Policy:
     jobs_per_worker: int = 1
     """A generation is cut into this many jobs per live worker."""
     span_below_s: float = 0.02
-    """A generation a worker evaluates faster than this runs in spans (0: never): below it the
-    round trip per generation costs more than parallel slices save (on 2 cores, slices won
-    from about 20 ms a generation: bench/dispatch.py --sweep)."""
+    """A generation a worker evaluates faster than this runs in spans (0: never) while runs are
+    fewer than workers: below it the round trip per generation costs more than parallel slices
+    save (on 2 cores, slices won from about 20 ms a generation: bench/dispatch.py --sweep).
+    With at least as many runs as workers (a study), every worker can evolve a run of its own:
+    whole generations in spans then whatever a generation's length (bench/study.py)."""
     span_s: float = 5.0
     """A span covers about this much evaluation time, then its worker asks again."""
     max_attempts: int = 3
@@ -109,12 +111,13 @@ class Policy:
         wanted = self.lease_factor * robot_steps / clamp_speed(speed)
         return min(max(self.lease_min_s, wanted), self.lease_max_s)
 
-    def span_generations(self, config: RunConfig, speed: float | None) -> int:
-        """Generations of `config` a worker of `speed` evolves in one span (1: no span)."""
-        if speed is None:
+    def span_generations(self, config: RunConfig, speed: float | None, *, crowded: bool) -> int:
+        """Generations of `config` a worker of `speed` evolves in one span (1: no span);
+        `crowded`: runs are at least as many as workers (no slices needed to keep all busy)."""
+        if speed is None or self.span_below_s == 0:
             return 1
         seconds = robot_steps(config, config.population) / clamp_speed(speed)
-        if seconds >= self.span_below_s:
+        if seconds >= self.span_below_s and not crowded:
             return 1
         return max(1, int(self.span_s / seconds))
 
@@ -381,7 +384,7 @@ class Scheduler:
             config = loop.config
             span = 1
             if record.spans and len(chosen.slots) == 1:
-                wanted = self.policy.span_generations(config, record.speed)
+                wanted = self.policy.span_generations(config, record.speed, crowded=self._crowded())
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._lease(chosen, index, worker, span_left=span - 1)
             return Job(
@@ -536,21 +539,32 @@ class Scheduler:
             served=served,
         )
 
-    def _job_size(self, config: RunConfig, generation: int) -> int:
-        """One job per live worker (`jobs_per_worker` each, at least the run's `job_size`), or
-        the whole generation when whoever leases it will get a span: a whole generation
-        leased without one would keep the other workers idle."""
-        live = [
+    def _live(self) -> list[_Worker]:
+        return [
             w
             for w in self._workers.values()
             if w.gone_at is None and w.serving and w.quarantine is None
         ]
+
+    def _crowded(self) -> bool:
+        """At least as many running runs as live workers (and some of each): every worker
+        can evolve a run of its own, so slicing a generation only adds round trips."""
+        live = len(self._live())
+        return live > 0 and sum(run.running for run in self._runs.values()) >= live
+
+    def _job_size(self, config: RunConfig, generation: int) -> int:
+        """One job per live worker (`jobs_per_worker` each, at least the run's `job_size`), or
+        the whole generation when runs are crowded or whoever leases it will get a span: a
+        whole generation leased to one worker would otherwise keep the others idle."""
+        live = self._live()
         if not live:
             return config.job_size
+        if self._crowded():
+            return config.population
         speeds = [w.speed if w.spans else None for w in live]
         if generation + 1 < config.generations and all(s is not None for s in speeds):
             slowest = min(s for s in speeds if s is not None)
-            if self.policy.span_generations(config, slowest) > 1:
+            if self.policy.span_generations(config, slowest, crowded=False) > 1:
                 return config.population
         jobs = len(live) * self.policy.jobs_per_worker
         return max(config.job_size, -(-config.population // jobs))
