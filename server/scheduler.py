@@ -525,7 +525,7 @@ class Scheduler:
 
     def _install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:
         config = loop.config
-        size = self._job_size(config, loop.generation)
+        size = self._job_size(config, loop.generation, run_id if running else None)
         slots = [_Slot(a, b) for a, b in job_slices(config.population, size)]
         self._runs[run_id] = _Run(
             run_id=run_id,
@@ -546,20 +546,22 @@ class Scheduler:
             if w.gone_at is None and w.serving and w.quarantine is None
         ]
 
-    def _crowded(self) -> bool:
-        """At least as many running runs as live workers (and some of each): every worker
-        can evolve a run of its own, so slicing a generation only adds round trips."""
-        live = len(self._live())
-        return live > 0 and sum(run.running for run in self._runs.values()) >= live
+    def _crowded(self, run_id: int | None = None) -> bool:
+        """At least as many running runs (`run_id` counted as one) as jobs the live workers
+        take (`jobs_per_worker` each): each job can be a run's whole generation, so slicing a
+        generation only adds round trips."""
+        live = len(self._live()) * self.policy.jobs_per_worker
+        running = {run.run_id for run in self._runs.values() if run.running}
+        return live > 0 and len(running | ({run_id} if run_id is not None else set())) >= live
 
-    def _job_size(self, config: RunConfig, generation: int) -> int:
+    def _job_size(self, config: RunConfig, generation: int, run_id: int | None) -> int:
         """One job per live worker (`jobs_per_worker` each, at least the run's `job_size`), or
         the whole generation when runs are crowded or whoever leases it will get a span: a
         whole generation leased to one worker would otherwise keep the others idle."""
         live = self._live()
         if not live:
             return config.job_size
-        if self._crowded():
+        if self._crowded(run_id):
             return config.population
         speeds = [w.speed if w.spans else None for w in live]
         if generation + 1 < config.generations and all(s is not None for s in speeds):
@@ -668,7 +670,8 @@ class Scheduler:
         while (
             generations < min(result.generations, lease.span_left + 1)
             and run.running
-            and self._job_size(config, loop.generation + generations) >= config.population
+            and self._job_size(config, loop.generation + generations, run.run_id)
+            >= config.population
         ):
             generations += 1
         picks = sorted(_CHOOSE.sample(range(generations * n), min(wanted, generations * n)))

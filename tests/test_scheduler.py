@@ -418,6 +418,32 @@ def test_spans_need_every_live_worker_fast() -> None:
     assert sched.counts()["pending"] == 2 + 3
 
 
+def test_runs_as_many_as_workers_get_whole_generations_in_spans_however_slow() -> None:
+    """A study on few workers: each worker evolves a run of its own, so generations far above
+    span_below_s are leased whole, in spans; one run on two workers is still sliced."""
+    medium = 400.0  # CONFIG's generation in 0.1 s: sliced, not spanned, while runs are few
+    sched, _ = make()
+    sched.join("a", speed=medium)
+    sched.join("b", speed=medium)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    assert sched.counts()["pending"] == 2  # one run: a slice per worker
+    sched.add(2, RunLoop(CONFIG), running=True)
+    assert sched.counts()["pending"] == 2 + 1  # run 2 whole
+    sliced = sched.lease("a")
+    assert sliced is not None and sliced.key.run_id == 1 and sliced.span == 1
+    assert (sliced.start, sliced.stop) == (0, 4)
+    whole = sched.lease("b")
+    assert whole is not None and whole.key.run_id == 2 and whole.state is not None
+    assert (whole.start, whole.stop, whole.span) == (0, 8, CONFIG.generations)
+    assert sched.settle(result(sliced, "a")).accepted
+    rest = sched.lease("a")
+    assert rest is not None and (rest.key.run_id, rest.start, rest.stop) == (1, 4, 8)
+    assert sched.settle(result(rest, "a")).accepted
+    following = sched.lease("a")  # run 1's generation 1, installed while crowded: whole
+    assert following is not None and following.key == rest.key.at(1).model_copy(update={"index": 0})
+    assert (following.start, following.stop, following.span) == (0, 8, CONFIG.generations - 1)
+
+
 @pytest.mark.parametrize("bad", ["missing", "wrong"])
 def test_a_span_generation_without_the_right_digest_is_an_error_and_ends_spans(bad: str) -> None:
     sched, _ = make()
