@@ -2,8 +2,9 @@
 another host or coming from another site, a damaged or empty SQLite file, a second server on
 the same database, and a full disk (SQLite's own SQLITE_FULL through `PRAGMA max_page_count`).
 
-Real uvicorn on free loopback ports, SQLite files in tmp_path, `colony server` processes for
-the start-up checks; PostgreSQL's lock on the session's throwaway server (tests/conftest.py).
+Real uvicorn on free loopback ports, SQLite files in tmp_path, the `colony server` command for
+the start-up checks (a process where one must hold the database, in this process where it is
+refused); PostgreSQL's lock on the session's throwaway server (tests/conftest.py).
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ from typing import Any
 import httpx
 import pytest
 import sqlalchemy as sa
+from typer.testing import CliRunner
 
+from colony.cli import app as cli
 from server.db import ServerLock, StoreUnusableError, make_engine, upgrade
 from server.settings import Settings
 from tests.helpers import SERVER_START_S, eventually, free_port, serve, serving
@@ -138,11 +141,13 @@ def start_server(db: str, port: int) -> subprocess.Popen[str]:
 
 
 def refusal(db: str) -> str:
-    """`colony server` on `db` exits non-zero at once: its stderr."""
-    proc = start_server(db, free_port())
-    out, err = proc.communicate(timeout=SERVER_START_S)
-    assert proc.returncode == 1, (out, err)
-    return err
+    """`colony server` on `db` exits with status 1 at once: its stderr. In this process, through
+    the CLI's entry point: the refusal comes before the app is built, so a process of its own
+    would only add seconds of imports."""
+    argv = ["server", "--db", db, "--port", str(free_port()), "--no-zenoh", "--executors", "0"]
+    result = CliRunner().invoke(cli, argv)
+    assert result.exit_code == 1, (result.stdout, result.stderr, result.exception)
+    return result.stderr
 
 
 @contextmanager
