@@ -258,9 +258,9 @@ def test_stopped_worker_past_its_lease_is_replaced_and_its_late_result_dropped(
     assert colony.run(run_id)["evaluations"] == EVALUATIONS
 
 
-LONG_CONFIG = {**CONFIG, "generations": 30}
-"""Long enough that the server is still evolving it when killed: told generations are
-written together (server.manager.WRITE_AFTER_S), several at once."""
+LONG_CONFIG = {**CONFIG, "generations": 12}
+"""Long enough that the server is still evolving it when killed (at generation 2, ten to go):
+told generations are written together (server.manager.WRITE_AFTER_S), several at once."""
 
 
 def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(colony: Colony) -> None:
@@ -274,13 +274,15 @@ def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(colony: C
     server.wait(timeout=10)
     colony.start_server()
     resumed = colony.run(run_id)
-    assert resumed["status"] == "running" and resumed["generation"] < 30, resumed
-    colony.finish(run_id, expected, evaluations=16 * 30)
+    assert resumed["status"] == "running" and resumed["generation"] < 12, resumed
+    colony.finish(run_id, expected, evaluations=16 * 12)
     assert {"one", "two"} <= set(colony.workers())
 
 
-SPAN_CONFIG = {"population": 16, "generations": 300, "steps": 300, "seed": 12}
-"""Generations of a few milliseconds: far below the span threshold the span tests set."""
+SPAN_GENERATIONS = 150
+SPAN_CONFIG = {"population": 16, "generations": SPAN_GENERATIONS, "steps": 300, "seed": 12}
+"""Generations of a few milliseconds: far below the span threshold the span tests set; a
+hundred and more left when a test interferes at generation 5."""
 
 
 @pytest.fixture(scope="module")
@@ -307,7 +309,7 @@ def test_a_span_s_worker_sigkilled_mid_span_hands_the_run_over(
     run_id = colony.post("/api/runs", SPAN_CONFIG)["id"]
     holder, before = span_holder(colony, run_id)
     procs[holder].kill()
-    colony.finish(run_id, span_sha, evaluations=16 * 300)
+    colony.finish(run_id, span_sha, evaluations=16 * SPAN_GENERATIONS)
     after = colony.workers()
     [other] = set(procs) - {holder}
     assert after[holder]["state"] == "gone"
@@ -327,7 +329,7 @@ def test_a_span_s_worker_stopped_past_its_lease_is_replaced_and_its_late_results
         # once the rescuer evolves, every result the hung worker sent before it stopped is in
         wait_until(lambda: colony.workers().get("rescuer", {}).get("jobs_done", 0) >= 3, "rescue")
         done_before = colony.workers()["hung"]["jobs_done"]
-        colony.finish(run_id, span_sha, evaluations=16 * 300)
+        colony.finish(run_id, span_sha, evaluations=16 * SPAN_GENERATIONS)
     finally:
         hung.send_signal(signal.SIGCONT)
     woke = datetime.now(UTC)
@@ -336,7 +338,7 @@ def test_a_span_s_worker_stopped_past_its_lease_is_replaced_and_its_late_results
         "the late results",
     )
     assert colony.workers()["hung"]["jobs_done"] == done_before
-    assert colony.run(run_id)["evaluations"] == 16 * 300
+    assert colony.run(run_id)["evaluations"] == 16 * SPAN_GENERATIONS
 
 
 def test_a_server_sigkilled_mid_span_resumes_it_with_the_same_workers(
@@ -351,5 +353,5 @@ def test_a_server_sigkilled_mid_span_resumes_it_with_the_same_workers(
     server.kill()
     server.wait(timeout=10)
     colony.start_server(spans=True)
-    colony.finish(run_id, span_sha, evaluations=16 * 300)
+    colony.finish(run_id, span_sha, evaluations=16 * SPAN_GENERATIONS)
     assert {"one", "two"} <= set(colony.workers())
