@@ -109,6 +109,12 @@ def serve(
         Path | None, typer.Option(help="PEM certificate for tls/ endpoints")
     ] = None,
     zenoh_tls_key: Annotated[Path | None, typer.Option(help="its PEM private key")] = None,
+    replacement: Annotated[
+        str | None,
+        typer.Option(
+            help="what a stuck robot without its own policy gets: off or rank [COLONY_REPLACEMENT]"
+        ),
+    ] = None,
 ) -> None:
     """Run the colony server: REST API (OpenAPI at /docs), store, run manager, zenoh router
     for workers (docs/protocol.md) and N local workers."""
@@ -136,6 +142,7 @@ def serve(
         "zenoh_roles_file": zenoh_roles,
         "zenoh_tls_certificate": zenoh_tls_cert,
         "zenoh_tls_private_key": zenoh_tls_key,
+        "replacement": replacement,
     }
     try:
         settings = Settings.model_validate({k: v for k, v in overrides.items() if v is not None})
@@ -513,6 +520,16 @@ def run_cancel(
     _steer(ctx, server, token, run_id, "cancel")
 
 
+@run_app.command("delete")
+def run_delete(
+    ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER, token: TokenOpt = None
+) -> None:
+    """Delete a finished run with its generations (a live one is cancelled first: not
+    undoable)."""
+    request(ctx, server, token, "DELETE", f"/api/runs/{run_id}")
+    typer.echo(f"run {run_id} deleted")
+
+
 def _workers_table(workers: list[dict[str, Any]]) -> Table:
     table = Table(title="workers")
     for column in (
@@ -541,7 +558,7 @@ def _workers_table(workers: list[dict[str, Any]]) -> Table:
 def _robots_table(robots: list[dict[str, Any]]) -> Table:
     """Rows of GET /api/robots or of /api/colony's robots (the same view)."""
     table = Table(title="robots")
-    for column in ("id", "state", "steps", "controller", "last seen"):
+    for column in ("id", "state", "steps", "controller", "replacement", "last seen"):
         table.add_column(column)
     for r in robots:
         table.add_row(
@@ -549,9 +566,16 @@ def _robots_table(robots: list[dict[str, Any]]) -> Table:
             _fmt(r["state"]),
             _fmt(r["steps"]),
             (r["controller_sha256"] or "-")[:12],
+            _replacement(r),
             _fmt(r["last_seen"]),
         )
     return table
+
+
+def _replacement(robot: dict[str, Any]) -> str:
+    """`rank`, or `off (colony)` when the robot follows the colony's policy."""
+    policy = str(robot["replacement"])
+    return policy if robot["replacement_source"] == "robot" else f"{policy} (colony)"
 
 
 def status(
@@ -595,7 +619,7 @@ def robots_command(
     token: TokenOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Every robot ever seen: online, state, steps, controller."""
+    """Every robot ever seen: online, state, steps, controller, replacement policy."""
     robots = call_server(ctx, server, token, "GET", "/api/robots")
     if as_json:
         _print_json(robots)
@@ -624,6 +648,62 @@ def robot_show(
         "controller_run", "controller_rank", "controller_generation", "boot",
     ):  # fmt: skip
         typer.echo(f"{key:22s} {_fmt(detail[key])}")
+    typer.echo(f"{'replacement':22s} {_replacement(detail)}")
+
+
+POLICY_CHOICES = ("off", "rank", "colony")
+"""`colony robot replacement` values; `colony` clears the robot's own policy."""
+
+
+@robot_app.command("replacement")
+def robot_replacement(
+    ctx: typer.Context,
+    robot: str,
+    policy: Annotated[str, typer.Argument(help="off, rank, or colony (follow the colony's)")],
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Set what this robot gets when it is stuck: off (nothing: it escapes and resumes its
+    controller), rank (the next rank of its controller's run), or colony (the server's setting)."""
+    if policy not in POLICY_CHOICES:
+        raise typer.BadParameter(f"must be one of {', '.join(POLICY_CHOICES)}", param_hint="POLICY")
+    body = {"policy": None if policy == "colony" else policy}
+    detail = call_server(ctx, server, token, "PUT", f"/api/robots/{robot}/replacement", body)
+    if as_json:
+        _print_json(detail)
+    else:
+        typer.echo(f"robot {robot} replacement: {_replacement(detail)}")
+
+
+@robot_app.command("stuck")
+def robot_stuck(
+    ctx: typer.Context,
+    robot: str,
+    limit: Annotated[int, typer.Option(help="newest events")] = 50,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """The robot's stuck events: the policy that served each, what was sent, and the steps it
+    then ran before its next stuck event."""
+    ledger = call_server(ctx, server, token, "GET", f"/api/robots/{robot}/stuck?limit={limit}")
+    if as_json:
+        _print_json(ledger)
+        return
+    table = Table(title=f"stuck events of {robot}")
+    for column in ("step", "reason", "controller", "policy", "replacement", "steps run"):
+        table.add_column(column)
+    for e in ledger["events"]:
+        table.add_row(
+            _fmt(e["step"]),
+            e["reason"],
+            (e["controller_sha256"] or "-")[:12],
+            _fmt(e["policy"]),
+            (e["replacement_sha256"] or "-")[:12],
+            _fmt(e["steps_run"]),
+        )
+    Console().print(table)
 
 
 def _pushed(result: dict[str, Any], as_json: bool) -> None:

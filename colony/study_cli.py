@@ -370,3 +370,21 @@ def study_export(
         raise typer.Exit(1) from exc
     for path in written:
         typer.echo(str(path))
+
+
+@study_app.command("cancel")
+def study_cancel(
+    ctx: typer.Context, study_id: int, server: ServerOpt = DEFAULT_SERVER, token: TokenOpt = None
+) -> None:
+    """Cancel the study's unfinished runs; its completed runs and their statistics stay."""
+    study = _request(ctx, server, token, "POST", f"/api/studies/{study_id}/cancel")
+    typer.echo(f"study {study['id']} {study['status']}")
+
+
+@study_app.command("delete")
+def study_delete(
+    ctx: typer.Context, study_id: int, server: ServerOpt = DEFAULT_SERVER, token: TokenOpt = None
+) -> None:
+    """Delete the study and every run of it, with their generations (not undoable)."""
+    request(ctx, server, token, "DELETE", f"/api/studies/{study_id}", invalid_exit=2)
+    typer.echo(f"study {study_id} deleted")

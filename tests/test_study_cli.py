@@ -221,3 +221,28 @@ def test_bad_input_prints_one_line_and_exits_2(server: str, tmp_path: Path, case
     assert code == 2, (out, err)
     assert len(err.strip().splitlines()) == 1 and err.startswith("error"), err
     assert out == ""
+
+
+def test_cancel_then_delete_a_study_and_delete_a_run(server: str) -> None:
+    """`colony study cancel` ends what still runs, `colony study delete` removes the study and
+    its runs, `colony run delete` one run; an unknown study is refused with the server's 404."""
+    sets = [f"--set={k}={json.dumps(v)}" for k, v in {**TINY, "generations": 5000}.items()]
+    code, out, err = colony(
+        "study", "start", "--name", "long", "--seeds", "2", *sets, "--json", "--server", server
+    )
+    assert code == 0, err
+    created = json.loads(out)
+    code, out, err = colony("study", "cancel", str(created["id"]), "--server", server)
+    assert code == 0, err
+    assert out.strip() == f"study {created['id']} cancelled"
+    runs = httpx.get(f"{server}/api/studies/{created['id']}").json()["runs"]
+    assert {r["status"] for r in runs} == {"cancelled"}
+    code, out, err = colony("run", "delete", str(runs[0]["run_id"]), "--server", server)
+    assert code == 0 and out.strip() == f"run {runs[0]['run_id']} deleted", err
+    assert httpx.get(f"{server}/api/runs/{runs[0]['run_id']}").status_code == 404
+    code, out, err = colony("study", "delete", str(created["id"]), "--server", server)
+    assert code == 0 and out.strip() == f"study {created['id']} deleted", err
+    assert httpx.get(f"{server}/api/studies/{created['id']}").status_code == 404
+    assert httpx.get(f"{server}/api/runs/{runs[1]['run_id']}").status_code == 404
+    code, out, err = colony("study", "delete", str(created["id"]), "--server", server)
+    assert code == 1 and err.strip() == f"error 404: no study with id {created['id']}", (out, err)
