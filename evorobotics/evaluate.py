@@ -35,12 +35,37 @@ _CANDIDATES = 64
 _MAX_ROUNDS = 1000
 
 
+DESCRIPTORS = ("final_x", "final_y", "max_offset", "coverage")
+"""Behaviour descriptors of an individual, the columns of `Evaluation.descriptors`, each in
+[0, 1] and averaged over its trials: final x and y over the maze's width and height, max offset
+(Eq 12) over the maze's diagonal, and the fraction of the maze's free cells its centre visited."""
+
+
 @dataclass(frozen=True)
 class Evaluation:
-    """Fitness (k,) and Eq-12 components (k, trials, 4) of k individuals."""
+    """Fitness (k,), Eq-12 components (k, trials, 4) and behaviour descriptors (k, 4) in
+    DESCRIPTORS order, of k individuals."""
 
     fitness: np.ndarray
     components: np.ndarray
+    descriptors: np.ndarray
+
+
+def descriptors(maze: Maze, result: SimResult, k: int) -> np.ndarray:
+    """(k, 4) DESCRIPTORS of k individuals from their trials' `result` (k * trials robots,
+    individual-major): per-trial values normalised to the maze, then the mean over trials."""
+    if result.cells is None:
+        raise ValueError("the result has no visited-cell counts")
+    free = int((~maze.solid).sum())
+    per_trial = np.column_stack(
+        [
+            result.poses_final[:, 0] / maze.width,
+            result.poses_final[:, 1] / maze.height,
+            result.max_offset / math.hypot(maze.width, maze.height),
+            result.cells / free,
+        ]
+    )
+    return np.asarray(per_trial.reshape(k, -1, len(DESCRIPTORS)).mean(axis=1))
 
 
 def start_poses(
@@ -197,17 +222,20 @@ def _trials(
     if g.ndim != 2 or g.shape[1] != spec.weight_count:
         raise ValueError(f"genomes must be (k, {spec.weight_count}), got {g.shape}")
     k, trials = g.shape[0], poses.shape[0]
+    maze = load_maze(config.maze)
     result = simulate(
         spec,
         np.repeat(g, trials, axis=0),
-        load_maze(config.maze),
+        maze,
         np.tile(poses, (k, 1)),
         steps,
         params=config.world,
         gap=None if per_trial is None else per_trial.tile(k),
     )
     components = result.components.reshape(k, trials, 4)
-    return Evaluation(mean_fitness(components, config.fitness), components)
+    return Evaluation(
+        mean_fitness(components, config.fitness), components, descriptors(maze, result, k)
+    )
 
 
 def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluation:

@@ -202,8 +202,9 @@ def champion(
 
 def evaluate_population(
     config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fitness (n,) and components (n, trials, 4) of a generation's n = population genomes.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fitness (n,), components (n, trials, 4) and descriptors (n, 4) (`evaluate.DESCRIPTORS`)
+    of a generation's n = population genomes: `RunLoop.tell`'s arguments, in its order.
 
     One `evaluate` call for the whole population: bit-identical to evaluating it job by job in
     `job_slices` and concatenating (property-tested), without the per-call cost of each job.
@@ -215,7 +216,7 @@ def evaluate_population(
             f"got {genomes.shape}"
         )
     result = evaluate(config, generation, genomes)
-    return result.fitness, result.components
+    return result.fitness, result.components, result.descriptors
 
 
 class RunLoop:
@@ -260,14 +261,26 @@ class RunLoop:
             self._asked = genomes
         return self._asked
 
-    def tell(self, fitness: np.ndarray, components: np.ndarray | None = None) -> Told:
+    def tell(
+        self,
+        fitness: np.ndarray,
+        components: np.ndarray | None = None,
+        descriptors: np.ndarray | None = None,
+    ) -> Told:
         """Rank the current generation by `fitness` and move on to the next."""
         genomes = self.ask()
         before = self.state
         self.state, metrics = tell(genomes, fitness, before, self.params)
         self._asked = None
         return Told(
-            before.generation, genomes, np.asarray(fitness), components, before, self.state, metrics
+            before.generation,
+            genomes,
+            np.asarray(fitness),
+            components,
+            descriptors,
+            before,
+            self.state,
+            metrics,
         )
 
 
@@ -281,6 +294,8 @@ class Told:
     fitness: np.ndarray
     components: np.ndarray | None
     """(population, trials, 4), when the evaluator reported them."""
+    descriptors: np.ndarray | None
+    """(population, 4) in `evaluate.DESCRIPTORS` order, when the evaluator reported them."""
     before: GAState
     """The state the generation was asked from."""
     after: GAState
@@ -303,8 +318,8 @@ def evolve(
     told: Told | None = None
     components = np.empty(0)
     while not loop.done:
-        fitness, components = evaluate_population(config, loop.generation, loop.ask())
-        told = loop.tell(fitness, components)
+        fitness, components, descriptors = evaluate_population(config, loop.generation, loop.ask())
+        told = loop.tell(fitness, components, descriptors)
         history.append(told.summary())
         if on_generation is not None:
             on_generation(history[-1])

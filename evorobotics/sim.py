@@ -21,7 +21,8 @@ Every robot is independent (robots do not interact) and carries its own controll
 
 Fitness terms (Eq 12) are accumulated on the way: curve_length sums the straight distance of
 every accepted move, net_offset is the final distance from the start position, max_offset the
-largest distance from the start position at any step.
+largest distance from the start position at any step. So is `cells`, the number of distinct
+grid cells the centre visited (a behaviour descriptor, not a fitness term).
 
 `simulate` is the canonical path: one numba kernel runs controller, physics and fitness for all
 robots and steps. `simulate_reference` is the same science as vectorised numpy over the batch,
@@ -90,6 +91,10 @@ class SimResult:
     """(B, steps, 5) uint8 bits sensed at the start of each step."""
     motors: np.ndarray | None = field(default=None)
     """(B, steps, 2) wheel commands in [-1, 1] the controller chose at each step."""
+    cells: np.ndarray | None = field(default=None)
+    """(B,) int64: distinct maze cells the robot's centre visited, its start cell included
+    (a behaviour descriptor: `evaluate.DESCRIPTORS`). Always set by `simulate` and
+    `simulate_reference`; None only in results built by hand."""
 
     @property
     def stuck(self) -> np.ndarray:
@@ -288,6 +293,8 @@ def simulate_reference(
     stuck_step = np.full(batch, -1, dtype=np.int64)
     curve = np.zeros(batch)
     max_off = np.zeros(batch)
+    visited = np.zeros((batch, maze.solid.size), dtype=bool)
+    _visit(visited, maze, pose)
     trace_p, trace_w, trace_m = [pose.copy()], [], []
     per_step = gap.whisker_range.ndim == 3
     for k in range(steps):
@@ -307,6 +314,7 @@ def simulate_reference(
         ddx, ddy = cand[:, 0] - pose[:, 0], cand[:, 1] - pose[:, 1]
         curve = curve + np.where(accept, np.sqrt(ddx * ddx + ddy * ddy), 0.0)
         pose = np.where(accept[:, None], cand, pose)
+        _visit(visited, maze, pose)
         ox, oy = pose[:, 0] - start[:, 0], pose[:, 1] - start[:, 1]
         max_off = np.maximum(max_off, np.sqrt(ox * ox + oy * oy))
         if record:
@@ -315,8 +323,9 @@ def simulate_reference(
             trace_m.append(motors)
     ox, oy = pose[:, 0] - start[:, 0], pose[:, 1] - start[:, 1]
     net = np.sqrt(ox * ox + oy * oy)
+    cells = visited.sum(axis=1, dtype=np.int64)
     if not record:
-        return SimResult(pose, curve, net, max_off, stuck_step)
+        return SimResult(pose, curve, net, max_off, stuck_step, cells=cells)
     return SimResult(
         pose,
         curve,
@@ -326,7 +335,19 @@ def simulate_reference(
         np.stack(trace_p, axis=1),
         np.stack(trace_w, axis=1) if steps else np.zeros((batch, 0, N_WHISKERS), np.uint8),
         np.stack(trace_m, axis=1) if steps else np.zeros((batch, 0, 2)),
+        cells,
     )
+
+
+def _visit(visited: np.ndarray, maze: Maze, pose: np.ndarray) -> None:
+    """Mark the grid cell (row-major over `solid`) under each centre in `visited` (B, ny*nx);
+    a centre outside the grid marks nothing."""
+    ny, nx = maze.solid.shape
+    i = np.floor(pose[:, 0] / maze.cell_size)
+    j = np.floor(pose[:, 1] / maze.cell_size)
+    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+    rows = np.flatnonzero(inside)
+    visited[rows, (j[rows] * nx + i[rows]).astype(np.int64)] = True
 
 
 # ---------------------------------------------------------------- compiled kernel
@@ -454,6 +475,7 @@ def _episodes(
     final: np.ndarray,
     metrics: np.ndarray,
     stuck_out: np.ndarray,
+    cells_out: np.ndarray,
     rec_poses: np.ndarray,
     rec_whiskers: np.ndarray,
     rec_motors: np.ndarray,
@@ -467,6 +489,10 @@ def _episodes(
 
     `ranges` (B, S, W) holds the whiskers' trigger distances: S = 1, fixed for the trial, or
     S = steps, one row per step; W = 1, shared by the five whiskers, or W = 5.
+
+    `cells_out[r]` counts the grid cells robot r's centre visited: a bitmap over the maze in
+    scratch, marked on every accepted move, whose marks are undone from `trail` after each robot
+    (cheaper than clearing the whole map).
     """
     dt = world[0]
     vmax = world[1]
@@ -480,6 +506,10 @@ def _episodes(
     out = np.empty(2)
     motor = np.empty(2)
     rq = np.empty(wx.shape[0])
+    rows = solid.shape[0]
+    cols = solid.shape[1]
+    visited = np.zeros(rows * cols, dtype=np.uint8)
+    trail = np.empty(steps + 1, dtype=np.int64)
     per_step = ranges.shape[1] != 1
     last = ranges.shape[2] - 1
     for r in range(weights.shape[0]):
@@ -502,6 +532,7 @@ def _episodes(
         stuck_at = -1
         curve = 0.0
         max_off = 0.0
+        n_cells = _mark(visited, trail, 0, cols, rows, cell, x, y)
         if record:
             rec_poses[r, 0, 0] = x
             rec_poses[r, 0, 1] = y
@@ -564,6 +595,7 @@ def _episodes(
                     ox = x - x0
                     oy = y - y0
                     max_off = max(max_off, math.sqrt(ox * ox + oy * oy))
+                    n_cells = _mark(visited, trail, n_cells, cols, rows, cell, x, y)
             if record:
                 rec_poses[r, k + 1, 0] = x
                 rec_poses[r, k + 1, 1] = y
@@ -581,6 +613,33 @@ def _episodes(
         metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
         metrics[r, 2] = max_off
         stuck_out[r] = stuck_at
+        cells_out[r] = n_cells
+        for t in range(n_cells):
+            visited[trail[t]] = 0
+
+
+@njit(inline="always")
+def _mark(
+    visited: np.ndarray,
+    trail: np.ndarray,
+    n: int,
+    cols: int,
+    rows: int,
+    cell: float,
+    x: float,
+    y: float,
+) -> int:
+    """Mark the cell under (x, y) visited (`_visit` of one robot); the new count of cells."""
+    fi = math.floor(x / cell)
+    fj = math.floor(y / cell)
+    if fi < 0 or fj < 0 or fi >= cols or fj >= rows:
+        return n
+    k = fj * cols + fi
+    if visited[k]:
+        return n
+    visited[k] = 1
+    trail[n] = k
+    return n + 1
 
 
 @njit(cache=True)
@@ -751,6 +810,7 @@ def simulate(
     final = np.empty((batch, 3))
     metrics = np.empty((batch, 3))
     stuck = np.empty(batch, dtype=np.int64)
+    cells = np.empty(batch, dtype=np.int64)
     shape = (batch, steps) if record else (0, 0)
     rec_p = np.zeros((*shape[:1], steps + 1 if record else 0, 3))
     rec_w = np.zeros((*shape, N_WHISKERS), dtype=np.uint8)
@@ -781,14 +841,15 @@ def simulate(
         final,
         metrics,
         stuck,
+        cells,
         rec_p,
         rec_w,
         rec_m,
     )
     curve, net, max_off = metrics[:, 0].copy(), metrics[:, 1].copy(), metrics[:, 2].copy()
     if record:
-        return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m)
-    return SimResult(final, curve, net, max_off, stuck)
+        return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m, cells)
+    return SimResult(final, curve, net, max_off, stuck, cells=cells)
 
 
 @lru_cache(maxsize=16)

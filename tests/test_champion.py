@@ -31,8 +31,7 @@ SMALL = RunConfig(
 def _final(config: RunConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     loop = RunLoop(config)
     while True:
-        fitness, components = evaluate_population(config, loop.generation, loop.ask())
-        told = loop.tell(fitness, components)
+        told = loop.tell(*evaluate_population(config, loop.generation, loop.ask()))
         if loop.done:
             return told.genomes, told.fitness, told.metrics.order, told.generation
 

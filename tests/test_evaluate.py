@@ -1,5 +1,7 @@
 """Eq 12 fitness, start poses, reality-gap draws, determinism and slicing independence."""
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -7,6 +9,7 @@ from hypothesis import strategies as st
 
 from evorobotics.errors import MazeError
 from evorobotics.evaluate import (
+    DESCRIPTORS,
     GAP_CACHE_STEPS,
     START_CACHE,
     _cached_start_poses,
@@ -159,7 +162,32 @@ def test_evaluate_is_deterministic_and_slice_independent(gap: str | None) -> Non
     parts = [evaluate(config, 4, pop[a:b]) for a, b in ((0, 1), (1, 13), (13, 30))]
     assert np.concatenate([p.fitness for p in parts]).tobytes() == whole.fitness.tobytes()
     assert np.concatenate([p.components for p in parts]).tobytes() == whole.components.tobytes()
+    assert np.concatenate([p.descriptors for p in parts]).tobytes() == whole.descriptors.tobytes()
     assert not np.array_equal(evaluate(config, 5, pop).fitness, whole.fitness)
+
+
+def test_descriptors_are_the_trials_normalised_and_averaged() -> None:
+    config = RunConfig(seed=3, steps=60)
+    pop = genomes(5, seed=8)
+    ev = evaluate(config, 1, pop)
+    assert DESCRIPTORS == ("final_x", "final_y", "max_offset", "coverage")
+    assert ev.descriptors.shape == (5, 4) and ev.descriptors.dtype == np.float64
+    assert ((ev.descriptors >= 0) & (ev.descriptors <= 1)).all()
+    maze = load_maze("paper")
+    finals, cells = [], []
+    for pose in start_poses(maze, 3, 1, config.trials):  # individual 4's trials, recorded
+        rec = record_path(config, pop[4], pose, 60)
+        assert rec.poses is not None and rec.cells is not None
+        finals.append(rec.poses_final[0])
+        cell = maze.cell_size
+        visited = {(math.floor(x / cell), math.floor(y / cell)) for x, y, _ in rec.poses[0]}
+        assert rec.cells[0] == len(visited)
+        cells.append(len(visited))
+    assert ev.descriptors[4, 0] == pytest.approx(np.mean([f[0] for f in finals]) / maze.width)
+    assert ev.descriptors[4, 1] == pytest.approx(np.mean([f[1] for f in finals]) / maze.height)
+    diagonal = np.hypot(maze.width, maze.height)
+    assert ev.descriptors[4, 2] == pytest.approx(ev.components[4, :, 2].mean() / diagonal)
+    assert ev.descriptors[4, 3] == pytest.approx(np.mean(cells) / (~maze.solid).sum())
 
 
 def test_reality_gap_changes_fitness_and_stuck_is_penalised() -> None:

@@ -142,12 +142,14 @@ def test_evaluate_population_equals_any_slicing(
     # population is bit-identical to any cut into jobs, concatenated in order
     config = RunConfig(population=11, steps=30, trials=trials, seed=seed, reality_gap=gap)
     genomes = np.random.default_rng(seed).normal(0.0, scale, (11, config.network_spec.weight_count))
-    fitness, components = evaluate_population(config, generation, genomes)
+    fitness, components, descriptors = evaluate_population(config, generation, genomes)
     bounds = [0, *sorted(set(cuts)), 11]
     parts = [evaluate(config, generation, genomes[a:b]) for a, b in pairwise(bounds)]
     assert fitness.shape == (11,) and components.shape == (11, trials, 4)
+    assert descriptors.shape == (11, 4) and ((descriptors >= 0) & (descriptors <= 1)).all()
     assert np.concatenate([p.fitness for p in parts]).tobytes() == fitness.tobytes()
     assert np.concatenate([p.components for p in parts]).tobytes() == components.tobytes()
+    assert np.concatenate([p.descriptors for p in parts]).tobytes() == descriptors.tobytes()
 
 
 def test_evaluate_population_needs_one_row_per_individual() -> None:
@@ -220,8 +222,9 @@ def test_evolve_equals_the_manual_run_loop(seed: int, generations: int) -> None:
     while not loop.done:
         genomes = loop.ask()
         assert loop.ask() is genomes and not genomes.flags.writeable  # asked once, read-only
-        fitness, components = evaluate_population(config, loop.generation, genomes)
-        told = loop.tell(fitness, components)
+        fitness, components, descriptors = evaluate_population(config, loop.generation, genomes)
+        told = loop.tell(fitness, components, descriptors)
+        assert told.descriptors is descriptors
         history.append(told.summary())
     assert _states_equal(result.state, loop.state)
     assert result.genomes.tobytes() == told.genomes.tobytes()

@@ -203,6 +203,9 @@ def test_kernel_agrees_with_reference(preset: str, batch: int, steps: int, with_
     assert np.allclose(fast.motors, ref.motors, atol=1e-9)
     assert np.array_equal(fast.stuck, ref.stuck)
     assert np.allclose(fast.components, ref.components, atol=1e-9)
+    assert fast.cells is not None and ref.cells is not None
+    assert np.array_equal(fast.cells, ref.cells)
+    assert (fast.cells >= 1).all() and (fast.cells > 1).any()
     assert fast.whiskers.any()  # the test does exercise sensing
 
 
@@ -214,6 +217,8 @@ def test_kernel_results_do_not_depend_on_batch() -> None:
     whole = simulate(spec, weights, maze, starts, 40)
     parts = [simulate(spec, weights[a:b], maze, starts[a:b], 40) for a, b in ((0, 3), (3, 20))]
     assert whole.components.tobytes() == np.concatenate([p.components for p in parts]).tobytes()
+    cells = [p.cells for p in parts if p.cells is not None]
+    assert whole.cells is not None and whole.cells.tobytes() == np.concatenate(cells).tobytes()
     assert whole.poses_final.tobytes() == np.concatenate([p.poses_final for p in parts]).tobytes()
 
 
