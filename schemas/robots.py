@@ -332,6 +332,13 @@ def decode_message(payload: bytes) -> RobotMessage:
 
 # ---------------------------------------------------------------------------- REST bodies
 
+ReplacementPolicy = Literal["off", "rank"]
+"""What a stuck robot gets (docs/robots.md): `off` nothing (its scripted escape carries on and
+its controller resumes), `rank` the next rank of the run its controller came from."""
+DEFAULT_REPLACEMENT: ReplacementPolicy = "rank"
+PolicySource = Literal["robot", "colony"]
+"""Where a robot's effective replacement policy comes from: its own setting or the colony's."""
+
 
 class RobotOut(_Model):
     """One robot in GET /api/robots."""
@@ -342,6 +349,10 @@ class RobotOut(_Model):
     controller_sha256: str | None
     steps: int
     last_seen: float | None = Field(description="Unix time of the last trace batch")
+    replacement: ReplacementPolicy = Field(description="the policy its stuck requests get")
+    replacement_source: PolicySource = Field(
+        description="robot: its own setting; colony: the server's COLONY_REPLACEMENT"
+    )
 
 
 class RobotDetail(RobotOut):
@@ -367,6 +378,39 @@ class PushBody(_Model):
         description="a training rank of the run's latest generation; omitted: the run's best "
         "(its validated champion once completed, else training rank 0)",
     )
+
+
+class ReplacementBody(_Model):
+    """PUT /api/robots/{id}/replacement: the robot's own policy, or null for the colony's."""
+
+    policy: ReplacementPolicy | None = Field(
+        description="off, rank, or null: follow the colony's setting"
+    )
+
+
+class StuckEventOut(_Model):
+    """One stuck request in the field ledger, and what it was served."""
+
+    id: int
+    at: float = Field(description="Unix time the server received it")
+    step: int = Field(description="the robot's step counter when it got stuck")
+    reason: str = Field(description="the stuck detector's sign")
+    controller_sha256: str | None = Field(description="the controller that got stuck")
+    policy: ReplacementPolicy | None = Field(
+        description="the policy in force for this robot then (null: recorded before policies)"
+    )
+    replacement_sha256: str | None = Field(description="what was sent; null: nothing")
+    answer: str | None = Field(description="why: the rank sent, or why nothing was")
+    steps_run: int | None = Field(
+        description="steps of the robot's clock from this event to its next, when the robot "
+        "was then running what this event left it with (the replacement, or with none its own "
+        "controller); null while that runs, or when a push or an agent restart came between"
+    )
+
+
+class StuckEventsOut(_Model):
+    robot: str
+    events: list[StuckEventOut] = Field(description="newest last")
 
 
 class PushOut(_Model):

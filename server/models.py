@@ -128,3 +128,5 @@ class Robot(Base):
     controller_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
     first_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     last_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    replacement: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    """Its own replacement policy (`schemas.robots.ReplacementPolicy`); None: the colony's."""

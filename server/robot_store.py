@@ -72,6 +72,15 @@ class StuckEventRow(Base):
     step: Mapped[int] = mapped_column(BigInteger)
     replacement_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
     at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    policy: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    """The replacement policy in force for the robot (None: recorded before policies)."""
+    answer: Mapped[str | None] = mapped_column(Text, nullable=True)
+    """The reply's reason: the rank sent, or why nothing was."""
+    boot: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    """The robot's boot as its last trace batch said: `step` counts from that agent start."""
+    steps_run: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    """Steps from this event to the robot's next, if it then ran what this event left it with
+    (the replacement, or its own controller without one) in the same boot; None until then."""
 
 
 class FieldStatsRow(Base):

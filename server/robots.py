@@ -4,11 +4,14 @@
 enqueue; one service thread stores traces, answers replacement requests, tracks liveliness and
 resolves push acknowledgements, so the database sees one writer from here.
 
-Replacement policy (a stuck robot asks on KEY_REPLACE): the failure is recorded against the
-controller; the reply is the fittest individual of the latest generation of the same run whose
-controller this robot has not failed with in its last `recent_failures` stuck events (its
-current one included). A controller that came from no run, or a run whose every individual
-failed recently on this robot, gets no replacement: the agent's scripted escape carries on.
+Replacement (a stuck robot asks on KEY_REPLACE): the failure is recorded against the
+controller, and the robot's policy (its own, else the colony's `RobotSettings.replacement`)
+chooses the reply. `off`: none. `rank`: the fittest individual of the latest generation of the
+same run whose controller this robot has not failed with in its last `recent_failures` stuck
+events (its current one included); a controller that came from no run, or a run whose every
+individual failed recently on this robot, gets none. Without a replacement the agent's scripted
+escape carries on and its controller resumes. Each stuck event keeps the policy that served it,
+and the next stuck event of the robot fills in how many steps the previous one's outcome ran.
 
 Retention: the newest `retention_samples` trace samples per robot are kept (whole batches are
 deleted oldest first). Field statistics (steps run, stuck events per controller) are counters
@@ -26,7 +29,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import zenoh
@@ -39,6 +42,7 @@ from evorobotics import network
 from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
 from schemas.robots import (
+    DEFAULT_REPLACEMENT,
     ESCAPE,
     KEY_ACKS,
     KEY_REPLACE,
@@ -46,13 +50,17 @@ from schemas.robots import (
     KEY_TRACES,
     ControllerPush,
     FieldStats,
+    PolicySource,
     PushAck,
     PushOut,
     Replacement,
+    ReplacementPolicy,
     ReplayOut,
     RobotDetail,
     RobotOut,
     StopCommand,
+    StuckEventOut,
+    StuckEventsOut,
     StuckRequest,
     TraceAck,
     TraceBatch,
@@ -70,11 +78,13 @@ from schemas.world import World
 from server import crud
 from server.errors import NotFoundError, ServerError
 from server.logs import context
-from server.models import Controller, Robot, Run, utcnow
+from server.models import Controller, Robot, Run, aware, utcnow
 from server.robot_store import FieldStatsRow, RobotStateRow, StuckEventRow, TraceRow
 from server.signing import Signer
 
 log = logging.getLogger(__name__)
+
+POLICIES: tuple[ReplacementPolicy, ...] = get_args(ReplacementPolicy)
 
 
 class RobotOfflineError(ServerError):
@@ -105,8 +115,12 @@ class RobotSettings:
     """Samples an agent may buffer before the server hears of its boot (its buffer_samples)."""
     request_slack: float = 5.0
     """Seconds a trace batch may spend in flight (the agent's request timeout, with margin)."""
+    replacement: ReplacementPolicy = DEFAULT_REPLACEMENT
+    """The colony's replacement policy: a robot without its own gets this one."""
 
     def __post_init__(self) -> None:
+        if self.replacement not in POLICIES:
+            raise ValueError(f"replacement must be one of {POLICIES}, got {self.replacement!r}")
         if min(self.retention_samples, self.recent_failures, self.max_backlog) < 1:
             raise ValueError("retention_samples, recent_failures and max_backlog must be >= 1")
         if not self.push_timeout > 0 or not self.dt > 0 or not self.request_slack >= 0:
@@ -511,35 +525,49 @@ class RobotService:
 
     def _replace(self, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
         with self.sessions.begin() as db:
+            robot = db.get(Robot, request.robot)
+            policy, _ = _effective(robot.replacement if robot else None, self.settings.replacement)
+            state = db.get(RobotStateRow, request.robot)
+            if state is None:
+                state = RobotStateRow(
+                    robot_id=request.robot, state="escaping", stuck_events=0, boot=0
+                )
+                db.add(state)
+            _close_previous(db, request, state.boot)
             event = StuckEventRow(
                 robot_id=request.robot,
                 controller_sha256=request.sha256,
                 reason=request.reason,
                 step=request.step,
+                policy=policy,
+                boot=state.boot,
             )
             db.add(event)
-            state = db.get(RobotStateRow, request.robot)
-            if state is None:
-                state = RobotStateRow(robot_id=request.robot, state="escaping", stuck_events=0)
-                db.add(state)
             state.stuck_events += 1
             if request.sha256 is not None:
                 _field_row(db, request.sha256).stuck_events += 1
             db.flush()
-            doc, reason = self._pick(db, request)
+            doc, reason = self._pick(db, request, policy)
             event.replacement_sha256 = doc.sha256 if doc else None
+            event.answer = reason
         context(log, robot=request.robot).info(
-            "robot %s stuck at step %d (%s) with %s; replacement %s: %s",
+            "robot %s stuck at step %d (%s) with %s; policy %s, replacement %s: %s",
             request.robot,
             request.step,
             request.reason,
             request.sha256,
+            policy,
             doc.sha256 if doc else None,
             reason,
         )
         return doc, reason
 
-    def _pick(self, db: Session, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
+    def _pick(
+        self, db: Session, request: StuckRequest, policy: ReplacementPolicy
+    ) -> tuple[ControllerDocument | None, str]:
+        """The reply to a stuck request under `policy` (one branch per policy), with its reason."""
+        if policy == "off":
+            return None, "replacement is off for this robot"
         failed = db.get(Controller, request.sha256) if request.sha256 else None
         if failed is None or failed.run_id is None:
             return None, "the failed controller comes from no stored run"
@@ -565,7 +593,7 @@ class RobotService:
 
     def robots(self) -> list[RobotOut]:
         with self.sessions() as db:
-            return robot_summaries(db, self.is_online)
+            return robot_summaries(db, self.is_online, self.settings.replacement)
 
     def robot(self, robot_id: str) -> RobotDetail:
         with self.sessions() as db:
@@ -594,7 +622,38 @@ class RobotService:
             )
 
     def _summary(self, row: Robot, state: RobotStateRow | None) -> RobotOut:
-        return _summary(row, state, self.is_online(row.id))
+        return _summary(row, state, self.is_online(row.id), self.settings.replacement)
+
+    def set_replacement(self, robot_id: str, policy: ReplacementPolicy | None) -> RobotDetail:
+        """Give the robot its own replacement policy, or None to follow the colony's."""
+        if policy is not None and policy not in POLICIES:
+            raise ValueError(f"policy must be one of {POLICIES} or None, got {policy!r}")
+        with self.sessions.begin() as db:
+            row = db.get(Robot, robot_id)
+            if row is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            row.replacement = policy
+        context(log, robot=robot_id).info(
+            "robot %s replacement policy: %s", robot_id, policy or "the colony's"
+        )
+        return self.robot(robot_id)
+
+    def stuck_events(self, robot_id: str, limit: int = 1000) -> StuckEventsOut:
+        """The robot's newest `limit` stuck events, oldest first: the field ledger."""
+        if limit < 1:
+            raise ValueError(f"limit must be >= 1, got {limit}")
+        with self.sessions() as db:
+            if db.get(Robot, robot_id) is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            rows = list(
+                db.scalars(
+                    select(StuckEventRow)
+                    .where(StuckEventRow.robot_id == robot_id)
+                    .order_by(StuckEventRow.id.desc())
+                    .limit(limit)
+                )
+            )
+        return StuckEventsOut(robot=robot_id, events=[_event_out(r) for r in reversed(rows)])
 
     def forget(self, robot_id: str) -> None:
         """Remove an offline robot: its registry row, last report, stuck events and traces.
@@ -803,6 +862,49 @@ def _population(db: Session, run_id: int) -> int:
     return sum(len(p) for p in found.values())
 
 
+def _effective(
+    own: str | None, colony: ReplacementPolicy
+) -> tuple[ReplacementPolicy, PolicySource]:
+    """The policy a robot's stuck requests get: its own if it has one, else the colony's."""
+    for policy in POLICIES:
+        if own == policy:
+            return policy, "robot"
+    return colony, "colony"
+
+
+def _close_previous(db: Session, request: StuckRequest, boot: int) -> None:
+    """Fill in the steps the robot's previous stuck event's outcome ran, if `request` shows the
+    robot was still running it (the replacement sent, or without one the same controller) in the
+    same boot, whose step counter both share."""
+    previous = db.scalars(
+        select(StuckEventRow)
+        .where(StuckEventRow.robot_id == request.robot)
+        .order_by(StuckEventRow.id.desc())
+        .limit(1)
+    ).first()
+    if previous is None or previous.steps_run is not None or previous.boot != boot:
+        return
+    ran = previous.replacement_sha256 or previous.controller_sha256
+    if ran is not None and ran == request.sha256 and request.step > previous.step:
+        previous.steps_run = request.step - previous.step
+
+
+def _event_out(row: StuckEventRow) -> StuckEventOut:
+    policy = next((p for p in POLICIES if p == row.policy), None)
+    at = aware(row.at)
+    return StuckEventOut(
+        id=row.id,
+        at=at.timestamp() if at else 0.0,
+        step=row.step,
+        reason=row.reason,
+        controller_sha256=row.controller_sha256,
+        policy=policy,
+        replacement_sha256=row.replacement_sha256,
+        answer=row.answer,
+        steps_run=row.steps_run,
+    )
+
+
 def _field_row(db: Session, sha256: str) -> FieldStatsRow:
     row = db.get(FieldStatsRow, sha256)
     if row is None:
@@ -925,12 +1027,15 @@ def robot_service(
 ) -> Callable[[FastAPI, zenoh.Session], Callable[[], None]]:
     """A `create_app(..., services=[robot_service()])` hook: the service on the server's session.
 
-    It uses the run manager's sessionmaker and is exposed as `app.state.robots` for the routes.
+    It uses the run manager's sessionmaker and the colony's replacement policy from its
+    settings (COLONY_REPLACEMENT), and is exposed as `app.state.robots` for the routes.
     """
 
     def install(app: FastAPI, session: zenoh.Session) -> Callable[[], None]:
         signer = getattr(app.state, "signer", None)
-        service = RobotService(session, app.state.manager.sessions, settings, signer).start()
+        manager = app.state.manager
+        tuned = replace(settings or RobotSettings(), replacement=manager.settings.replacement)
+        service = RobotService(session, manager.sessions, tuned, signer).start()
         app.state.robots = service
 
         def close() -> None:
@@ -942,15 +1047,21 @@ def robot_service(
     return install
 
 
-def robot_summaries(db: Session, is_online: Callable[[str], bool]) -> list[RobotOut]:
-    """Every robot ever seen, by id: the one robot view of /api/robots and /api/colony."""
+def robot_summaries(
+    db: Session, is_online: Callable[[str], bool], colony: ReplacementPolicy
+) -> list[RobotOut]:
+    """Every robot ever seen, by id: the one robot view of /api/robots and /api/colony;
+    `colony` is the colony's replacement policy."""
     rows = list(db.scalars(select(Robot).order_by(Robot.id)))
     states = {s.robot_id: s for s in db.scalars(select(RobotStateRow))}
-    return [_summary(r, states.get(r.id), is_online(r.id)) for r in rows]
+    return [_summary(r, states.get(r.id), is_online(r.id), colony) for r in rows]
 
 
-def _summary(row: Robot, state: RobotStateRow | None, online: bool) -> RobotOut:
+def _summary(
+    row: Robot, state: RobotStateRow | None, online: bool, colony: ReplacementPolicy
+) -> RobotOut:
     last = state.updated_at if state else row.last_seen
+    policy, source = _effective(row.replacement, colony)
     return RobotOut(
         id=row.id,
         online=online,
@@ -958,4 +1069,6 @@ def _summary(row: Robot, state: RobotStateRow | None, online: bool) -> RobotOut:
         controller_sha256=row.controller_sha256,
         steps=state.steps if state else 0,
         last_seen=last.timestamp() if last else None,
+        replacement=policy,
+        replacement_source=source,
     )

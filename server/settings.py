@@ -9,6 +9,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from schemas.robots import DEFAULT_REPLACEMENT, ReplacementPolicy
 from schemas.security import (
     MAX_BODY_BYTES,
     MAX_GENERATION_STEPS,
@@ -51,6 +52,11 @@ class Settings(BaseSettings):
     )
     tensorboard_dir: Path | None = Field(
         None, description="write TensorBoard event files of each run under DIR/run-ID"
+    )
+    replacement: ReplacementPolicy = Field(
+        DEFAULT_REPLACEMENT,
+        description="what a stuck robot gets unless it has its own policy: off (nothing, it "
+        "escapes and resumes), rank (the next rank of its controller's run)",
     )
 
     # security (docs/security.md)

@@ -63,7 +63,11 @@ def colony(request: Request, session: SessionDep, workers: WorkersDep) -> Colony
         active=[run_out(r, refused) for r in active],
         jobs=JobCounts(**crud.job_counts(session)),
         workers=workers,
-        robots=robot_summaries(session, robots.is_online if robots else _offline),
+        robots=robot_summaries(
+            session,
+            robots.is_online if robots else _offline,
+            (robots.settings if robots else request.app.state.manager.settings).replacement,
+        ),
     )
 
 

@@ -1,4 +1,5 @@
-"""/api/robots: the colony's EvBots, controller pushes, stop, traces and the replay check.
+"""/api/robots: the colony's EvBots, controller pushes, stop, replacement policy, stuck ledger,
+traces and the replay check.
 
 Reads the `RobotService` the app's lifespan puts in `app.state.robots`.
 """
@@ -9,7 +10,16 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
-from schemas.robots import PushBody, PushOut, ReplayOut, RobotDetail, RobotOut, TracesOut
+from schemas.robots import (
+    PushBody,
+    PushOut,
+    ReplacementBody,
+    ReplayOut,
+    RobotDetail,
+    RobotOut,
+    StuckEventsOut,
+    TracesOut,
+)
 from server.robots import RobotService
 
 router = APIRouter(prefix="/api/robots", tags=["robots"])
@@ -62,6 +72,28 @@ def push_controller(robots: RobotsDep, robot_id: str, body: PushBody) -> PushOut
 def stop_robot(robots: RobotsDep, robot_id: str) -> PushOut:
     """Motors to zero until the next push."""
     return robots.stop_robot(robot_id)
+
+
+@router.put(
+    "/{robot_id}/replacement",
+    response_model=RobotDetail,
+    responses={404: {"description": "unknown robot"}},
+)
+def set_replacement(robots: RobotsDep, robot_id: str, body: ReplacementBody) -> RobotDetail:
+    """The robot's own replacement policy (`off`, `rank`), or null to follow the colony's
+    (COLONY_REPLACEMENT); it applies from the robot's next stuck request."""
+    return robots.set_replacement(robot_id, body.policy)
+
+
+@router.get("/{robot_id}/stuck", response_model=StuckEventsOut)
+def get_stuck_events(
+    robots: RobotsDep,
+    robot_id: str,
+    limit: Annotated[int, Query(ge=1, le=100_000, description="newest events")] = 1000,
+) -> StuckEventsOut:
+    """The field ledger: each stuck event, the policy that served it, what was sent, and the
+    steps the robot then ran before its next stuck event."""
+    return robots.stuck_events(robot_id, limit)
 
 
 @router.get("/{robot_id}/traces", response_model=TracesOut)
