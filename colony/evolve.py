@@ -19,13 +19,14 @@ from typing import Annotated, Any
 import typer
 from pydantic import ValidationError
 
-from evorobotics.document import ControllerDocument
+from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.errors import EvoError
 from evorobotics.evaluate import trial_steps
 from evorobotics.evolution import EvolutionResult, GenerationSummary, evolve
 from evorobotics.maze import load_maze
+from evorobotics.strategies import Archive
 from schemas.network import PRESETS, NetworkSpec
-from schemas.run import RunConfig
+from schemas.run import RunConfig, StrategyName
 
 LOG_LINES = 20
 """Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
@@ -103,6 +104,26 @@ def write_generations_csv(path: Path, history: tuple[GenerationSummary, ...]) ->
             writer.writerow([h.generation, repr(h.best), repr(h.mean), repr(h.worst)])
 
 
+def write_archive_csv(path: Path, config: RunConfig, archive: Archive) -> None:
+    """One row per archive entry: its two descriptors (named by the axes), its fitness and the
+    sha256 of its controller document; floats as repr so they parse back to the same bits."""
+    spec = config.network_spec
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow([*config.strategy_settings.axes, "fitness", "sha256"])
+        for d, fit, genome in zip(
+            archive.descriptors, archive.fitness, archive.genomes, strict=True
+        ):
+            writer.writerow(
+                [
+                    repr(float(d[0])),
+                    repr(float(d[1])),
+                    repr(float(fit)),
+                    controller_sha256(spec, genome),
+                ]
+            )
+
+
 def champion_summary(best: ControllerDocument) -> str:
     """One line: training fitness, and the validation the champion was chosen on."""
     training = "n/a" if best.fitness is None else f"{best.fitness:.4f}"
@@ -116,7 +137,8 @@ def champion_summary(best: ControllerDocument) -> str:
 
 
 def write_outputs(out: Path, config: RunConfig, result: EvolutionResult) -> list[Path]:
-    """best.json, generations.csv, config.json and the three plots; returns the paths."""
+    """best.json, generations.csv, config.json and the three plots, and archive.csv and
+    archive.png for a strategy with an archive; returns the paths."""
     from evorobotics import plots  # matplotlib is slow to import: only when writing
 
     out.mkdir(parents=True, exist_ok=True)
@@ -137,6 +159,11 @@ def write_outputs(out: Path, config: RunConfig, result: EvolutionResult) -> list
     plots.fitness_plot(result.history, files["fitness.png"])
     plots.paths_plot(config, result.best, files["paths.png"])
     plots.network_plot(result.best.spec, result.best.weights, files["network.png"])
+    if result.archive is not None:
+        files["archive.csv"] = out / "archive.csv"
+        files["archive.png"] = out / "archive.png"
+        write_archive_csv(files["archive.csv"], config, result.archive)
+        plots.archive_plot(config, result.archive, files["archive.png"])
     return list(files.values())
 
 
@@ -192,6 +219,10 @@ def evolve_command(
         bool | None,
         typer.Option("--reality-gap/--no-reality-gap", help="evolve under the reality-gap model"),
     ] = None,
+    strategy: Annotated[
+        StrategyName | None,
+        typer.Option(help="paper-ga, cma-es, sep-cma-es, map-elites, cma-me or novelty [paper-ga]"),
+    ] = None,
     config: Annotated[
         Path | None, typer.Option("--config", metavar="FILE", help="a RunConfig JSON")
     ] = None,
@@ -211,6 +242,7 @@ def evolve_command(
         "maze": maze,
         "network": network,
         "reality_gap": reality_gap,
+        "strategy": strategy,
     }
     try:
         cfg = resolve_config(config, overrides)
@@ -220,7 +252,8 @@ def evolve_command(
     spec = cfg.network_spec
     typer.echo(
         f"evolving: population {cfg.population}, {cfg.generations} generations, "
-        f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}"
+        f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}, "
+        f"strategy {cfg.strategy}"
     )
     started = time.perf_counter()
     events = None

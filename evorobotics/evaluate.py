@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import get_args
 
 import numpy as np
 
@@ -28,17 +29,18 @@ from evorobotics.fitness import mean_fitness
 from evorobotics.maze import Maze, load_maze
 from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import DEFAULT_WORLD, Gap, SimResult, clear_of_walls, simulate
-from schemas.run import RunConfig
+from schemas.run import Descriptor, RunConfig
 from schemas.world import N_WHISKERS, World
 
 _CANDIDATES = 64
 _MAX_ROUNDS = 1000
 
 
-DESCRIPTORS = ("final_x", "final_y", "max_offset", "coverage")
-"""Behaviour descriptors of an individual, the columns of `Evaluation.descriptors`, each in
-[0, 1] and averaged over its trials: final x and y over the maze's width and height, max offset
-(Eq 12) over the maze's diagonal, and the fraction of the maze's free cells its centre visited."""
+DESCRIPTORS: tuple[Descriptor, ...] = get_args(Descriptor)
+"""("final_x", "final_y", "max_offset", "coverage"): the behaviour descriptors of an individual,
+the columns of `Evaluation.descriptors`, each in [0, 1] and averaged over its trials: final x
+and y over the maze's width and height, max offset (Eq 12) over the maze's diagonal, and the
+fraction of the maze's free cells its centre visited."""
 
 
 @dataclass(frozen=True)

@@ -13,19 +13,20 @@ final population on the run's validation set (`RunConfig.validation`, docs/evolv
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evaluate import evaluate, validation_set
+from evorobotics.evaluate import DESCRIPTORS, evaluate, validation_set
 from evorobotics.explore import confined
 from evorobotics.fitness import mean_fitness
-from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, tell
+from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, rank, tell
 from evorobotics.layout import layout
 from evorobotics.maze import load_maze
 from evorobotics.sim import simulate
+from evorobotics.strategies import Archive, make_strategy
 from schemas.run import RunConfig, ValidationScore
 
 
@@ -62,6 +63,8 @@ class EvolutionResult:
     """(population,) Eq 12 fitness of `genomes`."""
     components: np.ndarray
     """(population, trials, 4) per-trial (curve_length, net_offset, max_offset, stuck)."""
+    archive: Archive | None = None
+    """The final archive of a map-elites, cma-me or novelty run (`RunLoop.archive`)."""
 
 
 def best_document(
@@ -219,13 +222,55 @@ def evaluate_population(
     return result.fitness, result.components, result.descriptors
 
 
+@dataclass(frozen=True)
+class StrategyHistory:
+    """What a run loop was told, generation by generation: with the config, the whole state of
+    any strategy (`RunLoop.resume` replays it). Arrays only, for storage as raw bytes."""
+
+    fitness: np.ndarray
+    """(generations, population) fitness in ask() order."""
+    descriptors: np.ndarray
+    """(generations, population, 4) in `evaluate.DESCRIPTORS` order; NaN where none was told."""
+
+    def __post_init__(self) -> None:
+        f = np.asarray(self.fitness, dtype=np.float64)
+        d = np.asarray(self.descriptors, dtype=np.float64)
+        if f.ndim != 2 or d.shape != (*f.shape, len(DESCRIPTORS)):
+            raise ValueError(
+                f"history needs fitness (g, n) and descriptors (g, n, {len(DESCRIPTORS)}), "
+                f"got {f.shape} and {d.shape}"
+            )
+        object.__setattr__(self, "fitness", f)
+        object.__setattr__(self, "descriptors", d)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """{"fitness": ..., "descriptors": ...}, copies."""
+        return {"fitness": self.fitness.copy(), "descriptors": self.descriptors.copy()}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> StrategyHistory:
+        """The history `to_arrays` described; ValueError on other keys or shapes."""
+        if set(arrays) != {"fitness", "descriptors"}:
+            raise ValueError(
+                f"history arrays must be fitness and descriptors, got {sorted(arrays)}"
+            )
+        return cls(arrays["fitness"], arrays["descriptors"])
+
+
 class RunLoop:
-    """The run loop every role drives: ask, evaluate (the caller's part), tell, over one GA state.
+    """The run loop every role drives: ask, evaluate (the caller's part), tell, for any strategy.
 
     `colony evolve`, the server's scheduler and a worker evolving a span all step a run through
-    this object, so a strategy or an end-of-run step is added here once. Its whole state is
-    `state` (a GAState, persisted by the server after every generation); `ask` is a pure
-    function of it and the seed, so a loop rebuilt from a stored state goes on bit for bit.
+    this object, so a strategy or an end-of-run step is added here once.
+
+    State. `state` is a GAState after every strategy's `tell` (the generation counter and the
+    told generation ranked by fitness, what a store shows). For `paper-ga` it is the whole
+    state: `RunLoop(config, state)` goes on bit for bit from a stored one. The other strategies
+    (config.strategy) hold Python objects (pycma, pyribs), so their state is the config plus
+    `history` (fitness and descriptors told per generation, arrays only):
+    `RunLoop.resume(config, history)` rebuilds the loop by replaying ask/tell without evaluating.
+    Spans (a worker evolving generations itself from a GAState) are paper-ga only: a non-GA
+    loop refuses a state past generation 0.
     """
 
     def __init__(self, config: RunConfig, state: GAState | None = None) -> None:
@@ -238,7 +283,46 @@ class RunLoop:
                 f"GA state of {self.state.n_weights} weights for a "
                 f"{self.layout.n_weights}-weight network"
             )
+        self._strategy = make_strategy(config, self.layout)
+        if self._strategy is not None and self.state.generation > 0:
+            raise ValueError(
+                f"a {config.strategy} run resumes from its history (RunLoop.resume), "
+                "not from a GA state"
+            )
+        self._first = self.state.generation
+        self._fitness: list[np.ndarray] = []
+        self._descriptors: list[np.ndarray] = []
         self._asked: np.ndarray | None = None
+
+    @classmethod
+    def resume(cls, config: RunConfig, history: StrategyHistory) -> RunLoop:
+        """The loop of `config` after the generations of `history`, replayed (no evaluation):
+        bit-identical to the loop that was told them, for every strategy."""
+        if history.fitness.shape[1:] != (config.population,):
+            raise ValueError(
+                f"history of {history.fitness.shape[1:]} individuals for a population of "
+                f"{config.population}"
+            )
+        if history.fitness.shape[0] > config.generations:
+            raise ValueError(
+                f"history of {history.fitness.shape[0]} generations for a run of "
+                f"{config.generations}"
+            )
+        loop = cls(config)
+        for fitness, descriptors in zip(history.fitness, history.descriptors, strict=True):
+            loop.tell(fitness, None, descriptors)
+        return loop
+
+    @property
+    def history(self) -> StrategyHistory:
+        """Fitness and descriptors told so far (what `resume` takes); a paper-ga loop built
+        from a later GAState has none (ValueError): its state is `state`."""
+        if self._first != 0:
+            raise ValueError(f"this loop started at generation {self._first}: no full history")
+        n, d = self.config.population, len(DESCRIPTORS)
+        if not self._fitness:
+            return StrategyHistory(np.empty((0, n)), np.empty((0, n, d)))
+        return StrategyHistory(np.stack(self._fitness), np.stack(self._descriptors))
 
     @property
     def generation(self) -> int:
@@ -254,9 +338,12 @@ class RunLoop:
         if self.done:
             raise ValueError(f"the run is over after {self.config.generations} generations")
         if self._asked is None:
-            genomes, _ = ask(
-                ga_rng(self.config.seed, self.generation), self.state, self.params, self.layout
-            )
+            if self._strategy is None:
+                genomes, _ = ask(
+                    ga_rng(self.config.seed, self.generation), self.state, self.params, self.layout
+                )
+            else:
+                genomes = np.ascontiguousarray(self._strategy.ask(self.generation))
             genomes.flags.writeable = False
             self._asked = genomes
         return self._asked
@@ -267,11 +354,28 @@ class RunLoop:
         components: np.ndarray | None = None,
         descriptors: np.ndarray | None = None,
     ) -> Told:
-        """Rank the current generation by `fitness` and move on to the next."""
+        """Rank the current generation by `fitness` and move on to the next. map-elites,
+        cma-me and novelty need `descriptors` (ValueError without them)."""
         genomes = self.ask()
         before = self.state
         self.state, metrics = tell(genomes, fitness, before, self.params)
+        n, d = self.config.population, len(DESCRIPTORS)
+        told_descriptors = (
+            np.full((n, d), np.nan)
+            if descriptors is None
+            else np.asarray(descriptors, dtype=np.float64)
+        )
+        if told_descriptors.shape != (n, d):
+            raise ValueError(f"descriptors must be ({n}, {d}), got {told_descriptors.shape}")
+        if self._strategy is not None:
+            try:
+                self._strategy.tell(genomes, np.asarray(fitness), descriptors)
+            except ValueError:
+                self.state = before  # the generation was not told: it may be told again
+                raise
         self._asked = None
+        self._fitness.append(np.array(fitness, dtype=np.float64))
+        self._descriptors.append(told_descriptors.copy())
         return Told(
             before.generation,
             genomes,
@@ -282,6 +386,27 @@ class RunLoop:
             self.state,
             metrics,
         )
+
+    def archive(self) -> Archive | None:
+        """The archive of a map-elites, cma-me or novelty run (descriptors (m, 2) on
+        `strategy_settings.axes`, fitness (m,), genomes (m, w)); None for paper-ga and CMA-ES."""
+        return None if self._strategy is None else self._strategy.archive()
+
+    def candidates(self, genomes: np.ndarray, fitness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where the champion is chosen from, given the final generation's genomes and fitness:
+        that generation for paper-ga and CMA-ES, the archive's elites for map-elites and
+        cma-me (a QD run's product is its archive), the archive and the final generation for
+        novelty (its generations are selected on novelty, not fitness). Rank them with
+        `ga.rank` and pass them to `champion`."""
+        archive = self.archive()
+        if archive is None:
+            return np.asarray(genomes), np.asarray(fitness)
+        if self.config.strategy == "novelty":
+            return (
+                np.concatenate([archive.genomes, np.asarray(genomes)]),
+                np.concatenate([archive.fitness, np.asarray(fitness)]),
+            )
+        return archive.genomes, archive.fitness
 
 
 @dataclass(frozen=True)
@@ -325,7 +450,14 @@ def evolve(
             on_generation(history[-1])
     if told is None:
         raise ValueError("a run needs at least one generation")
-    best = champion(
-        config, told.genomes, told.fitness, told.metrics.order, generation=told.generation
+    genomes, fitness = loop.candidates(told.genomes, told.fitness)
+    best = champion(config, genomes, fitness, rank(fitness), generation=told.generation)
+    return EvolutionResult(
+        loop.state,
+        tuple(history),
+        best,
+        told.genomes,
+        told.fitness,
+        components,
+        loop.archive(),
     )
-    return EvolutionResult(loop.state, tuple(history), best, told.genomes, told.fitness, components)

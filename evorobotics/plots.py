@@ -24,6 +24,7 @@ from evorobotics.evaluate import record_path, start_poses
 from evorobotics.evolution import GenerationSummary
 from evorobotics.layout import layout
 from evorobotics.maze import load_maze
+from evorobotics.strategies import Archive
 from schemas.network import NetworkSpec
 from schemas.run import RunConfig
 
@@ -205,5 +206,38 @@ def paths_plot(
             f"stuck {v.stuck:.0%}, roaming {v.roaming:.0%}"
         )
     fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def archive_grid(config: RunConfig, archive: Archive) -> np.ndarray:
+    """(cells, cells) best fitness per cell of the `strategy_settings.axes` plane, NaN where
+    empty, row j the j-th band of the second axis: the pyribs grid itself for map-elites and
+    cma-me, the novelty archive binned the same way."""
+    n = config.strategy_settings.cells
+    grid = np.full((n, n), -np.inf)
+    idx = np.clip(np.floor(archive.descriptors * n).astype(np.int64), 0, n - 1)
+    np.maximum.at(grid, (idx[:, 1], idx[:, 0]), np.nan_to_num(archive.fitness, nan=-np.inf))
+    return np.where(np.isfinite(grid), grid, np.nan)
+
+
+def archive_plot(config: RunConfig, archive: Archive, path: Path) -> None:
+    """A heat map of the archive's best fitness per cell. On the default axes (final_x,
+    final_y) it spans the maze's extent with the walls behind it; other axes span [0, 1]."""
+    axes = config.strategy_settings.axes
+    grid = archive_grid(config, archive)
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    extent = (0.0, 1.0, 0.0, 1.0)
+    on_maze = axes == ("final_x", "final_y")
+    if on_maze:
+        maze = load_maze(config.maze)
+        extent = (0.0, maze.width, 0.0, maze.height)
+        ax.imshow(maze.grid, cmap="Greys", extent=extent, origin="upper", vmin=0, vmax=1.4)
+    image = ax.imshow(grid, cmap="viridis", extent=extent, origin="lower", alpha=0.85)
+    fig.colorbar(image, ax=ax, label="best fitness (Eq 12)")
+    ax.set_xlabel("x (m)" if on_maze else axes[0])
+    ax.set_ylabel("y (m)" if on_maze else axes[1])
+    filled = int(np.isfinite(grid).sum())
+    ax.set_title(f"{config.strategy} archive: {len(archive.fitness)} entries, {filled} cells")
     fig.tight_layout()
     _save(fig, path)

@@ -26,12 +26,19 @@ class Purpose(IntEnum):
     EXPLORATION = 9
     EXPLORATION_GAP = 10
     BODY_GAP = 11
+    STRATEGY = 12
 
 
 def rng(seed: int, generation: int, purpose: Purpose, index: int = 0) -> np.random.Generator:
     """The generator for one (seed, generation, purpose, index); same key, same draws."""
+    return np.random.Generator(np.random.PCG64(seed_sequence(seed, generation, purpose, index)))
+
+
+def seed_sequence(
+    seed: int, generation: int, purpose: Purpose, index: int = 0
+) -> np.random.SeedSequence:
+    """The SeedSequence behind `rng`, for libraries that take one (pyribs archives, emitters)."""
     for name, value in (("seed", seed), ("generation", generation), ("index", index)):
         if value < 0:
             raise ValueError(f"{name} must be >= 0, got {value}")
-    sequence = np.random.SeedSequence([seed, generation, int(purpose), index])
-    return np.random.Generator(np.random.PCG64(sequence))
+    return np.random.SeedSequence([seed, generation, int(purpose), index])

@@ -52,6 +52,55 @@ class GAConfig(BaseModel):
     )
 
 
+StrategyName = Literal["paper-ga", "cma-es", "sep-cma-es", "map-elites", "cma-me", "novelty"]
+"""The optimisers behind the run loop (docs/strategies.md)."""
+
+Descriptor = Literal["final_x", "final_y", "max_offset", "coverage"]
+"""Behaviour descriptors of an evaluated individual, each in [0, 1] (`evaluate.DESCRIPTORS`)."""
+
+
+class StrategyConfig(BaseModel):
+    """The settings of the strategies other than the paper's GA (each names who reads it)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    sigma0: float = Field(
+        0.5,
+        gt=0.0,
+        le=100.0,
+        description="cma-es, sep-cma-es, cma-me: initial step size; map-elites: the Gaussian "
+        "mutation step. In units of Eq 7's initial range of each weight (per weight for pycma "
+        "and map-elites, its layer-1 value for cma-me)",
+    )
+    axes: tuple[Descriptor, Descriptor] = Field(
+        ("final_x", "final_y"),
+        description="map-elites, cma-me: the archive's two axes; novelty: the behaviour space",
+    )
+    cells: int = Field(20, ge=2, le=1000, description="map-elites, cma-me: archive cells per axis")
+    emitters: int = Field(
+        1,
+        ge=1,
+        le=100,
+        description="map-elites, cma-me: emitters sharing each generation's population (sizes "
+        "differ by at most one)",
+    )
+    novelty_k: int = Field(
+        15, ge=1, le=1000, description="novelty: nearest behaviours averaged into novelty"
+    )
+    novelty_add: int = Field(
+        3,
+        ge=0,
+        le=10_000,
+        description="novelty: each generation's most novel this many join its archive",
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> StrategyConfig:
+        if self.axes[0] == self.axes[1]:
+            raise ValueError(f"axes must be two different descriptors, got {self.axes}")
+        return self
+
+
 class ValidationConfig(BaseModel):
     """The end-of-run re-scoring that picks the champion (docs/evolve.md, "The champion").
 
@@ -118,6 +167,12 @@ class RunConfig(BaseModel):
     world: World = World()
     validation: ValidationConfig = ValidationConfig()
     ga: GAConfig = GAConfig()
+    strategy: StrategyName = Field(
+        "paper-ga",
+        description="the optimiser: the paper's GA (Eqs 7, 9-11), pycma's CMA-ES or its "
+        "separable variant, pyribs' MAP-Elites or CMA-ME, or novelty search",
+    )
+    strategy_settings: StrategyConfig = StrategyConfig()
     job_size: int = Field(
         25,
         ge=1,
@@ -135,6 +190,13 @@ class RunConfig(BaseModel):
             raise ValueError(
                 f"population {self.population} is too small for replacement "
                 f"{self.ga.replacement}: Eq 11 needs n >= 2m+1 with m = {m}"
+            )
+        if self.strategy in ("map-elites", "cma-me") and (
+            self.population < 2 * self.strategy_settings.emitters
+        ):
+            raise ValueError(
+                f"population {self.population} is too small for "
+                f"{self.strategy_settings.emitters} emitters: at least 2 genomes each"
             )
         return self
 
