@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 10
+PROTOCOL = 11
 """Wire protocol version, sent in every job request; the server idles other versions."""
 
 KEY_JOB_NEXT = "evocolony/jobs/next/*"
@@ -324,10 +324,10 @@ class Job(_Message):
 
 
 class Result(_Message):
-    """Worker -> server on KEY_JOB_RESULT: fitness and components of `k` consecutive
-    generations of one job's slice (k = 1 but for a span), or an error."""
+    """Worker -> server on KEY_JOB_RESULT: fitness, components and behaviour descriptors of
+    `k` consecutive generations of one job's slice (k = 1 but for a span), or an error."""
 
-    ARRAYS: ClassVar[tuple[str, ...]] = ("fitness", "components")
+    ARRAYS: ClassVar[tuple[str, ...]] = ("fitness", "components", "descriptors")
     kind: Literal["result"] = "result"
     key: JobKey
     """The job of the first generation; generation i of the result is `key.at(g + i)`."""
@@ -346,6 +346,8 @@ class Result(_Message):
     """(k, stop - start) finite float64."""
     components: np.ndarray | None = None
     """(k, stop - start, trials, 4) float64."""
+    descriptors: np.ndarray | None = None
+    """(k, stop - start, 4) float64 in [0, 1] (`evorobotics.evaluate.DESCRIPTORS`)."""
 
     _name = field_validator("worker")(_worker_name)
 
@@ -367,12 +369,23 @@ class Result(_Message):
         if not all(_DIGEST.match(d) for d in self.digests):
             raise ValueError("digests must be 8 lowercase hex digits (CRC-32)")
         if self.error is not None:
-            if self.fitness is not None or self.components is not None or self.digests:
+            if (
+                self.fitness is not None
+                or self.components is not None
+                or self.descriptors is not None
+                or self.digests
+            ):
                 raise ValueError("an error result carries no fitness")
             return self
-        fitness, components = self.fitness, self.components
-        if fitness is None or components is None or self.start is None or self.stop is None:
-            raise ValueError("a result needs its slice, fitness and components")
+        fitness, components, descriptors = self.fitness, self.components, self.descriptors
+        if (
+            fitness is None
+            or components is None
+            or descriptors is None
+            or self.start is None
+            or self.stop is None
+        ):
+            raise ValueError("a result needs its slice, fitness, components and descriptors")
         k, n = len(fitness) if fitness.ndim else 0, self.stop - self.start
         if fitness.dtype != np.float64 or fitness.ndim != 2 or not 1 <= k <= SPAN_BATCH_MAX:
             raise ValueError(f"fitness must be float64 (k <= {SPAN_BATCH_MAX}, n)")
@@ -380,6 +393,10 @@ class Result(_Message):
             raise ValueError(f"fitness {fitness.shape} must be finite, for the slice of {n}")
         if components.dtype != np.float64 or components.ndim != 4 or components.shape[:2] != (k, n):
             raise ValueError(f"components {components.shape} do not match fitness {fitness.shape}")
+        if descriptors.dtype != np.float64 or descriptors.shape != (k, n, 4):
+            raise ValueError(f"descriptors {descriptors.shape} must be float64 ({k}, {n}, 4)")
+        if not ((descriptors >= 0.0) & (descriptors <= 1.0)).all():
+            raise ValueError("descriptors must lie in [0, 1]")
         if self.digests and len(self.digests) != k:
             raise ValueError(f"{len(self.digests)} digests for {k} generations")
         return self

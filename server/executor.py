@@ -40,6 +40,7 @@ def run_job(job: Job, worker: str) -> Result:
         seconds=seconds,
         fitness=evaluation.fitness[None],
         components=evaluation.components[None],
+        descriptors=evaluation.descriptors[None],
     )
 
 

@@ -659,6 +659,9 @@ class RunManager:
         components = told.components
         if components is None:
             components = np.full((len(genomes), config.trials, 4), np.nan)
+        descriptors = told.descriptors
+        if descriptors is None:
+            descriptors = np.full((len(genomes), 4), np.nan)
         params = GAParams.from_config(config)
         order = metrics.order
         top = float(fitness[order[0]])
@@ -682,6 +685,7 @@ class RunManager:
             parent=kin.parents[order],
             fitness=fitness[order],
             components=components[order],
+            descriptors=descriptors[order],
             genome_at=genome_at,
             genomes=genomes[order[genome_at[:, 0] == g]],
         )

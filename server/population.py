@@ -8,6 +8,8 @@ per-row work, not its bytes, was most of the server's recording. The frame (`sch
 - `parent` (n,) int32: rank in the previous generation it descends from, -1 for none;
 - `fitness` (n,) float64: Eq 12 averaged over trials, NaN for a failed evaluation;
 - `components` (n, trials, 4) float64: Eq 12's curve length, net offset, max offset, stuck;
+- `descriptors` (n, 4) float64: behaviour descriptors (`evorobotics.evaluate.DESCRIPTORS`),
+  NaN in a frame written before they were stored;
 - `genome_at` (n, 2) int32: the (generation, row of that generation's `genomes`) holding the
   individual's genome bytes, its own generation for a genome first stored here;
 - `genomes` (m, weights): the bytes first stored in this generation, in rank order. Eq 11's
@@ -31,6 +33,7 @@ _KINDS = {
     "parent": "i",
     "fitness": "f",
     "components": "f",
+    "descriptors": "f",
     "genome_at": "i",
     "genomes": "f",
 }
@@ -49,6 +52,7 @@ class Population:
     parent: np.ndarray
     fitness: np.ndarray
     components: np.ndarray
+    descriptors: np.ndarray
     genome_at: np.ndarray
     genomes: np.ndarray
 
@@ -73,6 +77,7 @@ def encode(population: Population) -> bytes:
             "parent": population.parent.astype(_INT, copy=False),
             "fitness": population.fitness.astype(_FLOAT, copy=False),
             "components": population.components.astype(_FLOAT, copy=False),
+            "descriptors": population.descriptors.astype(_FLOAT, copy=False),
             "genome_at": population.genome_at.astype(_INT, copy=False),
             "genomes": population.genomes,
         },
@@ -94,6 +99,7 @@ def decode(data: bytes) -> Population:
             parent=arrays["parent"],
             fitness=arrays["fitness"],
             components=arrays["components"],
+            descriptors=arrays.get("descriptors", np.full((len(arrays["index"]), 4), np.nan)),
             genome_at=arrays["genome_at"],
             genomes=arrays["genomes"],
         )
@@ -101,7 +107,13 @@ def decode(data: bytes) -> Population:
         raise PopulationError(f"population frame lacks array {exc}") from None
     n = len(population.index) if population.index.ndim == 1 else -1
     shapes = {name: getattr(population, name).shape for name in _KINDS}
-    expected = {"index": (n,), "parent": (n,), "fitness": (n,), "genome_at": (n, 2)}
+    expected = {
+        "index": (n,),
+        "parent": (n,),
+        "fitness": (n,),
+        "descriptors": (n, 4),
+        "genome_at": (n, 2),
+    }
     if (
         any(shapes[name] != shape for name, shape in expected.items())
         or population.components.ndim != 3

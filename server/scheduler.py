@@ -165,6 +165,7 @@ class _Run:
     """Heap of pending slot indices: the lowest is leased first."""
     fitness: np.ndarray
     components: np.ndarray
+    descriptors: np.ndarray
     remaining: int
     served: int = 0
     """Sequence number of its last lease: the run served least recently goes first."""
@@ -437,10 +438,10 @@ class Scheduler:
                 self._fail_job(key, f"{result.worker}: {error}")
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
-            fitness, components = result.fitness, result.components
-            if fitness is None or components is None:  # an error result: handled above
+            fitness, components, descriptors = result.fitness, result.components, result.descriptors
+            if fitness is None or components is None or descriptors is None:  # handled above
                 break
-            self._complete(key, lease, fitness[i], components[i])
+            self._complete(key, lease, fitness[i], components[i], descriptors[i])
             record.jobs_done += 1
             ack = Ack(key=result.key, accepted=True)
             following = key.at(key.generation + 1)
@@ -535,6 +536,7 @@ class Scheduler:
             pending=list(range(len(slots))),
             fitness=np.full(config.population, np.nan),
             components=np.full((config.population, config.trials, 4), np.nan),
+            descriptors=np.full((config.population, 4), np.nan),
             remaining=len(slots),
             served=served,
         )
@@ -614,12 +616,18 @@ class Scheduler:
         return "evaluated other genomes than the server asked (its GA differs: another version?)"
 
     def _complete(
-        self, key: JobKey, lease: _Lease, fitness: np.ndarray, components: np.ndarray
+        self,
+        key: JobKey,
+        lease: _Lease,
+        fitness: np.ndarray,
+        components: np.ndarray,
+        descriptors: np.ndarray,
     ) -> None:
         run = self._runs[key.run_id]
         slot = run.slots[key.index]
         run.fitness[slot.start : slot.stop] = fitness
         run.components[slot.start : slot.stop] = components
+        run.descriptors[slot.start : slot.stop] = descriptors
         slot.status = "done"
         slot.worker = lease.worker
         run.remaining -= 1
@@ -627,7 +635,7 @@ class Scheduler:
         if run.remaining:
             return
         loop = run.loop
-        told = loop.tell(run.fitness, run.components)
+        told = loop.tell(run.fitness, run.components, run.descriptors)
         self._told.append(Written(run.run_id, loop.config, told, last=loop.done))
         times = self._unwritten.setdefault(run.run_id, deque())
         times.append(self._clock())
@@ -651,12 +659,13 @@ class Scheduler:
         wanted = self.policy.spot_checks
         lease = self._leases.get(result.key)
         run = self._runs.get(result.key.run_id)
-        fitness, components = result.fitness, result.components
+        fitness, components, descriptors = result.fitness, result.components, result.descriptors
         if (
             wanted == 0
             or not record.listed
             or fitness is None
             or components is None
+            or descriptors is None
             or lease is None
             or run is None
             or lease.worker != result.worker
@@ -680,7 +689,7 @@ class Scheduler:
         for i in range(picks[-1] // n + 1):
             if i > 0:  # a span's later generation: the genomes its claimed fitness leads to
                 shadow = shadow or RunLoop(config, state=loop.state)
-                shadow.tell(fitness[i - 1])
+                shadow.tell(fitness[i - 1], components[i - 1], descriptors[i - 1])
                 asked = shadow.ask()
             rows = [p % n for p in picks if p // n == i]
             if not rows:
@@ -689,16 +698,16 @@ class Scheduler:
             again = evaluate(config, generation, asked[lease.start + np.array(rows)])
             self._spot["individuals_checked"] += len(rows)
             self._spot["robot_steps_checked"] += robot_steps(config, len(rows))
-            for row, f, c in zip(rows, again.fitness, again.components, strict=True):
-                if _same_bits(fitness[i, row], f) and _same_bits(components[i, row], c):
-                    continue
-                what = "fitness" if not _same_bits(fitness[i, row], f) else "components"
-                return (
-                    f"worker {result.worker} run {run.run_id} generation {generation} "
-                    f"individual {lease.start + row}: claimed {what} "
-                    f"{_show(fitness[i, row], components[i, row], what)}, recomputed "
-                    f"{_show(f, c, what)}"
-                )
+            for j, row in enumerate(rows):
+                claimed = (fitness[i, row], components[i, row], descriptors[i, row])
+                recomputed = (again.fitness[j], again.components[j], again.descriptors[j])
+                for what, a, b in zip(_CHECKED, claimed, recomputed, strict=True):
+                    if not _same_bits(a, b):
+                        return (
+                            f"worker {result.worker} run {run.run_id} generation {generation} "
+                            f"individual {lease.start + row}: claimed {what} "
+                            f"{np.asarray(a).tolist()!r}, recomputed {np.asarray(b).tolist()!r}"
+                        )
         return None
 
     def _quarantine(self, record: _Worker, why: str) -> None:
@@ -774,5 +783,5 @@ def _same_bits(claimed: np.ndarray, recomputed: np.ndarray) -> bool:
     return a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-def _show(fitness: np.ndarray, components: np.ndarray, what: str) -> str:
-    return repr(float(fitness)) if what == "fitness" else repr(np.asarray(components).tolist())
+_CHECKED = ("fitness", "components", "descriptors")
+"""What a spot-check compares bit for bit, in this order."""

@@ -89,10 +89,12 @@ def fake_fitness(genomes: np.ndarray) -> np.ndarray:
 
 def fake_evaluator(
     config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """A worker's Evaluator, fast: `fake_fitness`, components of the expected shape."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A worker's Evaluator, fast: `fake_fitness`, components of the expected shape, and
+    descriptors in [0, 1] that depend on each genome alone."""
     n = genomes.shape[0]
-    return fake_fitness(genomes), np.full((n, config.trials, 4), float(generation))
+    descriptors = (np.sin(genomes[:, :4]) + 1.0) / 2.0
+    return fake_fitness(genomes), np.full((n, config.trials, 4), float(generation)), descriptors
 
 
 def reference(config: RunConfig) -> list[Told]:

@@ -136,7 +136,7 @@ def send(session: zenoh.Session, result: Result) -> tuple[Ack, Job | None]:
 
 def result_of(job: Job, worker: str, genomes: np.ndarray | None = None, **update: object) -> Result:
     genomes = job.genomes if genomes is None else genomes
-    fitness, components = fake_evaluator(job.config, job.key.generation, genomes)
+    fitness, components, descriptors = fake_evaluator(job.config, job.key.generation, genomes)
     return Result(
         key=job.key,
         worker=worker,
@@ -144,6 +144,7 @@ def result_of(job: Job, worker: str, genomes: np.ndarray | None = None, **update
         stop=job.stop,
         fitness=fitness[None],
         components=components[None],
+        descriptors=descriptors[None],
         **update,
     )
 
@@ -260,10 +261,10 @@ def test_spans_over_zenoh_match_evolve_bit_for_bit(caplog: pytest.LogCaptureFixt
     assert stats[0].errors == 0
     loop = RunLoop(config)
     for w in told:
-        fitness, components = evaluate_population(config, loop.generation, loop.ask())
+        fitness, components, descriptors = evaluate_population(config, loop.generation, loop.ask())
         assert w.told.genomes.tobytes() == loop.ask().tobytes()
         assert w.told.fitness.tobytes() == fitness.tobytes()
-        loop.tell(fitness, components)
+        loop.tell(fitness, components, descriptors)
     whole = evolve(config)
     assert [w.told.summary() for w in told] == list(whole.history)
     assert told[-1].told.genomes.tobytes() == whole.genomes.tobytes()
@@ -307,7 +308,7 @@ def test_a_worker_stopped_mid_job_delivers_its_result() -> None:
 
     def slow(
         config: RunConfig, generation: int, genomes: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         started.set()
         release.wait(WAIT)
         return fake_evaluator(config, generation, genomes)

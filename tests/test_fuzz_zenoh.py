@@ -126,6 +126,7 @@ def fitted(job: Job, worker: str = "fuzzer", **fields: Any) -> Result:
         stop=job.stop,
         fitness=job.genomes.sum(axis=1)[np.newaxis],
         components=np.zeros((1, n, job.config.trials, 4)),
+        descriptors=np.zeros((1, n, 4)),
         **fields,
     )
 
@@ -279,7 +280,7 @@ def settle(session: zenoh.Session, result: Result) -> tuple[Ack, Job | None]:
 
 
 def of_this_protocol(key: str, reply: zenoh.Reply) -> None:
-    """An ordinary reply is a message of protocol 10 for its key."""
+    """An ordinary reply is a message of protocol 11 for its key."""
     if reply.ok is None:
         return
     payload = reply.ok.payload.to_bytes()
@@ -418,9 +419,9 @@ def test_bad_robot_liveliness_names_are_ignored(
 
 def fake_evaluator(
     config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     n = genomes.shape[0]
-    return genomes.sum(axis=1), np.zeros((n, config.trials, 4))
+    return genomes.sum(axis=1), np.zeros((n, config.trials, 4)), np.zeros((n, 4))
 
 
 def _is_a_job(payload: bytes) -> bool:

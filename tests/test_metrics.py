@@ -142,6 +142,7 @@ def test_scheduler_totals_count_leases_results_requeues_and_duplicates(tmp_path:
             stop=second.stop,
             fitness=np.zeros((1, 4)),
             components=np.zeros((1, 4, 1, 4)),
+            descriptors=np.zeros((1, 4, 4)),
         )
         assert scheduler.settle(result).accepted is True
         assert scheduler.settle(result).accepted is False  # duplicate

@@ -52,6 +52,7 @@ def result(
         stop=job.stop,
         fitness=fake_fitness(genomes)[None],
         components=fake_evaluator(job.config, job.key.generation, genomes)[1][None],
+        descriptors=fake_evaluator(job.config, job.key.generation, genomes)[2][None],
         digests=(genome_digest(genomes),) if digest else (),
     )
 
@@ -69,6 +70,9 @@ def span_message(job: Job, loop: RunLoop, k: int, worker: str = "fast") -> Resul
             "fitness": np.concatenate([r.fitness for r in results if r.fitness is not None]),
             "components": np.concatenate(
                 [r.components for r in results if r.components is not None]
+            ),
+            "descriptors": np.concatenate(
+                [r.descriptors for r in results if r.descriptors is not None]
             ),
             "digests": tuple(d for r in results for d in r.digests),
         }
@@ -338,12 +342,13 @@ def test_real_evaluation_through_the_scheduler_equals_evolve_bit_for_bit() -> No
         written += sched.take_told()
     loop = RunLoop(config)
     for w in written:
-        fitness, components = evaluate_population(config, loop.generation, loop.ask())
+        fitness, components, descriptors = evaluate_population(config, loop.generation, loop.ask())
         assert w.told.genomes.tobytes() == loop.ask().tobytes()
         assert w.told.fitness.tobytes() == fitness.tobytes()
-        assert w.told.components is not None
+        assert w.told.components is not None and w.told.descriptors is not None
         assert w.told.components.tobytes() == components.tobytes()
-        loop.tell(fitness, components)
+        assert w.told.descriptors.tobytes() == descriptors.tobytes()
+        loop.tell(fitness, components, descriptors)
     whole = evolve(config)
     assert [w.told.summary() for w in written] == list(whole.history)
     assert written[-1].told.fitness.tobytes() == whole.fitness.tobytes()
@@ -687,16 +692,17 @@ def real_span(job: Job, k: int, worker: str, forge_from: int | None = None) -> R
     `forge_from` on its fitness is forged (and the GA follows the forgery, as a rogue's)."""
     assert job.state is not None
     loop = RunLoop(job.config, GAState.from_arrays(job.state))
-    fitness, components, digests = [], [], []
+    fitness, components, descriptors, digests = [], [], [], []
     for i in range(k):
         genomes = loop.ask()
-        f, c = evaluate_population(job.config, loop.generation, genomes)
+        f, c, d = evaluate_population(job.config, loop.generation, genomes)
         if forge_from is not None and i >= forge_from:
             f = np.full_like(f, 1e6)
         fitness.append(f)
         components.append(c)
+        descriptors.append(d)
         digests.append(genome_digest(genomes))
-        loop.tell(f, c)
+        loop.tell(f, c, d)
     return Result(
         key=job.key,
         worker=worker,
@@ -704,6 +710,7 @@ def real_span(job: Job, k: int, worker: str, forge_from: int | None = None) -> R
         stop=job.config.population,
         fitness=np.stack(fitness),
         components=np.stack(components),
+        descriptors=np.stack(descriptors),
         digests=tuple(digests),
     )
 
@@ -756,7 +763,7 @@ def test_a_forged_result_quarantines_its_worker_and_requeues_its_generation() ->
     assert sched.settle(honest(other, "honest")).accepted
     told = drain_honestly(sched, "honest")
     expected = RunLoop(CONFIG)
-    fitness, _ = evaluate_population(CONFIG, 0, expected.ask())
+    fitness, _, _ = evaluate_population(CONFIG, 0, expected.ask())
     assert told[0].told.fitness.tobytes() == fitness.tobytes()
     assert [w.name for w in sched.workers()] == ["honest", "rogue", "rogue2"]
 
@@ -788,6 +795,22 @@ def test_quarantine_covers_every_name_of_the_credential() -> None:
     for name in ("lab", "lab.pc-1", "lab.new"):
         assert sched.lease(name) is None
     assert sched.lease("laboratory") is not None  # another credential
+
+
+@pytest.mark.parametrize("what", ["components", "descriptors"])
+def test_forged_components_or_descriptors_quarantine_as_forged_fitness_does(what: str) -> None:
+    """Quality-diversity strategies select on descriptors: they are checked bit for bit too."""
+    sched, _ = make(CHECKED)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("rogue")
+    assert job is not None
+    real = honest(job, "rogue")
+    claimed = getattr(real, what).copy()
+    first = (0,) * claimed.ndim
+    claimed[first] = 0.25 if claimed[first] != 0.25 else 0.5
+    ack = sched.settle(real.model_copy(update={what: claimed}))
+    assert not ack.accepted and "spot-check" in ack.reason
+    assert f"claimed {what}" in sched.quarantined()["rogue"]
 
 
 def test_with_spot_checks_off_a_forgery_is_accepted() -> None:

@@ -120,11 +120,12 @@ def test_a_population_frame_round_trips_bits_and_resolves_copies(
         parent=np.array(data.draw(st.lists(st.integers(-1, 99), min_size=n, max_size=n))),
         fitness=data.draw(hnp.arrays(np.float64, n, elements=st.floats(width=64))),
         components=data.draw(hnp.arrays(np.float64, (n, trials, 4), elements=st.floats())),
+        descriptors=data.draw(hnp.arrays(np.float64, (n, 4), elements=st.floats(0, 1))),
         genome_at=genome_at,
         genomes=genomes,
     )
     back = decode(encode(stored))
-    for name in ("index", "parent", "fitness", "components", "genome_at", "genomes"):
+    for name in ("index", "parent", "fitness", "components", "descriptors", "genome_at", "genomes"):
         assert (
             getattr(back, name).tobytes()
             == getattr(stored, name).astype(getattr(back, name).dtype).tobytes()
@@ -159,6 +160,7 @@ def test_a_frame_of_another_kind_shape_or_dtype_is_refused() -> None:
         parent=np.arange(3),
         fitness=np.zeros(3),
         components=np.zeros((3, 1, 4)),
+        descriptors=np.zeros((3, 4)),
         genome_at=np.zeros((3, 2), dtype=np.int64),
         genomes=np.zeros((1, 2)),
     )
@@ -166,6 +168,7 @@ def test_a_frame_of_another_kind_shape_or_dtype_is_refused() -> None:
     for name, value in [
         ("parent", np.arange(2)),
         ("components", np.zeros((3, 4))),
+        ("descriptors", np.zeros((3, 2))),
         ("genome_at", np.zeros(3, dtype=np.int64)),
         ("genomes", np.zeros(2)),
     ]:
@@ -177,6 +180,10 @@ def test_a_frame_of_another_kind_shape_or_dtype_is_refused() -> None:
     )
     with pytest.raises(PopulationError, match="'genome_at' is not of kind 'i'"):
         decode(floats)
+    older = encode_frame(  # a generation stored before descriptors were: they read as NaN
+        {"kind": "population"}, {**arrays, "genome_at": good.genome_at, "genomes": good.genomes}
+    )
+    assert np.isnan(decode(older).descriptors).all() and decode(older).descriptors.shape == (3, 4)
     narrow = dataclasses.replace(good, genome_at=np.array([[1, 0], [1, 0], [0, 0]]))
     with pytest.raises(PopulationError, match="2 x float64, generation 0's 3 x float64"):
         resolve(1, narrow, lambda gs: {0: dataclasses.replace(good, genomes=np.zeros((1, 3)))})
@@ -259,6 +266,7 @@ def _fake(job: Job, worker: str, *, start: int | None = None, stop: int | None =
         stop=stop,
         fitness=np.zeros((1, n)),
         components=np.zeros((1, n, trials, 4)),
+        descriptors=np.zeros((1, n, 4)),
     )
 
 
@@ -348,6 +356,7 @@ def test_a_result_for_another_slice_is_dropped_and_the_lease_stays(manager: RunM
             stop=5,
             fitness=np.zeros((1, 2)),
             components=np.zeros((1, 2, 2, 4)),
+            descriptors=np.zeros((1, 2, 4)),
         )
     assert manager.scheduler.settle(_fake(job, "w", start=5, stop=10)).accepted is False
     assert manager.scheduler.settle(_fake(job, "other")).accepted is False  # not its lease
@@ -600,13 +609,14 @@ def _span_result(loop: RunLoop, job: JobKey, worker: str, k: int = 1) -> Result:
     """What a span's worker sends for `job`: its loop's next `k` generations evaluated and
     told, with the digest of each generation's genomes."""
     key = job.at(loop.generation)
-    fitness, components, digests = [], [], []
+    fitness, components, descriptors, digests = [], [], [], []
     for _ in range(k):
         genomes = loop.ask()
-        f, c = evaluate_population(loop.config, loop.generation, genomes)
-        loop.tell(f, c)
+        f, c, d = evaluate_population(loop.config, loop.generation, genomes)
+        loop.tell(f, c, d)
         fitness.append(f)
         components.append(c)
+        descriptors.append(d)
         digests.append(genome_digest(genomes))
     return Result(
         key=key,
@@ -616,6 +626,7 @@ def _span_result(loop: RunLoop, job: JobKey, worker: str, k: int = 1) -> Result:
         digests=tuple(digests),
         fitness=np.stack(fitness),
         components=np.stack(components),
+        descriptors=np.stack(descriptors),
     )
 
 
@@ -853,7 +864,7 @@ def _local_ranked(config: RunConfig) -> list[np.ndarray]:
     state, out = init(lay, params), []
     for g in range(config.generations):
         genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
-        fitness, _ = evaluate_population(config, g, genomes)
+        fitness, _, _ = evaluate_population(config, g, genomes)
         state, _ = tell(genomes, fitness, state, params)
         assert state.ranked is not None
         out.append(state.ranked)

@@ -64,7 +64,9 @@ def rogue_worker(port: int, name: str = "rogue") -> Iterator[list[Ack]]:
             job = decode_next_reply(answers[0].payload.to_bytes())
             if isinstance(job, Idle):
                 continue
-            fitness, components = evaluate_slice(job.config, job.key.generation, job.genomes)
+            fitness, components, descriptors = evaluate_slice(
+                job.config, job.key.generation, job.genomes
+            )
             if acks:  # honest once, so a result of it is accepted before it forges
                 fitness = np.full_like(fitness, FORGED)
             result = Result(
@@ -74,6 +76,7 @@ def rogue_worker(port: int, name: str = "rogue") -> Iterator[list[Ack]]:
                 stop=job.stop,
                 fitness=fitness[None],
                 components=components[None],
+                descriptors=descriptors[None],
             )
             replies = list(session.get(result_key(name), payload=encode(result), timeout=WAIT))
             if replies and replies[0].ok is not None:

@@ -255,7 +255,7 @@ def test_runs_take_a_name_and_tags_and_are_deleted(url: str) -> None:
 
 def broken(
     config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     raise RuntimeError("simulated evaluator crash")
 
 

@@ -1,4 +1,4 @@
-"""Wire codecs (protocol 10): every message round-trips bit for bit, and every malformed
+"""Wire codecs (protocol 11): every message round-trips bit for bit, and every malformed
 payload raises WireError (never anything else)."""
 
 from __future__ import annotations
@@ -78,6 +78,7 @@ def make_result(k: int = 1, n: int = 4, seed: int = 0, **fields: Any) -> Result:
         "seconds": 0.01,
         "fitness": rng.normal(size=(k, n)),
         "components": rng.normal(size=(k, n, CONFIG.trials, 4)),
+        "descriptors": rng.uniform(size=(k, n, 4)),
     }
     return Result(**(values | fields))
 
@@ -132,7 +133,7 @@ def test_a_frame_refuses_object_arrays_and_its_reserved_key() -> None:
 
 
 def test_the_protocol_and_its_keys() -> None:
-    assert PROTOCOL == 10 and JobRequest(worker="w").protocol == PROTOCOL
+    assert PROTOCOL == 11 and JobRequest(worker="w").protocol == PROTOCOL
     assert (next_key("w"), result_key("w")) == ("evocolony/jobs/next/w", "evocolony/jobs/result/w")
     assert next_key("w-1").startswith(KEY_JOB_NEXT.removesuffix("*"))
     assert result_key("w-1").startswith(KEY_JOB_RESULT.removesuffix("*"))
@@ -199,8 +200,18 @@ def test_a_result_of_k_generations_with_digests_round_trips_bit_exact(k: int) ->
 def test_results_of_any_finite_values_round_trip_bit_exact(fitness: np.ndarray, seed: int) -> None:
     """Signed zeros, subnormals, the extremes: what the worker computed is what is stored."""
     k, n = fitness.shape
-    components = np.random.default_rng(seed).normal(size=(k, n, 1, 4)) * 1e300
-    result = Result(key=KEY, worker="w", start=0, stop=n, fitness=fitness, components=components)
+    rng = np.random.default_rng(seed)
+    components = rng.normal(size=(k, n, 1, 4)) * 1e300
+    descriptors = rng.uniform(size=(k, n, 4))
+    result = Result(
+        key=KEY,
+        worker="w",
+        start=0,
+        stop=n,
+        fitness=fitness,
+        components=components,
+        descriptors=descriptors,
+    )
     assert_same(result, decode(encode(result), Result))
 
 
@@ -278,6 +289,11 @@ def test_a_result_refuses_non_finite_or_negative_speeds_and_times() -> None:
         ({"components": np.zeros((2, 4, 2, 4))}, "components"),
         ({"components": np.zeros((1, 4, 2))}, "components"),
         ({"components": None}, "needs its slice"),
+        ({"descriptors": None}, "descriptors"),
+        ({"descriptors": np.zeros((1, 4, 3))}, "descriptors"),
+        ({"descriptors": np.zeros((1, 4, 4), dtype=np.float32)}, "descriptors"),
+        ({"descriptors": np.full((1, 4, 4), 1.5)}, r"descriptors must lie in \[0, 1\]"),
+        ({"descriptors": np.full((1, 4, 4), np.nan)}, r"descriptors must lie in \[0, 1\]"),
         ({"start": None, "stop": None}, "needs its slice"),
         ({"start": 4, "stop": 4}, "bad slice"),
         ({"stop": None}, "bad slice"),

@@ -130,15 +130,23 @@ def test_a_valid_job_is_evaluated_and_delivered() -> None:
 
 
 def wrong_shape(config: RunConfig, generation: int, genomes: np.ndarray) -> Any:
-    return np.zeros(len(genomes) + 1), np.zeros((len(genomes), config.trials, 4))
+    n = len(genomes)
+    return np.zeros(n + 1), np.zeros((n, config.trials, 4)), np.zeros((n, 4))
 
 
 def wrong_components(config: RunConfig, generation: int, genomes: np.ndarray) -> Any:
-    return np.zeros(len(genomes)), np.zeros((len(genomes), config.trials))
+    n = len(genomes)
+    return np.zeros(n), np.zeros((n, config.trials)), np.zeros((n, 4))
+
+
+def wrong_descriptors(config: RunConfig, generation: int, genomes: np.ndarray) -> Any:
+    n = len(genomes)
+    return np.zeros(n), np.zeros((n, config.trials, 4)), np.zeros((n, 2))
 
 
 def nan_fitness(config: RunConfig, generation: int, genomes: np.ndarray) -> Any:
-    return np.full(len(genomes), np.nan), np.zeros((len(genomes), config.trials, 4))
+    n = len(genomes)
+    return np.full(n, np.nan), np.zeros((n, config.trials, 4)), np.zeros((n, 4))
 
 
 def not_arrays(config: RunConfig, generation: int, genomes: np.ndarray) -> Any:
@@ -154,6 +162,7 @@ def raises(config: RunConfig, generation: int, genomes: np.ndarray) -> Any:
     [
         (wrong_shape, "EvaluationError: evaluator returned (4,)"),
         (wrong_components, "EvaluationError"),
+        (wrong_descriptors, "EvaluationError"),
         (nan_fitness, "EvaluationError: evaluator returned non-finite fitness"),
         (not_arrays, "ValueError"),
         (raises, "RuntimeError: the simulator broke"),

@@ -63,8 +63,10 @@ SPAN_SEND_S = 0.05
 SPAN_WINDOW = 4
 """A span's messages sent but not yet acknowledged before the worker waits for the oldest."""
 
-Evaluator = Callable[[RunConfig, int, np.ndarray], tuple[np.ndarray, np.ndarray]]
-"""(config, generation, genomes (n, w)) -> fitness (n,), components (n, trials, 4)."""
+Evaluated = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""fitness (n,), components (n, trials, 4), descriptors (n, 4) of n genomes."""
+Evaluator = Callable[[RunConfig, int, np.ndarray], Evaluated]
+"""(config, generation, genomes (n, w)) -> their `Evaluated`."""
 
 
 class WorkerError(Exception):
@@ -75,14 +77,12 @@ class EvaluationError(WorkerError):
     """The evaluator returned shapes or values a result cannot carry."""
 
 
-def evaluate_slice(
-    config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def evaluate_slice(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluated:
     """The science: `evorobotics.evaluate.evaluate` over the whole slice, vectorised."""
     from evorobotics.evaluate import evaluate
 
     evaluation = evaluate(config, generation, genomes)
-    return evaluation.fitness, evaluation.components
+    return evaluation.fitness, evaluation.components, evaluation.descriptors
 
 
 def default_name(user: str | None = None) -> str:
@@ -274,7 +274,9 @@ def _evaluate(
     genomes = job.genomes if genomes is None else genomes
     began = time.perf_counter()
     try:
-        fitness, components = _checked(evaluator(job.config, job.key.generation, genomes), job)
+        fitness, components, descriptors = _checked(
+            evaluator(job.config, job.key.generation, genomes), job
+        )
     except Exception as exc:  # report it to the server instead of crashing the worker
         log.exception("evaluating %s failed", job.key.label())
         link.stats.errors += 1
@@ -295,19 +297,23 @@ def _evaluate(
         seconds=seconds,
         fitness=fitness[np.newaxis],
         components=components[np.newaxis],
+        descriptors=descriptors[np.newaxis],
     )
 
 
-def _checked(out: tuple[np.ndarray, np.ndarray], job: Job) -> tuple[np.ndarray, np.ndarray]:
-    """The evaluator's fitness (n,) and components (n, trials, 4) as float64."""
-    fitness = np.ascontiguousarray(out[0], dtype=np.float64)
-    components = np.ascontiguousarray(out[1], dtype=np.float64)
+def _checked(out: Evaluated, job: Job) -> Evaluated:
+    """The evaluator's fitness (n,), components (n, trials, 4) and descriptors (n, 4) as
+    float64."""
+    fitness, components, descriptors = (np.ascontiguousarray(a, dtype=np.float64) for a in out)
     n, trials = job.stop - job.start, job.config.trials
-    if fitness.shape != (n,) or components.shape != (n, trials, 4):
-        raise EvaluationError(f"evaluator returned {fitness.shape} and {components.shape} for {n}")
+    if (fitness.shape, components.shape, descriptors.shape) != ((n,), (n, trials, 4), (n, 4)):
+        raise EvaluationError(
+            f"evaluator returned {fitness.shape}, {components.shape} and {descriptors.shape} "
+            f"for {n}"
+        )
     if not np.isfinite(fitness).all():
         raise EvaluationError("evaluator returned non-finite fitness")
-    return fitness, components
+    return fitness, components, descriptors
 
 
 def _evolve_span(link: _Link, job: Job, evaluator: Evaluator) -> Job | None:
@@ -343,10 +349,12 @@ def _evolve_span(link: _Link, job: Job, evaluator: Evaluator) -> Job | None:
         first = batch[0][0]
         fitness = [r.fitness for r, _ in batch if r.fitness is not None]
         components = [r.components for r, _ in batch if r.components is not None]
+        descriptors = [r.descriptors for r, _ in batch if r.descriptors is not None]
         result = first.model_copy(
             update={
                 "fitness": np.concatenate(fitness),
                 "components": np.concatenate(components),
+                "descriptors": np.concatenate(descriptors),
                 "digests": tuple(d for _, d in batch),
                 "seconds": sum(r.seconds for r, _ in batch),
                 "robot_steps_per_s": batch[-1][0].robot_steps_per_s,
@@ -359,7 +367,7 @@ def _evolve_span(link: _Link, job: Job, evaluator: Evaluator) -> Job | None:
         current = job.model_copy(update={"key": job.key.at(loop.generation), "span": 1})
         genomes = loop.ask()
         result = _evaluate(link, current, evaluator, genomes)
-        if result.fitness is None or result.components is None:
+        if result.fitness is None or result.components is None or result.descriptors is None:
             if batch:  # the generations before it count; the failed one is retried
                 send()
             return _deliver(link, result)
@@ -372,7 +380,7 @@ def _evolve_span(link: _Link, job: Job, evaluator: Evaluator) -> Job | None:
                 return None
         if last:
             break
-        loop.tell(result.fitness[0])
+        loop.tell(result.fitness[0], result.components[0], result.descriptors[0])
     _span_acks(in_flight, keep=0)
     return None
 
