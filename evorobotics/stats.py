@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
-from scipy import stats
 
 METRICS: dict[str, bool] = {
     "best_fitness": True,
@@ -92,7 +91,9 @@ def summarize(values: Sequence[float], *, seed: int = 0, resamples: int = 2000) 
     q1, q3 = (float(q) for q in np.quantile(sample, [0.25, 0.75]))
     if sample.size < 2:
         return Summary(1, median, q1, q3, median, median)
-    interval = stats.bootstrap(
+    from scipy import stats as scipy_stats  # 1.5 s of imports: only when statistics are asked
+
+    interval = scipy_stats.bootstrap(
         (sample,),
         np.median,
         n_resamples=resamples,
@@ -139,6 +140,8 @@ def compare(samples: Mapping[str, Mapping[str, Sequence[float]]]) -> list[Compar
     (a before b), metrics in a's order; a metric is compared when both conditions have >= 2
     non-NaN values of it. p-values are Holm-corrected over all comparisons returned.
     """
+    from scipy import stats as scipy_stats
+
     tested: list[tuple[str, str, str, float, float, float, int, int]] = []
     for a, b in combinations(samples, 2):
         for metric, values in samples[a].items():
@@ -147,7 +150,7 @@ def compare(samples: Mapping[str, Mapping[str, Sequence[float]]]) -> list[Compar
             x, y = _finite(values), _finite(samples[b][metric])
             if x.size < 2 or y.size < 2:
                 continue
-            result = stats.mannwhitneyu(x, y, alternative="two-sided")
+            result = scipy_stats.mannwhitneyu(x, y, alternative="two-sided")
             p_value = float(result.pvalue)
             # Identical constant samples give no rank variance: no evidence of a difference.
             tested.append(
