@@ -59,6 +59,14 @@ Descriptor = Literal["final_x", "final_y", "max_offset", "coverage"]
 """Behaviour descriptors of an evaluated individual, each in [0, 1] (`evaluate.DESCRIPTORS`)."""
 
 
+ARCHIVE_BYTES = 256 * 2**20
+"""Largest archive a run may ask for: pyribs allocates cells^2 genomes of float64 at once."""
+
+NOVELTY_ARCHIVE = 100_000
+"""Most entries a novelty archive may reach (novelty_add x generations): every generation
+measures distances to all of them."""
+
+
 class StrategyConfig(BaseModel):
     """The settings of the strategies other than the paper's GA (each names who reads it)."""
 
@@ -76,7 +84,13 @@ class StrategyConfig(BaseModel):
         ("final_x", "final_y"),
         description="map-elites, cma-me: the archive's two axes; novelty: the behaviour space",
     )
-    cells: int = Field(20, ge=2, le=1000, description="map-elites, cma-me: archive cells per axis")
+    cells: int = Field(
+        20,
+        ge=2,
+        le=1000,
+        description="map-elites, cma-me: archive cells per axis (the archive holds cells^2 "
+        "genomes: at most ARCHIVE_BYTES of them)",
+    )
     emitters: int = Field(
         1,
         ge=1,
@@ -191,12 +205,23 @@ class RunConfig(BaseModel):
                 f"population {self.population} is too small for replacement "
                 f"{self.ga.replacement}: Eq 11 needs n >= 2m+1 with m = {m}"
             )
-        if self.strategy in ("map-elites", "cma-me") and (
-            self.population < 2 * self.strategy_settings.emitters
-        ):
+        s = self.strategy_settings
+        if self.strategy in ("map-elites", "cma-me"):
+            if self.population < 2 * s.emitters:
+                raise ValueError(
+                    f"population {self.population} is too small for {s.emitters} emitters: "
+                    "at least 2 genomes each"
+                )
+            size = s.cells**2 * self.network_spec.weight_count * 8
+            if size > ARCHIVE_BYTES:
+                raise ValueError(
+                    f"an archive of {s.cells}^2 cells of {self.network_spec.weight_count}-weight "
+                    f"genomes needs {size / 2**20:.0f} MiB, more than {ARCHIVE_BYTES // 2**20}"
+                )
+        if self.strategy == "novelty" and s.novelty_add * self.generations > NOVELTY_ARCHIVE:
             raise ValueError(
-                f"population {self.population} is too small for "
-                f"{self.strategy_settings.emitters} emitters: at least 2 genomes each"
+                f"novelty_add {s.novelty_add} x {self.generations} generations exceeds "
+                f"{NOVELTY_ARCHIVE} archive entries"
             )
         return self
 

@@ -178,6 +178,11 @@ def test_strategy_settings_are_checked() -> None:
         StrategyConfig(axes=("coverage", "coverage"))
     with pytest.raises(ValueError, match="too small for 5 emitters"):
         RunConfig(population=9, strategy="cma-me", strategy_settings=StrategyConfig(emitters=5))
+    with pytest.raises(ValueError, match="MiB"):
+        RunConfig(strategy="map-elites", strategy_settings=StrategyConfig(cells=500))
+    with pytest.raises(ValueError, match="archive entries"):
+        RunConfig(strategy="novelty", generations=100_000)
+    RunConfig(strategy="paper-ga", generations=100_000)  # settings of other strategies: unread
 
 
 def test_cli_strategy_flag_writes_the_archive(tmp_path: Path) -> None:
