@@ -360,6 +360,10 @@ def run_start(
     maze: Annotated[str | None, typer.Option()] = None,
     network: Annotated[str | None, typer.Option(help="preset name")] = None,
     job_size: Annotated[int | None, typer.Option("--job-size")] = None,
+    strategy: Annotated[
+        str | None,
+        typer.Option(help="paper-ga, cma-es, sep-cma-es, map-elites, cma-me or novelty [paper-ga]"),
+    ] = None,
     follow: Annotated[
         bool, typer.Option("--follow", help="show a progress bar until the run ends")
     ] = False,
@@ -389,6 +393,7 @@ def run_start(
         "maze": maze,
         "network": network,
         "job_size": job_size,
+        "strategy": strategy,
     }
     body.update({k: v for k, v in flags.items() if v is not None})
     run = call_server(ctx, server, token, "POST", "/api/runs", body)

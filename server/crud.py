@@ -11,6 +11,7 @@ import numpy as np
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
+from evorobotics.evolution import StrategyHistory
 from schemas.api import TERMINAL
 from server import population
 from server.errors import NotFoundError, ServerError
@@ -73,6 +74,23 @@ def populations(
         except population.PopulationError as exc:
             raise ServerError(f"run {run_id} generation {g}: stored population: {exc}") from exc
     return found
+
+
+def history(session: Session, *, run_id: int, generations: int) -> StrategyHistory:
+    """What the run's loop was told in its first `generations` committed generations, in ask
+    order: `RunLoop.resume` rebuilds a non-GA strategy from it (no evaluation)."""
+    found = populations(session, run_id=run_id, generations=range(generations))
+    missing = sorted(set(range(generations)) - found.keys())
+    if missing:
+        raise ServerError(f"run {run_id} lacks committed generations {missing[:5]} to resume")
+    n = len(found[0]) if generations else 0
+    fitness = np.empty((generations, n))
+    descriptors = np.empty((generations, n, 4))
+    for g in range(generations):
+        stored = found[g]
+        fitness[g, stored.index] = stored.fitness
+        descriptors[g, stored.index] = stored.descriptors
+    return StrategyHistory(fitness, descriptors)
 
 
 def ranked(

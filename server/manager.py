@@ -43,7 +43,7 @@ from sqlalchemy.orm import Session
 
 from evorobotics.document import ControllerDocument
 from evorobotics.evolution import RunLoop, best_document, champion
-from evorobotics.ga import GAParams, GAState, lineage
+from evorobotics.ga import GAParams, GAState, lineage, rank
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from schemas.wire import decode_frame, encode_frame
@@ -414,6 +414,10 @@ class RunManager:
         config = RunConfig.model_validate_json(run.config)
         g = run.generation
         state = None
+        if g > 0 and config.strategy != "paper-ga":  # its state is what it was told
+            loop = RunLoop.resume(config, crud.history(session, run_id=run.id, generations=g))
+            self.scheduler.add(run.id, loop, running=run.status == "running")
+            return
         if g > 0:
             previous = crud.get_generation(session, run_id=run.id, generation=g - 1)
             if previous is None:
@@ -680,9 +684,10 @@ class RunManager:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
         kin = _lineage(params, min(g, 2))  # every generation from 2 on has the same
         genome_at = self._genome_at(session, run_id, g, kin, genomes, told.before, order)
+        parents = kin.parents if config.strategy == "paper-ga" else np.full(len(genomes), -1)
         ranked = Population(
             index=order,
-            parent=kin.parents[order],
+            parent=parents[order],
             fitness=fitness[order],
             components=components[order],
             descriptors=descriptors[order],
@@ -819,9 +824,21 @@ class RunManager:
                 return None
             last = latest.generation
             found, genomes = crud.ranked(session, run_id=run.id, generation=last)
-            document = champion(
-                config, genomes, found.fitness, np.arange(len(found)), generation=last, run=run.id
-            )
+            if config.strategy == "paper-ga":
+                order = np.arange(len(found))
+                document = champion(
+                    config, genomes, found.fitness, order, generation=last, run=run.id
+                )
+            else:  # its candidates may be an archive: the loop replayed from what it was told
+                asked, fitness = np.empty_like(genomes), np.empty(len(found))
+                asked[found.index], fitness[found.index] = genomes, found.fitness
+                loop = RunLoop.resume(
+                    config, crud.history(session, run_id=run.id, generations=last + 1)
+                )
+                chosen, scores = loop.candidates(asked, fitness)
+                document = champion(
+                    config, chosen, scores, rank(scores), generation=last, run=run.id
+                )
         crud.put_controller(
             session,
             sha256=document.sha256,
@@ -865,13 +882,10 @@ class RunManager:
 
 
 def _champion(item: Written) -> ControllerDocument:
-    """The champion of a run's last told generation (seconds of simulation: no transaction)."""
+    """The champion of a run's last told generation, chosen among its candidates (seconds of
+    simulation: no transaction)."""
     told = item.told
+    genomes, fitness = item.candidates or (told.genomes, told.fitness)
     return champion(
-        item.config,
-        told.genomes,
-        told.fitness,
-        told.metrics.order,
-        generation=told.generation,
-        run=item.run_id,
+        item.config, genomes, fitness, rank(fitness), generation=told.generation, run=item.run_id
     )

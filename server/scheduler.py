@@ -142,6 +142,9 @@ class Written:
     told: Told
     last: bool = False
     """The run's last generation: storing it completes the run."""
+    candidates: tuple[np.ndarray, np.ndarray] | None = None
+    """With `last`: the genomes and fitness the champion is chosen from (`RunLoop.candidates`:
+    the final generation, or a quality-diversity run's archive)."""
 
 
 @dataclass
@@ -384,7 +387,7 @@ class Scheduler:
             key = JobKey(run_id=chosen.run_id, generation=loop.generation, index=index)
             config = loop.config
             span = 1
-            if record.spans and len(chosen.slots) == 1:
+            if record.spans and len(chosen.slots) == 1 and config.strategy == "paper-ga":
                 wanted = self.policy.span_generations(config, record.speed, crowded=self._crowded())
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._lease(chosen, index, worker, span_left=span - 1)
@@ -566,7 +569,11 @@ class Scheduler:
         if self._crowded(run_id):
             return config.population
         speeds = [w.speed if w.spans else None for w in live]
-        if generation + 1 < config.generations and all(s is not None for s in speeds):
+        if (
+            generation + 1 < config.generations
+            and config.strategy == "paper-ga"  # a worker evolves only the paper's GA itself
+            and all(s is not None for s in speeds)
+        ):
             slowest = min(s for s in speeds if s is not None)
             if self.policy.span_generations(config, slowest, crowded=False) > 1:
                 return config.population
@@ -636,7 +643,8 @@ class Scheduler:
             return
         loop = run.loop
         told = loop.tell(run.fitness, run.components, run.descriptors)
-        self._told.append(Written(run.run_id, loop.config, told, last=loop.done))
+        candidates = loop.candidates(told.genomes, told.fitness) if loop.done else None
+        self._told.append(Written(run.run_id, loop.config, told, loop.done, candidates))
         times = self._unwritten.setdefault(run.run_id, deque())
         times.append(self._clock())
         if len(times) >= self.policy.write_now:

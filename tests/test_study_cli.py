@@ -246,3 +246,15 @@ def test_cancel_then_delete_a_study_and_delete_a_run(server: str) -> None:
     assert httpx.get(f"{server}/api/runs/{runs[1]['run_id']}").status_code == 404
     code, out, err = colony("study", "delete", str(created["id"]), "--server", server)
     assert code == 1 and err.strip() == f"error 404: no study with id {created['id']}", (out, err)
+
+
+def test_run_start_takes_a_strategy_and_the_server_names_a_bad_one(server: str) -> None:
+    sets = ["--population", "8", "--generations", "2", "--steps", "20", "--trials", "1"]
+    code, out, err = colony(
+        "run", "start", *sets, "--strategy", "cma-es", "--follow", "--json", "--server", server
+    )
+    assert code == 0, err
+    run = json.loads(out)
+    assert run["status"] == "completed" and run["config"]["strategy"] == "cma-es"
+    code, out, err = colony("run", "start", "--strategy", "hill-climbing", "--server", server)
+    assert code == 1 and len(err.strip().splitlines()) == 1 and "strategy" in err, err
