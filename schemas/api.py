@@ -98,6 +98,31 @@ class IndividualsOut(BaseModel):
     individuals: list[IndividualOut]
 
 
+class ArchiveCell(BaseModel):
+    """One elite of a quality-diversity or novelty archive."""
+
+    model_config = ConfigDict(frozen=True)
+
+    descriptors: list[float]
+    """Its values of the run's two archive axes (`strategy_settings.axes`), each in [0, 1]."""
+    fitness: float | None
+    """Eq 12 on training; None for a failed evaluation."""
+    sha256: str
+    """Its controller document's sha256."""
+
+
+class ArchiveOut(BaseModel):
+    """A run's archive after its committed generations (GET /api/runs/{id}/archive)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    run_id: int
+    generation: int
+    """Generations the archive holds (0..generation - 1)."""
+    axes: list[str]
+    cells: list[ArchiveCell]
+
+
 class WorkerOut(BaseModel):
     """A simulation worker as the server's dispatcher sees it (GET /api/workers)."""
 

@@ -44,6 +44,7 @@ from sqlalchemy.orm import Session
 from evorobotics.document import ControllerDocument
 from evorobotics.evolution import RunLoop, best_document, champion
 from evorobotics.ga import GAParams, GAState, lineage, rank
+from evorobotics.strategies import Archive
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from schemas.wire import decode_frame, encode_frame
@@ -109,6 +110,10 @@ def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarr
 WRITE_AFTER_S = 0.05
 """How long told generations wait to be written together (a transaction per generation cost
 more than the rows in it), or at once when a run has `Policy.write_now` unwritten."""
+
+
+ARCHIVES_KEPT = 8
+"""Replayed archives `RunManager.archive` keeps (a dashboard polls the same run's)."""
 
 
 class RunOverError(Exception):
@@ -218,6 +223,8 @@ class RunManager:
         """Last generations whose champion is known, for the next write (under `_lock`)."""
         self._validating: set[int] = set()
         """Runs whose last generation is with the validator (under `_lock`)."""
+        self._archives: dict[tuple[int, int], Archive] = {}
+        """(run id, generations) -> its archive replayed (`archive`), oldest first."""
         self._tracker = (
             None
             if settings.tensorboard_dir is None
@@ -865,6 +872,30 @@ class RunManager:
             generation=latest.generation,
             run=run.id,
         )
+
+    def archive(self, run_id: int) -> tuple[int, RunConfig, Archive]:
+        """(generations, config, archive) of a map-elites, cma-me or novelty run after its
+        committed generations, replayed from the store (about 1 s per 350 generations; the
+        last ARCHIVES_KEPT are kept). NotFoundError for another strategy or before its first
+        committed generation."""
+        with self.sessions() as session:
+            run = self._get(session, run_id)
+            config = RunConfig.model_validate_json(run.config)
+            if config.strategy not in ("map-elites", "cma-me", "novelty"):
+                raise NotFoundError(f"run {run_id}'s strategy {config.strategy} keeps no archive")
+            g = run.generation
+            if g == 0:
+                raise NotFoundError(f"run {run_id} has no committed generation yet")
+            cached = self._archives.get((run_id, g))
+            if cached is not None:
+                return g, config, cached
+            history = crud.history(session, run_id=run_id, generations=g)
+        archive = RunLoop.resume(config, history).archive()
+        assert archive is not None  # its strategy keeps one
+        self._archives[(run_id, g)] = archive
+        while len(self._archives) > ARCHIVES_KEPT:
+            self._archives.pop(next(iter(self._archives)))
+        return g, config, archive
 
     def best(self, run_id: int) -> ControllerDocument:
         """The run's best controller, read from the store (nothing is written): a completed

@@ -1,22 +1,26 @@
 """Strategies through the server's run manager and scheduler: each non-GA strategy's run,
 evaluated job by job (the real evaluation), stores the champion `colony evolve` exports, also
 when the manager is replaced mid-run (a restart resumes the strategy by replaying what the
-store holds); such runs never go out as spans, and their stored parents are none."""
+store holds); such runs never go out as spans, and their stored parents are none; the archive
+endpoint serves `colony evolve`'s archive."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 import sqlalchemy as sa
 
+from evorobotics.document import controller_sha256
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig, StrategyConfig, StrategyName, ValidationConfig
 from server import crud
 from server.manager import RunManager
 from server.settings import Settings
-from tests.helpers import drain, evaluated
+from tests.helpers import completed_run, drain, evaluated, free_port, serving
 
 CONFIG = RunConfig(
     population=8,
@@ -77,3 +81,35 @@ def test_a_strategy_run_is_never_leased_as_a_span(engine: sa.Engine) -> None:
     assert (jobs[ga].start, jobs[ga].stop, jobs[ga].span) == (0, 8, CONFIG.generations)
     assert (jobs[cma].start, jobs[cma].stop, jobs[cma].span) == (0, 8, 1)
     assert jobs[cma].state is None
+
+
+def test_the_archive_endpoint_serves_evolve_s_archive_and_404s_without_one(tmp_path: Path) -> None:
+    """GET /api/runs/{id}/archive on a real server: a map-elites run's elites with the
+    descriptors, fitness and controller sha256 of `colony evolve`'s archive; a paper-ga run
+    and an unknown run are 404s naming why."""
+    config = CONFIG.model_copy(update={"strategy": "map-elites"})
+    archive = evolve(config).archive
+    assert archive is not None
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'a.db'}",
+        port=free_port(),
+        workers=0,
+        zenoh=False,
+        executors=1,
+    )
+    with serving(settings) as (url, _):
+        qd = completed_run(url, config.model_dump(mode="json"))
+        ga = completed_run(url, CONFIG.model_dump(mode="json"))
+        with httpx.Client(base_url=url, timeout=30) as client:
+            served = client.get(f"/api/runs/{qd}/archive").json()
+            missing = client.get(f"/api/runs/{ga}/archive")
+            unknown = client.get("/api/runs/999/archive")
+    assert served["generation"] == CONFIG.generations
+    assert served["axes"] == list(config.strategy_settings.axes)
+    spec = config.network_spec
+    assert served["cells"] == [
+        {"descriptors": d.tolist(), "fitness": float(f), "sha256": controller_sha256(spec, g)}
+        for d, f, g in zip(archive.descriptors, archive.fitness, archive.genomes, strict=True)
+    ]
+    assert missing.status_code == 404 and "paper-ga keeps no archive" in missing.text
+    assert unknown.status_code == 404

@@ -6,10 +6,13 @@ import json
 from collections.abc import Mapping
 from typing import Annotated
 
+import numpy as np
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
 
 from evorobotics.document import controller_sha256
 from schemas.api import (
+    ArchiveCell,
+    ArchiveOut,
     GenerationOut,
     IndividualOut,
     IndividualsOut,
@@ -116,6 +119,29 @@ def list_generations(session: SessionDep, run_id: RunId) -> list[GenerationOut]:
         )
         for g in crud.list_generations(session, run_id=run_id)
     ]
+
+
+@router.get("/{run_id}/archive", response_model=ArchiveOut)
+def get_archive(manager: ManagerDep, run_id: RunId) -> ArchiveOut:
+    """The archive of a map-elites, cma-me or novelty run after its committed generations:
+    each elite's two descriptors, fitness and controller sha256; 404 for another strategy."""
+    generation, config, archive = manager.archive(run_id)
+    spec = config.network_spec
+    return ArchiveOut(
+        run_id=run_id,
+        generation=generation,
+        axes=list(config.strategy_settings.axes),
+        cells=[
+            ArchiveCell(
+                descriptors=[float(v) for v in d],
+                fitness=float(f) if np.isfinite(f) else None,
+                sha256=controller_sha256(spec, genome),
+            )
+            for d, f, genome in zip(
+                archive.descriptors, archive.fitness, archive.genomes, strict=True
+            )
+        ],
+    )
 
 
 @router.get("/{run_id}/individuals", response_model=IndividualsOut)
