@@ -62,6 +62,10 @@ Descriptor = Literal["final_x", "final_y", "max_offset", "coverage"]
 ARCHIVE_BYTES = 256 * 2**20
 """Largest archive a run may ask for: pyribs allocates cells^2 genomes of float64 at once."""
 
+CMA_FULL_WEIGHTS = 2_000
+"""Largest network full CMA-ES may evolve: its covariance costs N^2 memory and an N^3
+eigendecomposition per generation (7,104 weights: 400 MB and minutes); sep-cma-es has no limit."""
+
 NOVELTY_ARCHIVE = 100_000
 """Most entries a novelty archive may reach (novelty_add x generations): every generation
 measures distances to all of them."""
@@ -218,6 +222,12 @@ class RunConfig(BaseModel):
                     f"an archive of {s.cells}^2 cells of {self.network_spec.weight_count}-weight "
                     f"genomes needs {size / 2**20:.0f} MiB, more than {ARCHIVE_BYTES // 2**20}"
                 )
+        weights = self.network_spec.weight_count
+        if self.strategy == "cma-es" and weights > CMA_FULL_WEIGHTS:
+            raise ValueError(
+                f"cma-es on {weights} weights: full covariance is limited to "
+                f"{CMA_FULL_WEIGHTS} weights; use sep-cma-es"
+            )
         if self.strategy == "novelty" and s.novelty_add * self.generations > NOVELTY_ARCHIVE:
             raise ValueError(
                 f"novelty_add {s.novelty_add} x {self.generations} generations exceeds "

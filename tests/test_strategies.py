@@ -180,6 +180,9 @@ def test_strategy_settings_are_checked() -> None:
         RunConfig(population=9, strategy="cma-me", strategy_settings=StrategyConfig(emitters=5))
     with pytest.raises(ValueError, match="MiB"):
         RunConfig(strategy="map-elites", strategy_settings=StrategyConfig(cells=500))
+    with pytest.raises(ValueError, match="use sep-cma-es"):
+        RunConfig(strategy="cma-es", network="paper-largest")
+    RunConfig(strategy="sep-cma-es", network="paper-largest")
     with pytest.raises(ValueError, match="archive entries"):
         RunConfig(strategy="novelty", generations=100_000)
     RunConfig(strategy="paper-ga", generations=100_000)  # settings of other strategies: unread
