@@ -477,6 +477,34 @@ def run_export(
         typer.echo(str(path))
 
 
+@run_app.command("archive")
+def run_archive(
+    ctx: typer.Context,
+    run_id: int,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """The archive of a map-elites, cma-me or novelty run: each entry's descriptors, fitness and
+    controller sha256 (push one with `colony robot push ROBOT --run ID --elite K`)."""
+    archive = call_server(ctx, server, token, "GET", f"/api/runs/{run_id}/archive")
+    if as_json:
+        typer.echo(json.dumps(archive, indent=2))
+        return
+    axes = archive["axes"]
+    table = Table(title=f"run {run_id}: archive after {archive['generation']} generations")
+    for column in ("elite", *axes, "fitness", "sha256"):
+        table.add_column(column)
+    for k, cell in enumerate(archive["cells"]):
+        table.add_row(
+            str(k),
+            *(f"{v:.3f}" for v in cell["descriptors"]),
+            "-" if cell["fitness"] is None else f"{cell['fitness']:.3f}",
+            cell["sha256"],
+        )
+    Console().print(table)
+
+
 @run_app.command("best")
 def run_best(
     ctx: typer.Context,
@@ -656,7 +684,7 @@ def robot_show(
     typer.echo(f"{'replacement':22s} {_replacement(detail)}")
 
 
-POLICY_CHOICES = ("off", "rank", "colony")
+POLICY_CHOICES = ("off", "rank", "archive", "colony")
 """`colony robot replacement` values; `colony` clears the robot's own policy."""
 
 
@@ -732,20 +760,25 @@ def robot_push(
         int | None,
         typer.Option(help="training rank in the run's latest generation (default: its best)"),
     ] = None,
+    elite: Annotated[
+        int | None,
+        typer.Option(help="entry of the run's archive (colony run archive; QD runs)"),
+    ] = None,
     sha: Annotated[str | None, typer.Option("--sha", help="push a stored controller")] = None,
     server: ServerOpt = DEFAULT_SERVER,
     token: TokenOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Push a run's best (--run: its validated champion once completed), a training rank of its
-    latest generation (--run --rank N), or a stored controller (--sha).
+    latest generation (--run --rank N), an entry of its archive (--run --elite K), or a stored
+    controller (--sha).
 
     Exit status 1 unless the robot accepted it."""
     if (run is None) == (sha is None):
         raise typer.BadParameter("give exactly one of --run or --sha")
     body: dict[str, Any] = {"sha256": sha}
     if run is not None:
-        body = {"run_id": run} if rank is None else {"run_id": run, "rank": rank}
+        body = {"run_id": run, "rank": rank, "elite": elite}
     _pushed(
         call_server(ctx, server, token, "POST", f"/api/robots/{robot}/controller", body), as_json
     )

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES, MAX_TRACE_SAMPLES
 from schemas.wire import NAME_PATTERN, WireError, decode_frame, encode_frame
@@ -332,9 +332,11 @@ def decode_message(payload: bytes) -> RobotMessage:
 
 # ---------------------------------------------------------------------------- REST bodies
 
-ReplacementPolicy = Literal["off", "rank"]
+ReplacementPolicy = Literal["off", "rank", "archive"]
 """What a stuck robot gets (docs/robots.md): `off` nothing (its scripted escape carries on and
-its controller resumes), `rank` the next rank of the run its controller came from."""
+its controller resumes), `rank` the next rank of the run its controller came from, `archive`
+the elite of that run's archive (map-elites, cma-me, novelty) whose behaviour differs most from
+the stuck controller's."""
 DEFAULT_REPLACEMENT: ReplacementPolicy = "rank"
 PolicySource = Literal["robot", "colony"]
 """Where a robot's effective replacement policy comes from: its own setting or the colony's."""
@@ -378,6 +380,23 @@ class PushBody(_Model):
         description="a training rank of the run's latest generation; omitted: the run's best "
         "(its validated champion once completed, else training rank 0)",
     )
+    elite: int | None = Field(
+        None,
+        ge=0,
+        le=10_000_000,
+        description="an entry of the run's archive, in GET /api/runs/{id}/archive order "
+        "(map-elites, cma-me, novelty)",
+    )
+
+    @model_validator(mode="after")
+    def _one_choice(self) -> PushBody:
+        if (self.sha256 is None) == (self.run_id is None):
+            raise ValueError("give exactly one of sha256 or run_id")
+        if self.run_id is None and (self.rank is not None or self.elite is not None):
+            raise ValueError("rank and elite choose within a run: give run_id")
+        if self.rank is not None and self.elite is not None:
+            raise ValueError("give at most one of rank or elite")
+        return self
 
 
 class ReplacementBody(_Model):

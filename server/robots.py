@@ -39,8 +39,9 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics import network
-from evorobotics.document import ControllerDocument
+from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.errors import ControllerDocumentError
+from evorobotics.strategies import Archive
 from schemas.robots import (
     DEFAULT_REPLACEMENT,
     ESCAPE,
@@ -174,9 +175,12 @@ class RobotService:
         engine_or_sessionmaker: Engine | sessionmaker[Session],
         settings: RobotSettings | None = None,
         signer: Signer | None = None,
+        archives: Callable[[int], tuple[int, RunConfig, Archive]] | None = None,
     ) -> None:
         self.settings = settings or RobotSettings()
         self.signer = signer
+        self._archives = archives
+        """run id -> (generations, config, archive) of a QD run (`RunManager.archive`)."""
         """Signs pushes, stops and replacements (docs/security.md); None sends them unsigned."""
         self._zenoh = session
         self.sessions = (
@@ -523,6 +527,13 @@ class RobotService:
 
     # ------------------------------------------------------------------ replacement
 
+    def _elite(self, run_id: int, elite: int) -> tuple[int, ControllerDocument]:
+        """(generation, document) of entry `elite` of the run's archive."""
+        if self._archives is None:
+            raise NotFoundError("this server keeps no archives")
+        generations, config, archive = self._archives(run_id)
+        return generations - 1, _elite_document(run_id, generations, config, archive, elite)
+
     def _replace(self, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
         with self.sessions.begin() as db:
             robot = db.get(Robot, request.robot)
@@ -579,11 +590,48 @@ class RobotService:
                 .limit(self.settings.recent_failures)
             )
         )
+        if policy == "archive":
+            return self._pick_elite(db, failed.run_id, request.sha256, recent)
         for rank in range(_population(db, failed.run_id)):
             doc = ranked_document(db, failed.run_id, rank)
             if doc.sha256 not in recent:
                 return doc, f"rank {rank} of run {failed.run_id}"
         return None, f"every individual of run {failed.run_id} failed recently on this robot"
+
+    def _pick_elite(
+        self, db: Session, run_id: int, failed: str | None, recent: set[str | None]
+    ) -> tuple[ControllerDocument | None, str]:
+        """The elite of the run's archive farthest, in its descriptors, from the failed
+        controller's entry (the fittest first when the failed one is not in the archive),
+        skipping those that failed recently on this robot."""
+        try:
+            if self._archives is None:
+                raise NotFoundError("this server keeps no archives")
+            generations, config, archive = self._archives(run_id)
+        except NotFoundError as exc:
+            return None, str(exc)
+        spec = config.network_spec
+        shas = [controller_sha256(spec, genome) for genome in archive.genomes]
+        if failed in shas:
+            origin = archive.descriptors[shas.index(failed)]
+            order = np.argsort(-np.linalg.norm(archive.descriptors - origin, axis=1), kind="stable")
+            why = "farthest in behaviour"
+        else:
+            order = np.argsort(-np.nan_to_num(archive.fitness, nan=-np.inf), kind="stable")
+            why = "fittest (the stuck controller is not in it)"
+        for k in (int(i) for i in order):
+            if shas[k] not in recent:
+                doc = _elite_document(run_id, generations, config, archive, k)
+                crud.put_controller(
+                    db,
+                    sha256=doc.sha256,
+                    document=doc.to_json(),
+                    run_id=run_id,
+                    generation=generations - 1,
+                    fitness=doc.fitness,
+                )
+                return doc, f"elite {k} of run {run_id}'s archive, {why}"
+        return None, f"every elite of run {run_id}'s archive failed recently on this robot"
 
     # ------------------------------------------------------------------ API operations
 
@@ -678,14 +726,17 @@ class RobotService:
         sha256: str | None = None,
         run_id: int | None = None,
         rank: int | None = None,
+        elite: int | None = None,
         timeout: float | None = None,
     ) -> PushOut:
         """Push a stored controller (sha256) or a run's controller; wait for the ack.
 
-        A run's `rank` is that training rank of its latest committed generation; without one,
-        the run's best: its validated champion once completed, else training rank 0."""
+        A run's `rank` is that training rank of its latest committed generation, its `elite`
+        that entry of its archive (`RunManager.archive`); without either, the run's best: its
+        validated champion once completed, else training rank 0."""
         if sha256 is not None and run_id is not None:
             raise ValueError("give exactly one of sha256 or run_id")
+        chosen_elite = None if elite is None or run_id is None else self._elite(run_id, elite)
         with self.sessions.begin() as db:
             if db.get(Robot, robot_id) is None:
                 raise NotFoundError(f"no robot with id {robot_id}")
@@ -700,8 +751,19 @@ class RobotService:
                 run = db.get(Run, run_id)
                 if run is None:
                     raise NotFoundError(f"no run with id {run_id}")
-                best = crud.champion(db, run=run) if rank is None else None
-                if best is not None:
+                best = crud.champion(db, run=run) if rank is None and elite is None else None
+                if chosen_elite is not None:
+                    generation, doc = chosen_elite
+                    crud.put_controller(
+                        db,
+                        sha256=doc.sha256,
+                        document=doc.to_json(),
+                        run_id=run_id,
+                        generation=generation,
+                        fitness=doc.fitness,
+                    )
+                    text, sha = doc.to_json(), doc.sha256
+                elif best is not None:
                     text, sha = best.document, best.sha256
                 else:
                     chosen = 0 if rank is None else rank
@@ -821,6 +883,29 @@ class RobotService:
                 stuck_events=row.stuck_events,
                 stuck_per_hour=row.stuck_events / hours if hours > 0 else None,
             )
+
+
+def _elite_document(
+    run_id: int, generation: int, config: RunConfig, archive: Archive, elite: int
+) -> ControllerDocument:
+    """The controller of entry `elite` of a run's archive after `generation` generations."""
+    if not 0 <= elite < len(archive.fitness):
+        raise NotFoundError(
+            f"run {run_id}'s archive has {len(archive.fitness)} entries, not {elite + 1}"
+        )
+    value = float(archive.fitness[elite])
+    return ControllerDocument(
+        spec=config.network_spec,
+        weights=np.array(archive.genomes[elite], dtype=np.float64),
+        fitness=value if np.isfinite(value) else None,
+        provenance={
+            "seed": config.seed,
+            "generation": generation - 1,
+            "elite": elite,
+            "run": run_id,
+        },
+        world=config.world,
+    )
 
 
 def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
@@ -1035,7 +1120,7 @@ def robot_service(
         signer = getattr(app.state, "signer", None)
         manager = app.state.manager
         tuned = replace(settings or RobotSettings(), replacement=manager.settings.replacement)
-        service = RobotService(session, manager.sessions, tuned, signer).start()
+        service = RobotService(session, manager.sessions, tuned, signer, manager.archive).start()
         app.state.robots = service
 
         def close() -> None:

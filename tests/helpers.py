@@ -393,8 +393,8 @@ def robot_link(
     signer: Signer | None = None,
     settings: RobotSettings | None = None,
 ) -> Iterator[Link]:
-    """A router session and a RobotService on the app's database, installed in the app; it
-    signs with `signer` if given."""
+    """A router session and a RobotService on the app's database, installed in the app, reading
+    archives through the app's run manager; it signs with `signer` if given."""
     import zenoh
 
     from server.db import make_engine
@@ -405,7 +405,8 @@ def robot_link(
     router = zenoh.open(router_config(port))
     try:
         settings = settings or RobotSettings(push_timeout=5.0)
-        service = RobotService(router, engine, settings, signer).start()
+        archives = colony.app.state.manager.archive
+        service = RobotService(router, engine, settings, signer, archives).start()
         colony.app.state.robots = service
         try:
             yield Link(router, service, f"tcp/127.0.0.1:{port}", port)

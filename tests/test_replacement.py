@@ -183,7 +183,7 @@ def test_policy_changes_need_the_token_and_a_known_value(server: Server, tmp_pat
         assert eventually(lambda: online(client, "r-api"), WAIT)
         path = "/api/robots/r-api/replacement"
         assert client.put(path, json={"policy": "off"}).status_code == 401
-        for body in ({"policy": "archive"}, {"policy": 1}, {}):
+        for body in ({"policy": "random"}, {"policy": 1}, {}):
             refused = client.put(path, json=body, headers=auth())
             assert refused.status_code == 422, body
             assert refused.json()["detail"].startswith("policy: "), refused.text
@@ -194,6 +194,6 @@ def test_policy_changes_need_the_token_and_a_known_value(server: Server, tmp_pat
         assert client.get("/api/robots/nobody/stuck").status_code == 404
         assert client.get("/api/robots/r-api").json()["replacement_source"] == "colony"
         cli_refused = CliRunner().invoke(
-            cli, ["robot", "replacement", "r-api", "archive", "--server", server.url]
+            cli, ["robot", "replacement", "r-api", "random", "--server", server.url]
         )
         assert cli_refused.exit_code == 2

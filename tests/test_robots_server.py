@@ -39,7 +39,7 @@ from schemas.robots import encode_message as encode_robot_message
 from schemas.wire import WireError
 from server import crud
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
-from server.robots import ranked_document, replay_trace
+from server.robots import RobotSettings, ranked_document, replay_trace
 from server.settings import Settings
 from tests.helpers import (
     QUICK,
@@ -359,3 +359,47 @@ def test_trace_batches_round_trip_bit_for_bit(n: int, seed: int, boot: int) -> N
     )
     with pytest.raises(WireError):
         decode_trace(encode_trace(batch)[:-1])
+
+
+def test_archive_policy_replaces_with_an_elite_and_pushes_reach_archive_entries(
+    colony: Colony, tmp_path: Path
+) -> None:
+    """Policy `archive`: a robot stuck with a controller of a map-elites run (not one of its
+    elites) gets the run's fittest elite, signed like any replacement; then an operator pushes
+    elite 0 of the archive (`elite`), as `GET /api/runs/{id}/archive` lists it."""
+    run_id = completed_run(colony.url, {**QUICK, "strategy": "map-elites"})
+    archive = httpx.get(f"{colony.url}/api/runs/{run_id}/archive").json()["cells"]
+    fittest = max(range(len(archive)), key=lambda k: archive[k]["fitness"])
+    wall = constant_drive(0.85, 0.85, NetworkSpec())  # not the stored one of another run
+    save(tmp_path, wall)
+    with robot_link(colony, settings=RobotSettings(replacement="archive")) as link:
+        with link.service.sessions.begin() as db:
+            crud.put_controller(
+                db,
+                sha256=wall.sha256,
+                document=wall.to_json(),
+                run_id=run_id,
+                generation=None,
+                fitness=None,
+            )
+        stuck = StuckConfig(contact_steps=5)
+        with virtual_robot("r-elite", link, tmp_path, stuck=stuck) as (agent, _):
+            assert agent.wait_for(
+                lambda: agent.controller is not None and agent.controller.sha256 != wall.sha256,
+                WAIT,
+            )
+            assert agent.controller is not None
+            assert agent.controller.sha256 == archive[fittest]["sha256"]
+            with link.service.sessions() as db:
+                event = db.scalars(
+                    select(StuckEventRow).where(StuckEventRow.robot_id == "r-elite")
+                ).first()
+                assert event is not None and event.policy == "archive"
+                assert event.replacement_sha256 == archive[fittest]["sha256"]
+            path = f"{colony.url}/api/robots/r-elite/controller"
+            pushed = httpx.post(path, json={"run_id": run_id, "elite": 0}, timeout=WAIT).json()
+            assert pushed["accepted"] and pushed["sha256"] == archive[0]["sha256"]
+            past = httpx.post(path, json={"run_id": run_id, "elite": len(archive)}, timeout=WAIT)
+            assert past.status_code == 404 and f"has {len(archive)} entries" in past.text
+            both = httpx.post(path, json={"run_id": run_id, "elite": 0, "rank": 0})
+            assert both.status_code == 422 and "at most one of rank or elite" in both.text

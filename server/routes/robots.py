@@ -65,7 +65,9 @@ def push_controller(robots: RobotsDep, robot_id: str, body: PushBody) -> PushOut
     generation."""
     if (body.sha256 is None) == (body.run_id is None):
         raise HTTPException(422, detail="body: give exactly one of sha256 or run_id")
-    return robots.push(robot_id, sha256=body.sha256, run_id=body.run_id, rank=body.rank)
+    return robots.push(
+        robot_id, sha256=body.sha256, run_id=body.run_id, rank=body.rank, elite=body.elite
+    )
 
 
 @router.post("/{robot_id}/stop", response_model=PushOut)
