@@ -162,6 +162,37 @@ def test_push_best_controller_to_a_robot_with_a_click(
             page.screenshot(path=str(shots / "dashboard-colony.png"), full_page=True)
 
 
+def test_an_archive_is_mapped_and_an_elite_pushed_to_a_robot_with_a_click(
+    served: Served, db_url: str, page: Any, tmp_path: Path, shots: Path
+) -> None:
+    """A map-elites run's page maps its archive; a click on an elite picks it, and Push elite
+    sends that controller to the chosen robot."""
+    with httpx.Client(base_url=served.url, timeout=30) as client:
+        run_id = client.post("/api/runs", json={**QUICK, "strategy": "map-elites"}).json()["id"]
+        assert eventually(lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed")
+        cells = client.get(f"/api/runs/{run_id}/archive").json()["cells"]
+        colony = Colony(served.url, db_url, run_id, served.app, tmp_path)
+        with robot_link(colony) as link, virtual_robot("virt-qd", link, tmp_path) as (agent, _):
+            assert eventually(lambda: online(client, "virt-qd"))
+            page.goto(f"{served.url}/?run={run_id}")
+            page.wait_for_function(
+                f"document.querySelector('#archive-map').dataset.elites === '{len(cells)}'"
+            )
+            box = page.locator("#archive-map").bounding_box()
+            x, y = cells[0]["descriptors"]
+            page.mouse.click(box["x"] + x * box["width"], box["y"] + (1 - y) * box["height"])
+            message = page.locator("[data-testid=archive-message]")
+            message.filter(has_text="elite 0:").wait_for()
+            page.locator('#archive-table tr.picked[data-elite="0"]').wait_for()
+            page.locator('#archive-robot option[value="virt-qd"]').wait_for(state="attached")
+            page.select_option("[data-testid=archive-robot]", "virt-qd")
+            page.click("[data-testid=archive-push]")
+            message.filter(has_text="virt-qd acknowledged").wait_for()
+            assert agent.controller is not None
+            assert agent.controller.sha256 == cells[0]["sha256"]
+            page.screenshot(path=str(shots / "dashboard-archive.png"), full_page=True)
+
+
 def test_with_a_token_the_page_steers_only_once_the_token_is_entered(
     tmp_path: Path, page: Any
 ) -> None:

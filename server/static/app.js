@@ -18,7 +18,15 @@ const state = {
   studyChart: null, // uPlot of its conditions' curves
   studyKey: null, // its conditions, "\n"-joined: the chart is rebuilt when they change
   studiesTimer: null,
+  archive: null, // {run, generation, axes, cells} of the selected QD run
+  archiveFor: null, // "run:generation" the archive was last asked for
+  archiveAt: 0, // when (ms): a live run's archive is replayed by the server, ask at most every 5 s
+  picked: null, // index of the picked elite
 };
+
+// Strategies whose runs keep an archive (docs/strategies.md).
+const ARCHIVED = new Set(["map-elites", "cma-me", "novelty"]);
+const ARCHIVE_ROWS = 12; // the fittest elites listed beside the map
 
 // Colours of the overlaid curves (a condition or a run each), cycled.
 const PALETTE = ["#1f5fbf", "#b3261e", "#1e7d3a", "#b26b00", "#6a3fb5", "#00838f", "#5d4037", "#c2185b"];
@@ -206,7 +214,8 @@ function renderRunDetail() {
   status.className = `status ${run.status}`;
   $("#run-meta").textContent =
     `seed ${run.seed} · population ${c.population} · ${c.trials} trials × ${c.steps} steps · ` +
-    `network ${networkName(c)} · maze ${mazeName(c)} · generation ${run.generation}/` +
+    `network ${networkName(c)} · maze ${mazeName(c)} · strategy ${c.strategy} · ` +
+    `generation ${run.generation}/` +
     `${run.generations} · ${run.evaluations} evaluations · ` +
     `training fitness ${fmt(run.best_fitness)} (rank 0)`;
   const error = $("#run-error");
@@ -222,6 +231,148 @@ function renderRunDetail() {
   }
   refreshFigures(run);
   showValidation(run);
+  showArchive(run);
+}
+
+// ---- archive of a quality-diversity run -----------------------------------------------------
+
+async function showArchive(run) {
+  const panel = $("#archive");
+  if (!ARCHIVED.has(run.config.strategy) || run.generation < 1) {
+    panel.hidden = true;
+    return;
+  }
+  const key = `${run.id}:${run.generation}`;
+  const sameRun = state.archive && state.archive.run === run.id;
+  const live = !["completed", "failed", "cancelled"].includes(run.status);
+  if (state.archiveFor === key || (sameRun && live && Date.now() - state.archiveAt < 5000)) return;
+  state.archiveFor = key;
+  state.archiveAt = Date.now();
+  if (!sameRun) state.picked = null;
+  try {
+    const archive = await api("GET", `/api/runs/${run.id}/archive`);
+    if (state.selected !== run.id) return;
+    state.archive = { run: run.id, ...archive };
+    if (state.picked !== null && state.picked >= archive.cells.length) state.picked = null;
+    panel.hidden = false;
+    renderArchive();
+  } catch {
+    state.archiveFor = null; // asked again with the next run event
+  }
+}
+
+function fitnessColour(f, lo, hi) {
+  if (f === null) return "#999";
+  const t = hi > lo ? (f - lo) / (hi - lo) : 1;
+  return `hsl(${Math.round(240 * (1 - t))}, 70%, 45%)`;
+}
+
+function renderArchive() {
+  const a = state.archive;
+  const [xName, yName] = a.axes;
+  $("#archive-title").textContent =
+    `Archive: ${a.cells.length} elites after ${a.generation} generations ` +
+    `(${xName} × ${yName}, colour: training fitness)`;
+  $("#archive-x").textContent = xName;
+  $("#archive-y").textContent = yName;
+  const canvas = $("#archive-map");
+  canvas.dataset.elites = String(a.cells.length);
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const known = a.cells.map((c) => c.fitness).filter((f) => f !== null);
+  const lo = Math.min(...known);
+  const hi = Math.max(...known);
+  a.cells.forEach((c, k) => {
+    const [x, y] = elitePoint(c, canvas);
+    ctx.fillStyle = fitnessColour(c.fitness, lo, hi);
+    ctx.beginPath();
+    ctx.arc(x, y, k === state.picked ? 6 : 4, 0, 2 * Math.PI);
+    ctx.fill();
+    if (k === state.picked) {
+      ctx.strokeStyle = "#000";
+      ctx.stroke();
+    }
+  });
+  const order = a.cells.map((_, k) => k).sort((i, j) => (a.cells[j].fitness ?? -Infinity) - (a.cells[i].fitness ?? -Infinity));
+  const rows = order.slice(0, ARCHIVE_ROWS);
+  if (state.picked !== null && !rows.includes(state.picked)) rows.push(state.picked);
+  $("#archive-table tbody").replaceChildren(
+    ...rows.map((k) => {
+      const c = a.cells[k];
+      const row = el("tr", { "data-elite": String(k), class: k === state.picked ? "picked" : "" },
+        el("td", { text: String(k) }),
+        el("td", { text: fmt(c.descriptors[0]) }),
+        el("td", { text: fmt(c.descriptors[1]) }),
+        el("td", { text: fmt(c.fitness) }),
+        el("td", {}, el("code", { text: short(c.sha256) })));
+      row.addEventListener("click", () => pickElite(k));
+      return row;
+    }),
+  );
+  fillArchiveRobots();
+}
+
+function elitePoint(cell, canvas) {
+  return [cell.descriptors[0] * canvas.width, (1 - cell.descriptors[1]) * canvas.height];
+}
+
+function pickElite(k) {
+  state.picked = k;
+  const c = state.archive.cells[k];
+  const message = $("#archive-message");
+  message.textContent = `elite ${k}: fitness ${fmt(c.fitness)}, controller ${short(c.sha256)}`;
+  message.className = "message";
+  renderArchive();
+}
+
+function onArchiveClick(event) {
+  // The elite nearest the click, if within 8 px.
+  if (!state.archive) return;
+  const canvas = $("#archive-map");
+  const box = canvas.getBoundingClientRect();
+  const x = (event.clientX - box.left) * (canvas.width / box.width);
+  const y = (event.clientY - box.top) * (canvas.height / box.height);
+  let best = null;
+  let bestD = 64.5; // (8 px)^2, inclusive
+  state.archive.cells.forEach((c, k) => {
+    const [px, py] = elitePoint(c, canvas);
+    const d = (px - x) ** 2 + (py - y) ** 2;
+    if (d < bestD) [best, bestD] = [k, d];
+  });
+  if (best !== null) pickElite(best);
+}
+
+function fillArchiveRobots() {
+  const select = $("#archive-robot");
+  const current = select.value;
+  const ids = [...state.cards.keys()].sort();
+  select.replaceChildren(...ids.map((id) => el("option", { value: id, text: id })));
+  if (ids.includes(current)) select.value = current;
+  $("#archive-push").disabled = state.picked === null || ids.length === 0;
+}
+
+async function pushElite() {
+  const robot = $("#archive-robot").value;
+  const message = $("#archive-message");
+  if (state.picked === null || !robot) return;
+  const button = $("#archive-push");
+  button.disabled = true;
+  message.textContent = "pushing…";
+  message.className = "message";
+  try {
+    const body = { run_id: state.archive.run, elite: state.picked };
+    const reply = await api("POST", `/api/robots/${encodeURIComponent(robot)}/controller`, body);
+    const ok = reply.acknowledged && reply.accepted;
+    message.textContent = ok
+      ? `${robot} acknowledged: running ${short(reply.sha256)}`
+      : reply.acknowledged ? `refused: ${reply.reason}` : `no acknowledgement ${reply.reason || ""}`;
+    message.className = `message ${ok ? "ok" : "bad"}`;
+  } catch (err) {
+    message.textContent = err.message;
+    message.className = "message bad";
+  } finally {
+    button.disabled = false;
+  }
 }
 
 async function showValidation(run) {
@@ -677,6 +828,7 @@ function renderRobots(snapshot) {
       state.cards.delete(id);
     }
   }
+  if (state.archive) fillArchiveRobots();
 }
 
 // ---- workers -------------------------------------------------------------------------------
@@ -733,6 +885,8 @@ function main() {
     $("#overlay-panel").hidden = true;
   });
   $("#study-cancel").addEventListener("click", cancelStudy);
+  $("#archive-map").addEventListener("click", onArchiveClick);
+  $("#archive-push").addEventListener("click", pushElite);
   window.addEventListener("hashchange", showTab);
   window.addEventListener("resize", resizeChart);
   showTab();
