@@ -52,6 +52,20 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
             ["--quick", "--seeds", "1", "--repeats", "1", "--big-seeds", "1", "--workers", "1"],
             "workers busy at 10x the trial length",
         ),
+        (
+            "strategies_study.py",
+            [
+                "--quick",
+                "--strategies",
+                "paper-ga",
+                "novelty",
+                "--generations",
+                "2",
+                "--poses",
+                "20",
+            ],
+            "targets hold:",
+        ),
     ],
 )
 def test_a_bench_script_runs_on_a_tiny_size(script: str, args: list[str], printed: str) -> None:
