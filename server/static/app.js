@@ -353,26 +353,9 @@ function fillArchiveRobots() {
 
 async function pushElite() {
   const robot = $("#archive-robot").value;
-  const message = $("#archive-message");
   if (state.picked === null || !robot) return;
-  const button = $("#archive-push");
-  button.disabled = true;
-  message.textContent = "pushing…";
-  message.className = "message";
-  try {
-    const body = { run_id: state.archive.run, elite: state.picked };
-    const reply = await api("POST", `/api/robots/${encodeURIComponent(robot)}/controller`, body);
-    const ok = reply.acknowledged && reply.accepted;
-    message.textContent = ok
-      ? `${robot} acknowledged: running ${short(reply.sha256)}`
-      : reply.acknowledged ? `refused: ${reply.reason}` : `no acknowledgement ${reply.reason || ""}`;
-    message.className = `message ${ok ? "ok" : "bad"}`;
-  } catch (err) {
-    message.textContent = err.message;
-    message.className = "message bad";
-  } finally {
-    button.disabled = false;
-  }
+  const body = { run_id: state.archive.run, elite: state.picked };
+  await sendPush(robot, body, $("#archive-push"), $("#archive-message"));
 }
 
 async function showValidation(run) {
@@ -759,16 +742,21 @@ async function push(id, runSelect, rank, button, message) {
     message.className = "message bad";
     return;
   }
+  const body = { run_id: Number(runSelect.value) }; // no rank: the run's best (champion)
+  if (rank.value !== "") body.rank = Number(rank.value);
+  await sendPush(id, body, button, message);
+}
+
+async function sendPush(robot, body, button, message) {
+  // POST /api/robots/{id}/controller and show the robot's answer under the button.
   button.disabled = true;
   message.textContent = "pushing…";
   message.className = "message";
   try {
-    const body = { run_id: Number(runSelect.value) }; // no rank: the run's best (champion)
-    if (rank.value !== "") body.rank = Number(rank.value);
-    const reply = await api("POST", `/api/robots/${encodeURIComponent(id)}/controller`, body);
+    const reply = await api("POST", `/api/robots/${encodeURIComponent(robot)}/controller`, body);
     const ok = reply.acknowledged && reply.accepted;
     message.textContent = ok
-      ? `acknowledged: running ${short(reply.sha256)}`
+      ? `${robot} acknowledged: running ${short(reply.sha256)}`
       : reply.acknowledged
         ? `refused: ${reply.reason}`
         : `no acknowledgement ${reply.reason ? `(${reply.reason})` : ""}`;
