@@ -298,7 +298,9 @@ def study(
         print()
         print(f"{maze}: Mann-Whitney U, Holm over this maze's {len(comparisons)} comparisons")
         for c in comparisons:
-            print(f"  {c.a:>11s} vs {c.b:11s} {c.metric:8s} p_holm {c.p_holm:.3g}  A12 {c.a12:.2f}")
+            print(
+                f"  {c.a:>11s} vs {c.b:11s} {c.metric:8s} p {c.p_value:.3g}, p_holm {c.p_holm:.3g}, A12 {c.a12:.2f}"
+            )
         for line in verdicts(comparisons) or ["(fewer than 2 seeds: nothing to compare)"]:
             print(f"  {line}")
 
