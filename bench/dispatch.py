@@ -65,9 +65,11 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def zeros(config: RunConfig, generation: int, genomes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def zeros(
+    config: RunConfig, generation: int, genomes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     n = genomes.shape[0]
-    return np.zeros(n), np.zeros((n, config.trials, 4))
+    return np.zeros(n), np.zeros((n, config.trials, 4)), np.zeros((n, 4))
 
 
 def worker_process(port: int, name: str, empty: bool, stopping: threading.Event) -> None:
