@@ -210,7 +210,7 @@ def bench_codec(rounds: int = 5_000) -> None:
         job = scheduler.lease("bench-0")
         if job is None:
             raise RuntimeError("the scheduler leased no job")
-        fitness, components = zeros(job.config, 0, job.genomes)
+        fitness, components, descriptors = zeros(job.config, 0, job.genomes)
         spent = [0.0, 0.0]
         reply = encode(job.model_copy(update={"ack": Ack(key=job.key, accepted=True)}))
         for _ in range(rounds):
@@ -230,6 +230,7 @@ def bench_codec(rounds: int = 5_000) -> None:
                     want_next=True,
                     fitness=fitness[np.newaxis],
                     components=components[np.newaxis],
+                    descriptors=descriptors[np.newaxis],
                 )
             )
             middle = time.perf_counter()
