@@ -9,8 +9,9 @@ server keeps busy (prints figures; no assertions).
    exploration figures, which the server computes afterwards, are not awaited. The champions'
    sha256 must be the same on both sides.
 2. The server process's CPU (/proc/PID/stat utime + stime, not its worker children) and its
-   local workers' CPU, sampled while the study's runs evolve (between 10 % and 90 % of their
-   generations: no run starts or ends in that window), per generation; the server's CPU per
+   local workers' CPU, sampled while the study's runs evolve (from 10 % of their generations
+   until the first run reaches its last one: no run starts, or is validated, in that window),
+   per generation; the server's CPU per
    run (all of it from creation to the champions' exploration figures, over the runs). A study
    of `--big-seeds` runs with ten times the trial length (`steps` x 10) gives the same at that
    scale. N = workers' CPU per generation / server CPU per generation: how many workers one
@@ -118,7 +119,8 @@ class Server:
     def study(self, base: dict[str, Any], seeds: list[int]) -> StudyFigures:
         """Run a one-condition study of `base` over `seeds` to the end, exploration included."""
         self.studies += 1
-        generations = RunConfig.model_validate(base).generations * len(seeds)
+        per_run = RunConfig.model_validate(base).generations
+        generations = per_run * len(seeds)
         server0, workers0 = cpu_seconds([self.process.pid]), cpu_seconds(self.workers)
         body = {"name": f"bench-{self.studies}", "base": base, "seeds": seeds}
         created = self.client.post("/api/studies", json=body)
@@ -128,7 +130,8 @@ class Server:
         while True:
             runs = self._runs(study["id"])
             done = sum(r[2] for r in runs)
-            samples.append((done, cpu_seconds([self.process.pid]), cpu_seconds(self.workers)))
+            if not any(r[2] >= per_run - 1 for r in runs):  # no run at its end (validation)
+                samples.append((done, cpu_seconds([self.process.pid]), cpu_seconds(self.workers)))
             if any(r[1] in ("failed", "cancelled") for r in runs):
                 raise RuntimeError(f"a run of study {study['id']} did not complete")
             if all(r[1] == "completed" for r in runs):
@@ -139,8 +142,9 @@ class Server:
         ended = max(datetime.fromisoformat(str(r[4])).replace(tzinfo=None) for r in runs)
         self._explored(study["id"])
         server_end = cpu_seconds([self.process.pid])
-        middle = [s for s in samples if 0.1 * generations <= s[0] <= 0.9 * generations]
-        first, last = (middle[0], middle[-1]) if len(middle) > 1 else (samples[0], samples[-1])
+        middle = [s for s in samples if s[0] >= 0.1 * generations]
+        window = middle if len(middle) > 1 else samples or [(0, 0.0, 0.0)]
+        first, last = window[0], window[-1]
         counted = max(1, last[0] - first[0])
         return StudyFigures(
             wall_s=(ended - began).total_seconds(),
