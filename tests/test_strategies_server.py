@@ -46,16 +46,24 @@ def _champion(manager: RunManager, run_id: int) -> str | None:
         return run.champion_sha256
 
 
-@pytest.mark.parametrize("strategy", ["cma-es", "map-elites", "novelty"])
+@pytest.mark.parametrize("strategy", ["cma-es", "sep-cma-es", "map-elites", "cma-me", "novelty"])
 def test_a_strategy_run_on_the_server_stores_evolve_s_champion_across_a_restart(
     make_manager: Callable[[], RunManager], strategy: StrategyName
 ) -> None:
+    """Two workers share each generation in slices; the manager is replaced after two."""
     config = CONFIG.model_copy(update={"strategy": strategy})
     expected = evolve(config).best.sha256
     first = make_manager()
+    for worker in ("a", "b"):
+        first.scheduler.join(worker)
     run_id = first.create_run(config)
-    while (result := evaluated(first, "w")) is not None and result.key.generation < 2:
-        assert first.scheduler.settle(result).accepted
+    told = 0
+    while told < 2:
+        results = [evaluated(first, worker) for worker in ("a", "b")]
+        assert all(r is not None and r.stop - r.start == 4 for r in results)  # two slices
+        for result in results:
+            assert result is not None and first.scheduler.settle(result).accepted
+        told += 1
     first.stop()  # writes the two told generations; generation 2's result is never settled
     with first.sessions() as session:
         stored = crud.ranked(session, run_id=run_id, generation=1)[0]
