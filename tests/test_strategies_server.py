@@ -57,14 +57,13 @@ def test_a_strategy_run_on_the_server_stores_evolve_s_champion_across_a_restart(
     for worker in ("a", "b"):
         first.scheduler.join(worker)
     run_id = first.create_run(config)
-    told = 0
-    while told < 2:
-        results = [evaluated(first, worker) for worker in ("a", "b")]
-        assert all(r is not None and r.stop - r.start == 4 for r in results)  # two slices
-        for result in results:
-            assert result is not None and first.scheduler.settle(result).accepted
-        told += 1
-    first.stop()  # writes the two told generations; generation 2's result is never settled
+    for _ in range(2):  # two generations, each in two workers' slices
+        for worker in ("a", "b"):
+            result = evaluated(first, worker)
+            assert result is not None and result.start is not None and result.stop is not None
+            assert result.stop - result.start == 4  # two slices of a generation of 8
+            assert first.scheduler.settle(result).accepted
+    first.stop()  # writes the two told generations
     with first.sessions() as session:
         stored = crud.ranked(session, run_id=run_id, generation=1)[0]
         assert (stored.parent == -1).all()  # no Eq 11 lineage outside the paper's GA
