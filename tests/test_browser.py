@@ -178,9 +178,14 @@ def test_an_archive_is_mapped_and_an_elite_pushed_to_a_robot_with_a_click(
             page.wait_for_function(
                 f"document.querySelector('#archive-map').dataset.elites === '{len(cells)}'"
             )
-            box = page.locator("#archive-map").bounding_box()
+            page.locator("[data-testid=run-validation]").wait_for()  # the layout is complete
+            canvas = page.locator("#archive-map")
+            box = canvas.bounding_box()
             x, y = cells[0]["descriptors"]
-            page.mouse.click(box["x"] + x * box["width"], box["y"] + (1 - y) * box["height"])
+            # relative to the canvas where it is when clicked: immune to lines appearing above
+            w, h = box["width"], box["height"]
+            at = {"x": min(max(x * w, 1.0), w - 1.0), "y": min(max((1 - y) * h, 1.0), h - 1.0)}
+            canvas.click(position=at)
             message = page.locator("[data-testid=archive-message]")
             message.filter(has_text="elite 0:").wait_for()
             page.locator('#archive-table tr.picked[data-elite="0"]').wait_for()
