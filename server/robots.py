@@ -9,8 +9,10 @@ controller, and the robot's policy (its own, else the colony's `RobotSettings.re
 chooses the reply. `off`: none. `rank`: the fittest individual of the latest generation of the
 same run whose controller this robot has not failed with in its last `recent_failures` stuck
 events (its current one included); a controller that came from no run, or a run whose every
-individual failed recently on this robot, gets none. Without a replacement the agent's scripted
-escape carries on and its controller resumes. Each stuck event keeps the policy that served it,
+individual failed recently on this robot, gets none. `archive`: the elite of that run's
+archive farthest in behaviour from the stuck controller's entry (the fittest when it is not an
+elite), skipping recent failures; none when the run keeps no archive. Without a replacement
+the agent's scripted escape carries on and its controller resumes. Each stuck event keeps the policy that served it,
 and the next stuck event of the robot fills in how many steps the previous one's outcome ran.
 
 Retention: the newest `retention_samples` trace samples per robot are kept (whole batches are
