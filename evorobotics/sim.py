@@ -911,3 +911,196 @@ def _clearance_map(maze: Maze) -> np.ndarray:
 def _solid_u8(maze: Maze) -> np.ndarray:
     """The kernel's copy of a maze: uint8 solid[j, i], C-contiguous (cached per Maze)."""
     return np.ascontiguousarray(maze.solid, dtype=np.uint8)
+
+
+# ---------------------------------------------------------------- step-wise entry (evorobotics.gym)
+
+
+@dataclass(frozen=True)
+class Bodies:
+    """N robots stepped one dt at a time (`step_bodies`), their arrays updated in place.
+
+    The step-wise twin of a trial in `simulate`, for callers that choose every wheel command
+    from outside (`evorobotics.gym`): the same sensing, motion and collision helpers, so a robot
+    driven by the motor commands of a recorded trial retraces it bit for bit.
+    """
+
+    poses: np.ndarray
+    """(N, 3) float64 x, y, heading."""
+    gains: np.ndarray
+    """(N, 2) float64 wheel gains (the reality gap; ones without)."""
+    ranges: np.ndarray
+    """(N, 5) float64 whisker trigger distances in m, read by the next sensing."""
+    blocked: np.ndarray = field(init=False)
+    """(N,) int64 consecutive blocked steps."""
+    stuck: np.ndarray = field(init=False)
+    """(N,) bool: stuck (`World.stuck_after` blocked steps in a row), immobile from then on."""
+    travelled: np.ndarray = field(init=False)
+    """(N,) float64 length of each robot's last accepted move (0 when blocked or stuck)."""
+    whiskers: np.ndarray = field(init=False)
+    """(N, 5) uint8 bits sensed at the current poses."""
+
+    def __post_init__(self) -> None:
+        n = self.poses.shape[0]
+        if self.poses.shape != (n, 3) or self.gains.shape != (n, 2):
+            raise ValueError(f"poses must be (N, 3) and gains (N, 2), got {self.gains.shape}")
+        if self.ranges.shape != (n, N_WHISKERS):
+            raise ValueError(f"ranges must be ({n}, {N_WHISKERS}), got {self.ranges.shape}")
+        for name in ("poses", "gains", "ranges"):
+            if (
+                getattr(self, name).dtype != np.float64
+                or not getattr(self, name).flags.c_contiguous
+            ):
+                raise ValueError(f"{name} must be C-contiguous float64")
+        object.__setattr__(self, "blocked", np.zeros(n, dtype=np.int64))
+        object.__setattr__(self, "stuck", np.zeros(n, dtype=np.bool_))
+        object.__setattr__(self, "travelled", np.zeros(n))
+        object.__setattr__(self, "whiskers", np.zeros((n, N_WHISKERS), dtype=np.uint8))
+
+
+@njit(inline="always")
+def _sense_one(
+    solid: np.ndarray,
+    cell: float,
+    clear: np.ndarray,
+    wx: np.ndarray,
+    wy: np.ndarray,
+    ca: np.ndarray,
+    sa: np.ndarray,
+    reach: float,
+    x: float,
+    y: float,
+    th: float,
+    rq: np.ndarray,
+    bits: np.ndarray,
+) -> None:
+    """The sensing of one robot in `_episodes`, with its early outs, into `bits` (5,)."""
+    c = math.cos(th)
+    s = math.sin(th)
+    r_max = 0.0
+    for q in range(wx.shape[0]):
+        r_max = max(r_max, rq[q])
+    far = _clearance(clear, cell, x, y) > reach + r_max
+    for q in range(wx.shape[0]):
+        bits[q] = 0
+        if far:
+            continue
+        px = x + c * wx[q] - s * wy[q]
+        py = y + s * wx[q] + c * wy[q]
+        if _clearance(clear, cell, px, py) > rq[q]:
+            continue
+        ux = c * ca[q] - s * sa[q]
+        uy = s * ca[q] + c * sa[q]
+        if _whisker(solid, cell, px, py, ux, uy, rq[q]):
+            bits[q] = 1
+
+
+@njit(cache=True, nogil=True)
+def _step_rows(
+    solid: np.ndarray,
+    cell: float,
+    clear: np.ndarray,
+    world: np.ndarray,
+    wx: np.ndarray,
+    wy: np.ndarray,
+    ca: np.ndarray,
+    sa: np.ndarray,
+    reach: float,
+    stuck_after: int,
+    rows: np.ndarray,
+    motors: np.ndarray,
+    poses: np.ndarray,
+    gains: np.ndarray,
+    ranges: np.ndarray,
+    blocked: np.ndarray,
+    stuck: np.ndarray,
+    travelled: np.ndarray,
+    whiskers: np.ndarray,
+    move_first: bool,
+) -> None:
+    """Robots `rows`: with `move_first`, act and collide on motors[r] as `_episodes` does;
+    then sense at the (new) pose."""
+    dt = world[0]
+    vmax = world[1]
+    base = world[2]
+    a = world[3]
+    b = world[4]
+    hd = world[5]
+    for r in rows:
+        x = poses[r, 0]
+        y = poses[r, 1]
+        th = poses[r, 2]
+        travelled[r] = 0.0
+        if move_first and not stuck[r]:
+            vl = motors[r, 0] * gains[r, 0] * vmax
+            vr = motors[r, 1] * gains[r, 1] * vmax
+            v = (vl + vr) * 0.5
+            om = (vr - vl) / base
+            mid = th + om * (dt * 0.5)
+            nx = x + v * dt * math.cos(mid)
+            ny = y + v * dt * math.sin(mid)
+            nth = th + om * dt
+            nth = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
+            if _clearance(clear, cell, nx, ny) <= hd and _blocked(
+                solid, cell, nx, ny, math.cos(nth), math.sin(nth), a, b, hd
+            ):
+                blocked[r] += 1
+                if blocked[r] >= stuck_after:
+                    stuck[r] = True
+            else:
+                blocked[r] = 0
+                ddx = nx - x
+                ddy = ny - y
+                travelled[r] = math.sqrt(ddx * ddx + ddy * ddy)
+                x = nx
+                y = ny
+                th = nth
+                poses[r, 0] = x
+                poses[r, 1] = y
+                poses[r, 2] = th
+        _sense_one(solid, cell, clear, wx, wy, ca, sa, reach, x, y, th, ranges[r], whiskers[r])
+
+
+def _run_rows(
+    maze: Maze, params: World, bodies: Bodies, rows: np.ndarray, motors: np.ndarray, move: bool
+) -> None:
+    world, wx, wy, ca, sa, reach = _world_arrays(params)
+    _step_rows(
+        _solid_u8(maze),
+        maze.cell_size,
+        _clearance_map(maze),
+        world,
+        wx,
+        wy,
+        ca,
+        sa,
+        reach,
+        params.stuck_after,
+        np.ascontiguousarray(rows, dtype=np.int64),
+        motors,
+        bodies.poses,
+        bodies.gains,
+        bodies.ranges,
+        bodies.blocked,
+        bodies.stuck,
+        bodies.travelled,
+        bodies.whiskers,
+        move,
+    )
+
+
+def sense_bodies(maze: Maze, params: World, bodies: Bodies, rows: np.ndarray) -> None:
+    """Sense `bodies.whiskers[rows]` at their poses (after placing robots)."""
+    _run_rows(maze, params, bodies, rows, np.zeros((bodies.poses.shape[0], 2)), False)
+
+
+def step_bodies(
+    maze: Maze, params: World, bodies: Bodies, rows: np.ndarray, motors: np.ndarray
+) -> None:
+    """One dt of robots `rows` on wheel commands `motors` (N, 2) float64 in [-1, 1] (rows not
+    stepped are ignored): act, collide and update `blocked`, `stuck`, `travelled`, then sense
+    at the new poses. A stuck robot stays where it is (`simulate`'s rule)."""
+    m = np.ascontiguousarray(motors, dtype=np.float64)
+    if m.shape != (bodies.poses.shape[0], 2):
+        raise ValueError(f"motors must be ({bodies.poses.shape[0]}, 2), got {m.shape}")
+    _run_rows(maze, params, bodies, rows, m, True)
