@@ -959,6 +959,26 @@ class Bodies:
 
 
 @njit(inline="always")
+def _drive(
+    x: float, y: float, th: float, left: float, right: float, world: np.ndarray
+) -> tuple[float, float, float]:
+    """The unobstructed move of one robot (`move`, in `_episodes`' operations and order):
+    wheel commands times gains `left`, `right`; the new pose, heading wrapped."""
+    dt = world[0]
+    vl = left * world[1]
+    vr = right * world[1]
+    v = (vl + vr) * 0.5
+    om = (vr - vl) / world[2]
+    mid = th + om * (dt * 0.5)
+    nth = th + om * dt
+    return (
+        x + v * dt * math.cos(mid),
+        y + v * dt * math.sin(mid),
+        nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI),
+    )
+
+
+@njit(inline="always")
 def _sense_one(
     solid: np.ndarray,
     cell: float,
@@ -1020,9 +1040,6 @@ def _step_rows(
 ) -> None:
     """Robots `rows`: with `move_first`, act and collide on motors[r] as `_episodes` does;
     then sense at the (new) pose."""
-    dt = world[0]
-    vmax = world[1]
-    base = world[2]
     a = world[3]
     b = world[4]
     hd = world[5]
@@ -1032,15 +1049,9 @@ def _step_rows(
         th = poses[r, 2]
         travelled[r] = 0.0
         if move_first and not stuck[r]:
-            vl = motors[r, 0] * gains[r, 0] * vmax
-            vr = motors[r, 1] * gains[r, 1] * vmax
-            v = (vl + vr) * 0.5
-            om = (vr - vl) / base
-            mid = th + om * (dt * 0.5)
-            nx = x + v * dt * math.cos(mid)
-            ny = y + v * dt * math.sin(mid)
-            nth = th + om * dt
-            nth = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
+            nx, ny, nth = _drive(
+                x, y, th, motors[r, 0] * gains[r, 0], motors[r, 1] * gains[r, 1], world
+            )
             if _clearance(clear, cell, nx, ny) <= hd and _blocked(
                 solid, cell, nx, ny, math.cos(nth), math.sin(nth), a, b, hd
             ):
