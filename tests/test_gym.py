@@ -121,6 +121,30 @@ def test_driving_the_env_with_a_trials_motors_retraces_the_trial(
     assert total == pytest.approx(float(fitness(trial.components, weights)[0]), abs=1e-9)
 
 
+def test_vector_env_retraces_a_batch_of_trials() -> None:
+    """Eight robots from `simulate`'s poses on its recorded motor commands: each row follows
+    its trial bit for bit until its episode ends."""
+    spec = PRESETS["paper-best"]
+    maze, steps, n = load_maze("paper"), 50, 8
+    poses = start_poses(maze, 7, 0, n)
+    genomes = np.random.default_rng(7).normal(0.0, 1.5, (n, spec.weight_count))
+    trial = simulate(spec, genomes, maze, poses, steps, record=True)
+    assert trial.poses is not None and trial.whiskers is not None and trial.motors is not None
+    envs = EvBotMazeVectorEnv(n, steps=steps)
+    obs, _ = envs.reset(seed=0, options={"pose": poses})
+    assert (obs == trial.whiskers[:, 0]).all()
+    live = np.ones(n, dtype=np.bool_)
+    for k in range(steps):
+        obs, _, terminated, truncated, info = envs.step(trial.motors[:, k])
+        assert (info["pose"][live] == trial.poses[live, k + 1]).all()
+        if k + 1 < steps:
+            assert (obs[live] == trial.whiskers[live, k + 1]).all()
+        ended = live & (terminated | truncated)
+        assert (info["components"][ended] == trial.components[ended]).all()
+        live &= ~ended
+    assert not live.any()
+
+
 def run_single(env: EvBotMazeEnv, seed: int, actions: np.ndarray) -> list[tuple[Any, ...]]:
     """Every step's (obs, reward, terminated, truncated, pose) with next-step autoreset done by
     hand: after an episode ends, the next step resets instead (reward 0, flags False)."""
