@@ -109,7 +109,12 @@ def _draw_start_poses(
     maze: Maze, seed: int, generation: int, trials: int, params: World, purpose: Purpose
 ) -> np.ndarray:
     """`start_poses` without the cache: the draws themselves."""
-    gen = rng(seed, generation, purpose)
+    return free_poses(maze, rng(seed, generation, purpose), trials, params)
+
+
+def free_poses(maze: Maze, gen: np.random.Generator, trials: int, params: World) -> np.ndarray:
+    """(trials, 3) uniform random poses from `gen` whose body is clear and no whisker touches a wall:
+    candidates drawn 64 at a time (x, y, heading), accepted in draw order (a fresh array)."""
     accepted: list[np.ndarray] = [np.empty((0, 3))]
     found = 0
     for _ in range(_MAX_ROUNDS):

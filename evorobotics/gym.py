@@ -26,16 +26,13 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from evorobotics.evaluate import crossing_steps
-from evorobotics.maze import Maze, load_maze
-from evorobotics.sim import Bodies, body_hits_wall, clear_of_walls, sense_bodies, step_bodies
+from evorobotics.evaluate import crossing_steps, free_poses
+from evorobotics.maze import load_maze
+from evorobotics.sim import Bodies, body_hits_wall, sense_bodies, step_bodies
 from schemas.run import FitnessWeights, RunConfig
 from schemas.world import N_WHISKERS, World
 
 ENV_ID: Final = "EvoColony/EvBotMaze-v0"
-
-_CANDIDATES = 64
-_MAX_ROUNDS = 1000
 
 
 def _world(world: World | Mapping[str, Any] | None) -> World:
@@ -46,23 +43,6 @@ def _fitness(fitness: FitnessWeights | Mapping[str, Any] | None) -> FitnessWeigh
     if isinstance(fitness, FitnessWeights):
         return fitness
     return FitnessWeights.model_validate(dict(fitness or {}))
-
-
-def draw_pose(maze: Maze, world: World, gen: np.random.Generator) -> np.ndarray:
-    """(3,) a uniform random pose whose body is clear and no whisker touches a wall (the
-    acceptance test of `evaluate.start_poses`), drawn from `gen` 64 candidates at a time."""
-    for _ in range(_MAX_ROUNDS):
-        cand = np.column_stack(
-            [
-                gen.uniform(0.0, maze.width, _CANDIDATES),
-                gen.uniform(0.0, maze.height, _CANDIDATES),
-                gen.uniform(-np.pi, np.pi, _CANDIDATES),
-            ]
-        )
-        free = np.flatnonzero(clear_of_walls(maze, cand, world))
-        if free.size:
-            return np.asarray(cand[free[0]])
-    raise ValueError(f"maze {maze.name!r} has no room for the robot: no free start pose")
 
 
 class _Batch:
@@ -109,7 +89,7 @@ class _Batch:
         g = self.world.gap_motor_gain
         for k, r in enumerate(rows):
             gen = self.rngs[r]
-            b.poses[r] = draw_pose(self.maze, self.world, gen) if poses is None else poses[k]
+            b.poses[r] = free_poses(self.maze, gen, 1, self.world)[0] if poses is None else poses[k]
             if self.reality_gap:
                 shared = gen.uniform(lo, hi)
                 b.gains[r] = gen.uniform(1.0 - g, 1.0 + g, 2)
