@@ -158,9 +158,14 @@ def _action_space() -> spaces.Box:
 
 def _checked_poses(batch: _Batch, value: object, n: int) -> np.ndarray:
     """The `pose` reset option as (n, 3): finite, body clear of walls."""
-    poses = np.asarray(value, dtype=np.float64).reshape(-1, 3) if value is not None else None
-    if poses is None or poses.shape != (n, 3) or not np.isfinite(poses).all():
+    try:
+        poses = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        poses = np.empty(0)
+    shapes = [(n, 3), (3,)] if n == 1 else [(n, 3)]
+    if poses.shape not in shapes or not np.isfinite(poses).all():
         raise ValueError(f"options['pose'] must be {n} finite (x, y, heading) triple(s)")
+    poses = poses.reshape(n, 3)
     if body_hits_wall(batch.maze, poses, batch.world).any():
         raise ValueError("options['pose'] puts the robot's body in a wall")
     return poses

@@ -75,8 +75,9 @@ def test_bad_options_are_refused_with_the_problem_named() -> None:
     env = EvBotMazeEnv(maze="arena")
     with pytest.raises(ValueError, match="in a wall"):
         env.reset(options={"pose": (0.0, 0.0, 0.0)})
-    with pytest.raises(ValueError, match="finite"):
-        env.reset(options={"pose": (1.0, float("nan"), 0.0)})
+    for bad in [(1.0, float("nan"), 0.0), (1.0, 1.0), "north", {"x": 1}]:
+        with pytest.raises(ValueError, match="finite"):
+            env.reset(options={"pose": bad})
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"shape \(2,\)"):
         env.step(np.zeros(3))
