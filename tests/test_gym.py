@@ -42,8 +42,10 @@ def test_check_env_passes(render_mode: str | None) -> None:
     check_env(env.unwrapped)  # the env itself, its spec set by make (for the render checks)
 
 
-def test_registered_with_options() -> None:
-    env = gymnasium.make(ENV_ID, maze="corridor", world={"stuck_after": 3}, steps=7)
+def test_registered_with_options(tmp_path: Path) -> None:
+    path = tmp_path / "room.txt"
+    path.write_text(load_maze("corridor").text(), encoding="utf-8")
+    env = gymnasium.make(ENV_ID, maze=str(path), world={"stuck_after": 3}, steps=7)
     inner = env.unwrapped
     assert isinstance(inner, EvBotMazeEnv)
     assert inner.steps == 7
