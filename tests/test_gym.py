@@ -17,6 +17,7 @@ from gymnasium.utils.env_checker import check_env
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from evorobotics import network
 from evorobotics.errors import MazeError
 from evorobotics.evaluate import start_poses
 from evorobotics.fitness import fitness
@@ -122,6 +123,31 @@ def test_driving_the_env_with_a_trials_motors_retraces_the_trial(
             break
     assert (info["components"] == trial.components[0]).all()
     assert total == pytest.approx(float(fitness(trial.components, weights)[0]), abs=1e-9)
+
+
+def test_a_network_driving_the_env_scores_its_simulated_trial() -> None:
+    """The docs' controller loop (network.step on the observations) ends with the Eq 12 terms
+    of `simulate`'s trial of the same network from the same pose, its return their fitness."""
+    spec = PRESETS["paper-best"]
+    maze, steps = load_maze("gen:4:0"), 120
+    pose = start_poses(maze, 2, 0, 1)
+    for seed in range(4):
+        weights = np.random.default_rng(seed).normal(0.0, 1.5, (1, spec.weight_count))
+        trial = simulate(spec, weights, maze, pose, steps)
+        env = EvBotMazeEnv(maze="gen:4:0", steps=steps)
+        obs, _ = env.reset(options={"pose": pose[0]})
+        state = network.reset(spec, 1)
+        total, done = 0.0, False
+        while not done:
+            out, state = network.step(spec, weights, obs[None].astype(np.float64), state)
+            obs, reward, terminated, truncated, info = env.step(
+                network.motor_commands(spec, out)[0]
+            )
+            total += float(reward)
+            done = terminated or truncated
+        assert (info["components"] == trial.components[0]).all()
+        expected = float(fitness(trial.components, FitnessWeights())[0])
+        assert total == pytest.approx(expected, abs=1e-9)
 
 
 def test_vector_env_retraces_a_batch_of_trials() -> None:
