@@ -22,6 +22,7 @@ from typing import Any, Final, SupportsFloat
 import gymnasium
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
@@ -81,6 +82,7 @@ class _Batch:
         self.curve = np.zeros(n)
         self.t = np.zeros(n, dtype=np.int64)
         self.rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(n)]
+        self.started = False
 
     def place(self, rows: np.ndarray, poses: np.ndarray | None = None) -> None:
         """Start new episodes in `rows`: given poses (len(rows), 3) or drawn; gap drawn."""
@@ -99,6 +101,7 @@ class _Batch:
             a[rows] = 0
         b.stuck[rows] = False
         sense_bodies(self.maze, self.world, b, rows)
+        self.started = True
 
     @property
     def _per_step(self) -> bool:
@@ -113,6 +116,8 @@ class _Batch:
         """One step of `rows` on `actions` (N, 2): (rewards, terminated, truncated) of all N
         (meaningful in `rows`). Commands are taken as `network.motor_commands` gives them: NaN
         is 0 and values are clipped to [-1, 1]."""
+        if not self.started:
+            raise ResetNeeded("call reset() before step()")
         motors = np.clip(np.nan_to_num(np.asarray(actions, np.float64), nan=0.0), -1.0, 1.0)
         b = self.bodies
         if self._per_step:
@@ -233,10 +238,10 @@ class EvBotMazeEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         )
 
     def _info(self) -> dict[str, Any]:
-        return {"pose": self._batch.bodies.poses[0].copy(), "components": self._components()}
-
-    def _components(self) -> np.ndarray:
-        return np.asarray(self._batch.components()[0])
+        return {
+            "pose": self._batch.bodies.poses[0].copy(),
+            "components": self._batch.components()[0],
+        }
 
     def render(self) -> np.ndarray | None:
         """rgb_array: walls dark, floor light, the robot's body red, (H, W, 3) uint8."""
@@ -248,9 +253,9 @@ class EvBotMazeEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         image = np.where(np.repeat(np.repeat(maze.grid, px, 0), px, 1)[..., None], 60, 235)
         image = np.broadcast_to(image, (*image.shape[:2], 3)).astype(np.uint8)
         x, y, th = self._batch.bodies.poses[0]
-        size = maze.cell_size / px  # metres per pixel
+        size = maze.cell_size / px  # metres per pixel; pixel row 0 is the north edge
         u = (np.arange(cols * px) + 0.5) * size - x
-        v = (rows - (np.arange(rows * px) + 0.5) / px) * maze.cell_size - y
+        v = (rows * px - np.arange(rows * px) - 0.5) * size - y
         du = u[None, :] * math.cos(th) + v[:, None] * math.sin(th)
         dv = v[:, None] * math.cos(th) - u[None, :] * math.sin(th)
         w = self._batch.world

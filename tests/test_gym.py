@@ -13,6 +13,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 import pytest
+from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -76,6 +77,10 @@ def test_bad_options_are_refused_with_the_problem_named() -> None:
     with pytest.raises(ValueError, match="num_envs"):
         EvBotMazeVectorEnv(0)
     env = EvBotMazeEnv(maze="arena")
+    with pytest.raises(ResetNeeded):
+        env.step(np.zeros(2))
+    with pytest.raises(ResetNeeded):
+        EvBotMazeVectorEnv(2).step(np.zeros((2, 2)))
     with pytest.raises(ValueError, match="in a wall"):
         env.reset(options={"pose": (0.0, 0.0, 0.0)})
     for bad in [(1.0, float("nan"), 0.0), (1.0, 1.0), "north", {"x": 1}]:
