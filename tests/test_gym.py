@@ -95,16 +95,22 @@ def test_bad_options_are_refused_with_the_problem_named() -> None:
         envs.step(np.zeros(2))
 
 
-@settings(max_examples=15, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), stuck_after=st.sampled_from([1, 3]))
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    stuck_after=st.sampled_from([1, 3]),
+    dt=st.floats(0.05, 0.2),
+    max_speed=st.floats(0.1, 0.8),
+    whisker_range=st.floats(0.02, 0.1),
+)
 def test_driving_the_env_with_a_trials_motors_retraces_the_trial(
-    seed: int, stuck_after: int
+    seed: int, stuck_after: int, dt: float, max_speed: float, whisker_range: float
 ) -> None:
-    """The same pose and wheel commands as `simulate`'s trial: the same poses and whisker bits
-    bit for bit, terminated on the step the trial gets stuck, Eq 12 terms equal, and the
-    rewards summing to Eq 12's fitness."""
+    """The same world, pose and wheel commands as `simulate`'s trial: the same poses and
+    whisker bits bit for bit, terminated on the step the trial gets stuck, Eq 12 terms equal,
+    and the rewards summing to Eq 12's fitness."""
     spec = PRESETS["paper-best"]
-    world = World(stuck_after=stuck_after)
+    world = World(stuck_after=stuck_after, dt=dt, max_speed=max_speed, whisker_range=whisker_range)
     weights = FitnessWeights(k1=0.5)
     maze = load_maze("paper")
     steps = 60
