@@ -3,8 +3,9 @@
 The vector env (`gymnasium.make_vec(..., vectorization_mode="vector_entry_point")`, one
 compiled call per step for the whole batch, next-step autoreset) against the single env
 (`gymnasium.make`, resetting when an episode ends), both sampling their actions from the action
-space. Rounds alternate A, B, A, B... so a change of machine load hits both; prints each
-round's figures, the best of each, and the ratio.
+space; and the vector env's step alone (no robot ever ends an episode, so no reset, and
+actions drawn beforehand). Rounds alternate A, B, C, A, B, C... so a change of machine load
+hits all; prints each round's figures, the best of each, and the vector / single ratio.
 
     .venv/bin/python bench/gym.py [--batch 256] [--seconds 1.0] [--rounds 3] [--maze paper]
 """
@@ -15,6 +16,7 @@ import argparse
 import time
 
 import gymnasium
+import numpy as np
 
 import evorobotics.gym
 from schemas.world import World
@@ -56,6 +58,23 @@ def vector_rate(maze: str, world: World, batch: int, seconds: float) -> float:
     return calls * batch / (time.perf_counter() - start)
 
 
+def step_rate(maze: str, batch: int, seconds: float) -> float:
+    """Robot-steps per second of the vector env's step alone: no robot ever stuck or truncated
+    (so no reset), actions drawn beforehand."""
+    envs = evorobotics.gym.EvBotMazeVectorEnv(
+        batch, maze=maze, world={"stuck_after": 10**6}, steps=10**9
+    )
+    envs.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, (10, batch, 2))
+    calls = 0
+    start = time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        for a in actions:
+            envs.step(a)
+        calls += len(actions)
+    return calls * batch / (time.perf_counter() - start)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=256)
@@ -66,17 +85,21 @@ def main() -> None:
     world = World()
     single_rate(args.maze, world, 0.05)  # warm-up: kernel load, first reset
     vector_rate(args.maze, world, args.batch, 0.05)
-    singles, vectors = [], []
+    step_rate(args.maze, args.batch, 0.05)
+    singles, vectors, steps_only = [], [], []
     for r in range(args.rounds):
         singles.append(single_rate(args.maze, world, args.seconds))
         vectors.append(vector_rate(args.maze, world, args.batch, args.seconds))
+        steps_only.append(step_rate(args.maze, args.batch, args.seconds))
         print(
             f"round {r + 1}: single env {singles[-1]:,.0f} steps/s, "
-            f"vector env (batch {args.batch}) {vectors[-1]:,.0f} robot-steps/s"
+            f"vector env (batch {args.batch}) {vectors[-1]:,.0f} robot-steps/s, "
+            f"its step alone {steps_only[-1]:,.0f} robot-steps/s"
         )
     best_single, best_vector = max(singles), max(vectors)
     print(f"best single env: {best_single:,.0f} steps/s")
     print(f"best vector env (batch {args.batch}): {best_vector:,.0f} robot-steps/s")
+    print(f"best vector env step alone: {max(steps_only):,.0f} robot-steps/s")
     print(f"vector / single: {best_vector / best_single:.1f}x")
 
 
