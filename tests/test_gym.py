@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
+from gymnasium.wrappers.vector import RecordEpisodeStatistics
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -277,6 +278,25 @@ def test_vector_env_autoresets_on_the_next_step() -> None:
     assert (info["components"] == 0).all()
     assert not (info["pose"] == before).all(axis=1).any()  # new start poses
     assert envs.observation_space.contains(obs)
+
+
+def test_gymnasium_episode_statistics_report_eq12_returns() -> None:
+    """gymnasium's RecordEpisodeStatistics on the vector env: every finished episode's return is
+    Eq 12 of its final terms."""
+    envs = RecordEpisodeStatistics(
+        gymnasium.make_vec(ENV_ID, num_envs=4, vectorization_mode="vector_entry_point", steps=20)
+    )
+    envs.reset(seed=3)
+    envs.action_space.seed(3)
+    finished = 0
+    for _ in range(60):
+        _, _, _, _, info = envs.step(envs.action_space.sample())
+        if "episode" in info:
+            ended = info["_episode"]
+            score = fitness(info["components"][ended], FitnessWeights())
+            np.testing.assert_allclose(info["episode"]["r"][ended], score, rtol=0, atol=1e-9)
+            finished += int(ended.sum())
+    assert finished >= 8
 
 
 def test_rgb_array_shows_the_maze_and_the_robot() -> None:
