@@ -921,8 +921,9 @@ class Bodies:
     """N robots stepped one dt at a time (`step_bodies`), their arrays updated in place.
 
     The step-wise twin of a trial in `simulate`, for callers that choose every wheel command
-    from outside (`evorobotics.gym`): the same sensing, motion and collision helpers, so a robot
-    driven by the motor commands of a recorded trial retraces it bit for bit.
+    from outside (`evorobotics.gym`): the same compiled sensing and collision helpers and the
+    same operations for the move (`_drive`), so a robot driven by the motor commands of a
+    recorded trial retraces it bit for bit (tests/test_gym.py).
     """
 
     poses: np.ndarray
@@ -941,9 +942,12 @@ class Bodies:
     """(N, 5) uint8 bits sensed at the current poses."""
 
     def __post_init__(self) -> None:
-        n = self.poses.shape[0]
+        n = self.poses.shape[0] if self.poses.ndim else 0
         if self.poses.shape != (n, 3) or self.gains.shape != (n, 2):
-            raise ValueError(f"poses must be (N, 3) and gains (N, 2), got {self.gains.shape}")
+            raise ValueError(
+                f"poses must be (N, 3) and gains (N, 2), got {self.poses.shape} and "
+                f"{self.gains.shape}"
+            )
         if self.ranges.shape != (n, N_WHISKERS):
             raise ValueError(f"ranges must be ({n}, {N_WHISKERS}), got {self.ranges.shape}")
         for name in ("poses", "gains", "ranges"):
