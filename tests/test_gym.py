@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from gymnasium.wrappers.vector import RecordEpisodeStatistics
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -237,6 +238,25 @@ def test_vector_env_agrees_with_single_envs_step_for_step(
             assert rewards[i] == s_reward
             assert (terminated[i], truncated[i]) == (s_term, s_trunc)
             assert (info["pose"][i] == s_pose).all()
+
+
+@pytest.mark.parametrize("reality_gap", [False, True])
+def test_vector_env_is_gymnasiums_sync_vector_env_of_single_envs(reality_gap: bool) -> None:
+    """Against gymnasium's own SyncVectorEnv (next-step autoreset) of single envs, the reference
+    of the vector API: the same observations, rewards, flags and poses at every step."""
+    n, kwargs = 4, {"maze": "gen:3:5", "steps": 9, "reality_gap": reality_gap}
+    ours = EvBotMazeVectorEnv(n, world={"gap_model": "step"}, **kwargs)
+    theirs = SyncVectorEnv(
+        [lambda: EvBotMazeEnv(world={"gap_model": "step"}, **kwargs) for _ in range(n)],
+        autoreset_mode=AutoresetMode.NEXT_STEP,
+    )
+    a, b = ours.reset(seed=11), theirs.reset(seed=11)
+    assert (a[0] == b[0]).all() and (a[1]["pose"] == b[1]["pose"]).all()
+    for actions in random_actions(11, 60, (n, 2)):
+        a, b = ours.step(actions), theirs.step(actions)
+        for x, y in zip(a[:4], b[:4], strict=True):
+            assert np.array_equal(x, y)
+        assert (a[4]["pose"] == b[4]["pose"]).all()
 
 
 @settings(max_examples=20, deadline=None)
