@@ -244,19 +244,26 @@ def test_vector_env_agrees_with_single_envs_step_for_step(
 def test_vector_env_is_gymnasiums_sync_vector_env_of_single_envs(reality_gap: bool) -> None:
     """Against gymnasium's own SyncVectorEnv (next-step autoreset) of single envs, the reference
     of the vector API: the same observations, rewards, flags and poses at every step."""
-    n, kwargs = 4, {"maze": "gen:3:5", "steps": 9, "reality_gap": reality_gap}
-    ours = EvBotMazeVectorEnv(n, world={"gap_model": "step"}, **kwargs)
+    n = 4
+    kwargs: dict[str, Any] = {
+        "maze": "gen:3:5",
+        "steps": 9,
+        "reality_gap": reality_gap,
+        "world": {"gap_model": "step"},
+    }
+    ours = EvBotMazeVectorEnv(n, **kwargs)
     theirs = SyncVectorEnv(
-        [lambda: EvBotMazeEnv(world={"gap_model": "step"}, **kwargs) for _ in range(n)],
-        autoreset_mode=AutoresetMode.NEXT_STEP,
+        [lambda: EvBotMazeEnv(**kwargs) for _ in range(n)], autoreset_mode=AutoresetMode.NEXT_STEP
     )
-    a, b = ours.reset(seed=11), theirs.reset(seed=11)
-    assert (a[0] == b[0]).all() and (a[1]["pose"] == b[1]["pose"]).all()
+    obs, info = ours.reset(seed=11)
+    ref_obs, ref_info = theirs.reset(seed=11)
+    assert (obs == ref_obs).all() and (info["pose"] == ref_info["pose"]).all()
     for actions in random_actions(11, 60, (n, 2)):
-        a, b = ours.step(actions), theirs.step(actions)
-        for x, y in zip(a[:4], b[:4], strict=True):
+        *got, info = ours.step(actions)
+        *expected, ref_info = theirs.step(actions)
+        for x, y in zip(got, expected, strict=True):
             assert np.array_equal(x, y)
-        assert (a[4]["pose"] == b[4]["pose"]).all()
+        assert (info["pose"] == ref_info["pose"]).all()
 
 
 @settings(max_examples=20, deadline=None)
