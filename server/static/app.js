@@ -808,7 +808,7 @@ function renderRobots(snapshot) {
       ? "not run yet"
       : `${fmt(f.robot_hours, 3)} robot-h, ${f.stuck_events} stuck` +
         (f.stuck_per_hour === null ? "" : ` (${fmt(f.stuck_per_hour, 1)}/h)`));
-    set("seen", ago(robot.last_seen));
+    set("seen", ago(robot.last_seen === null ? null : Date.parse(robot.last_seen) / 1000));
   }
   for (const [id, entry] of state.cards) {
     if (!seen.has(id)) {
