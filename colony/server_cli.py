@@ -8,6 +8,7 @@ and exit non-zero.
 from __future__ import annotations
 
 import json
+import socket
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -156,6 +157,10 @@ def serve(
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
+    taken = _taken_ports(settings)
+    if taken:
+        typer.echo(f"error: {taken}", err=True)
+        raise typer.Exit(1)
     from sqlalchemy.exc import OperationalError
 
     from server.db import ServerLock, StoreUnusableError, check_sqlite_file
@@ -186,6 +191,30 @@ def serve(
         raise typer.Exit(1) from exc
     finally:
         lock.close()
+
+
+def _taken_ports(settings: Any) -> str | None:
+    """Why the HTTP port or a TCP zenoh endpoint to listen on cannot be bound (another server
+    holds it?), checked before anything starts; None when all can."""
+    wanted = [("HTTP", "--port", settings.host, settings.port)]
+    if settings.zenoh:
+        for endpoint in settings.zenoh_listen:
+            proto, _, address = endpoint.partition("/")
+            host, _, port = address.split("?")[0].split("#")[0].rpartition(":")
+            if proto in ("tcp", "tls") and port.isdigit():
+                wanted.append((f"zenoh {endpoint}", "--zenoh-listen", host.strip("[]"), int(port)))
+    for what, flag, host, port in wanted:
+        if port == 0:
+            continue
+        try:
+            family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+            with socket.socket(family, socket.SOCK_STREAM) as sock:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind((host, port))
+        except OSError as exc:
+            reason = exc.strerror or str(exc)
+            return f"cannot listen for {what} on {host}:{port}: {reason} (another colony server? choose another {flag})"
+    return None
 
 
 def _client(ctx: typer.Context, server: str, token: str | None) -> httpx.Client:
