@@ -482,11 +482,11 @@ def _follow(ctx: typer.Context, server: str, token: str | None, run_id: int, as_
             raise typer.Exit(130) from None
     if as_json:
         _print_json(run)
-    else:
-        best = "" if run["best_fitness"] is None else f" best {run['best_fitness']:.4f}"
-        typer.echo(f"run {run['id']} {run['status']}{best}")
     if run["status"] == "failed":
         typer.echo(f"run {run['id']} failed: {run['error'] or 'no reason recorded'}", err=True)
+    elif not as_json:
+        best = "" if run["best_fitness"] is None else f" best {run['best_fitness']:.4f}"
+        typer.echo(f"run {run['id']} {run['status']}{best}")
     if run["status"] != "completed":
         raise typer.Exit(1)
 

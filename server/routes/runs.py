@@ -10,8 +10,6 @@ import numpy as np
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
 
 from evorobotics.document import controller_sha256
-from evorobotics.errors import EvoError
-from evorobotics.evaluate import check_config
 from schemas.api import (
     ArchiveCell,
     ArchiveOut,
@@ -89,10 +87,6 @@ def create_run(
     )
     if refused is not None:
         raise HTTPException(422, refused)
-    try:
-        check_config(config, files=False)
-    except (EvoError, ValueError) as exc:
-        raise HTTPException(422, detail=f"maze: {exc}") from None
     run_id = manager.create_run(config, name=body.name, tags=body.tags)
     return run_out(_run(session, run_id))
 
