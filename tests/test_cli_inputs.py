@@ -37,7 +37,7 @@ from tests.helpers import (
     virtual_robot,
     wait_status,
 )
-from worker.main import WorkerSettings, run_worker
+from worker.main import WorkerSettings, WorkerStats, run_worker
 
 NO_ROOM = "#####\n#...#\n#####\n"
 """A maze with free cells but none the robot's body fits in."""
@@ -310,3 +310,35 @@ def test_mazes_lists_the_shipped_ones_and_renders_one(tmp_path: Path) -> None:
     assert code == 0 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     code, out = colony("mazes", "gen:99:1")
     assert code == 2 and "1..64" in out
+
+
+def test_workers_count_the_evaluations_of_the_runs(tmp_path: Path) -> None:
+    """Every evaluation the run counts is one a worker sent and the server took; the worker's
+    own count adds the late ones the server dropped."""
+    zport = free_port()
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{zport}"],
+        workers=0,
+    )
+    with serving(settings) as (url, _), httpx.Client(base_url=url, timeout=30) as client:
+        stop = threading.Event()
+        stats: list[WorkerStats] = []
+        worker = WorkerSettings(connect=(f"tcp/127.0.0.1:{zport}",), name="counted")
+        thread = threading.Thread(target=lambda: stats.append(run_worker(worker, stop)))
+        thread.start()
+        try:
+            run_id = client.post("/api/runs", json=SMALL).json()["id"]
+            run = wait_status(client, run_id, {"completed"})
+            [listed] = client.get("/api/workers").json()
+            code, out = colony("workers", "--server", url)
+        finally:
+            stop.set()
+            thread.join(timeout=30)
+    assert run["evaluations"] == SMALL["population"] * SMALL["generations"]
+    assert listed["evaluations"] == run["evaluations"]
+    assert stats[0].evaluations == listed["evaluations"] + listed["late"]
+    assert code == 0 and "evaluations" in out
+    [row] = [line for line in out.splitlines() if "counted" in line]
+    assert f" {run['evaluations']} " in row
