@@ -832,7 +832,7 @@ function renderWorkers(workers) {
         el("td", { text: w.name }),
         el("td", { text: w.host }),
         el("td", {}, el("span", { class: `status ${w.state}`, text: w.state })),
-        el("td", { text: w.jobs_done }),
+        el("td", { text: w.evaluations }),
         el("td", { text: w.robot_steps_per_s === null ? "–" : Math.round(w.robot_steps_per_s).toLocaleString() }),
         el("td", { text: ago(Date.parse(w.last_seen) / 1000) }),
       ),
