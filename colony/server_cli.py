@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 import httpx
 import typer
@@ -462,6 +462,14 @@ def run_start(
         typer.echo(f"run {run['id']} {run['status']}")
 
 
+def stopped_following(what: str, command: str, server: str) -> NoReturn:
+    """Ctrl-C during a follow: the thing followed carries on; name the command that
+    re-attaches, and exit 130 (the shell's status for SIGINT)."""
+    again = command if server == DEFAULT_SERVER else f"{command} --server {server}"
+    typer.echo(f"stopped following {what}; it carries on. Re-attach: {again}", err=True)
+    raise typer.Exit(130)
+
+
 def _follow(ctx: typer.Context, server: str, token: str | None, run_id: int, as_json: bool) -> None:
     """Follow a run to its end and print its outcome (a failed run's reason); exit status 1
     unless it completed. Ctrl-C stops following, not the run, and names the command that
@@ -473,13 +481,7 @@ def _follow(ctx: typer.Context, server: str, token: str | None, run_id: int, as_
             typer.echo(f"error: lost {server}: {exc}", err=True)
             raise typer.Exit(1) from exc
         except KeyboardInterrupt:
-            again = f"colony run follow {run_id}"
-            if server != DEFAULT_SERVER:
-                again += f" --server {server}"
-            typer.echo(
-                f"stopped following run {run_id}; it carries on. Re-attach: {again}", err=True
-            )
-            raise typer.Exit(130) from None
+            stopped_following(f"run {run_id}", f"colony run follow {run_id}", server)
     if as_json:
         _print_json(run)
     if run["status"] == "failed":
@@ -536,6 +538,8 @@ def run_show(
         return
     console = Console()
     console.print(_runs_table([run], f"run {run_id}"))
+    if run["error"]:
+        console.print(f"{run['status']}: {run['error']}", highlight=False)
     table = Table(title="generations")
     for column in ("generation", "best", "mean", "worst"):
         table.add_column(column)
@@ -790,6 +794,7 @@ def robot_show(
     ):  # fmt: skip
         typer.echo(f"{key:22s} {_fmt(detail[key])}")
     typer.echo(f"{'replacement':22s} {_replacement(detail)}")
+    typer.echo(f"{'last seen':22s} {ago(detail['last_seen'])}")
 
 
 POLICY_CHOICES = ("off", "rank", "archive", "colony")

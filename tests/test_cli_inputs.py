@@ -234,9 +234,11 @@ def test_follow_prints_why_a_run_failed(tmp_path: Path) -> None:
         run_id = client.get("/api/runs").json()[0]["id"]
         wait_status(client, run_id, {"failed"})
         again = colony("run", "follow", str(run_id), "--server", url)
+        shown = colony("run", "show", str(run_id), "--server", url)
     for code, out in (started, again):
         assert code == 1, out
         assert f"run {run_id} failed: job 0/0 failed: crashy: RuntimeError: simulated" in out
+    assert shown[0] == 0 and "failed: job 0/0 failed: crashy: RuntimeError" in shown[1]
 
 
 class _Interrupted(httpx.HTTPTransport):
