@@ -738,7 +738,10 @@ def status(
     counts = ", ".join(f"{k} {v}" for k, v in sorted(colony["runs"].items())) or "none"
     jobs = colony["jobs"]
     console.print(f"runs: {counts}")
-    console.print(f"jobs: pending {jobs['pending']}, leased {jobs['leased']}, done {jobs['done']}")
+    console.print(
+        f"jobs of the generations in flight: pending {jobs['pending']}, leased {jobs['leased']}, "
+        f"done {jobs['done']}"
+    )
     console.print(_runs_table(colony["active"], "active runs"))
     console.print(workers_table(colony["workers"]))
     console.print(robots_table(colony["robots"]))
