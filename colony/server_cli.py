@@ -14,13 +14,16 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import httpx
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 from rich.table import Table
+
+if TYPE_CHECKING:
+    from server.settings import Settings
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 TIMEOUT_S = 30.0
@@ -193,27 +196,29 @@ def serve(
         lock.close()
 
 
-def _taken_ports(settings: Any) -> str | None:
+def _taken_ports(settings: Settings) -> str | None:
     """Why the HTTP port or a TCP zenoh endpoint to listen on cannot be bound (another server
     holds it?), checked before anything starts; None when all can."""
-    wanted = [("HTTP", "--port", settings.host, settings.port)]
+    wanted: list[tuple[str, str, str, int]] = [("HTTP", "--port", settings.host, settings.port)]
     if settings.zenoh:
         for endpoint in settings.zenoh_listen:
             proto, _, address = endpoint.partition("/")
             host, _, port = address.split("?")[0].split("#")[0].rpartition(":")
             if proto in ("tcp", "tls") and port.isdigit():
                 wanted.append((f"zenoh {endpoint}", "--zenoh-listen", host.strip("[]"), int(port)))
-    for what, flag, host, port in wanted:
-        if port == 0:
+    for what, flag, host, number in wanted:
+        if number == 0:
             continue
         try:
-            family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+            family = socket.getaddrinfo(host, number, type=socket.SOCK_STREAM)[0][0]
             with socket.socket(family, socket.SOCK_STREAM) as sock:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                sock.bind((host, port))
+                sock.bind((host, number))
         except OSError as exc:
-            reason = exc.strerror or str(exc)
-            return f"cannot listen for {what} on {host}:{port}: {reason} (another colony server? choose another {flag})"
+            return (
+                f"cannot listen for {what} on {host}:{number}: {exc.strerror or exc} "
+                f"(another colony server? choose another {flag})"
+            )
     return None
 
 
