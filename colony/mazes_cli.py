@@ -17,7 +17,7 @@ def mazes_command(
         ),
     ] = None,
     png: Annotated[
-        Path | None, typer.Option("--png", metavar="FILE", help="render MAZE to this PNG")
+        Path | None, typer.Option("--png", metavar="FILE", help="draw NAME_OR_FILE into this PNG")
     ] = None,
 ) -> None:
     """The shipped mazes: size, free cells, steps of one crossing and what each is for; with
