@@ -228,10 +228,13 @@ def test_follow_prints_why_a_run_failed(tmp_path: Path) -> None:
         thread.start()
         try:
             started = colony("run", "start", *_flags(SMALL), "--follow", "--server", url)
+            sets = [f"--set={k}={v}" for k, v in SMALL.items()]
+            study = colony("study", "start", "--name", "s", "--seeds", "1", *sets, "--follow",
+                           "--server", url)  # fmt: skip
         finally:
             stop.set()
             thread.join(timeout=30)
-        run_id = client.get("/api/runs").json()[0]["id"]
+        run_id, study_run = (r["id"] for r in client.get("/api/runs").json()[::-1])
         wait_status(client, run_id, {"failed"})
         again = colony("run", "follow", str(run_id), "--server", url)
         shown = colony("run", "show", str(run_id), "--server", url)
@@ -239,6 +242,9 @@ def test_follow_prints_why_a_run_failed(tmp_path: Path) -> None:
         assert code == 1, out
         assert f"run {run_id} failed: job 0/0 failed: crashy: RuntimeError: simulated" in out
     assert shown[0] == 0 and "failed: job 0/0 failed: crashy: RuntimeError" in shown[1]
+    assert (
+        study[0] == 1 and f"run {study_run} (s/base/0) failed: job 0/0 failed: crashy" in study[1]
+    )
 
 
 class _Interrupted(httpx.HTTPTransport):
