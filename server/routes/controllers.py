@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
 from evorobotics.errors import EvoError
 from evorobotics.maze import is_shipped_or_generated, load_maze
@@ -14,6 +14,11 @@ from server.deps import ManagerDep, SessionDep
 from server.evaluation import EVALUATIONS, Params
 
 router = APIRouter(prefix="/api/controllers", tags=["controllers"])
+
+Sha = Annotated[
+    str, Path(description="a controller's sha256, or an unambiguous prefix of 8+ hex digits")
+]
+"""404 when no stored controller has it, 422 when malformed or ambiguous (`crud.find_controller`)."""
 
 MAX_EVALUATION_POSES = 1000
 MAX_EVALUATION_STEPS = 2000
@@ -32,7 +37,7 @@ MAX_EVALUATION_ROBOT_STEPS = 1_000_000
         }
     },
 )
-def get_controller(request: Request, session: SessionDep, sha256: str) -> Response:
+def get_controller(request: Request, session: SessionDep, sha256: Sha) -> Response:
     row = crud.find_controller(session, sha256=sha256)
     robots = getattr(request.app.state, "robots", None)
     stats = robots.field_stats(row.sha256) if robots is not None else None
@@ -57,7 +62,7 @@ def get_controller(request: Request, session: SessionDep, sha256: str) -> Respon
 )
 def get_evaluation(
     manager: ManagerDep,
-    sha256: str,
+    sha256: Sha,
     poses: Annotated[int, Query(ge=1, le=MAX_EVALUATION_POSES)] = 1000,
     steps: Annotated[int, Query(ge=1, le=MAX_EVALUATION_STEPS)] = 1000,
     maze: Annotated[str, Query(min_length=1, max_length=4096)] = "paper",
