@@ -142,8 +142,8 @@ class WorkerOut(BaseModel):
     )
     late: int = Field(
         0,
-        description="evaluations it returned that the server dropped: the lease had expired "
-        "and the slice went to another worker, or a duplicate",
+        description="evaluations it returned that the server dropped: a span's generations "
+        "past the point where the server cut it, a slice whose lease had expired, a duplicate",
     )
     robot_steps_per_s: float | None = Field(description="its last measured speed")
     last_seen: datetime
