@@ -80,7 +80,10 @@ def analyze_command(
     server: Annotated[str | None, typer.Option(help="server base URL")] = None,
     run: Annotated[int | None, typer.Option(help="analyze this run's best (with --server)")] = None,
     sha: Annotated[
-        str | None, typer.Option(help="analyze the controller with this sha256 (with --server)")
+        str | None,
+        typer.Option(
+            help="analyze the controller with this sha256 or 8+ digit prefix (with --server)"
+        ),
     ] = None,
     history: Annotated[int, typer.Option(help="longest whisker history k")] = 3,
     tolerance_mm: Annotated[

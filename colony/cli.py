@@ -10,6 +10,7 @@ from colony.demo import demo_command
 from colony.evaluate_cli import evaluate_command
 from colony.evolve import evolve_command
 from colony.lab_cli import lab_app
+from colony.mazes_cli import mazes_command
 from colony.server_cli import register as register_server_commands
 from colony.study_cli import study_app
 from colony.worker_cli import worker_command
@@ -38,6 +39,7 @@ def presets() -> None:
 
 app.command(name="demo")(demo_command)
 app.command(name="evolve")(evolve_command)
+app.command(name="mazes")(mazes_command)
 register_server_commands(app)
 app.command(name="worker")(worker_command)
 register_agent_commands(app)

@@ -30,7 +30,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
-from colony.server_cli import follow_run
+from colony.server_cli import follow_run, robots_table, workers_table
 
 STOP_TIMEOUT_S = 30.0
 START_TIMEOUT_S = 120.0
@@ -170,26 +170,6 @@ def summary_tables(
     run: dict[str, Any], robots: list[dict[str, Any]], workers: list[Any]
 ) -> list[Table]:
     """The colony at the end: its robots, the workers and the run."""
-    robot_table = Table(title="robots")
-    for column in ("robot", "online", "state", "steps", "stuck events", "controller"):
-        robot_table.add_column(column)
-    for r in robots:
-        robot_table.add_row(
-            r["id"],
-            "yes" if r["online"] else "no",
-            r["state"],
-            str(r["steps"]),
-            str(r["stuck_events"]),
-            (r["controller_sha256"] or "-")[:12],
-        )
-    worker_table = Table(title="workers")
-    for column in ("worker", "state", "jobs done", "robot-steps/s"):
-        worker_table.add_column(column)
-    for w in workers:
-        speed = w["robot_steps_per_s"]
-        worker_table.add_row(
-            w["name"], w["state"], str(w["jobs_done"]), "-" if speed is None else f"{speed:.0f}"
-        )
     run_table = Table(title="run")
     for column in ("id", "status", "generations", "evaluations", "best fitness"):
         run_table.add_column(column)
@@ -201,7 +181,7 @@ def summary_tables(
         str(run["evaluations"]),
         "-" if best is None else f"{best:.4f}",
     )
-    return [robot_table, worker_table, run_table]
+    return [robots_table(robots), workers_table(workers), run_table]
 
 
 def demo_command(

@@ -25,7 +25,11 @@ def fetch_document(
     except httpx.HTTPError as exc:
         raise ValueError(f"cannot reach {server}: {exc}") from None
     if response.is_error:
-        raise ValueError(f"GET {url}: {response.status_code} {response.text}")
+        try:
+            detail = response.json()["detail"]
+        except (ValueError, KeyError, TypeError):
+            detail = response.text
+        raise ValueError(f"GET {url}: {response.status_code} {detail}")
     try:
         return ControllerDocument.from_json(response.content)
     except ControllerDocumentError as exc:

@@ -97,7 +97,10 @@ def evaluate_command(
         int | None, typer.Option(help="evaluate this run's best (with --server)")
     ] = None,
     sha: Annotated[
-        str | None, typer.Option(help="evaluate the controller with this sha256 (with --server)")
+        str | None,
+        typer.Option(
+            help="evaluate the controller with this sha256 or 8+ digit prefix (with --server)"
+        ),
     ] = None,
     poses: Annotated[int, typer.Option(help="unseen start poses, one trial each")] = 1000,
     steps: Annotated[int, typer.Option(help="steps of each trial (H)")] = 1000,

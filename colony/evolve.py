@@ -19,52 +19,16 @@ from typing import Annotated, Any
 import typer
 from pydantic import ValidationError
 
+from colony.run_inputs import ConfigError, maze_value, network_value, validation_message
 from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.errors import EvoError
-from evorobotics.evaluate import trial_steps
+from evorobotics.evaluate import check_config, trial_steps
 from evorobotics.evolution import EvolutionResult, GenerationSummary, evolve
-from evorobotics.maze import load_maze
 from evorobotics.strategies import Archive
-from schemas.network import PRESETS, NetworkSpec
 from schemas.run import RunConfig, StrategyName
 
 LOG_LINES = 20
 """Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
-
-
-class ConfigError(Exception):
-    """A flag, config file, maze or network is invalid; the message is one line for the user."""
-
-
-def _validation_message(err: ValidationError, prefix: str = "") -> str:
-    """'field: reason; ...' from pydantic's errors, naming every offending field."""
-    parts = []
-    for e in err.errors():
-        loc = ".".join(str(x) for x in (prefix, *e["loc"]) if x != "")
-        msg = str(e["msg"]).removeprefix("Value error, ")
-        parts.append(f"{loc}: {msg}" if loc else msg)
-    return "; ".join(parts)
-
-
-def _network_value(value: str) -> str | NetworkSpec:
-    """A preset name stays a name; an existing file is read as a NetworkSpec JSON."""
-    if value in PRESETS:
-        return value
-    path = Path(value)
-    if path.is_file():
-        try:
-            return NetworkSpec.model_validate_json(path.read_text())
-        except ValidationError as err:
-            raise ConfigError(f"network file {value}: {_validation_message(err)}") from None
-    raise ConfigError(
-        f"network: {value!r} is neither a preset {sorted(PRESETS)} nor a NetworkSpec JSON file"
-    )
-
-
-def _maze_value(value: str) -> str:
-    """An existing file becomes its text (remote workers need no file); a name stays a name."""
-    path = Path(value)
-    return path.read_text() if path.is_file() else value
 
 
 def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunConfig:
@@ -80,16 +44,16 @@ def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunCo
         data.update(loaded)
     given = {k: v for k, v in overrides.items() if v is not None}
     if "maze" in given:
-        given["maze"] = _maze_value(given["maze"])
+        given["maze"] = maze_value(given["maze"])
     if "network" in given:
-        given["network"] = _network_value(given["network"])
+        given["network"] = network_value(given["network"])
     data.update(given)
     try:
         config = RunConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_validation_message(err)) from None
+        raise ConfigError(validation_message(err)) from None
     try:
-        load_maze(config.maze)
+        check_config(config)
     except (EvoError, ValueError) as err:
         raise ConfigError(f"maze: {err}") from None
     return config

@@ -8,11 +8,13 @@ and exit non-zero.
 from __future__ import annotations
 
 import json
+import socket
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import httpx
 import typer
@@ -20,10 +22,15 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
+if TYPE_CHECKING:
+    from server.settings import Settings
+
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 TIMEOUT_S = 30.0
 FOLLOW_POLL_S = 0.2
 FINAL = ("completed", "failed", "cancelled")
+SHORT_SHA = 12
+"""Tables show a sha256 by its first 12 hex digits, a prefix every sha option accepts."""
 
 ServerOpt = Annotated[str, typer.Option("--server", help="server base URL")]
 TokenOpt = Annotated[
@@ -153,6 +160,10 @@ def serve(
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
+    taken = _taken_ports(settings)
+    if taken:
+        typer.echo(f"error: {taken}", err=True)
+        raise typer.Exit(1)
     from sqlalchemy.exc import OperationalError
 
     from server.db import ServerLock, StoreUnusableError, check_sqlite_file
@@ -183,6 +194,32 @@ def serve(
         raise typer.Exit(1) from exc
     finally:
         lock.close()
+
+
+def _taken_ports(settings: Settings) -> str | None:
+    """Why the HTTP port or a TCP zenoh endpoint to listen on cannot be bound (another server
+    holds it?), checked before anything starts; None when all can."""
+    wanted: list[tuple[str, str, str, int]] = [("HTTP", "--port", settings.host, settings.port)]
+    if settings.zenoh:
+        for endpoint in settings.zenoh_listen:
+            proto, _, address = endpoint.partition("/")
+            host, _, port = address.split("?")[0].split("#")[0].rpartition(":")
+            if proto in ("tcp", "tls") and port.isdigit():
+                wanted.append((f"zenoh {endpoint}", "--zenoh-listen", host.strip("[]"), int(port)))
+    for what, flag, host, number in wanted:
+        if number == 0:
+            continue
+        try:
+            family = socket.getaddrinfo(host, number, type=socket.SOCK_STREAM)[0][0]
+            with socket.socket(family, socket.SOCK_STREAM) as sock:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind((host, number))
+        except OSError as exc:
+            return (
+                f"cannot listen for {what} on {host}:{number}: {exc.strerror or exc} "
+                f"(another colony server? choose another {flag})"
+            )
+    return None
 
 
 def _client(ctx: typer.Context, server: str, token: str | None) -> httpx.Client:
@@ -357,8 +394,24 @@ def run_start(
     trials: Annotated[int | None, typer.Option()] = None,
     steps: Annotated[int | None, typer.Option()] = None,
     seed: Annotated[int | None, typer.Option()] = None,
-    maze: Annotated[str | None, typer.Option()] = None,
-    network: Annotated[str | None, typer.Option(help="preset name")] = None,
+    maze: Annotated[
+        str | None,
+        typer.Option(
+            metavar="NAME_OR_FILE",
+            help="shipped maze (colony mazes), gen:SIZE:SEED, or a maze file (its text is sent)",
+        ),
+    ] = None,
+    network: Annotated[
+        str | None,
+        typer.Option(
+            metavar="PRESET_OR_FILE",
+            help="network preset (colony presets) or NetworkSpec JSON file (its spec is sent)",
+        ),
+    ] = None,
+    reality_gap: Annotated[
+        bool | None,
+        typer.Option("--reality-gap/--no-reality-gap", help="evolve under the reality-gap model"),
+    ] = None,
     job_size: Annotated[int | None, typer.Option("--job-size")] = None,
     strategy: Annotated[
         str | None,
@@ -374,6 +427,8 @@ def run_start(
     """Start a run; unset fields default to the paper's experiment (validated by the server).
 
     With --follow, exit status 1 unless the run completes."""
+    from colony.run_inputs import ConfigError, maze_value, network_value
+
     body: dict[str, Any] = {}
     if config_file is not None:
         try:
@@ -384,33 +439,77 @@ def run_start(
         if not isinstance(body, dict):
             typer.echo(f"error: {config_file} must hold a JSON object", err=True)
             raise typer.Exit(1)
+    try:
+        maze_text = None if maze is None else maze_value(maze)
+        spec = None if network is None else network_value(network)
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
     flags = {
         "population": population,
         "generations": generations,
         "trials": trials,
         "steps": steps,
         "seed": seed,
-        "maze": maze,
-        "network": network,
+        "maze": maze_text,
+        "network": spec if spec is None or isinstance(spec, str) else spec.model_dump(mode="json"),
+        "reality_gap": reality_gap,
         "job_size": job_size,
         "strategy": strategy,
     }
     body.update({k: v for k, v in flags.items() if v is not None})
     run = call_server(ctx, server, token, "POST", "/api/runs", body)
     if follow:
-        with _client(ctx, server, token) as client:
-            try:
-                run = follow_run(client, run["id"], Console(stderr=as_json))
-            except httpx.HTTPError as exc:
-                typer.echo(f"error: lost {server}: {exc}", err=True)
-                raise typer.Exit(1) from exc
-    if as_json:
+        _follow(ctx, server, token, run["id"], as_json)
+    elif as_json:
         _print_json(run)
     else:
+        typer.echo(f"run {run['id']} {run['status']}")
+
+
+def stopped_following(what: str, command: str, server: str) -> NoReturn:
+    """Ctrl-C during a follow: the thing followed carries on; name the command that
+    re-attaches, and exit 130 (the shell's status for SIGINT)."""
+    again = command if server == DEFAULT_SERVER else f"{command} --server {server}"
+    typer.echo(f"stopped following {what}; it carries on. Re-attach: {again}", err=True)
+    raise typer.Exit(130)
+
+
+def _follow(ctx: typer.Context, server: str, token: str | None, run_id: int, as_json: bool) -> None:
+    """Follow a run to its end and print its outcome (a failed run's reason); exit status 1
+    unless it completed. Ctrl-C stops following, not the run, and names the command that
+    re-attaches."""
+    with _client(ctx, server, token) as client:
+        try:
+            run = follow_run(client, run_id, Console(stderr=as_json))
+        except httpx.HTTPError as exc:
+            typer.echo(f"error: lost {server}: {exc}", err=True)
+            raise typer.Exit(1) from exc
+        except KeyboardInterrupt:
+            stopped_following(f"run {run_id}", f"colony run follow {run_id}", server)
+    if as_json:
+        _print_json(run)
+    if run["status"] == "failed":
+        typer.echo(f"run {run['id']} failed: {run['error'] or 'no reason recorded'}", err=True)
+    elif not as_json:
         best = "" if run["best_fitness"] is None else f" best {run['best_fitness']:.4f}"
         typer.echo(f"run {run['id']} {run['status']}{best}")
-    if follow and run["status"] != "completed":
+    if run["status"] != "completed":
         raise typer.Exit(1)
+
+
+@run_app.command("follow")
+def run_follow(
+    ctx: typer.Context,
+    run_id: int,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """A progress bar of a run until it ends, then its outcome (a failed run's reason).
+
+    Exit status 1 unless the run completes."""
+    _follow(ctx, server, token, run_id, as_json)
 
 
 @run_app.command("list")
@@ -444,6 +543,8 @@ def run_show(
         return
     console = Console()
     console.print(_runs_table([run], f"run {run_id}"))
+    if run["error"]:
+        console.print(f"{run['status']}: {run['error']}", highlight=False)
     table = Table(title="generations")
     for column in ("generation", "best", "mean", "worst"):
         table.add_column(column)
@@ -563,46 +664,62 @@ def run_delete(
     typer.echo(f"run {run_id} deleted")
 
 
-def _workers_table(workers: list[dict[str, Any]]) -> Table:
+def workers_table(workers: list[dict[str, Any]]) -> Table:
+    """Rows of GET /api/workers: evaluations are controllers whose fitness the server took,
+    late ones those it dropped (a worker's own log counts both)."""
     table = Table(title="workers")
     for column in (
-        "name",
-        "host",
-        "state",
-        "jobs done",
-        "robot-steps/s",
-        "last seen",
-        "quarantined",
-    ):
+        "name", "host", "state", "evaluations", "late", "robot-steps/s", "last seen", "quarantined",
+    ):  # fmt: skip
         table.add_column(column)
     for w in workers:
+        speed = w["robot_steps_per_s"]
         table.add_row(
             w["name"],
             w["host"],
             w["state"],
-            str(w["jobs_done"]),
-            _fmt(w["robot_steps_per_s"]),
-            _fmt(w["last_seen"]),
+            str(w["evaluations"]),
+            str(w["late"]),
+            "-" if speed is None else f"{speed:.0f}",
+            ago(w["last_seen"]),
             "yes" if w.get("quarantined") else "-",
         )
     return table
 
 
-def _robots_table(robots: list[dict[str, Any]]) -> Table:
+def robots_table(robots: list[dict[str, Any]]) -> Table:
     """Rows of GET /api/robots or of /api/colony's robots (the same view)."""
     table = Table(title="robots")
-    for column in ("id", "state", "steps", "controller", "replacement", "last seen"):
+    for column in (
+        "id", "online", "state", "steps", "stuck", "controller", "replacement", "last seen",
+    ):  # fmt: skip
         table.add_column(column)
     for r in robots:
         table.add_row(
             r["id"],
-            _fmt(r["state"]),
-            _fmt(r["steps"]),
-            (r["controller_sha256"] or "-")[:12],
+            "yes" if r["online"] else "no",
+            r["state"],
+            str(r["steps"]),
+            str(r["stuck_events"]),
+            (r["controller_sha256"] or "-")[:SHORT_SHA],
             _replacement(r),
-            _fmt(r["last_seen"]),
+            ago(r["last_seen"]),
         )
     return table
+
+
+def ago(moment: str | None, now: datetime | None = None) -> str:
+    """An ISO 8601 time as a person reads it in a table: "12 s ago", "3 h ago", "never"."""
+    if moment is None:
+        return "never"
+    then = datetime.fromisoformat(moment)
+    if then.tzinfo is None:
+        then = then.replace(tzinfo=UTC)
+    s = max(0.0, ((now or datetime.now(UTC)) - then).total_seconds())
+    for unit, size in (("d", 86400), ("h", 3600), ("min", 60)):
+        if s >= 2 * size:
+            return f"{s / size:.0f} {unit} ago"
+    return f"{s:.0f} s ago"
 
 
 def _replacement(robot: dict[str, Any]) -> str:
@@ -626,10 +743,13 @@ def status(
     counts = ", ".join(f"{k} {v}" for k, v in sorted(colony["runs"].items())) or "none"
     jobs = colony["jobs"]
     console.print(f"runs: {counts}")
-    console.print(f"jobs: pending {jobs['pending']}, leased {jobs['leased']}, done {jobs['done']}")
+    console.print(
+        f"jobs of the generations in flight: pending {jobs['pending']}, leased {jobs['leased']}, "
+        f"done {jobs['done']}"
+    )
     console.print(_runs_table(colony["active"], "active runs"))
-    console.print(_workers_table(colony["workers"]))
-    console.print(_robots_table(colony["robots"]))
+    console.print(workers_table(colony["workers"]))
+    console.print(robots_table(colony["robots"]))
 
 
 def workers_command(
@@ -643,7 +763,7 @@ def workers_command(
     if as_json:
         _print_json(workers)
     else:
-        Console().print(_workers_table(workers))
+        Console().print(workers_table(workers))
 
 
 def robots_command(
@@ -657,7 +777,7 @@ def robots_command(
     if as_json:
         _print_json(robots)
     else:
-        Console().print(_robots_table(robots))
+        Console().print(robots_table(robots))
 
 
 robot_app = typer.Typer(help="Inspect and command one robot.", no_args_is_help=True)
@@ -682,6 +802,7 @@ def robot_show(
     ):  # fmt: skip
         typer.echo(f"{key:22s} {_fmt(detail[key])}")
     typer.echo(f"{'replacement':22s} {_replacement(detail)}")
+    typer.echo(f"{'last seen':22s} {ago(detail['last_seen'])}")
 
 
 POLICY_CHOICES = ("off", "rank", "archive", "colony")
@@ -731,9 +852,9 @@ def robot_stuck(
         table.add_row(
             _fmt(e["step"]),
             e["reason"],
-            (e["controller_sha256"] or "-")[:12],
+            (e["controller_sha256"] or "-")[:SHORT_SHA],
             _fmt(e["policy"]),
-            (e["replacement_sha256"] or "-")[:12],
+            (e["replacement_sha256"] or "-")[:SHORT_SHA],
             _fmt(e["steps_run"]),
         )
     Console().print(table)
@@ -764,7 +885,10 @@ def robot_push(
         int | None,
         typer.Option(help="entry of the run's archive (colony run archive; QD runs)"),
     ] = None,
-    sha: Annotated[str | None, typer.Option("--sha", help="push a stored controller")] = None,
+    sha: Annotated[
+        str | None,
+        typer.Option("--sha", help="push a stored controller: its sha256 or a prefix of 8+ digits"),
+    ] = None,
     server: ServerOpt = DEFAULT_SERVER,
     token: TokenOpt = None,
     as_json: JsonOpt = False,

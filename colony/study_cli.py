@@ -23,7 +23,16 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedCo
 from rich.table import Table
 
 from colony.export import METRIC_ORDER, export_study
-from colony.server_cli import DEFAULT_SERVER, FINAL, JsonOpt, ServerOpt, TokenOpt, fetching, request
+from colony.server_cli import (
+    DEFAULT_SERVER,
+    FINAL,
+    JsonOpt,
+    ServerOpt,
+    TokenOpt,
+    fetching,
+    request,
+    stopped_following,
+)
 from schemas.study import StudyCreate
 
 STUDY_POLL_S = 0.5
@@ -249,11 +258,21 @@ def _finish(
     as_json: bool,
 ) -> None:
     if follow:
-        study = follow_study(ctx, server, token, study["id"], Console(stderr=True))
+        try:
+            study = follow_study(ctx, server, token, study["id"], Console(stderr=True))
+        except KeyboardInterrupt:
+            sid = study["id"]
+            stopped_following(f"study {sid}", f"colony study show {sid} --follow", server)
     if as_json:
         typer.echo(json.dumps(study, indent=2))
     else:
         _print_study(study)
+    if follow:
+        for r in study["runs"]:
+            if r["status"] == "failed":
+                run = _request(ctx, server, token, "GET", f"/api/runs/{r['run_id']}")
+                reason = run["error"] or "no reason recorded"
+                typer.echo(f"run {r['run_id']} ({r['name']}) failed: {reason}", err=True)
     if follow and study["status"] != "completed":
         raise typer.Exit(1)
 

@@ -60,4 +60,7 @@ def worker_command(
     if exit_with_parent:
         watch_parent(stop)
     stats = run_worker(settings, stop)
-    typer.echo(f"worker {settings.name}: {stats.jobs_done} jobs done, {stats.errors} errors")
+    typer.echo(
+        f"worker {settings.name}: {stats.evaluations} evaluations in {stats.jobs_done} jobs, "
+        f"{stats.errors} errors"
+    )

@@ -26,7 +26,7 @@ import numpy as np
 
 from evorobotics.errors import MazeError
 from evorobotics.fitness import mean_fitness
-from evorobotics.maze import Maze, load_maze
+from evorobotics.maze import Maze, is_shipped_or_generated, load_maze, maze_names
 from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import DEFAULT_WORLD, Gap, SimResult, clear_of_walls, simulate
 from schemas.run import Descriptor, RunConfig
@@ -209,6 +209,19 @@ def trial_steps(config: RunConfig) -> int:
     if config.steps is not None:
         return config.steps
     return config.crossings * crossing_steps(load_maze(config.maze), config.world)
+
+
+def check_config(config: RunConfig, *, files: bool = True) -> None:
+    """Raise MazeError or ValueError naming the problem when the run's maze cannot be built or
+    has no room for the robot (its generation 0's start poses), before the run starts: `colony
+    evolve` and `POST /api/runs` both ask here. `files=False` refuses a maze read from a file
+    (a server must not read its own files on a client's word)."""
+    if not files and not is_shipped_or_generated(config.maze):
+        raise MazeError(
+            f"{config.maze!r} is not a shipped maze {maze_names()}, gen:SIZE:SEED or maze text"
+        )
+    start_poses(load_maze(config.maze), config.seed, 0, config.trials, config.world)
+    trial_steps(config)
 
 
 def robot_steps(config: RunConfig, individuals: int) -> int:

@@ -106,9 +106,34 @@ def _shipped() -> dict[str, str]:
     }
 
 
+def read_maze_file(path: Path) -> str:
+    """A maze file's text; MazeError naming the file when it cannot be read or is not text."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise MazeError(f"maze file {path}: not a text maze file (binary or not UTF-8)") from None
+    except OSError as exc:
+        raise MazeError(f"maze file {path}: cannot read it: {exc.strerror}") from None
+
+
+def is_shipped_or_generated(spec: str) -> bool:
+    """A shipped name, `gen:...` or maze text: a maze that reads no file (what a server takes)."""
+    return "\n" in spec or spec.startswith(GENERATED_PREFIX) or spec in _shipped()
+
+
 def maze_names() -> list[str]:
     """Names of the shipped mazes, sorted."""
     return sorted(_shipped())
+
+
+def maze_note(name: str) -> str:
+    """What a shipped maze is for: its file's first comment without the name, e.g. "an empty
+    2 m square room ..."; "" when it has none."""
+    for line in _shipped()[name].splitlines():
+        if line.startswith(";"):
+            note = line.removeprefix(";").strip()
+            return note.removeprefix(f'"{name}":').strip()
+    return ""
 
 
 @lru_cache(maxsize=64)
@@ -130,7 +155,7 @@ def load_maze(spec: str) -> Maze:
     except OSError:  # a name no file system accepts (too long, NUL): not a file
         is_file = False
     if is_file:
-        return parse_maze(path.read_text(encoding="utf-8"), name=path.stem)
+        return parse_maze(read_maze_file(path), name=path.stem)
     raise MazeError(
         f"unknown maze {spec!r}: not a shipped maze {sorted(shipped)}, not 'gen:SIZE:SEED', "
         "not a file, and not maze text"

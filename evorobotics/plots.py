@@ -23,7 +23,7 @@ from evorobotics.document import ControllerDocument
 from evorobotics.evaluate import record_path, start_poses
 from evorobotics.evolution import GenerationSummary
 from evorobotics.layout import layout
-from evorobotics.maze import load_maze
+from evorobotics.maze import Maze, load_maze
 from evorobotics.strategies import Archive
 from schemas.network import NetworkSpec
 from schemas.run import RunConfig
@@ -206,6 +206,18 @@ def paths_plot(
             f"stuck {v.stuck:.0%}, roaming {v.roaming:.0%}"
         )
     fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def maze_plot(maze: Maze, path: Path) -> None:
+    """The maze's walls in metres (`colony mazes --png`), titled with its name."""
+    fig, ax = plt.subplots(figsize=(6, 6 * maze.height / maze.width + 0.5))
+    extent = (0.0, maze.width, 0.0, maze.height)
+    ax.imshow(maze.grid, cmap="Greys", extent=extent, origin="upper", vmin=0, vmax=1.4)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"maze {maze.name}")
     fig.tight_layout()
     _save(fig, path)
 

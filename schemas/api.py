@@ -131,7 +131,20 @@ class WorkerOut(BaseModel):
     name: str
     host: str
     state: Literal["idle", "busy", "gone"] = Field(description="gone: its liveliness vanished")
-    jobs_done: int = Field(description="results accepted from it since the server started")
+    jobs_done: int = Field(
+        description="jobs accepted from it since the server started: one per generation of "
+        "one slice of a population (a span of G generations counts G)"
+    )
+    evaluations: int = Field(
+        0,
+        description="controllers it evaluated whose fitness the server took (each over the "
+        "run's trials); they add up to the runs' `evaluations`",
+    )
+    late: int = Field(
+        0,
+        description="evaluations it returned that the server dropped: a span's generations "
+        "past the point where the server cut it, a slice whose lease had expired, a duplicate",
+    )
     robot_steps_per_s: float | None = Field(description="its last measured speed")
     last_seen: datetime
     quarantined: bool = Field(

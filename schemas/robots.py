@@ -23,6 +23,7 @@ down is lost silently, an unacknowledged batch stays in the agent's bounded buff
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Annotated, Literal
 
 import numpy as np
@@ -343,14 +344,17 @@ PolicySource = Literal["robot", "colony"]
 
 
 class RobotOut(_Model):
-    """One robot in GET /api/robots."""
+    """One robot as GET /api/robots and GET /api/colony list it (the one robot view)."""
 
     id: str
     online: bool
     state: str
     controller_sha256: str | None
-    steps: int
-    last_seen: float | None = Field(description="Unix time of the last trace batch")
+    steps: int = Field(description="the robot's step counter in its last report")
+    stuck_events: int = Field(description="stuck requests the server received")
+    last_seen: datetime | None = Field(
+        description="when the server last heard from it (ISO 8601, UTC); null: never"
+    )
     replacement: ReplacementPolicy = Field(description="the policy its stuck requests get")
     replacement_source: PolicySource = Field(
         description="robot: its own setting; colony: the server's COLONY_REPLACEMENT"
@@ -364,7 +368,6 @@ class RobotDetail(RobotOut):
     controller_rank: int | None
     controller_generation: int | None
     whiskers: str = Field(description="last whisker bits, left to right")
-    stuck_events: int = Field(description="stuck requests the server received")
     boot: int
     link: dict[str, object] = Field(description="zenoh link and the agent's last RobotStatus")
 
@@ -372,7 +375,11 @@ class RobotDetail(RobotOut):
 class PushBody(_Model):
     """POST /api/robots/{id}/controller: a stored controller, or a run's controller."""
 
-    sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
+    sha256: str | None = Field(
+        None,
+        pattern=r"^[0-9a-fA-F]{8,64}$",
+        description="a stored controller's sha256, or an unambiguous prefix of 8+ hex digits",
+    )
     run_id: int | None = Field(None, ge=0)
     rank: int | None = Field(
         None,

@@ -451,5 +451,7 @@ class WorkerStatus(BaseModel):
     host: str
     state: Literal["idle", "busy", "gone"]
     jobs_done: int
+    evaluations: int = Field(0, description="controllers whose fitness the server took from it")
+    late: int = Field(0, description="evaluations it sent too late or twice (dropped)")
     robot_steps_per_s: float | None
     last_seen: float = Field(description="Unix time the server last heard from the worker")

@@ -28,9 +28,8 @@ from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from evorobotics.errors import MazeError
-from evorobotics.evaluate import robot_steps
-from evorobotics.maze import maze_names
+from evorobotics.errors import EvoError
+from evorobotics.evaluate import check_config, robot_steps
 from schemas.run import RunConfig
 
 Scope = MutableMapping[str, Any]
@@ -350,8 +349,9 @@ def run_limit_error(
 ) -> str | None:
     """Why the server refuses a run from a client (memory, CPU, a server file as maze), or None.
 
-    RunConfig bounds each field; these bound the products, and keep `maze` to a shipped name,
-    `gen:SIZE:SEED` or maze text, since a bare path would read a file on the server.
+    RunConfig bounds each field; these bound the products, and `evaluate.check_config` (as
+    `colony evolve` asks it) the maze: a shipped name, `gen:SIZE:SEED` or maze text (a bare
+    path would read a file on the server) with room for the robot.
     """
     weights = config.network_spec.weight_count
     if config.population * weights > max_population_weights:
@@ -359,13 +359,11 @@ def run_limit_error(
             f"population x weights = {config.population} x {weights} exceeds the server's "
             f"limit of {max_population_weights}"
         )
-    maze = config.maze
-    if "\n" not in maze and not maze.startswith("gen:") and maze not in maze_names():
-        return f"maze {maze!r} is not a shipped maze, gen:SIZE:SEED or maze text"
     try:
-        steps = robot_steps(config, config.population)
-    except (ValueError, MazeError) as exc:
-        return f"maze {maze!r}: {exc}"
+        check_config(config, files=False)
+    except (ValueError, EvoError) as exc:
+        return f"maze: {exc}"
+    steps = robot_steps(config, config.population)
     if steps > max_generation_steps:
         return (
             f"population x trials x steps = {steps} exceeds the server's limit of "

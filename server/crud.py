@@ -5,6 +5,7 @@ The run loop's writes (generation commits) live in `server.manager`; jobs in `se
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -14,7 +15,7 @@ from sqlalchemy.orm import Session
 from evorobotics.evolution import StrategyHistory
 from schemas.api import TERMINAL
 from server import population
-from server.errors import NotFoundError, ServerError
+from server.errors import InvalidInputError, NotFoundError, ServerError
 from server.models import Controller, Generation, Run, Study, utcnow
 from server.population import Population
 from server.scheduler import Scheduler
@@ -122,6 +123,35 @@ def ranked(
 
 def get_controller(session: Session, *, sha256: str) -> Controller | None:
     return session.get(Controller, sha256.lower())
+
+
+SHA_PREFIX = re.compile(r"[0-9a-f]{8,64}")
+"""A controller's sha256, or a prefix of at least 8 hex digits of it (tables show 12)."""
+
+
+def find_controller(session: Session, *, sha256: str) -> Controller:
+    """The controller whose sha256 is or starts with `sha256` (case-insensitive);
+    InvalidInputError for a malformed or ambiguous prefix, NotFoundError for none."""
+    prefix = sha256.lower()
+    if SHA_PREFIX.fullmatch(prefix) is None:
+        raise InvalidInputError(
+            f"sha256 {sha256[:80]!r}: expected 8 to 64 hex digits (a sha256 or a prefix of it)"
+        )
+    if len(prefix) == 64:
+        row = session.get(Controller, prefix)
+        rows = [] if row is None else [row]
+    else:
+        query = select(Controller).where(Controller.sha256.startswith(prefix)).limit(2)
+        rows = list(session.scalars(query))
+    if not rows:
+        raise NotFoundError(
+            f"no controller with sha256 {prefix}" + ("" if len(prefix) == 64 else "...")
+        )
+    if len(rows) > 1:
+        raise InvalidInputError(
+            f"sha256 prefix {prefix} is ambiguous: several controllers start with it; give more digits"
+        )
+    return rows[0]
 
 
 def champion(session: Session, *, run: Run) -> Controller | None:

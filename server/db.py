@@ -205,8 +205,21 @@ class ServerLock:
     @classmethod
     def _flock(cls, database: Path) -> ServerLock:
         lock = database.with_name(database.name + ".lock")
-        lock.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            lock.parent.mkdir(parents=True, exist_ok=True)
+            # SQLite writes its journal beside the file: the directory itself must be writable
+            writable = os.access(lock.parent, os.W_OK | os.X_OK)
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644) if writable else -1
+            reason = "not writable"
+        except FileExistsError:
+            fd, reason = -1, "a file is in the way of a directory"
+        except OSError as exc:
+            fd, reason = -1, exc.strerror or str(exc)
+        if fd < 0:
+            raise StoreUnusableError(
+                f"cannot write the database's directory {lock.parent.absolute()}: {reason}; "
+                "choose a writable one with --db sqlite:///DIR/colony.db"
+            )
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

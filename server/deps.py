@@ -40,6 +40,8 @@ def get_workers(request: Request) -> list[WorkerOut]:
             host=w.host,
             state=w.state,
             jobs_done=w.jobs_done,
+            evaluations=w.evaluations,
+            late=w.late,
             robot_steps_per_s=w.robot_steps_per_s,
             last_seen=datetime.fromtimestamp(w.last_seen, UTC),
             quarantined=w.name in quarantined,

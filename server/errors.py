@@ -3,6 +3,8 @@
 Hierarchy:
     ServerError              root; catch this to handle any failure of `server`
     ├── NotFoundError        no run, generation or controller with that id (HTTP 404)
+    ├── InvalidInputError    a value the request names cannot be used, e.g. an ambiguous sha256
+    │                        prefix (HTTP 422)
     └── TransitionError      the run's status does not allow the requested change (HTTP 409)
 
 Bad arguments raise plain `ValueError`. The app answers a ServerError that reaches a route
@@ -20,6 +22,12 @@ class NotFoundError(ServerError):
     """The requested run, generation or controller does not exist."""
 
     status_code = 404
+
+
+class InvalidInputError(ServerError):
+    """A value in the request is malformed or ambiguous (a sha256 prefix matching several)."""
+
+    status_code = 422
 
 
 class TransitionError(ServerError):

@@ -666,7 +666,6 @@ class RobotService:
                 controller_rank=_int_or_none(origin.get("rank")),
                 controller_generation=_int_or_none(origin.get("generation")),
                 whiskers=state.whiskers if state else "00000",
-                stuck_events=state.stuck_events if state else 0,
                 boot=state.boot if state else 0,
                 link={"zenoh": "online" if summary.online else "offline", **status},
             )
@@ -743,9 +742,7 @@ class RobotService:
             if db.get(Robot, robot_id) is None:
                 raise NotFoundError(f"no robot with id {robot_id}")
             if sha256 is not None:
-                row = crud.get_controller(db, sha256=sha256)
-                if row is None:
-                    raise NotFoundError(f"no controller with sha256 {sha256}")
+                row = crud.find_controller(db, sha256=sha256)
                 text, sha = row.document, row.sha256
             elif run_id is None:
                 raise ValueError("give exactly one of sha256 or run_id")
@@ -1155,7 +1152,8 @@ def _summary(
         state=(state.state if state else "idle") if online else "offline",
         controller_sha256=row.controller_sha256,
         steps=state.steps if state else 0,
-        last_seen=last.timestamp() if last else None,
+        stuck_events=state.stuck_events if state else 0,
+        last_seen=aware(last),
         replacement=policy,
         replacement_source=source,
     )

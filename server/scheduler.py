@@ -193,6 +193,8 @@ class _Worker:
     host: str = ""
     speed: float | None = None
     jobs_done: int = 0
+    evaluations: int = 0
+    late: int = 0
     last_seen: float = 0.0
     """Unix time (for display only)."""
     gone_at: float | None = None
@@ -350,6 +352,8 @@ class Scheduler:
                     host=w.host,
                     state="gone" if w.gone_at is not None else "busy" if w.name in busy else "idle",
                     jobs_done=w.jobs_done,
+                    evaluations=w.evaluations,
+                    late=w.late,
                     robot_steps_per_s=w.speed,
                     last_seen=w.last_seen,
                 )
@@ -434,6 +438,8 @@ class Scheduler:
                 )
             ):
                 self._totals["duplicates_dropped"] += result.generations - i
+                if result.fitness is not None:
+                    record.late += (result.generations - i) * result.fitness.shape[1]
                 break
             del self._leases[key]
             error = result.error or self._digest_error(result, i, lease, record)
@@ -446,6 +452,7 @@ class Scheduler:
                 break
             self._complete(key, lease, fitness[i], components[i], descriptors[i])
             record.jobs_done += 1
+            record.evaluations += lease.stop - lease.start
             ack = Ack(key=result.key, accepted=True)
             following = key.at(key.generation + 1)
         if ack.accepted and self._store_lags(result.key.run_id):

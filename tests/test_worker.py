@@ -259,7 +259,7 @@ def test_colony_worker_exits_cleanly_on_signal(signum: int) -> None:
             proc.kill()
             proc.wait()
     assert proc.returncode == 0
-    assert "worker sig: 0 jobs done" in out
+    assert "worker sig: 0 evaluations in 0 jobs" in out
 
 
 def test_settings_validate() -> None:

@@ -141,6 +141,8 @@ class WorkerStats:
     """What a worker did, returned when it stops."""
 
     jobs_done: int = 0
+    evaluations: int = 0
+    """Controllers evaluated (each over the run's trials), sent or not."""
     errors: int = 0
     robot_steps_per_s: float | None = None
 
@@ -287,6 +289,7 @@ def _evaluate(
     seconds = time.perf_counter() - began
     speed = robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else None
     link.stats.jobs_done += 1
+    link.stats.evaluations += len(genomes)
     link.stats.robot_steps_per_s = speed
     return Result(
         key=job.key,

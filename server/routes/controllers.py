@@ -5,15 +5,20 @@ from __future__ import annotations
 import json
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
 from evorobotics.errors import EvoError
-from evorobotics.maze import load_maze, maze_names
+from evorobotics.maze import is_shipped_or_generated, load_maze
 from server import crud
 from server.deps import ManagerDep, SessionDep
 from server.evaluation import EVALUATIONS, Params
 
 router = APIRouter(prefix="/api/controllers", tags=["controllers"])
+
+Sha = Annotated[
+    str, Path(description="a controller's sha256, or an unambiguous prefix of 8+ hex digits")
+]
+"""404 when no stored controller has it, 422 when malformed or ambiguous (`crud.find_controller`)."""
 
 MAX_EVALUATION_POSES = 1000
 MAX_EVALUATION_STEPS = 2000
@@ -32,10 +37,8 @@ MAX_EVALUATION_ROBOT_STEPS = 1_000_000
         }
     },
 )
-def get_controller(request: Request, session: SessionDep, sha256: str) -> Response:
-    row = crud.get_controller(session, sha256=sha256)
-    if row is None:
-        raise HTTPException(404, detail=f"no controller with sha256 {sha256}")
+def get_controller(request: Request, session: SessionDep, sha256: Sha) -> Response:
+    row = crud.find_controller(session, sha256=sha256)
     robots = getattr(request.app.state, "robots", None)
     stats = robots.field_stats(row.sha256) if robots is not None else None
     body = json.loads(row.document)
@@ -59,7 +62,7 @@ def get_controller(request: Request, session: SessionDep, sha256: str) -> Respon
 )
 def get_evaluation(
     manager: ManagerDep,
-    sha256: str,
+    sha256: Sha,
     poses: Annotated[int, Query(ge=1, le=MAX_EVALUATION_POSES)] = 1000,
     steps: Annotated[int, Query(ge=1, le=MAX_EVALUATION_STEPS)] = 1000,
     maze: Annotated[str, Query(min_length=1, max_length=4096)] = "paper",
@@ -68,10 +71,7 @@ def get_evaluation(
 ) -> Response:
     """CPU-bound (up to about 1 s): a sync route, so it runs in the threadpool."""
     with manager.sessions() as session:  # closed before the computation, not held through it
-        row = crud.get_controller(session, sha256=sha256)
-        document = None if row is None else row.document
-    if document is None:
-        raise HTTPException(404, detail=f"no controller with sha256 {sha256}")
+        document = crud.find_controller(session, sha256=sha256).document
     if poses * steps > MAX_EVALUATION_ROBOT_STEPS:
         raise HTTPException(
             422,
@@ -79,7 +79,7 @@ def get_evaluation(
             f"{MAX_EVALUATION_ROBOT_STEPS} robot steps",
         )
     # a bare path would read a file on the server
-    if "\n" not in maze and not maze.startswith("gen:") and maze not in maze_names():
+    if not is_shipped_or_generated(maze):
         raise HTTPException(
             422, detail=f"maze: {maze!r} is not a shipped maze, gen:SIZE:SEED or maze text"
         )

@@ -808,7 +808,7 @@ function renderRobots(snapshot) {
       ? "not run yet"
       : `${fmt(f.robot_hours, 3)} robot-h, ${f.stuck_events} stuck` +
         (f.stuck_per_hour === null ? "" : ` (${fmt(f.stuck_per_hour, 1)}/h)`));
-    set("seen", ago(robot.last_seen));
+    set("seen", ago(robot.last_seen === null ? null : Date.parse(robot.last_seen) / 1000));
   }
   for (const [id, entry] of state.cards) {
     if (!seen.has(id)) {
@@ -832,7 +832,7 @@ function renderWorkers(workers) {
         el("td", { text: w.name }),
         el("td", { text: w.host }),
         el("td", {}, el("span", { class: `status ${w.state}`, text: w.state })),
-        el("td", { text: w.jobs_done }),
+        el("td", { text: w.evaluations }),
         el("td", { text: w.robot_steps_per_s === null ? "–" : Math.round(w.robot_steps_per_s).toLocaleString() }),
         el("td", { text: ago(Date.parse(w.last_seen) / 1000) }),
       ),
