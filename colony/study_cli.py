@@ -13,18 +13,18 @@ import json
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
-import yaml
-from pydantic import ValidationError
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
 from colony.export import METRIC_ORDER, export_study
 from colony.server_cli import DEFAULT_SERVER, FINAL, JsonOpt, ServerOpt, TokenOpt, fetching, request
-from schemas.study import StudyCreate
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
 
 STUDY_POLL_S = 0.5
 """A study's view carries every run and its statistics: poll it gently."""
@@ -53,6 +53,8 @@ def _request(
 
 def load_mapping(path: Path) -> dict[str, Any]:
     """A JSON (.json) or YAML (any other suffix) file holding one object."""
+    import yaml
+
     try:
         text = path.read_text()
         data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
@@ -116,6 +118,10 @@ def build_study(
 ) -> dict[str, Any]:
     """The StudyCreate body: FILE's, then the flags over it (--base replaces its base, --set
     fields go into the base, --vary adds grid fields)."""
+    from pydantic import ValidationError
+
+    from schemas.study import StudyCreate
+
     body = load_mapping(file) if file is not None else {}
     if name is not None:
         body["name"] = name
