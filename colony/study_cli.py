@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
 from colony.export import METRIC_ORDER, export_study
@@ -214,6 +213,8 @@ def follow_study(
     """A progress bar of finished runs until the study is no longer running, then of the
     champions' exploration reports (the server computes them after the runs) until they are
     known or none arrives for EXPLORE_STALL_S; its StudyOut."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
     tick = threading.Event()
     stalled_at: float | None = None
     pending = -1
