@@ -11,6 +11,8 @@ import pytest
 
 from tests.helpers import serve
 
+pytestmark = pytest.mark.slow  # each test starts a Python process
+
 HEAVY = (
     "numba",
     "llvmlite",
@@ -70,7 +72,6 @@ def test_help_imports_no_heavy_package(tmp_path: Path) -> None:
     assert heavy_imports(tmp_path, "--help") == set()
 
 
-@pytest.mark.slow
 def test_the_rest_clients_import_no_heavy_package(tmp_path: Path) -> None:
     with serve(tmp_path) as served:
         for command in (["run", "list"], ["status"]):
