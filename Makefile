@@ -2,34 +2,41 @@
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+RUNTIME := $(VENV)/.runtime-installed
+DEV := $(VENV)/.dev-installed
 
 .PHONY: demo test bench chaos load lint clean
 
-$(STAMP): pyproject.toml
+# The product's dependencies only: enough for demo, bench, chaos and load.
+$(RUNTIME): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
-	touch $(STAMP)
+	$(BIN)/pip install --quiet -e .
+	touch $@
 
-demo: $(STAMP)
+# The test and lint tools on top (pytest, hypothesis, playwright, mypy, ruff...).
+$(DEV): $(RUNTIME)
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $@
+
+demo: $(RUNTIME)
 	$(BIN)/colony demo
 
 # Two test processes: most tests wait on processes and sockets (docs/architecture.md).
-test: $(STAMP)
+test: $(DEV)
 	$(BIN)/pytest -n 2
 
-bench: $(STAMP)
+bench: $(RUNTIME)
 	@for f in bench/[!_]*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
 
-chaos: $(STAMP)
+chaos: $(RUNTIME)
 	$(BIN)/python chaos/chaos.py
 
-load: $(STAMP)
+load: $(RUNTIME)
 	$(BIN)/python chaos/load.py $(if $(SECONDS),--seconds $(SECONDS))
 
 # bench/ gets its own mypy run: bench/colony.py would clash with the colony package.
-lint: $(STAMP)
+lint: $(DEV)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy

@@ -10,17 +10,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
-from rich.table import Table
 
-from colony.documents import load_document
-from evorobotics.analysis import RESOLUTION_MM, TOLERANCE_MM, Analysis, analyze
-from evorobotics.document import ControllerDocument
-from evorobotics.errors import EvoError
-from evorobotics.maze import load_maze
+from evorobotics.thresholds import RESOLUTION_MM, TOLERANCE_MM
+
+if TYPE_CHECKING:
+    from evorobotics.analysis import Analysis
+    from evorobotics.document import ControllerDocument
 
 
 def _fail(message: str) -> typer.Exit:
@@ -34,6 +32,9 @@ def _steps(value: int | None) -> str:
 
 def print_table(a: Analysis) -> None:
     """Baseline, settling per contact and duration, distinct responses and memory."""
+    from rich.console import Console
+    from rich.table import Table
+
     console = Console()
     period = f" (period {a.baseline.period})" if a.baseline.kind == "cycle" else ""
     console.print(
@@ -118,6 +119,12 @@ def analyze_command(
     step in the default world). With --out, also the paper's Fig 5 before and after training
     and a Fig 7 close-up of one wall encounter (in the paper maze unless --maze).
     """
+    # numba and the simulator: only when analysing, so `colony --help` stays fast
+    from colony.documents import load_document
+    from evorobotics.analysis import analyze
+    from evorobotics.errors import EvoError
+    from evorobotics.maze import load_maze
+
     try:
         doc = load_document(controller, server, run, sha)
     except ValueError as exc:
@@ -166,6 +173,7 @@ def _write_figures(
 ) -> None:
     # matplotlib and the simulator: only when writing
     from evorobotics import analysis_plots as ap
+    from evorobotics.errors import EvoError
 
     out.mkdir(parents=True, exist_ok=True)
     written = [out / n for n in ("analysis.json", "responses.png", "network.png")]

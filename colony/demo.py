@@ -27,7 +27,6 @@ from typing import IO, Annotated, Any
 import httpx
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
 from colony.server_cli import follow_run, robots_table, workers_table
@@ -248,6 +247,8 @@ def _demo(
     zenoh_port: int,
     keep_running: bool,
 ) -> None:
+    from rich.progress import BarColumn, Progress, TimeElapsedColumn
+
     logs = out / "logs"
     url = f"http://127.0.0.1:{port}"
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"

@@ -10,17 +10,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.console import Console
-from rich.table import Table
 
-from colony.documents import load_document
-from evorobotics.document import ControllerDocument
-from evorobotics.errors import EvoError
-from evorobotics.explore import COVERAGE_CELL, MAX_ROBOT_STEPS, PAPER_TRIAL, Exploration, explore
-from evorobotics.maze import load_maze
+if TYPE_CHECKING:
+    from evorobotics.document import ControllerDocument
+    from evorobotics.explore import Exploration
 
 
 def _fail(message: str) -> typer.Exit:
@@ -30,6 +26,8 @@ def _fail(message: str) -> typer.Exit:
 
 def report_dict(doc: ControllerDocument, e: Exploration) -> dict[str, Any]:
     """The JSON of `colony evaluate --json`: units in the keys, the document's own scores beside."""
+    from evorobotics.explore import COVERAGE_CELL
+
     return {
         "controller": doc.sha256,
         "world": "document" if doc.world is not None else "default",
@@ -56,6 +54,11 @@ def _percent(x: float) -> str:
 
 def print_table(doc: ControllerDocument, e: Exploration) -> None:
     """One row per measure, then the document's training fitness and validation, labelled."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from evorobotics.explore import COVERAGE_CELL, PAPER_TRIAL
+
     console = Console()
     world = "the document's world" if doc.world is not None else "the default World"
     gap = ", reality gap" if e.reality_gap else ""
@@ -115,6 +118,12 @@ def evaluate_command(
 
     Trials start from poses no training or validation trial uses (docs/explore.md).
     """
+    # numba and the simulator: only when evaluating, so `colony --help` stays fast
+    from colony.documents import load_document
+    from evorobotics.errors import EvoError
+    from evorobotics.explore import MAX_ROBOT_STEPS, explore
+    from evorobotics.maze import load_maze
+
     if poses < 1 or steps < 1:
         raise _fail(f"--poses and --steps must be >= 1, got {poses} and {steps}")
     if poses * steps > MAX_ROBOT_STEPS:

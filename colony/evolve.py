@@ -14,18 +14,17 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from pydantic import ValidationError
 
 from colony.run_inputs import ConfigError, maze_value, network_value, validation_message
-from evorobotics.document import ControllerDocument, controller_sha256
-from evorobotics.errors import EvoError
-from evorobotics.evaluate import check_config, trial_steps
-from evorobotics.evolution import EvolutionResult, GenerationSummary, evolve
-from evorobotics.strategies import Archive
-from schemas.run import RunConfig, StrategyName
+
+if TYPE_CHECKING:
+    from evorobotics.document import ControllerDocument
+    from evorobotics.evolution import EvolutionResult, GenerationSummary
+    from evorobotics.strategies import Archive
+    from schemas.run import RunConfig
 
 LOG_LINES = 20
 """Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
@@ -33,6 +32,12 @@ LOG_LINES = 20
 
 def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunConfig:
     """Defaults < config file < flags (None = not given); ConfigError with a one-line reason."""
+    from pydantic import ValidationError
+
+    from evorobotics.errors import EvoError
+    from evorobotics.evaluate import check_config
+    from schemas.run import RunConfig
+
     data: dict[str, Any] = {}
     if config_file is not None:
         try:
@@ -71,6 +76,8 @@ def write_generations_csv(path: Path, history: tuple[GenerationSummary, ...]) ->
 def write_archive_csv(path: Path, config: RunConfig, archive: Archive) -> None:
     """One row per archive entry: its two descriptors (named by the axes), its fitness and the
     sha256 of its controller document; floats as repr so they parse back to the same bits."""
+    from evorobotics.document import controller_sha256
+
     spec = config.network_spec
     with path.open("w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
@@ -184,8 +191,11 @@ def evolve_command(
         typer.Option("--reality-gap/--no-reality-gap", help="evolve under the reality-gap model"),
     ] = None,
     strategy: Annotated[
-        StrategyName | None,
-        typer.Option(help="paper-ga, cma-es, sep-cma-es, map-elites, cma-me or novelty [paper-ga]"),
+        str | None,
+        typer.Option(
+            metavar="NAME",
+            help="paper-ga, cma-es, sep-cma-es, map-elites, cma-me or novelty [paper-ga]",
+        ),
     ] = None,
     config: Annotated[
         Path | None, typer.Option("--config", metavar="FILE", help="a RunConfig JSON")
@@ -197,6 +207,10 @@ def evolve_command(
     ] = None,
 ) -> None:
     """Evolve a controller in one process (defaults: the paper's experiment) and plot it."""
+    # numba and the simulator: only when evolving, so `colony --help` stays fast
+    from evorobotics.evaluate import trial_steps
+    from evorobotics.evolution import evolve
+
     overrides: dict[str, Any] = {
         "population": population,
         "generations": generations,

@@ -13,13 +13,10 @@ import json
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
-import yaml
-from pydantic import ValidationError
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 from rich.table import Table
 
 from colony.export import METRIC_ORDER, export_study
@@ -33,7 +30,9 @@ from colony.server_cli import (
     request,
     stopped_following,
 )
-from schemas.study import StudyCreate
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
 
 STUDY_POLL_S = 0.5
 """A study's view carries every run and its statistics: poll it gently."""
@@ -62,6 +61,8 @@ def _request(
 
 def load_mapping(path: Path) -> dict[str, Any]:
     """A JSON (.json) or YAML (any other suffix) file holding one object."""
+    import yaml
+
     try:
         text = path.read_text()
         data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
@@ -125,6 +126,10 @@ def build_study(
 ) -> dict[str, Any]:
     """The StudyCreate body: FILE's, then the flags over it (--base replaces its base, --set
     fields go into the base, --vary adds grid fields)."""
+    from pydantic import ValidationError
+
+    from schemas.study import StudyCreate
+
     body = load_mapping(file) if file is not None else {}
     if name is not None:
         body["name"] = name
@@ -217,6 +222,8 @@ def follow_study(
     """A progress bar of finished runs until the study is no longer running, then of the
     champions' exploration reports (the server computes them after the runs) until they are
     known or none arrives for EXPLORE_STALL_S; its StudyOut."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
     tick = threading.Event()
     stalled_at: float | None = None
     pending = -1

@@ -34,6 +34,7 @@ import numpy as np
 from evorobotics.document import ControllerDocument
 from evorobotics.network import motor_commands, reset, step
 from evorobotics.sim import DEFAULT_WORLD
+from evorobotics.thresholds import RESOLUTION_MM, TOLERANCE_MM
 from schemas.network import NetworkSpec
 from schemas.world import World
 
@@ -45,14 +46,6 @@ WARMUP = 200
 
 PRE = 3
 """Baseline steps kept before the contact onset in every stored trace (for plots)."""
-
-TOLERANCE_MM = 2.0
-"""Default settling tolerance, mm of wheel travel per step: 1/25 of the 50 mm whisker range and
-under the +-4.5 mm per step at full speed that the reality gap's +-15 % motor gain spans, so a
-difference this small is slip, not a different move."""
-
-RESOLUTION_MM = 1.0
-"""Default cell size, mm of wheel travel per step, at which distinct responses are counted."""
 
 MAX_SEQUENCES = 2**20
 """Upper bound on whisker histories evaluated (32^4), so no call can exhaust memory."""

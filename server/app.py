@@ -140,6 +140,8 @@ def create_app(
         title="EvoColony",
         summary="Evolve neural controllers for EvBots; runs, controllers and colony status.",
         lifespan=lifespan,
+        docs_url=None,  # served from local files by the dashboard router
+        redoc_url=None,
     )
 
     @app.exception_handler(RequestValidationError)

@@ -15,18 +15,11 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from colony.cli import app
-from evorobotics.analysis import (
-    PRE,
-    RESOLUTION_MM,
-    TOLERANCE_MM,
-    analyze,
-    classify_baseline,
-    mm_per_step,
-    wall_encounter,
-)
+from evorobotics.analysis import PRE, analyze, classify_baseline, mm_per_step, wall_encounter
 from evorobotics.document import ControllerDocument
 from evorobotics.layout import layout
 from evorobotics.seeds import Purpose, rng
+from evorobotics.thresholds import RESOLUTION_MM, TOLERANCE_MM
 from schemas.network import PRESETS, NetworkSpec
 from schemas.world import World
 

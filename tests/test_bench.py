@@ -66,6 +66,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
             ],
             "targets hold:",
         ),
+        ("cli.py", ["--repeats", "1"], "colony run list"),
     ],
 )
 def test_a_bench_script_runs_on_a_tiny_size(script: str, args: list[str], printed: str) -> None:

@@ -290,3 +290,14 @@ def test_studies_page_drills_into_a_run_and_runs_overlay(
     page.wait_for_selector('#overlay-curve[data-series="2"] canvas')
     legend = page.locator("#overlay-curve .u-legend").inner_text()
     assert f"{a} browser-study/" in legend and f"{b} browser-study/" in legend
+
+
+def test_api_docs_render_offline(served: Served, page: Any) -> None:
+    """Swagger UI draws every operation with requests to this server only (a lab network is
+    often offline)."""
+    hosts: set[str] = set()
+    page.on("request", lambda request: hosts.add(request.url.split("/")[2]))
+    page.goto(f"{served.url}/docs")
+    page.locator(".opblock-summary-path", has_text="/api/runs").first.wait_for()
+    assert page.locator(".opblock").count() >= 20
+    assert hosts == {served.url.split("/")[2]}

@@ -6,6 +6,7 @@ Real uvicorn on a free port, a temporary SQLite file, in-process evaluation (no 
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -80,6 +81,22 @@ def test_root_serves_the_page_and_its_files(client: httpx.Client) -> None:
     assert "MIT" in client.get("/static/vendor/uplot/LICENSE").text
     assert client.get("/static/missing.js").status_code == 404
     assert client.get("/static/%2e%2e/app.py").status_code == 404  # nothing outside static/
+
+
+def test_api_docs_page_loads_only_files_this_server_serves(client: httpx.Client) -> None:
+    page = client.get("/docs")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    assert "://" not in page.text  # no CDN: lab networks are often offline
+    assets = re.findall(r'(?:src|href)="([^"]+)"', page.text)
+    assert len(assets) == 3, assets
+    for path in assets:
+        response = client.get(path)
+        assert response.status_code == 200, path
+        assert len(response.content) > 500, path
+    assert "Apache License" in client.get("/static/vendor/swagger-ui/LICENSE").text
+    assert "url: '/openapi.json'" in page.text
+    assert client.get("/openapi.json").json()["info"]["title"] == "EvoColony"
+    assert client.get("/redoc").status_code == 404
 
 
 def test_stream_yields_generations_of_a_running_run(client: httpx.Client) -> None:

@@ -1,4 +1,5 @@
-"""The browser dashboard: the page at `/`, its static files, and `GET /api/events` (SSE).
+"""The browser dashboard: the page at `/`, its static files, `GET /api/events` (SSE), and the
+API's Swagger UI at `/docs`.
 
 The event stream polls the store, the dispatcher and the robot service every `POLL_S` and sends
 only what changed, so an idle colony costs one small query per tick and no bytes on the wire.
@@ -19,7 +20,8 @@ from typing import Annotated, Any
 import anyio
 import anyio.to_thread
 from fastapi import APIRouter, Header, HTTPException, Query, Request
-from fastapi.responses import FileResponse, StreamingResponse
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from sqlalchemy import select
 
 from server.deps import get_workers
@@ -31,6 +33,7 @@ from server.routes.runs import run_out
 router = APIRouter(tags=["dashboard"])
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
+SWAGGER_UI = "/static/vendor/swagger-ui"
 POLL_S = 0.5
 """Seconds between two looks at the store; a generation shows up at most this late."""
 STREAM_S = 10.0
@@ -53,6 +56,20 @@ def static(path: str) -> FileResponse:
     if not target.is_relative_to(STATIC) or not target.is_file():
         raise HTTPException(404, detail=f"no static file {path}")
     return FileResponse(target, headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/docs", include_in_schema=False)
+def docs() -> HTMLResponse:
+    """Swagger UI from vendored files: FastAPI's default page loads it from a CDN, blank offline.
+    No validator badge either: it would send the schema to an online validator."""
+    return get_swagger_ui_html(
+        openapi_url="/openapi.json",
+        title="EvoColony API",
+        swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
+        swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
+        swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
+        swagger_ui_parameters={"validatorUrl": None},
+    )
 
 
 def sse(event: str, data: object, event_id: int | None = None) -> str:
