@@ -104,6 +104,9 @@ def _batch(robot: str, boot: int, first: int, n: int, **changes: Any) -> TraceBa
         "motors": np.full((n, 2), -0.6),
         "controller": np.full(n, -1, np.int32),
         "fresh": np.zeros(n, np.bool_),
+        "times": np.full(n, time.time()),
+        "poses": np.zeros((n, 3)),
+        "pose_source": "odometry",
     }
     fields.update(changes)
     return TraceBatch(**fields)
