@@ -11,8 +11,8 @@ from __future__ import annotations
 import contextlib
 import queue
 import struct
-import time
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
