@@ -4,8 +4,8 @@ Protocol 12 trace batches carry `times` (Unix seconds) and `poses` (x, y, headin
 `pose_source` (sim or odometry), which the Colony page's map draws (docs/robots.md). Batches
 stored before have none (null).
 
-Revision ID: 0004_trace_poses
-Revises: 0003_studies
+Revision ID: 0005_trace_poses
+Revises: 0004_replacement_policy
 Create Date: 2026-12-02 18:30:00.000000
 """
 
@@ -16,8 +16,8 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0004_trace_poses"
-down_revision: str | None = "0003_studies"
+revision: str = "0005_trace_poses"
+down_revision: str | None = "0004_replacement_policy"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
