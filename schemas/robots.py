@@ -249,7 +249,8 @@ def clamp_poses(poses: np.ndarray) -> np.ndarray:
     wrapped into [-pi, pi] (a peer's odometry may wind up many turns); values in range are
     kept bit for bit, non-finite ones stay (and are refused)."""
     out = np.array(poses, dtype=np.float64).reshape(-1, 3)
-    out[:, :2] = np.clip(out[:, :2], -POSE_LIMIT, POSE_LIMIT)
+    xy = out[:, :2]
+    out[:, :2] = np.where(np.isfinite(xy), np.clip(xy, -POSE_LIMIT, POSE_LIMIT), xy)
     wound = np.abs(out[:, 2]) > np.pi
     out[wound, 2] = np.arctan2(np.sin(out[wound, 2]), np.cos(out[wound, 2]))
     return out

@@ -229,6 +229,7 @@ def test_fake_trace_batches_are_refused_and_the_real_ones_stored(
         boot, key = agent.boot, traces_key("r-fake")
         far = agent.steps + 5000
         gap = np.concatenate([np.arange(5), np.arange(6, 11)]).astype(np.int64)
+        ahead = np.full(10, time.time() + 3600)  # a clock an hour fast
         fakes = [
             ("beyond", _batch("r-fake", boot, 10**12, 600)),
             ("ahead of the robot's clock", _batch("r-fake", boot, 40_000, 600)),
@@ -236,6 +237,7 @@ def test_fake_trace_batches_are_refused_and_the_real_ones_stored(
             ("jumps", _batch("r-fake", boot + 1000, 0, 600)),
             ("ahead of the robot's clock", _batch("r-fake", boot + 1, 0, 600)),
             ("not consecutive", _batch("r-fake", boot, 0, 10, steps=gap)),
+            ("ahead of the server's clock", _batch("r-fake", boot, 0, 10, times=ahead)),
         ]
         for reason, batch in fakes:
             reply = _ask(rogue, key, encode_trace(batch))
