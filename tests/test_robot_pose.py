@@ -216,3 +216,32 @@ def load_rows(name: str) -> list[str]:
     from evorobotics.maze import load_maze
 
     return load_maze(name).text().splitlines()
+
+
+def test_the_map_maze_is_a_server_setting_checked_at_start(tmp_path: Path) -> None:
+    from pydantic import ValidationError
+
+    from server.colony_map import maze_out
+
+    lab = tmp_path / "lab.txt"
+    lab.write_text("#####\n#...#\n#.#.#\n#####\n")
+    shown = maze_out(Settings(db_url="sqlite://", maze=str(lab)).maze)
+    assert (shown.name, shown.rows, shown.width) == (
+        "lab",
+        ["#####", "#...#", "#.#.#", "#####"],
+        0.5,
+    )
+    with pytest.raises(ValidationError, match="unknown maze 'nowhere'"):
+        Settings(db_url="sqlite://", maze="nowhere")
+
+
+def test_the_agent_cli_refuses_a_malformed_start_pose(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from colony.cli import app as cli
+
+    args = ["agent", "--robot-id", "r-cli", "--serial", "loop://", "--insecure-no-verify"]
+    args += ["--state-dir", str(tmp_path), "--start-pose"]
+    for bad, reason in [("1,2", "3 numbers"), ("1,2,nan", "finite"), ("a,b,c", "3 numbers")]:
+        result = CliRunner().invoke(cli, [*args, bad])
+        assert result.exit_code == 2 and reason in result.output, result.output
