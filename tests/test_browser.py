@@ -187,7 +187,10 @@ def test_robots_move_on_the_colony_map_push_to_all_and_policy_change(
         ):
             assert eventually(lambda: online(client, "map-a") and online(client, "map-b"))
             page.goto(f"{served.url}/#colony")
-            page.wait_for_function("document.querySelector('#colony-map').dataset.robots === '2'")
+            page.wait_for_function(  # robots of earlier tests may be drawn too
+                """['map-a', 'map-b'].every((id) => id in
+                    JSON.parse(document.querySelector('#colony-map').dataset.positions))"""
+            )
             page.locator(f'#group-run option[value="{run_id}"]').wait_for(state="attached")
             page.select_option("[data-testid=group-target]", "all")
             page.select_option("[data-testid=group-run]", str(run_id))
@@ -209,7 +212,7 @@ def test_robots_move_on_the_colony_map_push_to_all_and_policy_change(
                 arg=before,
             )
             after = positions(page)
-            assert set(after) == {"map-a", "map-b"} and after != before
+            assert {"map-a", "map-b"} <= set(after) and after != before
             maze = client.get("/api/colony/map").json()["maze"]
             for x, y in after.values():  # drawn inside the maze
                 assert 0 < x < maze["width"] and 0 < y < maze["height"]
