@@ -225,7 +225,7 @@ def test_robots_move_on_the_colony_map_push_to_all_and_policy_change(
 
             page.click("[data-testid=details-map-b]")
             page.wait_for_function(
-                "Number(document.querySelector('#robot-timeline').dataset.points) > 10"
+                "Number(document.querySelector('#robot-timeline').dataset.points) > 40"
             )
             page.wait_for_selector("#robot-timeline canvas")
             page.screenshot(path=str(shots / "dashboard-colony.png"), full_page=True)
