@@ -67,6 +67,8 @@ def _robot(db: Session, robot_id: str, online: bool, samples: int) -> MapRobot:
         )
     batches.reverse()
     poses = np.concatenate([p for _, _, p in batches])[-samples:]
+    steps = np.concatenate([np.frombuffer(r.steps, "<i8") for r, _, _ in batches])[-samples:]
+    boots = np.concatenate([np.full(r.count, r.boot) for r, _, _ in batches])[-samples:]
     newest_row, newest_times, _ = batches[-1]
     x, y, theta = (float(v) for v in poses[-1])
     return MapRobot(
@@ -76,31 +78,27 @@ def _robot(db: Session, robot_id: str, online: bool, samples: int) -> MapRobot:
         pose=(x, y, theta),
         at=float(newest_times[-1]),
         path=[(float(p[0]), float(p[1])) for p in poses],
-        stuck=_stuck(db, robot_id, batches, samples),
+        stuck=_stuck(db, robot_id, boots, steps, poses),
     )
 
 
 def _stuck(
-    db: Session,
-    robot_id: str,
-    batches: list[tuple[TraceRow, np.ndarray, np.ndarray]],
-    samples: int,
+    db: Session, robot_id: str, boots: np.ndarray, steps: np.ndarray, poses: np.ndarray
 ) -> list[MapStuck]:
-    where: dict[tuple[int, int], tuple[float, float]] = {}
-    for row, _, poses in batches:
-        steps = np.frombuffer(row.steps, "<i8")
-        for step, pose in zip(steps.tolist(), poses, strict=True):
-            where[(row.boot, step)] = (float(pose[0]), float(pose[1]))
-    first_boot = batches[0][0].boot
+    """The robot's stuck events whose (boot, step) is one of the path's samples, oldest first."""
+    where = {
+        (boot, step): (float(pose[0]), float(pose[1]))
+        for boot, step, pose in zip(boots.tolist(), steps.tolist(), poses, strict=True)
+    }
     events = db.scalars(
         select(StuckEventRow)
-        .where(StuckEventRow.robot_id == robot_id, StuckEventRow.boot >= first_boot)
+        .where(StuckEventRow.robot_id == robot_id, StuckEventRow.boot >= int(boots.min()))
         .order_by(StuckEventRow.id.desc())
-        .limit(samples)
+        .limit(len(where))
     )
     marks = []
     for event in events:
-        spot = where.get((event.boot or 0, event.step))
+        spot = where.get((event.boot, event.step))
         if spot is not None:
             marks.append(
                 MapStuck(

@@ -15,6 +15,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+import sqlalchemy as sa
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -27,6 +28,7 @@ from robot_agent.sim_body import SimBody
 from schemas.robots import POSE_LIMIT, RobotStatus, TraceBatch, decode_trace, encode_trace
 from schemas.wire import WireError, decode_frame, encode_frame
 from schemas.world import World
+from server.robot_store import StuckEventRow, TraceRow
 from server.settings import Settings
 from tests.helpers import (
     QUICK,
@@ -245,3 +247,60 @@ def test_the_agent_cli_refuses_a_malformed_start_pose(tmp_path: Path) -> None:
     for bad, reason in [("1,2", "3 numbers"), ("1,2,nan", "finite"), ("a,b,c", "3 numbers")]:
         result = CliRunner().invoke(cli, [*args, bad])
         assert result.exit_code == 2 and reason in result.output, result.output
+
+
+def _row(robot: str, boot: int, first: int, poses: np.ndarray | None) -> TraceRow:
+    n = 10
+    return TraceRow(
+        robot_id=robot,
+        boot=boot,
+        first=first,
+        last=first + n - 1,
+        count=n,
+        controllers="[]",
+        steps=np.arange(first, first + n, dtype="<i8").tobytes(),
+        whiskers=np.zeros((n, 5), "|u1").tobytes(),
+        motors=np.zeros((n, 2), "<f8").tobytes(),
+        controller=np.full(n, -1, "<i4").tobytes(),
+        fresh=np.zeros(n, "|b1").tobytes(),
+        times=None if poses is None else np.arange(n, dtype="<f8").tobytes(),
+        poses=None if poses is None else poses.astype("<f8").tobytes(),
+        pose_source=None if poses is None else "odometry",
+    )
+
+
+def test_the_map_places_stuck_events_at_their_steps_pose(engine: sa.Engine) -> None:
+    """Newest `samples` poses per robot, across batches; a stuck event at the pose of its
+    (boot, step) when that sample is among them, else not drawn; batches without poses and
+    robots without any give no path."""
+    from sqlalchemy.orm import sessionmaker
+
+    from server.colony_map import colony_map
+    from server.models import Robot
+
+    def line(start: float) -> np.ndarray:
+        xs = start + np.arange(10) * 0.01
+        return np.stack([xs, np.full(10, 1.0), np.zeros(10)], axis=1)
+
+    sessions = sessionmaker(engine)
+    with sessions.begin() as db:
+        db.add_all([Robot(id="r-map", status="online"), Robot(id="r-none", status="offline")])
+        db.add_all([_row("r-map", 0, 0, None), _row("r-map", 1, 0, line(0.5))])
+        db.add(_row("r-map", 1, 10, line(0.6)))
+        db.add_all(
+            [
+                StuckEventRow(robot_id="r-map", reason="r", step=13, boot=1),  # retained
+                StuckEventRow(robot_id="r-map", reason="r", step=2, boot=1),  # beyond `samples`
+                StuckEventRow(robot_id="r-map", reason="r", step=3, boot=0),  # no pose
+            ]
+        )
+    with sessions() as db:
+        shown = colony_map(db, "paper", lambda robot: robot == "r-map", samples=15)
+    robots = {r.id: r for r in shown.robots}
+    assert robots["r-none"].pose is None and robots["r-none"].path == []
+    mapped = robots["r-map"]
+    assert mapped.online and mapped.pose_source == "odometry"
+    assert len(mapped.path) == 15 and mapped.path[0] == pytest.approx((0.55, 1.0))
+    assert mapped.pose is not None and mapped.pose == pytest.approx((0.69, 1.0, 0.0))
+    assert mapped.path[-1] == mapped.pose[:2]
+    assert [(m.step, round(m.x, 9), m.y) for m in mapped.stuck] == [(13, 0.63, 1.0)]
