@@ -720,9 +720,8 @@ class Agent:
             limit = self.settings.max_batch
             samples = list(itertools.islice(self._buffer, limit))
             status = self._status()
-        batch = _batch(
-            self.settings.robot_id, self.boot, samples, status, self.pose_source or "odometry"
-        )
+            source = self.pose_source or "odometry"  # known before the first sample is taken
+        batch = _batch(self.settings.robot_id, self.boot, samples, status, source)
         reply = _ask(
             session, traces_key(batch.robot), encode_trace(batch), self.settings.request_timeout
         )
