@@ -268,8 +268,13 @@ class BasicXEmulator:
             return f"{Command.VERSION} {self.config.version}"
         if verb == Command.WHISKERS and not args:
             return f"{Command.WHISKERS} {whisker_bits(self.body.whiskers())}"
-        if verb == Command.POSE and not args and isinstance(self.body, PosedBody):
-            return f"{Command.POSE} {pose_text(*self.body.position())}"
+        if verb == Command.POSE:
+            body = self.body
+            if not isinstance(body, PosedBody):
+                return f"ERR {ErrorCode.COMMAND}"  # as a real BasicX: it has no such request
+            if args:
+                return f"ERR {ErrorCode.ARGUMENT}"
+            return f"{Command.POSE} {pose_text(*body.position())}"
         if verb == Command.STOP and not args:
             with self._lock:
                 self._motors = (0, 0)
@@ -288,7 +293,7 @@ class BasicXEmulator:
             with self._lock:
                 self._watchdog = values[0] / 1000
             return "OK"
-        if verb in tuple(Command) and verb != Command.POSE:
+        if verb in tuple(Command):
             return f"ERR {ErrorCode.ARGUMENT}"
         return f"ERR {ErrorCode.COMMAND}"
 

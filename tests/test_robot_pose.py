@@ -70,6 +70,8 @@ def test_the_emulator_reports_the_simulators_pose_bit_for_bit() -> None:
         x, y, theta = driver.pose()
         assert (x, y, theta) == tuple(body.pose[0].tolist())
         assert (x, y) != tuple(SimBody.create("paper", seed=3).pose[0, :2].tolist())  # it moved
+        with pytest.raises(FirmwareError, match="ERR ARG"):
+            driver.request("P 1")
 
 
 def test_a_firmware_without_a_pose_refuses_the_request() -> None:
