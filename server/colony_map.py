@@ -46,13 +46,18 @@ def colony_map(
 
 def _robot(db: Session, robot_id: str, online: bool, samples: int) -> MapRobot:
     """Newest batches first until `samples` poses; stuck events whose step lies in them."""
+    newest_first = (TraceRow.boot.desc(), TraceRow.first.desc())
+    mine = TraceRow.robot_id == robot_id
+    # the batch counts alone first (the primary key's order), then only the batches needed
+    counts = db.scalars(select(TraceRow.count).where(mine).order_by(*newest_first).limit(samples))
+    needed = held = 0
+    for count in counts:
+        needed, held = needed + 1, held + count
+        if held >= samples:
+            break
     batches: list[tuple[TraceRow, np.ndarray, np.ndarray]] = []
     held = 0
-    rows = db.scalars(
-        select(TraceRow)
-        .where(TraceRow.robot_id == robot_id)
-        .order_by(TraceRow.boot.desc(), TraceRow.first.desc())
-    )
+    rows = db.scalars(select(TraceRow).where(mine).order_by(*newest_first).limit(needed))
     for row in rows:
         located = trace_poses(row)
         if located is None:
