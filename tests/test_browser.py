@@ -172,8 +172,8 @@ def positions(page: Any) -> dict[str, list[float]]:
 def test_robots_move_on_the_colony_map_push_to_all_and_policy_change(
     served: Served, db_url: str, page: Any, tmp_path: Path, shots: Path
 ) -> None:
-    """Two virtual robots on the maze: Push to all runs a run's best on both, their dots move
-    on the map, a card's policy select sets the robot's own replacement policy, and the
+    """Two virtual robots on the maze: a push to the selected one reaches it alone, Push to all
+    runs a run's best on both, their dots move on the map, a card's policy select sets the robot's own replacement policy, and the
     robot's panel plots its whiskers and motors."""
     with httpx.Client(base_url=served.url, timeout=30) as client:
         run_id = client.post("/api/runs", json=QUICK).json()["id"]
@@ -192,10 +192,18 @@ def test_robots_move_on_the_colony_map_push_to_all_and_policy_change(
                     JSON.parse(document.querySelector('#colony-map').dataset.positions))"""
             )
             page.locator(f'#group-run option[value="{run_id}"]').wait_for(state="attached")
-            page.select_option("[data-testid=group-target]", "all")
             page.select_option("[data-testid=group-run]", str(run_id))
-            page.click("[data-testid=group-push]")
             result = page.locator("[data-testid=group-message]")
+            page.check("[data-testid=select-map-a]")  # a selection of one: rank 1 to map-a
+            page.fill("[data-testid=group-rank]", "1")
+            page.click("[data-testid=group-push]")
+            result.locator('li[data-robot="map-a"]').filter(has_text="acknowledged").wait_for()
+            assert result.locator("li").count() == 1
+            assert a.controller is not None and a.controller.provenance["rank"] == 1
+            assert b.controller is None
+            page.fill("[data-testid=group-rank]", "")
+            page.select_option("[data-testid=group-target]", "all")
+            page.click("[data-testid=group-push]")
             for robot in ("map-a", "map-b"):
                 result.locator(f'li[data-robot="{robot}"]').filter(
                     has_text="acknowledged"
