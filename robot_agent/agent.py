@@ -258,6 +258,7 @@ class Agent:
         """sim: the robot reports its pose (the emulator); odometry: it cannot (a real BasicX),
         so `_odometry` integrates the motor commands. None until the first step asks."""
         self._odometry = Odometry(settings.start_pose, World(dt=settings.period))
+        self._last_at = 0.0
         self.steps = 0
         self.stuck_events = 0
         self.serial_errors = 0
@@ -390,7 +391,8 @@ class Agent:
             self._apply_pending()
         try:
             bits = tuple(int(b) for b in self.robot.whiskers())
-            at = time.time()
+            # wall-clock time, never stepping back within the traces (a clock set back by NTP)
+            at = self._last_at = max(time.time(), self._last_at)
             pose = self._pose()
         except SerialLinkError as exc:
             self._serial_failed(exc)
