@@ -869,7 +869,7 @@ function drawMap() {
   let stuck = 0;
   for (const robot of robots) {
     if (robot.pose === null) continue;
-    const colour = robotColour(robot.id);
+    const colour = robot.online ? robotColour(robot.id) : "#9aa3ad"; // offline: where it was last
     g.strokeStyle = alpha(colour, 0.55);
     g.lineWidth = 1.5;
     g.beginPath();
