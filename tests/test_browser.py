@@ -208,6 +208,7 @@ def test_robots_move_on_the_colony_map_push_to_all_and_policy_change(
                 result.locator(f'li[data-robot="{robot}"]').filter(
                     has_text="acknowledged"
                 ).wait_for()
+            assert result.locator("li").count() == 2  # offline robots of earlier tests: not pushed
             assert a.controller is not None and a.controller.sha256 == best
             assert b.controller is not None and b.controller.sha256 == best
             before = positions(page)

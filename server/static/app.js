@@ -799,9 +799,12 @@ async function groupPush() {
     return;
   }
   const all = $("#group-target").value === "all";
-  const robots = [...state.cards.keys()].filter((id) => all || state.chosen.has(id));
+  // "all": every robot online now; a selection is pushed as chosen (an offline one says so)
+  const robots = [...state.cards.entries()]
+    .filter(([id, entry]) => (all ? entry.online : state.chosen.has(id)))
+    .map(([id]) => id);
   if (robots.length === 0) {
-    message.replaceChildren(el("li", { class: "bad", text: "no robot selected" }));
+    message.replaceChildren(el("li", { class: "bad", text: all ? "no robot is online" : "no robot selected" }));
     return;
   }
   const body = { run_id: Number(run) };
@@ -1048,6 +1051,7 @@ function renderRobots(snapshot) {
       container.append(entry.card);
     }
     const set = (name, ...content) => $(`[data-field="${name}"]`, entry.card).replaceChildren(...content);
+    entry.online = robot.online;
     $(".dot", entry.card).classList.toggle("on", robot.online);
     $(".swatch", entry.card).style.background = robotColour(robot.id);
     if (document.activeElement !== entry.policy && !entry.policy.disabled) {
