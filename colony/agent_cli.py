@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import signal
 import threading
 from pathlib import Path
@@ -54,6 +55,12 @@ def agent_command(
         ),
     ] = None,
     baud: Annotated[int, typer.Option(help="serial baud rate")] = 115_200,
+    start_pose: Annotated[
+        str,
+        typer.Option(
+            help="--serial: where odometry starts in the lab maze, X,Y,HEADING (m, m, rad)"
+        ),
+    ] = "0,0,0",
     server_key: Annotated[
         Path | None,
         typer.Option(
@@ -105,6 +112,7 @@ def agent_command(
             server_key=key,
             require_signature=not insecure_no_verify,
             auth=auth,
+            start_pose=_pose(start_pose),
         )
         emulator = (
             BasicXEmulator(
@@ -198,3 +206,15 @@ def register(app: typer.Typer) -> None:
     """Add `agent` and `replay` to the root CLI."""
     app.command(name="agent")(agent_command)
     app.command(name="replay")(replay_command)
+
+
+def _pose(text: str) -> tuple[float, float, float]:
+    """`X,Y,HEADING` as three finite floats; ValueError naming the option otherwise."""
+    parts = text.split(",")
+    try:
+        x, y, theta = (float(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"--start-pose must be X,Y,HEADING (3 numbers), got {text!r}") from None
+    if not all(math.isfinite(v) for v in (x, y, theta)):
+        raise ValueError(f"--start-pose must be finite, got {text!r}")
+    return x, y, theta

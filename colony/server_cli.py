@@ -121,6 +121,13 @@ def serve(
             help="what a stuck robot without its own policy gets: off or rank [COLONY_REPLACEMENT]"
         ),
     ] = None,
+    maze: Annotated[
+        str | None,
+        typer.Option(
+            help="the lab maze the Colony page maps robots in: NAME, gen:SIZE:SEED or FILE "
+            "(default paper) [COLONY_MAZE]"
+        ),
+    ] = None,
 ) -> None:
     """Run the colony server: REST API (OpenAPI at /docs), store, run manager, zenoh router
     for workers (docs/protocol.md) and N local workers."""
@@ -149,6 +156,7 @@ def serve(
         "zenoh_tls_certificate": zenoh_tls_cert,
         "zenoh_tls_private_key": zenoh_tls_key,
         "replacement": replacement,
+        "maze": maze,
     }
     try:
         settings = Settings.model_validate({k: v for k, v in overrides.items() if v is not None})

@@ -40,7 +40,8 @@ import zenoh
 from evorobotics import network
 from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
-from robot_agent.errors import SerialLinkError
+from robot_agent.errors import FirmwareError, SerialLinkError
+from robot_agent.odometry import Odometry
 from robot_agent.stuck import StuckConfig, StuckDetector
 from robot_agent.verify import Verifier, pin_key, pinned_key
 from schemas.answer import CONSOLIDATION, TARGET, one_answer
@@ -49,6 +50,7 @@ from schemas.robots import (
     WHISKERS,
     AgentState,
     ControllerPush,
+    PoseSource,
     PushAck,
     Replacement,
     RobotStatus,
@@ -59,6 +61,7 @@ from schemas.robots import (
     ack_key,
     alive_key,
     check_robot_id,
+    clamp_poses,
     command_key,
     decode_message,
     encode_message,
@@ -77,6 +80,10 @@ class RobotIO(Protocol):
     """What the control loop needs from the robot: `BasicXDriver` is the real one."""
 
     def whiskers(self) -> tuple[bool, ...]: ...
+
+    def pose(self) -> tuple[float, float, float]:
+        """The true pose; FirmwareError when the robot cannot tell (a real BasicX)."""
+        ...
 
     def set_motors(self, left: float, right: float) -> None: ...
 
@@ -123,6 +130,9 @@ class AgentSettings:
     """Refuse every command while no server key is given or pinned (what `colony agent` sets)."""
     auth: ZenohClientAuth = field(default_factory=ZenohClientAuth)
     """zenoh user/password and TLS root CA."""
+    start_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Where odometry starts (x m, y m, heading rad in the lab maze's frame): a real EvBot's
+    traces carry the pose integrated from here; an emulated robot reports its true pose."""
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
@@ -138,6 +148,8 @@ class AgentSettings:
             raise ValueError("escape steps must be >= 0")
         if not 0 < self.escape_speed <= 1:
             raise ValueError(f"escape_speed must be in (0, 1], got {self.escape_speed}")
+        if len(self.start_pose) != 3 or not np.isfinite(self.start_pose).all():
+            raise ValueError(f"start_pose must be 3 finite numbers, got {self.start_pose}")
 
     @property
     def state_path(self) -> Path:
@@ -190,6 +202,9 @@ class _Sample:
     motors: tuple[float, float]
     sha256: str | None
     fresh: bool
+    at: float
+    """Unix seconds when the whiskers were read."""
+    pose: tuple[float, float, float]
 
 
 class _Backoff:
@@ -239,6 +254,11 @@ class Agent:
         self._escape: list[tuple[float, float]] = []
         self._detector = StuckDetector(settings.stuck, World(dt=settings.period))
         self._lateness: deque[float] = deque(maxlen=1000)
+        self.pose_source: PoseSource | None = None
+        """sim: the robot reports its pose (the emulator); odometry: it cannot (a real BasicX),
+        so `_odometry` integrates the motor commands. None until the first step asks."""
+        self._odometry = Odometry(settings.start_pose, World(dt=settings.period))
+        self._last_at = 0.0
         self.steps = 0
         self.stuck_events = 0
         self.serial_errors = 0
@@ -371,6 +391,9 @@ class Agent:
             self._apply_pending()
         try:
             bits = tuple(int(b) for b in self.robot.whiskers())
+            # wall-clock time, never stepping back within the traces (a clock set back by NTP)
+            at = self._last_at = max(time.time(), self._last_at)
+            pose = self._pose()
         except SerialLinkError as exc:
             self._serial_failed(exc)
             return
@@ -382,9 +405,11 @@ class Agent:
         except SerialLinkError as exc:
             self._serial_failed(exc)
             ok = False
+        if ok and self.pose_source == "odometry":
+            self._odometry.advance(*motors)
         with self._lock:
             self.serial_ok = ok
-            sample = _Sample(self.steps, bits, motors, sha, fresh)
+            sample = _Sample(self.steps, bits, motors, sha, fresh, at, pose)
             if len(self._buffer) >= self.settings.buffer_samples:
                 self._buffer.popleft()
                 self.dropped += 1
@@ -408,6 +433,20 @@ class Agent:
             self.changed.notify_all()
         if len(self._buffer) >= self.settings.batch_steps:
             self._wake.set()
+
+    def _pose(self) -> tuple[float, float, float]:
+        """The robot's pose as it senses: its own (emulator) or odometry's, for good once the
+        firmware refused the `P` request (a real BasicX has none)."""
+        if self.pose_source != "odometry":
+            try:
+                pose = self.robot.pose()
+            except FirmwareError:
+                log.info("robot %s: no pose from the firmware: odometry", self.settings.robot_id)
+                self.pose_source = "odometry"
+            else:
+                self.pose_source = "sim"
+                return pose
+        return self._odometry.pose
 
     def _serial_failed(self, exc: SerialLinkError) -> None:
         log.warning("robot %s: serial link: %s", self.settings.robot_id, exc)
@@ -683,7 +722,8 @@ class Agent:
             limit = self.settings.max_batch
             samples = list(itertools.islice(self._buffer, limit))
             status = self._status()
-        batch = _batch(self.settings.robot_id, self.boot, samples, status)
+            source = self.pose_source or "odometry"  # known before the first sample is taken
+        batch = _batch(self.settings.robot_id, self.boot, samples, status, source)
         reply = _ask(
             session, traces_key(batch.robot), encode_trace(batch), self.settings.request_timeout
         )
@@ -735,7 +775,9 @@ def _write_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _batch(robot: str, boot: int, samples: list[_Sample], status: RobotStatus) -> TraceBatch:
+def _batch(
+    robot: str, boot: int, samples: list[_Sample], status: RobotStatus, source: PoseSource
+) -> TraceBatch:
     shas = list(dict.fromkeys(s.sha256 for s in samples if s.sha256 is not None))
     index = {sha: i for i, sha in enumerate(shas)}
     return TraceBatch(
@@ -750,6 +792,9 @@ def _batch(robot: str, boot: int, samples: list[_Sample], status: RobotStatus) -
             [ESCAPE if s.sha256 is None else index[s.sha256] for s in samples], dtype=np.int32
         ),
         fresh=np.array([s.fresh for s in samples], dtype=np.bool_),
+        times=np.array([s.at for s in samples], dtype=np.float64),
+        poses=clamp_poses(np.array([s.pose for s in samples], dtype=np.float64)),
+        pose_source=source,
     )
 
 

@@ -29,6 +29,7 @@ from robot_agent.serial_protocol import (
     LineDecoder,
     encode,
     motor_units,
+    parse_pose,
     parse_whisker_bits,
 )
 
@@ -125,6 +126,15 @@ class BasicXDriver:
             return parse_whisker_bits(bits)
         except ValueError as exc:
             raise FirmwareError(f"firmware sent bad whisker bits {bits!r}") from exc
+
+    def pose(self) -> tuple[float, float, float]:
+        """The true pose (x m, y m, heading rad) of an emulated robot; a real BasicX has no
+        such request and answers ERR CMD (FirmwareError): the agent then uses odometry."""
+        text = self._expect(self.request(Command.POSE), Command.POSE)
+        try:
+            return parse_pose(text)
+        except ValueError as exc:
+            raise FirmwareError(f"firmware sent a bad pose {text!r}") from exc
 
     def set_motors(self, left: float, right: float) -> None:
         """Both wheel commands in [-1, 1] (clamped; quantised to 1/1000 on the wire)."""

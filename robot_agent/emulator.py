@@ -28,7 +28,7 @@ import tty
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType, TracebackType
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from robot_agent.serial_protocol import (
     MOTOR_FULL_SCALE,
@@ -39,6 +39,7 @@ from robot_agent.serial_protocol import (
     FrameError,
     LineDecoder,
     encode,
+    pose_text,
     whisker_bits,
 )
 
@@ -59,6 +60,15 @@ class Body(Protocol):
 
     def whiskers(self) -> tuple[bool, ...]:
         """The five whisker bits at the current pose, left to right."""
+        ...
+
+
+@runtime_checkable
+class PosedBody(Body, Protocol):
+    """A body that knows where it is: the emulator then answers the `P` (pose) request."""
+
+    def position(self) -> tuple[float, float, float]:
+        """x, y (metres) and heading (radians) now."""
         ...
 
 
@@ -258,6 +268,13 @@ class BasicXEmulator:
             return f"{Command.VERSION} {self.config.version}"
         if verb == Command.WHISKERS and not args:
             return f"{Command.WHISKERS} {whisker_bits(self.body.whiskers())}"
+        if verb == Command.POSE:
+            body = self.body
+            if not isinstance(body, PosedBody):
+                return f"ERR {ErrorCode.COMMAND}"  # as a real BasicX: it has no such request
+            if args:
+                return f"ERR {ErrorCode.ARGUMENT}"
+            return f"{Command.POSE} {pose_text(*body.position())}"
         if verb == Command.STOP and not args:
             with self._lock:
                 self._motors = (0, 0)

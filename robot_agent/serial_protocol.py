@@ -10,6 +10,7 @@ shared by the driver and the emulator so both ends agree byte for byte.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from enum import StrEnum
@@ -40,6 +41,7 @@ class Command(StrEnum):
     VERSION = "V"  # V                  firmware version; reply V <text>
     STOP = "S"  # S                  both motors to zero at once; reply OK
     WATCHDOG = "T"  # T <ms>             set the watchdog timeout; reply OK
+    POSE = "P"  # P                  the emulator's true pose; reply P <x> <y> <theta>
 
 
 class ErrorCode(StrEnum):
@@ -161,3 +163,20 @@ def parse_whisker_bits(text: str) -> tuple[bool, ...]:
     if len(text) != WHISKERS or set(text) - {"0", "1"}:
         raise ValueError(f"whisker bits must be {WHISKERS} of 0/1, got {text!r}")
     return tuple(c == "1" for c in text)
+
+
+def pose_text(x: float, y: float, theta: float) -> str:
+    """A pose as the `P` reply's three numbers: shortest round-trip float text, so the agent
+    reads the emulator's float64 pose bit for bit."""
+    return " ".join(repr(float(v)) for v in (x, y, theta))
+
+
+def parse_pose(text: str) -> tuple[float, float, float]:
+    """Inverse of `pose_text`: three finite numbers (metres, metres, radians); ValueError else."""
+    words = text.split()
+    if len(words) != 3:
+        raise ValueError(f"a pose is 3 numbers, got {text!r}")
+    x, y, theta = (float(w) for w in words)
+    if not all(math.isfinite(v) for v in (x, y, theta)):
+        raise ValueError(f"a pose must be finite, got {text!r}")
+    return x, y, theta

@@ -98,6 +98,11 @@ class SimBody:
             self.pose = moved
         self.whisker_range = self._next_ranges()
 
+    def position(self) -> tuple[float, float, float]:
+        """The pose now: x, y (metres) and heading (radians), as the simulator holds them."""
+        x, y, theta = self.pose[0]
+        return float(x), float(y), float(theta)
+
     def whiskers(self) -> tuple[bool, ...]:
         bits = whisker_bits(self.maze, self.pose, self.params, self.whisker_range)
         return tuple(bool(b) for b in bits[0])

@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES, MAX_TRACE_SAMPLES
-from schemas.wire import NAME_PATTERN, WireError, decode_frame, encode_frame
+from schemas.wire import NAME_PATTERN, PROTOCOL, WireError, decode_frame, encode_frame
 
 KEY_ROBOTS_ALIVE = "evocolony/robots/*/alive"
 """Liveliness key expression matching every robot's token."""
@@ -42,6 +42,11 @@ KEY_ACKS = "evocolony/robots/*/ack"
 """Key expression the server subscribes to for every robot's push acknowledgements."""
 
 WHISKERS = 5
+POSE_LIMIT = 1000.0
+"""Metres: a pose coordinate beyond +/-POSE_LIMIT is clamped to it (no lab maze is a km wide)."""
+PoseSource = Literal["sim", "odometry"]
+"""Where a sample's pose comes from: the emulated robot's simulator (its true pose), or odometry
+integrated by the agent from its motor commands with the simulator's body model (a real EvBot)."""
 ESCAPE = -1
 """Controller index of a sample driven by the scripted escape or a stop, not by a controller."""
 
@@ -155,6 +160,8 @@ class RobotStatus(_Model):
 
 class TraceHeader(_RobotMessage):
     kind: Literal["trace"] = "trace"
+    protocol: int = Field(PROTOCOL, description="schemas.wire.PROTOCOL of the agent")
+    pose_source: PoseSource
     boot: int = Field(ge=0, lt=2**31, description="agent start count: (boot, step) names a sample")
     controllers: list[Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]] = Field(
         max_length=MAX_TRACE_SAMPLES, description="sha256 of each controller index in the batch"
@@ -169,7 +176,10 @@ class TraceBatch:
     steps (n,) int64 (one more per sample: the agent sends consecutive samples), whiskers (n, 5)
     uint8, motors (n, 2) float64 in [-1, 1] exactly as the controller computed them (before the
     wire's 1/1000 quantisation), controller (n,) int32 index into
-    `controllers` or ESCAPE, fresh (n,) bool: the controller's state was reset before this step.
+    `controllers` or ESCAPE, fresh (n,) bool: the controller's state was reset before this step,
+    times (n,) float64 Unix seconds when the whiskers were read (non-decreasing), poses (n, 3)
+    float64 x, y (metres, within +/-POSE_LIMIT) and heading (radians, in [-pi, pi]) then, from
+    `pose_source`.
     """
 
     robot: str
@@ -181,6 +191,9 @@ class TraceBatch:
     motors: np.ndarray
     controller: np.ndarray
     fresh: np.ndarray
+    times: np.ndarray
+    poses: np.ndarray
+    pose_source: PoseSource
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot)
@@ -191,6 +204,8 @@ class TraceBatch:
             "motors": ((n, 2), np.float64),
             "controller": ((n,), np.int32),
             "fresh": ((n,), np.bool_),
+            "times": ((n,), np.float64),
+            "poses": ((n, 3), np.float64),
         }
         for name, (shape, dtype) in expected.items():
             value: np.ndarray = getattr(self, name)
@@ -210,6 +225,16 @@ class TraceBatch:
         bad = (self.controller < ESCAPE) | (self.controller >= len(self.controllers))
         if np.any(bad):
             raise WireError("controller index out of range")
+        if not np.isfinite(self.times).all() or np.any(self.times < 0):
+            raise WireError("sample times must be finite Unix seconds")
+        if np.any(np.diff(self.times) < 0):
+            raise WireError("sample times must not decrease")
+        if not np.isfinite(self.poses).all():
+            raise WireError("poses must be finite")
+        if np.any(np.abs(self.poses[:, :2]) > POSE_LIMIT) or np.any(
+            np.abs(self.poses[:, 2]) > np.pi
+        ):
+            raise WireError(f"pose x, y must lie within +/-{POSE_LIMIT} m and heading in [-pi, pi]")
 
     @property
     def first(self) -> int:
@@ -220,12 +245,25 @@ class TraceBatch:
         return int(self.steps[-1])
 
 
+def clamp_poses(poses: np.ndarray) -> np.ndarray:
+    """Finite poses brought into range: x, y clamped to +/-POSE_LIMIT, a heading beyond pi
+    wrapped into [-pi, pi] (a peer's odometry may wind up many turns); values in range are
+    kept bit for bit, non-finite ones stay (and are refused)."""
+    out = np.array(poses, dtype=np.float64).reshape(-1, 3)
+    xy = out[:, :2]
+    out[:, :2] = np.where(np.isfinite(xy), np.clip(xy, -POSE_LIMIT, POSE_LIMIT), xy)
+    wound = np.abs(out[:, 2]) > np.pi
+    out[wound, 2] = np.arctan2(np.sin(out[wound, 2]), np.cos(out[wound, 2]))
+    return out
+
+
 def encode_trace(batch: TraceBatch) -> bytes:
     header = TraceHeader(
         robot=batch.robot,
         boot=batch.boot,
         controllers=list(batch.controllers),
         status=batch.status,
+        pose_source=batch.pose_source,
     )
     arrays = {
         "steps": batch.steps,
@@ -233,12 +271,15 @@ def encode_trace(batch: TraceBatch) -> bytes:
         "motors": batch.motors,
         "controller": batch.controller,
         "fresh": batch.fresh,
+        "times": batch.times,
+        "poses": batch.poses,
     }
     return encode_frame(header.model_dump(mode="json"), arrays)
 
 
 def decode_trace(payload: bytes) -> TraceBatch:
-    """A trace batch; WireError when malformed or over MAX_TRACE_BYTES / MAX_TRACE_SAMPLES."""
+    """A trace batch; WireError when malformed, of another protocol or over MAX_TRACE_BYTES /
+    MAX_TRACE_SAMPLES. Finite poses out of range are clamped (`clamp_poses`)."""
     if len(payload) > MAX_TRACE_BYTES:
         raise WireError(f"trace batch of {len(payload)} bytes exceeds {MAX_TRACE_BYTES}")
     header, arrays = decode_frame(payload)
@@ -246,18 +287,23 @@ def decode_trace(payload: bytes) -> TraceBatch:
         parsed = TraceHeader.model_validate(header)
     except ValidationError as exc:
         raise WireError(f"trace header: {exc}") from exc
-    names = {"steps", "whiskers", "motors", "controller", "fresh"}
+    if parsed.protocol != PROTOCOL:
+        raise WireError(f"the agent speaks protocol {parsed.protocol}, the server {PROTOCOL}")
+    names = {"steps", "whiskers", "motors", "controller", "fresh", "times", "poses"}
     if set(arrays) != names:
         raise WireError(f"trace arrays must be {sorted(names)}, got {sorted(arrays)}")
     if len(arrays["steps"]) > MAX_TRACE_SAMPLES:
         raise WireError(
             f"trace batch of {len(arrays['steps'])} samples exceeds {MAX_TRACE_SAMPLES}"
         )
+    if arrays["poses"].ndim == 2 and arrays["poses"].shape[1:] == (3,):
+        arrays["poses"] = clamp_poses(arrays["poses"])
     return TraceBatch(
         robot=parsed.robot,
         boot=parsed.boot,
         controllers=tuple(parsed.controllers),
         status=parsed.status,
+        pose_source=parsed.pose_source,
         **{name: arrays[name] for name in names},
     )
 
@@ -455,11 +501,58 @@ class TraceSample(_Model):
     motors: tuple[float, float]
     controller_sha256: str | None
     fresh: bool
+    at: float | None = Field(description="Unix time the whiskers were read (null: not recorded)")
+    pose: tuple[float, float, float] | None = Field(
+        description="x, y (m), heading (rad) then (null: not recorded)"
+    )
+    pose_source: PoseSource | None = Field(
+        description="sim: the emulator's true pose; odometry: integrated from motor commands"
+    )
 
 
 class TracesOut(_Model):
     robot: str
     samples: list[TraceSample] = Field(description="newest last")
+
+
+class MapMaze(_Model):
+    """The maze the Colony page draws: `rows[0]` is the north edge, `#` a wall cell."""
+
+    name: str
+    width: float = Field(description="metres along x")
+    height: float = Field(description="metres along y")
+    cell_size: float = Field(description="metres per grid cell")
+    rows: list[str] = Field(description="the grid, north row first: '#' wall, '.' free")
+
+
+class MapStuck(_Model):
+    """A stuck event where it happened (the pose of its step, when that sample is retained)."""
+
+    id: int
+    at: float = Field(description="Unix time the server received it")
+    step: int
+    reason: str
+    x: float
+    y: float
+
+
+class MapRobot(_Model):
+    """One robot on the map: where it is, where it went lately, where it got stuck."""
+
+    id: str
+    online: bool
+    pose_source: PoseSource | None = Field(description="of its newest sample (null: no pose)")
+    pose: tuple[float, float, float] | None = Field(description="newest x, y (m), heading (rad)")
+    at: float | None = Field(description="Unix time of the newest pose")
+    path: list[tuple[float, float]] = Field(description="recent x, y, oldest first")
+    stuck: list[MapStuck] = Field(description="stuck events within the recent path")
+
+
+class ColonyMapOut(_Model):
+    """GET /api/colony/map."""
+
+    maze: MapMaze
+    robots: list[MapRobot]
 
 
 class ReplayOut(_Model):

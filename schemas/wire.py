@@ -29,8 +29,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 11
-"""Wire protocol version, sent in every job request; the server idles other versions."""
+PROTOCOL = 12
+"""Wire protocol version, sent in every job request and robot trace batch; the server idles
+workers and refuses robots' traces of other versions."""
 
 KEY_JOB_NEXT = "evocolony/jobs/next/*"
 """Queryable (server): a worker's `get` on `next_key(name)` asks for its next job; the reply is

@@ -37,6 +37,12 @@ class TraceRow(Base):
     """(count,) <i4."""
     fresh: Mapped[bytes] = mapped_column(LargeBinary)
     """(count,) |b1: the controller started from fresh state at this sample."""
+    times: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    """(count,) <f8 Unix seconds of each sample (None: stored before traces carried poses)."""
+    poses: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    """(count, 3) <f8 x, y (m), heading (rad) of each sample, from `pose_source`."""
+    pose_source: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    """sim (an emulated robot's true pose) or odometry (integrated from its motor commands)."""
     received_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 

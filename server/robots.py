@@ -139,6 +139,8 @@ SLACK_STEPS = 100
 """Steps of slack on every time bound (transit, a step due at the instant of a batch)."""
 MIN_BOOT_SECONDS = 0.1
 """An agent start takes longer than this: boot numbers cannot rise faster."""
+MAX_CLOCK_AHEAD = 300.0
+"""Seconds a robot's clock may run ahead of the server's: a sample time beyond is refused."""
 
 
 class TraceRefusedError(ValueError):
@@ -402,6 +404,9 @@ class RobotService:
                 motors=batch.motors[new].astype("<f8").tobytes(),
                 controller=controller.astype("<i4").tobytes(),
                 fresh=batch.fresh[new].tobytes(),
+                times=batch.times[new].astype("<f8").tobytes(),
+                poses=batch.poses[new].astype("<f8").tobytes(),
+                pose_source=batch.pose_source,
             )
         )
         for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
@@ -468,6 +473,12 @@ class RobotService:
             raise TraceRefusedError("steps are not consecutive: an agent sends consecutive samples")
         if batch.last >= MAX_STEPS:
             raise TraceRefusedError(f"step {batch.last} is beyond {MAX_STEPS} of one boot")
+        ahead_s = float(batch.times[-1]) - time.time()
+        if ahead_s > MAX_CLOCK_AHEAD:
+            raise TraceRefusedError(
+                f"sample time is {ahead_s:.0f} s ahead of the server's clock (at most "
+                f"{MAX_CLOCK_AHEAD:.0f} s)"
+            )
         rate = STEP_RATE_MARGIN / self.settings.dt
         ahead = boot.anchor_step + boot.backlog + SLACK_STEPS + (now - boot.anchor_at) * rate
         if batch.last > ahead:
@@ -1031,9 +1042,17 @@ def _arrays(row: TraceRow) -> tuple[np.ndarray, ...]:
     )
 
 
+def trace_poses(row: TraceRow) -> tuple[np.ndarray, np.ndarray] | None:
+    """The batch's sample times (n,) and poses (n, 3); None for a batch stored without."""
+    if row.times is None or row.poses is None:
+        return None
+    return np.frombuffer(row.times, "<f8"), np.frombuffer(row.poses, "<f8").reshape(row.count, 3)
+
+
 def _samples(row: TraceRow) -> list[TraceSample]:
     shas = json.loads(row.controllers)
     steps, whiskers, motors, controller, fresh = _arrays(row)
+    located = trace_poses(row)
     return [
         TraceSample(
             boot=row.boot,
@@ -1042,9 +1061,16 @@ def _samples(row: TraceRow) -> list[TraceSample]:
             motors=(float(motors[i, 0]), float(motors[i, 1])),
             controller_sha256=None if controller[i] == ESCAPE else shas[int(controller[i])],
             fresh=bool(fresh[i]),
+            at=None if located is None else float(located[0][i]),
+            pose=None if located is None else _pose(located[1][i]),
+            pose_source=None if located is None else row.pose_source,
         )
         for i in range(row.count)
     ]
+
+
+def _pose(values: np.ndarray) -> tuple[float, float, float]:
+    return float(values[0]), float(values[1]), float(values[2])
 
 
 def replay_trace(

@@ -9,6 +9,8 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from evorobotics.errors import MazeError
+from evorobotics.maze import load_maze
 from schemas.robots import DEFAULT_REPLACEMENT, ReplacementPolicy
 from schemas.security import (
     MAX_BODY_BYTES,
@@ -52,6 +54,11 @@ class Settings(BaseSettings):
     )
     tensorboard_dir: Path | None = Field(
         None, description="write TensorBoard event files of each run under DIR/run-ID"
+    )
+    maze: str = Field(
+        "paper",
+        description="the lab's maze the Colony page draws robots in: a shipped name, "
+        "gen:SIZE:SEED, or a maze text file",
     )
     replacement: ReplacementPolicy = Field(
         DEFAULT_REPLACEMENT,
@@ -125,6 +132,16 @@ class Settings(BaseSettings):
     housekeeping_seconds: float = Field(
         1.0, gt=0.0, description="period of lease expiry and queued-run promotion"
     )
+
+    @field_validator("maze")
+    @classmethod
+    def _maze_loads(cls, value: str) -> str:
+        """A maze the map can draw, or one clear error at start-up."""
+        try:
+            load_maze(value)
+        except (MazeError, OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"maze: {exc}") from None
+        return value
 
     @field_validator("api_token", "zenoh_user", "zenoh_password")
     @classmethod

@@ -159,6 +159,84 @@ def test_push_best_controller_to_a_robot_with_a_click(
                 """Number(document.querySelector('[data-robot="virt-1"] [data-field="steps"]')
                     .textContent) > 0"""
             )
+
+
+def positions(page: Any) -> dict[str, list[float]]:
+    """Where the Colony page's map draws each robot now (metres), from its canvas."""
+    found: dict[str, list[float]] = page.evaluate(
+        "JSON.parse(document.querySelector('#colony-map').dataset.positions)"
+    )
+    return found
+
+
+def test_robots_move_on_the_colony_map_push_to_all_and_policy_change(
+    served: Served, db_url: str, page: Any, tmp_path: Path, shots: Path
+) -> None:
+    """Two virtual robots on the maze: a push to the selected one reaches it alone, Push to all
+    runs a run's best on both, their dots move on the map, a card's policy select sets the robot's own replacement policy, and the
+    robot's panel plots its whiskers and motors."""
+    with httpx.Client(base_url=served.url, timeout=30) as client:
+        run_id = client.post("/api/runs", json=QUICK).json()["id"]
+        assert eventually(lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed")
+        best = client.get(f"/api/runs/{run_id}/best").json()["sha256"]
+        colony = Colony(served.url, db_url, run_id, served.app, tmp_path)
+        with (
+            robot_link(colony) as link,
+            virtual_robot("map-a", link, tmp_path / "a", seed=1) as (a, _),
+            virtual_robot("map-b", link, tmp_path / "b", seed=2) as (b, _),
+        ):
+            assert eventually(lambda: online(client, "map-a") and online(client, "map-b"))
+            page.goto(f"{served.url}/#colony")
+            page.wait_for_function(  # robots of earlier tests may be drawn too
+                """['map-a', 'map-b'].every((id) => id in
+                    JSON.parse(document.querySelector('#colony-map').dataset.positions))"""
+            )
+            page.locator(f'#group-run option[value="{run_id}"]').wait_for(state="attached")
+            page.select_option("[data-testid=group-run]", str(run_id))
+            result = page.locator("[data-testid=group-message]")
+            page.check("[data-testid=select-map-a]")  # a selection of one: rank 1 to map-a
+            page.fill("[data-testid=group-rank]", "1")
+            page.click("[data-testid=group-push]")
+            result.locator('li[data-robot="map-a"]').filter(has_text="acknowledged").wait_for()
+            assert result.locator("li").count() == 1
+            assert a.controller is not None and a.controller.provenance["rank"] == 1
+            assert b.controller is None
+            page.fill("[data-testid=group-rank]", "")
+            page.select_option("[data-testid=group-target]", "all")
+            page.click("[data-testid=group-push]")
+            for robot in ("map-a", "map-b"):
+                result.locator(f'li[data-robot="{robot}"]').filter(
+                    has_text="acknowledged"
+                ).wait_for()
+            assert result.locator("li").count() == 2  # offline robots of earlier tests: not pushed
+            assert a.controller is not None and a.controller.sha256 == best
+            assert b.controller is not None and b.controller.sha256 == best
+            before = positions(page)
+            page.wait_for_function(
+                """(before) => {
+                    const now = JSON.parse(document.querySelector('#colony-map').dataset.positions);
+                    return ['map-a', 'map-b'].every((id) => now[id] &&
+                        (now[id][0] !== before[id][0] || now[id][1] !== before[id][1]));
+                }""",
+                arg=before,
+            )
+            after = positions(page)
+            assert {"map-a", "map-b"} <= set(after) and after != before
+            maze = client.get("/api/colony/map").json()["maze"]
+            for x, y in after.values():  # drawn inside the maze
+                assert 0 < x < maze["width"] and 0 < y < maze["height"]
+
+            page.select_option("[data-testid=policy-map-a]", "off")
+            page.locator("[data-testid=policy-result-map-a]").filter(has_text="its own").wait_for()
+            robot = client.get("/api/robots/map-a").json()
+            assert (robot["replacement"], robot["replacement_source"]) == ("off", "robot")
+            assert client.get("/api/robots/map-b").json()["replacement_source"] == "colony"
+
+            page.click("[data-testid=details-map-b]")
+            page.wait_for_function(
+                "Number(document.querySelector('#robot-timeline').dataset.points) > 40"
+            )
+            page.wait_for_selector("#robot-timeline canvas")
             page.screenshot(path=str(shots / "dashboard-colony.png"), full_page=True)
 
 

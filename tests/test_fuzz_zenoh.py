@@ -12,6 +12,7 @@ import contextlib
 import queue
 import struct
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -106,6 +107,9 @@ def trace(robot: str, first: int, n: int = 3) -> TraceBatch:
         motors=np.full((n, 2), 0.25),
         controller=np.zeros(n, np.int32),
         fresh=np.zeros(n, np.bool_),
+        times=np.full(n, time.time()),
+        poses=np.zeros((n, 3)),
+        pose_source="odometry",
     )
 
 

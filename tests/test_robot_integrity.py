@@ -104,6 +104,9 @@ def _batch(robot: str, boot: int, first: int, n: int, **changes: Any) -> TraceBa
         "motors": np.full((n, 2), -0.6),
         "controller": np.full(n, -1, np.int32),
         "fresh": np.zeros(n, np.bool_),
+        "times": np.full(n, time.time()),
+        "poses": np.zeros((n, 3)),
+        "pose_source": "odometry",
     }
     fields.update(changes)
     return TraceBatch(**fields)
@@ -226,6 +229,7 @@ def test_fake_trace_batches_are_refused_and_the_real_ones_stored(
         boot, key = agent.boot, traces_key("r-fake")
         far = agent.steps + 5000
         gap = np.concatenate([np.arange(5), np.arange(6, 11)]).astype(np.int64)
+        ahead = np.full(10, time.time() + 3600)  # a clock an hour fast
         fakes = [
             ("beyond", _batch("r-fake", boot, 10**12, 600)),
             ("ahead of the robot's clock", _batch("r-fake", boot, 40_000, 600)),
@@ -233,6 +237,7 @@ def test_fake_trace_batches_are_refused_and_the_real_ones_stored(
             ("jumps", _batch("r-fake", boot + 1000, 0, 600)),
             ("ahead of the robot's clock", _batch("r-fake", boot + 1, 0, 600)),
             ("not consecutive", _batch("r-fake", boot, 0, 10, steps=gap)),
+            ("ahead of the server's clock", _batch("r-fake", boot, 0, 10, times=ahead)),
         ]
         for reason, batch in fakes:
             reply = _ask(rogue, key, encode_trace(batch))

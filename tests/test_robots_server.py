@@ -347,9 +347,12 @@ def test_trace_batches_round_trip_bit_for_bit(n: int, seed: int, boot: int) -> N
         motors=rng.uniform(-1, 1, (n, 2)),
         controller=rng.integers(-1, 2, n).astype(np.int32),
         fresh=rng.random(n) < 0.2,
+        times=np.sort(rng.uniform(0, 2e9, n)),
+        poses=rng.uniform(-3, 3, (n, 3)),
+        pose_source="sim",
     )
     back = decode_trace(encode_trace(batch))
-    for name in ("steps", "whiskers", "motors", "controller", "fresh"):
+    for name in ("steps", "whiskers", "motors", "controller", "fresh", "times", "poses"):
         assert getattr(back, name).tobytes() == getattr(batch, name).tobytes()
     assert (back.robot, back.boot, back.controllers, back.status) == (
         batch.robot,

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from importlib.metadata import PackageNotFoundError, version
+from typing import Annotated
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse
 
 from schemas.api import ColonyOut, HealthOut, JobCounts
+from schemas.robots import ColonyMapOut
 from server import crud
+from server.colony_map import PATH_SAMPLES, colony_map
 from server.deps import SessionDep, WorkersDep
 from server.manager import RunManager
 from server.robots import RobotService, robot_summaries
@@ -69,6 +72,21 @@ def colony(request: Request, session: SessionDep, workers: WorkersDep) -> Colony
             (robots.settings if robots else request.app.state.manager.settings).replacement,
         ),
     )
+
+
+@router.get("/api/colony/map", response_model=ColonyMapOut)
+def colony_map_view(
+    request: Request,
+    session: SessionDep,
+    samples: Annotated[
+        int, Query(ge=1, le=36_000, description="recent poses per robot (10 a second)")
+    ] = PATH_SAMPLES,
+) -> ColonyMapOut:
+    """The lab maze (the server's `maze` setting) and each robot's newest pose, recent path
+    and the stuck events on it, for the Colony page's map."""
+    robots: RobotService | None = getattr(request.app.state, "robots", None)
+    maze = request.app.state.manager.settings.maze
+    return colony_map(session, maze, robots.is_online if robots else _offline, samples)
 
 
 def _offline(_robot_id: str) -> bool:

@@ -22,7 +22,15 @@ const state = {
   archiveFor: null, // "run:generation" the archive was last asked for
   archiveAt: 0, // when (ms): a live run's archive is replayed by the server, ask at most every 5 s
   picked: null, // index of the picked elite
+  map: null, // GET /api/colony/map: the maze and each robot's pose, path and stuck marks
+  mapTimer: null,
+  chosen: new Set(), // robot ids ticked for a group push
+  robot: null, // id of the robot whose panel is open
+  robotChart: null, // its whisker and motor timeline (uPlot)
 };
+const MAP_POLL_MS = 1000;
+const ROBOT_POLL_MS = 2000;
+const TIMELINE_SAMPLES = 600; // one minute at 10 Hz
 
 // Strategies whose runs keep an archive (docs/strategies.md).
 const ARCHIVED = new Set(["map-elites", "cma-me", "novelty"]);
@@ -74,8 +82,15 @@ async function api(method, path, body) {
 const fmt = (x, digits = 3) => (x === null || x === undefined ? "–" : Number(x).toFixed(digits));
 const short = (sha) => (sha ? sha.slice(0, 12) : "none");
 
-function ago(seconds) {
-  if (seconds === null || seconds === undefined) return "never";
+// A time from the API as Unix seconds: a number already, or an ISO 8601 string.
+function unixSeconds(value) {
+  if (value === null || value === undefined) return null;
+  return typeof value === "number" ? value : Date.parse(value) / 1000;
+}
+
+function ago(value) {
+  const seconds = unixSeconds(value);
+  if (seconds === null || Number.isNaN(seconds)) return "never";
   const s = Math.max(0, Date.now() / 1000 - seconds);
   if (s < 90) return `${Math.round(s)} s ago`;
   if (s < 5400) return `${Math.round(s / 60)} min ago`;
@@ -95,6 +110,12 @@ function showTab() {
   if (tab === "runs") resizeChart();
   clearInterval(state.studiesTimer);
   state.studiesTimer = null;
+  clearInterval(state.mapTimer);
+  state.mapTimer = null;
+  if (tab === "colony") {
+    loadMap();
+    state.mapTimer = setInterval(loadMap, MAP_POLL_MS);
+  }
   if (tab === "studies") {
     const id = Number(arg);
     if (Number.isInteger(id) && id > 0) state.study = id;
@@ -141,6 +162,7 @@ function onRun(run) {
   renderRunsTable();
   if (run.id === state.selected) renderRunDetail();
   for (const card of state.cards.values()) fillRunChoices(card.runSelect);
+  fillRunChoices($("#group-run"));
 }
 
 const networkName = (c) => (typeof c.network === "string" ? c.network : "custom");
@@ -724,16 +746,252 @@ function makeCard(id) {
   const button = el("button", { "data-testid": `push-${id}`, text: "Push" });
   const message = el("span", { class: "message", "data-testid": `push-result-${id}` });
   button.addEventListener("click", () => push(id, runSelect, rank, button, message));
+  const pick = el("input", { type: "checkbox", "data-testid": `select-${id}`, "aria-label": `select ${id}` });
+  pick.checked = state.chosen.has(id);
+  pick.addEventListener("change", () => {
+    if (pick.checked) state.chosen.add(id);
+    else state.chosen.delete(id);
+  });
+  const policy = el("select", { "data-testid": `policy-${id}`, "aria-label": "replacement policy" },
+    el("option", { value: "", text: "the colony's" }),
+    ...["off", "rank", "archive"].map((p) => el("option", { value: p, text: p })));
+  const policyMessage = el("span", { class: "message", "data-testid": `policy-result-${id}` });
+  policy.addEventListener("change", () => setPolicy(id, policy, policyMessage));
+  const details = el("button", { "data-testid": `details-${id}`, text: "Timeline" });
+  details.addEventListener("click", () => openRobot(id));
   const card = el(
     "article",
     { class: "card", "data-robot": id },
-    el("h3", {}, el("span", { class: "dot" }), el("span", { text: id })),
+    el("h3", {}, el("span", { class: "dot" }), el("span", { class: "swatch" }), el("span", { text: id }),
+      el("label", { class: "pick" }, pick, " select")),
     dl,
+    el("div", { class: "policy" }, el("span", { text: "when stuck" }), policy, policyMessage, details),
     el("div", { class: "push" }, el("span", { text: "push" }), runSelect, el("span", { text: "rank" }),
       rank, button, message),
   );
   fillRunChoices(runSelect);
-  return { card, runSelect };
+  return { card, runSelect, policy };
+}
+
+async function setPolicy(id, select, message) {
+  // PUT /api/robots/{id}/replacement: the robot's own policy, or null to follow the colony's.
+  select.disabled = true;
+  try {
+    const robot = await api("PUT", `/api/robots/${encodeURIComponent(id)}/replacement`,
+      { policy: select.value || null });
+    message.textContent = `${robot.replacement} (${robot.replacement_source === "robot" ? "its own" : "the colony's"})`;
+    message.className = "message ok";
+  } catch (err) {
+    message.textContent = err.message;
+    message.className = "message bad";
+  } finally {
+    select.disabled = false;
+  }
+}
+
+// ---- group push ----------------------------------------------------------------------------
+
+async function groupPush() {
+  const message = $("#group-message");
+  const run = $("#group-run").value;
+  if (!run) {
+    message.replaceChildren(el("li", { class: "bad", text: "no run with a completed generation to push from" }));
+    return;
+  }
+  const all = $("#group-target").value === "all";
+  // "all": every robot online now; a selection is pushed as chosen (an offline one says so)
+  const robots = [...state.cards.entries()]
+    .filter(([id, entry]) => (all ? entry.online : state.chosen.has(id)))
+    .map(([id]) => id);
+  if (robots.length === 0) {
+    message.replaceChildren(el("li", { class: "bad", text: all ? "no robot is online" : "no robot selected" }));
+    return;
+  }
+  const body = { run_id: Number(run) };
+  if ($("#group-rank").value !== "") body.rank = Number($("#group-rank").value);
+  const button = $("#group-push");
+  button.disabled = true;
+  const lines = new Map(robots.map((id) => [id, el("li", { "data-robot": id, text: `${id}: pushing…` })]));
+  message.replaceChildren(...lines.values());
+  await Promise.all(robots.map(async (id) => {
+    const line = lines.get(id);
+    try {
+      const reply = await api("POST", `/api/robots/${encodeURIComponent(id)}/controller`, body);
+      const ok = reply.acknowledged && reply.accepted;
+      line.textContent = ok
+        ? `${id} acknowledged: running ${short(reply.sha256)}`
+        : `${id}: ${reply.acknowledged ? `refused: ${reply.reason}` : "no acknowledgement"}`;
+      line.className = ok ? "ok" : "bad";
+    } catch (err) {
+      line.textContent = `${id}: ${err.message}`;
+      line.className = "bad";
+    }
+  }));
+  button.disabled = false;
+}
+
+// ---- the map -------------------------------------------------------------------------------
+
+function robotColour(id) {
+  const ids = [...state.cards.keys()].sort();
+  const i = ids.indexOf(id);
+  return PALETTE[(i < 0 ? 0 : i) % PALETTE.length];
+}
+
+async function loadMap() {
+  try {
+    state.map = await api("GET", "/api/colony/map");
+  } catch (err) {
+    $("#map-legend").textContent = err.message;
+    return;
+  }
+  drawMap();
+}
+
+function drawMap() {
+  // The maze north up; robots' recent paths, their poses now, and stuck marks, in metres.
+  const { maze, robots } = state.map;
+  const canvas = $("#colony-map");
+  const width = canvas.width;
+  const scale = width / maze.width;
+  const height = Math.round(maze.height * scale);
+  if (canvas.height !== height) canvas.height = height;
+  const at = (x, y) => [x * scale, height - y * scale];
+  const g = canvas.getContext("2d");
+  g.fillStyle = "#fff";
+  g.fillRect(0, 0, width, height);
+  g.fillStyle = "#3b4250";
+  const cell = maze.cell_size * scale;
+  maze.rows.forEach((row, r) => {
+    [...row].forEach((c, i) => {
+      if (c === "#") g.fillRect(i * cell, r * cell, Math.ceil(cell), Math.ceil(cell));
+    });
+  });
+  $("#map-title").textContent = `Maze ${maze.name} (${fmt(maze.width, 1)} x ${fmt(maze.height, 1)} m)`;
+  const positions = {};
+  let stuck = 0;
+  for (const robot of robots) {
+    if (robot.pose === null) continue;
+    const colour = robot.online ? robotColour(robot.id) : "#9aa3ad"; // offline: where it was last
+    g.strokeStyle = alpha(colour, 0.55);
+    g.lineWidth = 1.5;
+    g.beginPath();
+    robot.path.forEach(([x, y], i) => (i ? g.lineTo(...at(x, y)) : g.moveTo(...at(x, y))));
+    g.stroke();
+    g.strokeStyle = "#b3261e";
+    g.lineWidth = 2;
+    for (const mark of robot.stuck) {
+      const [cx, cy] = at(mark.x, mark.y);
+      g.beginPath();
+      g.moveTo(cx - 5, cy - 5);
+      g.lineTo(cx + 5, cy + 5);
+      g.moveTo(cx + 5, cy - 5);
+      g.lineTo(cx - 5, cy + 5);
+      g.stroke();
+      stuck += 1;
+    }
+    const [x, y, theta] = robot.pose;
+    const [cx, cy] = at(x, y);
+    g.fillStyle = colour;
+    g.strokeStyle = colour;
+    g.lineWidth = 2;
+    g.beginPath();
+    g.arc(cx, cy, 6, 0, 2 * Math.PI);
+    if (robot.pose_source === "odometry") g.stroke();
+    else g.fill();
+    g.beginPath();
+    g.moveTo(cx, cy);
+    g.lineTo(cx + 12 * Math.cos(theta), cy - 12 * Math.sin(theta));
+    g.stroke();
+    g.fillStyle = "#1d2127";
+    g.fillText(robot.id, cx + 9, cy - 8);
+    positions[robot.id] = [Number(x.toFixed(4)), Number(y.toFixed(4))];
+  }
+  canvas.dataset.positions = JSON.stringify(positions);
+  canvas.dataset.robots = String(Object.keys(positions).length);
+  canvas.dataset.stuck = String(stuck);
+}
+
+// ---- one robot's panel ---------------------------------------------------------------------
+
+function openRobot(id) {
+  state.robot = id;
+  $("#robot-panel").hidden = false;
+  $("#robot-panel-title").textContent = `Robot ${id}`;
+  if (state.robotChart) state.robotChart.destroy();
+  state.robotChart = null;
+  loadRobot();
+  $("#robot-panel").scrollIntoView({ block: "nearest" });
+}
+
+function closeRobot() {
+  state.robot = null;
+  $("#robot-panel").hidden = true;
+}
+
+async function loadRobot() {
+  const id = state.robot;
+  if (id === null) return;
+  const path = `/api/robots/${encodeURIComponent(id)}`;
+  let traces, stuck;
+  try {
+    [traces, stuck] = await Promise.all([
+      api("GET", `${path}/traces?limit=${TIMELINE_SAMPLES}`),
+      api("GET", `${path}/stuck?limit=100`),
+    ]);
+  } catch (err) {
+    $("#robot-stuck-empty").textContent = err.message;
+    return;
+  }
+  if (state.robot !== id) return;
+  const samples = traces.samples;
+  const t0 = samples.length ? (samples[0].at ?? 0) : 0;
+  const xs = samples.map((s, i) => (s.at === null ? i * 0.1 : s.at - t0));
+  const data = [
+    xs,
+    samples.map((s) => s.motors[0]),
+    samples.map((s) => s.motors[1]),
+    samples.map((s) => [...s.whiskers].filter((b) => b === "1").length),
+  ];
+  const target = $("#robot-timeline");
+  if (state.robotChart) state.robotChart.setData(data);
+  else {
+    state.robotChart = new uPlot(
+      {
+        width: Math.max(300, target.clientWidth || 800),
+        height: 240,
+        scales: { x: { time: false }, m: { range: [-1.05, 1.05] }, w: { range: [0, 5] } },
+        axes: [
+          { label: "seconds" },
+          { label: "motor command", scale: "m" },
+          { label: "whiskers touching", scale: "w", side: 1, grid: { show: false } },
+        ],
+        series: [
+          { label: "s" },
+          { label: "left motor", stroke: PALETTE[0], scale: "m" },
+          { label: "right motor", stroke: PALETTE[1], scale: "m" },
+          { label: "whiskers", stroke: PALETTE[3], scale: "w", paths: uPlot.paths.stepped({ align: 1 }) },
+        ],
+      },
+      data,
+      target,
+    );
+  }
+  target.dataset.points = String(samples.length);
+  $("#robot-stuck-empty").hidden = stuck.events.length > 0;
+  $("#robot-stuck-table").hidden = stuck.events.length === 0;
+  $("#robot-stuck-table tbody").replaceChildren(
+    ...stuck.events.slice().reverse().map((e) =>
+      el("tr", { "data-event": e.id },
+        el("td", { text: new Date(unixSeconds(e.at) * 1000).toLocaleTimeString() }),
+        el("td", { text: e.step }),
+        el("td", { text: e.reason }),
+        el("td", {}, el("code", { text: short(e.controller_sha256) })),
+        el("td", { text: e.policy ?? "–" }),
+        el("td", {}, el("code", { text: short(e.replacement_sha256) })),
+        el("td", { text: e.answer ?? "" }),
+        el("td", { text: e.steps_run ?? "–" }))),
+  );
 }
 
 async function push(id, runSelect, rank, button, message) {
@@ -793,7 +1051,14 @@ function renderRobots(snapshot) {
       container.append(entry.card);
     }
     const set = (name, ...content) => $(`[data-field="${name}"]`, entry.card).replaceChildren(...content);
+    entry.online = robot.online;
     $(".dot", entry.card).classList.toggle("on", robot.online);
+    $(".swatch", entry.card).style.background = robotColour(robot.id);
+    if (document.activeElement !== entry.policy && !entry.policy.disabled) {
+      entry.policy.value = robot.replacement_source === "robot" ? robot.replacement : "";
+    }
+    entry.policy.options[0].textContent = robot.replacement_source === "robot"
+      ? "the colony's" : `the colony's (${robot.replacement})`;
     set("state", el("span", { class: `status ${robot.state}`, text: robot.state }));
     set("controller", el("code", { text: short(robot.controller_sha256) }));
     set("origin", robot.controller_run === null
@@ -814,8 +1079,10 @@ function renderRobots(snapshot) {
     if (!seen.has(id)) {
       entry.card.remove();
       state.cards.delete(id);
+      state.chosen.delete(id);
     }
   }
+  fillRunChoices($("#group-run"));
   if (state.archive) fillArchiveRobots();
 }
 
@@ -875,6 +1142,9 @@ function main() {
   $("#study-cancel").addEventListener("click", cancelStudy);
   $("#archive-map").addEventListener("click", onArchiveClick);
   $("#archive-push").addEventListener("click", pushElite);
+  $("#group-push").addEventListener("click", groupPush);
+  $("#robot-panel-close").addEventListener("click", closeRobot);
+  setInterval(loadRobot, ROBOT_POLL_MS);
   window.addEventListener("hashchange", showTab);
   window.addEventListener("resize", resizeChart);
   showTab();
