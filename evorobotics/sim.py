@@ -482,17 +482,22 @@ def _episodes(
 ) -> None:
     """Every robot's whole trial: sense, think, act, collide, score (see the module docstring).
 
-    `kernel` is the controller (`network.spec_kernel`). Inlined (numba IR) into the generated
-    per-spec wrapper (`_episode_kernel`), where `kernel` is a module global: a dispatcher passed
-    as a value would make the wrapper uncacheable. Not disk-cached itself; the wrapper's cache
-    key covers this file, so an edit here is never served stale from disk.
+    `kernel` is the controller (`network.spec_kernel`), which steps a tile of `network.LANES`
+    robots at once. Each lane carries one robot through its trial; a lane whose robot is done
+    (all steps, or stuck when not recording: its terms are final) takes the next robot of the
+    batch, and once the batch is used up it idles (zero weights, skipped by the physics and
+    the activations). Robots meet the same arithmetic in any lane, so each robot's result is
+    bit-identical whatever the batch. Inlined (numba IR) into the generated per-spec wrapper
+    (`_episode_kernel`), where `kernel` is a module global: a dispatcher passed as a value
+    would make the wrapper uncacheable. Not disk-cached itself; the wrapper's cache key covers
+    this file, so an edit here is never served stale from disk.
 
     `ranges` (B, S, W) holds the whiskers' trigger distances: S = 1, fixed for the trial, or
     S = steps, one row per step; W = 1, shared by the five whiskers, or W = 5.
 
-    `cells_out[r]` counts the grid cells robot r's centre visited: a bitmap over the maze in
-    scratch, marked on every accepted move, whose marks are undone from `trail` after each robot
-    (cheaper than clearing the whole map).
+    `cells_out[r]` counts the grid cells robot r's centre visited: a bitmap over the maze per
+    lane, marked on every accepted move, whose marks are undone from the lane's `trail` when its
+    robot is done (cheaper than clearing the whole map).
     """
     dt = world[0]
     vmax = world[1]
@@ -500,72 +505,144 @@ def _episodes(
     a = world[3]
     b = world[4]
     hd = world[5]
-    state = np.empty(n_state)
-    scratch = np.empty(n_scratch)
-    inputs = np.empty(wx.shape[0])
-    out = np.empty(2)
+    lanes = network.LANES
+    n_q = wx.shape[0]
+    n_w = weights.shape[1]
+    batch = weights.shape[0]
+    w_tile = np.zeros((n_w, lanes))
+    state = np.zeros((n_state, lanes))
+    scratch = np.empty((n_scratch, lanes))
+    inputs = np.zeros((n_q, lanes))
+    out = np.empty((2, lanes))
+    out_row = np.empty(2)
     motor = np.empty(2)
-    rq = np.empty(wx.shape[0])
+    live = np.zeros(lanes, dtype=np.uint8)
+    robot = np.full(lanes, -1, dtype=np.int64)
+    step = np.zeros(lanes, dtype=np.int64)
+    xs = np.zeros(lanes)
+    ys = np.zeros(lanes)
+    ths = np.zeros(lanes)
+    cs = np.zeros(lanes)
+    ss = np.zeros(lanes)
+    x0s = np.zeros(lanes)
+    y0s = np.zeros(lanes)
+    rq = np.zeros((lanes, n_q))
+    r_max = np.zeros(lanes)  # the longest whisker: the body's early out must cover all five
+    blocked = np.zeros(lanes, dtype=np.int64)
+    stuck_at = np.full(lanes, -1, dtype=np.int64)
+    curve = np.zeros(lanes)
+    max_off = np.zeros(lanes)
+    n_cells = np.zeros(lanes, dtype=np.int64)
     rows = solid.shape[0]
     cols = solid.shape[1]
-    visited = np.zeros(rows * cols, dtype=np.uint8)
-    trail = np.empty(steps + 1, dtype=np.int64)
+    visited = np.zeros((lanes, rows * cols), dtype=np.uint8)
+    trail = np.empty((lanes, steps + 1), dtype=np.int64)
     per_step = ranges.shape[1] != 1
     last = ranges.shape[2] - 1
-    for r in range(weights.shape[0]):
-        w = weights[r]
-        state[:] = 0.0
-        x0 = starts[r, 0]
-        y0 = starts[r, 1]
-        x = x0
-        y = y0
-        th = starts[r, 2]
-        r_max = 0.0  # the longest whisker: the body's early out must cover all five
-        if not per_step:
-            for q in range(wx.shape[0]):
-                rq[q] = ranges[r, 0, min(q, last)]
-                r_max = max(r_max, rq[q])
-        gl = gains[r, 0]
-        gr = gains[r, 1]
-        blocked = 0
-        stuck = False
-        stuck_at = -1
-        curve = 0.0
-        max_off = 0.0
-        n_cells = _mark(visited, trail, 0, cols, rows, cell, x, y)
-        if record:
-            rec_poses[r, 0, 0] = x
-            rec_poses[r, 0, 1] = y
-            rec_poses[r, 0, 2] = th
-        c = math.cos(th)
-        s = math.sin(th)
-        for k in range(steps):
-            if stuck and not record:
-                break  # frozen for good: its fitness terms are final
+    next_robot = 0
+    while True:
+        n_live = 0
+        for lane in range(lanes):
+            while True:  # retire a finished robot, take the next one
+                r = robot[lane]
+                if r >= 0 and step[lane] < steps and (stuck_at[lane] < 0 or record):
+                    break
+                if r >= 0:
+                    final[r, 0] = xs[lane]
+                    final[r, 1] = ys[lane]
+                    final[r, 2] = ths[lane]
+                    ox = xs[lane] - x0s[lane]
+                    oy = ys[lane] - y0s[lane]
+                    metrics[r, 0] = curve[lane]
+                    metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
+                    metrics[r, 2] = max_off[lane]
+                    stuck_out[r] = stuck_at[lane]
+                    cells_out[r] = n_cells[lane]
+                    for t in range(n_cells[lane]):
+                        visited[lane, trail[lane, t]] = 0
+                    for i in range(n_w):
+                        w_tile[i, lane] = 0.0
+                    robot[lane] = -1
+                if next_robot == batch:
+                    break
+                r = next_robot
+                next_robot += 1
+                robot[lane] = r
+                step[lane] = 0
+                for i in range(n_w):
+                    w_tile[i, lane] = weights[r, i]
+                for i in range(n_state):
+                    state[i, lane] = 0.0
+                x = starts[r, 0]
+                y = starts[r, 1]
+                th = starts[r, 2]
+                xs[lane] = x
+                ys[lane] = y
+                ths[lane] = th
+                x0s[lane] = x
+                y0s[lane] = y
+                cs[lane] = math.cos(th)
+                ss[lane] = math.sin(th)
+                if not per_step:
+                    r_max[lane] = 0.0
+                    for q in range(n_q):
+                        rq[lane, q] = ranges[r, 0, min(q, last)]
+                        r_max[lane] = max(r_max[lane], rq[lane, q])
+                blocked[lane] = 0
+                stuck_at[lane] = -1
+                curve[lane] = 0.0
+                max_off[lane] = 0.0
+                n_cells[lane] = _mark(visited[lane], trail[lane], 0, cols, rows, cell, x, y)
+                if record:
+                    rec_poses[r, 0, 0] = x
+                    rec_poses[r, 0, 1] = y
+                    rec_poses[r, 0, 2] = th
+            live[lane] = robot[lane] >= 0
+            n_live += live[lane]
+        if n_live == 0:
+            break
+        for lane in range(lanes):  # sense
+            if not live[lane]:
+                continue
+            r = robot[lane]
+            x = xs[lane]
+            y = ys[lane]
+            c = cs[lane]
+            s = ss[lane]
             if per_step:
-                r_max = 0.0
-                for q in range(wx.shape[0]):
-                    rq[q] = ranges[r, k, min(q, last)]
-                    r_max = max(r_max, rq[q])
+                r_max[lane] = 0.0
+                for q in range(n_q):
+                    rq[lane, q] = ranges[r, step[lane], min(q, last)]
+                    r_max[lane] = max(r_max[lane], rq[lane, q])
             # early outs: no wall within reach of the centre / of an attachment point
-            far = _clearance(clear, cell, x, y) > reach + r_max
-            for q in range(wx.shape[0]):
-                inputs[q] = 0.0
+            far = _clearance(clear, cell, x, y) > reach + r_max[lane]
+            for q in range(n_q):
+                inputs[q, lane] = 0.0
                 if far:
                     continue
                 px = x + c * wx[q] - s * wy[q]
                 py = y + s * wx[q] + c * wy[q]
-                if _clearance(clear, cell, px, py) > rq[q]:
+                if _clearance(clear, cell, px, py) > rq[lane, q]:
                     continue
                 ux = c * ca[q] - s * sa[q]
                 uy = s * ca[q] + c * sa[q]
-                if _whisker(solid, cell, px, py, ux, uy, rq[q]):
-                    inputs[q] = 1.0
-            kernel(w, state, inputs, out, scratch)
-            motor_one(out, linear_output, motor)
-            if not stuck:
-                vl = motor[0] * gl * vmax
-                vr = motor[1] * gr * vmax
+                if _whisker(solid, cell, px, py, ux, uy, rq[lane, q]):
+                    inputs[q, lane] = 1.0
+        kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
+        for lane in range(lanes):  # act, collide, score
+            if not live[lane]:
+                continue
+            r = robot[lane]
+            k = step[lane]
+            out_row[0] = out[0, lane]
+            out_row[1] = out[1, lane]
+            motor_one(out_row, linear_output, motor)
+            if stuck_at[lane] < 0:
+                x = xs[lane]
+                y = ys[lane]
+                th = ths[lane]
+                vl = motor[0] * gains[r, 0] * vmax
+                vr = motor[1] * gains[r, 1] * vmax
                 v = (vl + vr) * 0.5
                 om = (vr - vl) / base
                 mid = th + om * (dt * 0.5)
@@ -578,44 +655,34 @@ def _episodes(
                 if _clearance(clear, cell, nx, ny) <= hd and _blocked(
                     solid, cell, nx, ny, nc, ns, a, b, hd
                 ):
-                    blocked += 1
-                    if blocked >= stuck_after:
-                        stuck = True
-                        stuck_at = k + 1
+                    blocked[lane] += 1
+                    if blocked[lane] >= stuck_after:
+                        stuck_at[lane] = k + 1
                 else:
-                    blocked = 0
+                    blocked[lane] = 0
                     ddx = nx - x
                     ddy = ny - y
-                    curve += math.sqrt(ddx * ddx + ddy * ddy)
-                    x = nx
-                    y = ny
-                    th = nth
-                    c = nc
-                    s = ns
-                    ox = x - x0
-                    oy = y - y0
-                    max_off = max(max_off, math.sqrt(ox * ox + oy * oy))
-                    n_cells = _mark(visited, trail, n_cells, cols, rows, cell, x, y)
+                    curve[lane] += math.sqrt(ddx * ddx + ddy * ddy)
+                    xs[lane] = nx
+                    ys[lane] = ny
+                    ths[lane] = nth
+                    cs[lane] = nc
+                    ss[lane] = ns
+                    ox = nx - x0s[lane]
+                    oy = ny - y0s[lane]
+                    max_off[lane] = max(max_off[lane], math.sqrt(ox * ox + oy * oy))
+                    n_cells[lane] = _mark(
+                        visited[lane], trail[lane], n_cells[lane], cols, rows, cell, nx, ny
+                    )
             if record:
-                rec_poses[r, k + 1, 0] = x
-                rec_poses[r, k + 1, 1] = y
-                rec_poses[r, k + 1, 2] = th
-                for q in range(wx.shape[0]):
-                    rec_whiskers[r, k, q] = np.uint8(inputs[q])
+                rec_poses[r, k + 1, 0] = xs[lane]
+                rec_poses[r, k + 1, 1] = ys[lane]
+                rec_poses[r, k + 1, 2] = ths[lane]
+                for q in range(n_q):
+                    rec_whiskers[r, k, q] = np.uint8(inputs[q, lane])
                 rec_motors[r, k, 0] = motor[0]
                 rec_motors[r, k, 1] = motor[1]
-        final[r, 0] = x
-        final[r, 1] = y
-        final[r, 2] = th
-        ox = x - x0
-        oy = y - y0
-        metrics[r, 0] = curve
-        metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
-        metrics[r, 2] = max_off
-        stuck_out[r] = stuck_at
-        cells_out[r] = n_cells
-        for t in range(n_cells):
-            visited[trail[t]] = 0
+            step[lane] = k + 1
 
 
 @njit(inline="always")
