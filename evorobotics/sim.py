@@ -353,7 +353,7 @@ def _visit(visited: np.ndarray, maze: Maze, pose: np.ndarray) -> None:
 # ---------------------------------------------------------------- compiled kernel
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _wall(solid: np.ndarray, j: int, i: int) -> bool:
     if j < 0 or i < 0 or j >= solid.shape[0] or i >= solid.shape[1]:
         return True
@@ -372,7 +372,7 @@ def _sat_extents(
     return (a * ac + b * as_ + h, a * as_ + b * ac + h, a + h * (ac + as_), b + h * (ac + as_))
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _blocked(
     solid: np.ndarray,
     cell: float,
@@ -403,7 +403,7 @@ def _blocked(
     return False
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _clearance(clear: np.ndarray, cell: float, x: float, y: float) -> float:
     """Lower bound on the distance from (x, y) to any wall (0 outside the grid)."""
     i = math.floor(x / cell)
@@ -413,7 +413,7 @@ def _clearance(clear: np.ndarray, cell: float, x: float, y: float) -> float:
     return float(clear[j, i])
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _slab1(lo: float, hi: float, p: float, u: float) -> tuple[float, float]:
     if abs(u) < 1e-12:
         if lo <= p and p <= hi:
@@ -424,7 +424,7 @@ def _slab1(lo: float, hi: float, p: float, u: float) -> tuple[float, float]:
     return min(ta, tb), max(ta, tb)
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _whisker(
     solid: np.ndarray, cell: float, px: float, py: float, ux: float, uy: float, r: float
 ) -> bool:
