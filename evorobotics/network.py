@@ -154,10 +154,40 @@ def _saturate(u: float) -> float:
     return u
 
 
+EXP_FLOOR = -708.0
+"""exp of anything below this is taken as 0 (exp(-708) is still a normal double)."""
+LOG2E = 1.4426950408889634
+LN2_HI = 0.6931467056274414
+"""ln 2 to 21 bits: k * LN2_HI is exact for every k of the range reduction."""
+LN2_LO = 4.7493250390316726e-07
+"""ln 2 - LN2_HI."""
+EXP_TAYLOR = tuple(1.0 / math.factorial(i) for i in range(13, -1, -1))
+"""Taylor coefficients of e^r, highest degree first (Horner order): degree 13 leaves a
+truncation error below 1e-17 for |r| <= ln 2 / 2."""
+
+
+@njit(cache=True)
+def _exp_neg(x: float) -> float:
+    """e^x for x <= 0 (and NaN), in operations `_sigmoid_tile` repeats lane by lane.
+
+    Not libm's exp (whose SIMD and scalar versions round differently) but one fixed sequence
+    of IEEE operations: x = k ln 2 + r, |r| <= ln 2 / 2, e^r by Horner, times 2^k exactly. Within
+    a few ulp of exp; identical bits scalar or vectorised, on any machine.
+    """
+    if not x > EXP_FLOOR:
+        return x if math.isnan(x) else 0.0
+    k = math.floor(x * LOG2E + 0.5)
+    r = (x - k * LN2_HI) - k * LN2_LO
+    p = EXP_TAYLOR[0]
+    for i in range(1, len(EXP_TAYLOR)):
+        p = p * r + EXP_TAYLOR[i]
+    return p * math.ldexp(1.0, int(k))
+
+
 @njit(cache=True)
 def _sigmoid(u: float) -> float:
-    # Written so exp never overflows: the same formula as `_sigmoid_array`.
-    e = math.exp(-abs(u))
+    # Written so exp never overflows: the formula of `_sigmoid_array`, with `_exp_neg` for exp.
+    e = _exp_neg(-abs(u))
     if u >= 0.0:
         return 1.0 / (1.0 + e)
     return e / (1.0 + e)
@@ -235,6 +265,79 @@ def _accumulate_tile(
         total = builder.fadd(builder.load(acc), bias)
         target = at(tys[5], u_a, ur_v)
         builder.store(builder.fadd(builder.load(target, align=8), total), target, align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def _sigmoid_tile(
+    typingctx: object, a: types.Array, row: types.Integer, live: types.Array
+) -> tuple[Signature, Callable[..., object]]:
+    """a[row] = `_sigmoid`(a[row]) in the live lanes of a (rows, LANES) C array, as SIMD.
+
+    The operations of `_sigmoid` and `_exp_neg` lane by lane (2^k built from its exponent
+    bits rather than by ldexp: the same exact power of two), so every lane gets their bits.
+    An idle lane (live[lane] == 0) keeps its value.
+    """
+    sig = types.void(a, row, live)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        a_v, row_v, live_v = args
+        row_v = context.cast(builder, row_v, signature.args[1], types.intp)
+        f64 = llvm_ir.DoubleType()
+        i64 = llvm_ir.IntType(64)
+        vec = llvm_ir.VectorType(f64, LANES)
+        ivec = llvm_ir.VectorType(i64, LANES)
+
+        def splat(value: float) -> object:
+            return llvm_ir.Constant(vec, [value] * LANES)
+
+        def call(name: str, *operands: object) -> object:
+            fnty = llvm_ir.FunctionType(vec, [vec] * len(operands))
+            fn = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+                builder.module, fnty, f"llvm.{name}.v8f64"
+            )
+            return builder.call(fn, operands)
+
+        data = context.make_array(signature.args[0])(context, builder, a_v).data
+        ptr = builder.bitcast(
+            builder.gep(data, [builder.mul(row_v, llvm_ir.Constant(row_v.type, LANES))]),
+            vec.as_pointer(),
+        )
+        u = builder.load(ptr, align=8)
+        x = builder.fneg(call("fabs", u))
+        inside = builder.fcmp_ordered(">", x, splat(EXP_FLOOR))
+        xc = builder.select(inside, x, splat(EXP_FLOOR))  # NaN lanes too: no poison below
+        k = call("floor", builder.fadd(builder.fmul(xc, splat(LOG2E)), splat(0.5)))
+        r = builder.fsub(
+            builder.fsub(xc, builder.fmul(k, splat(LN2_HI))), builder.fmul(k, splat(LN2_LO))
+        )
+        p = splat(EXP_TAYLOR[0])
+        for coefficient in EXP_TAYLOR[1:]:
+            p = builder.fadd(builder.fmul(p, r), splat(coefficient))
+        bits = builder.shl(
+            builder.add(builder.fptosi(k, ivec), llvm_ir.Constant(ivec, [1023] * LANES)),
+            llvm_ir.Constant(ivec, [52] * LANES),
+        )
+        e = builder.fmul(p, builder.bitcast(bits, vec))
+        nan = builder.fcmp_unordered("uno", x, x)
+        e = builder.select(inside, e, builder.select(nan, x, splat(0.0)))
+        one_plus = builder.fadd(splat(1.0), e)
+        y = builder.select(
+            builder.fcmp_ordered(">=", u, splat(0.0)),
+            builder.fdiv(splat(1.0), one_plus),
+            builder.fdiv(e, one_plus),
+        )
+        live_data = context.make_array(signature.args[2])(context, builder, live_v).data
+        mask = builder.load(
+            builder.bitcast(
+                live_data, llvm_ir.VectorType(live_data.type.pointee, LANES).as_pointer()
+            ),
+            align=1,
+        )
+        on = builder.icmp_unsigned("!=", mask, llvm_ir.Constant(mask.type, [0] * LANES))
+        builder.store(builder.select(on, y, u), ptr, align=8)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -321,7 +424,7 @@ def _kernel_source(spec: NetworkSpec) -> str:
         "import numpy as np",
         "from numba import njit",
         "",
-        "from evorobotics.network import _accumulate_tile, _saturate, _sigmoid",
+        "from evorobotics.network import _accumulate_tile, _saturate, _sigmoid_tile",
         "",
         "",
         "@njit(cache=True)",
@@ -349,12 +452,14 @@ def _kernel_source(spec: NetworkSpec) -> str:
                 x = f"state, {hist[src] + t * n_src}"
             row = f"{offset} + n * {n_src + 1}"
             lines.append(f"        _accumulate_tile(w, {row}, {n_src}, {x}, scratch, {u})")
-        activation = "_saturate" if m == top and plan.linear_output == 1 else "_sigmoid"
-        lines += [  # an idle lane (zero weights and inputs) keeps u = 0
-            f"        for lane in range({LANES}):",
-            "            if live[lane]:",
-            f"                scratch[{u}, lane] = {activation}(scratch[{u}, lane])",
-        ]
+        if m == top and plan.linear_output == 1:
+            lines += [  # an idle lane (zero weights and inputs) keeps u = 0
+                f"        for lane in range({LANES}):",
+                "            if live[lane]:",
+                f"                scratch[{u}, lane] = _saturate(scratch[{u}, lane])",
+            ]
+        else:
+            lines.append(f"        _sigmoid_tile(scratch, {u}, live)")
     for j in range(top + 1):
         n_j, h = sizes[j], hist[j]
         for r in range(spec.delays, 0, -1):
