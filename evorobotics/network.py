@@ -271,6 +271,38 @@ def _accumulate_tile(
 
 
 @intrinsic
+def _copy_tile(
+    typingctx: object,
+    dst: types.Array,
+    dst_row: types.Integer,
+    src: types.Array,
+    src_row: types.Integer,
+    rows: types.Integer,
+) -> tuple[Signature, Callable[..., object]]:
+    """dst[dst_row + i] = src[src_row + i] for i < rows, whole LANES-wide rows as SIMD moves
+    (a lane loop would be unrolled into scalar moves). Ranges must not overlap."""
+    sig = types.void(dst, dst_row, src, src_row, rows)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        tys = signature.args
+        dst_v, src_v = args[0], args[2]
+        dr, sr, n = (context.cast(builder, args[k], tys[k], types.intp) for k in (1, 3, 4))
+        vec = llvm_ir.VectorType(llvm_ir.DoubleType(), LANES)
+        lanes = llvm_ir.Constant(dr.type, LANES)
+
+        def at(ty: types.Array, value: object, r: object) -> object:
+            data = context.make_array(ty)(context, builder, value).data
+            return builder.bitcast(builder.gep(data, [builder.mul(r, lanes)]), vec.as_pointer())
+
+        with cgutils.for_range(builder, n) as loop:
+            row = builder.load(at(tys[2], src_v, builder.add(sr, loop.index)), align=8)
+            builder.store(row, at(tys[0], dst_v, builder.add(dr, loop.index)), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
 def _sigmoid_tile(
     typingctx: object, a: types.Array, row: types.Integer, live: types.Array
 ) -> tuple[Signature, Callable[..., object]]:
@@ -323,12 +355,9 @@ def _sigmoid_tile(
         e = builder.fmul(p, builder.bitcast(bits, vec))
         nan = builder.fcmp_unordered("uno", x, x)
         e = builder.select(inside, e, builder.select(nan, x, splat(0.0)))
-        one_plus = builder.fadd(splat(1.0), e)
-        y = builder.select(
-            builder.fcmp_ordered(">=", u, splat(0.0)),
-            builder.fdiv(splat(1.0), one_plus),
-            builder.fdiv(e, one_plus),
-        )
+        # one division: select the numerator (the same operands, so the same bits)
+        numerator = builder.select(builder.fcmp_ordered(">=", u, splat(0.0)), splat(1.0), e)
+        y = builder.fdiv(numerator, builder.fadd(splat(1.0), e))
         live_data = context.make_array(signature.args[2])(context, builder, live_v).data
         mask = builder.load(
             builder.bitcast(
@@ -424,14 +453,12 @@ def _kernel_source(spec: NetworkSpec) -> str:
         "import numpy as np",
         "from numba import njit",
         "",
-        "from evorobotics.network import _accumulate_tile, _saturate, _sigmoid_tile",
+        "from evorobotics.network import _accumulate_tile, _copy_tile, _saturate, _sigmoid_tile",
         "",
         "",
         "@njit(cache=True)",
         "def kernel(w, state, x, out, scratch, live):",
-        f"    for i in range({sizes[0]}):",
-        f"        for lane in range({LANES}):",
-        "            scratch[i, lane] = x[i, lane]",
+        f"    _copy_tile(scratch, 0, x, 0, {sizes[0]})",
     ]
     for m in range(1, top + 1):
         u = f"{act[m]} + n"
@@ -463,20 +490,10 @@ def _kernel_source(spec: NetworkSpec) -> str:
     for j in range(top + 1):
         n_j, h = sizes[j], hist[j]
         for r in range(spec.delays, 0, -1):
-            lines += [
-                f"    for i in range({n_j}):",
-                f"        for lane in range({LANES}):",
-                f"            state[{h + r * n_j} + i, lane] = state[{h + (r - 1) * n_j} + i, lane]",
-            ]
-        lines += [
-            f"    for i in range({n_j}):",
-            f"        for lane in range({LANES}):",
-            f"            state[{h} + i, lane] = scratch[{act[j]} + i, lane]",
-        ]
+            lines.append(f"    _copy_tile(state, {h + r * n_j}, state, {h + (r - 1) * n_j}, {n_j})")
+        lines.append(f"    _copy_tile(state, {h}, scratch, {act[j]}, {n_j})")
     lines += [
-        f"    for i in range({sizes[top]}):",
-        f"        for lane in range({LANES}):",
-        f"            out[i, lane] = scratch[{act[top]} + i, lane]",
+        f"    _copy_tile(out, 0, scratch, {act[top]}, {sizes[top]})",
         "",
         "",
         "@njit(cache=True)",
