@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -14,12 +15,16 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numba import njit
 
 from evorobotics.layout import layout
 from evorobotics.network import (
     CACHE_ENV,
     LANES,
     LINEAR_BOUND,
+    _exp_neg,
+    _sigmoid,
+    _sigmoid_tile,
     cached_module,
     kernel_cache_dir,
     kernel_plan,
@@ -628,3 +633,38 @@ def test_threads_importing_one_generated_module_at_once_all_see_it_whole(
     for t in [first, *others]:
         t.join(timeout=30)
     assert not early and errors == [] and seen == [True] * 5
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(-50.0, 50.0),
+            st.floats(allow_nan=True, allow_infinity=True),
+            st.sampled_from([0.0, -0.0, 708.0, -708.0, 709.0, -745.0, 36.7]),
+        ),
+        min_size=LANES,
+        max_size=LANES,
+    ),
+    st.lists(st.booleans(), min_size=LANES, max_size=LANES),
+)
+def test_sigmoid_tile_is_sigmoid_bit_for_bit_and_within_an_ulp_of_exp(
+    values: list[float], live: list[bool]
+) -> None:
+    """The SIMD sigmoid is the scalar one in every live lane (idle lanes keep their value), and
+    its exp is within an ulp of numpy's down to -708, below which it is 0."""
+    row = np.array([values])
+    _sigmoid_lanes(row, np.array(live, dtype=np.uint8))
+    for k, u in enumerate(values):
+        expected = _sigmoid(u) if live[k] else u
+        assert np.array([row[0, k]]).tobytes() == np.array([expected]).tobytes()
+        x = -abs(u)
+        if np.isfinite(x) and x > -708.0:
+            assert abs(_exp_neg(x) - math.exp(x)) <= np.spacing(math.exp(x))
+        elif not math.isnan(x):
+            assert _exp_neg(x) == 0.0
+
+
+@njit
+def _sigmoid_lanes(row: np.ndarray, live: np.ndarray) -> None:
+    _sigmoid_tile(row, 0, live)  # type: ignore[call-arg, arg-type]  # numba supplies typingctx
