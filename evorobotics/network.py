@@ -46,16 +46,20 @@ scratch)` is the same call. `motor_one(out_row, linear_output, motor_row)` is th
 twin of `motor_commands` for one robot: finite commands in [-1, 1] whatever the outputs (NaN
 gives 0).
 
-Specialised kernels. `spec_kernel(spec)` is `step_one` with the plan baked in: Python source
-generated per spec (constant loop bounds, block offsets and state offsets, blocks summed in the
-same order), written as a real module file in the kernel cache directory (`cached_module`) and
-compiled with `njit(cache=True)`, so the compile is paid once per machine, not per process. Its call
-is `kernel(w, state_row, inputs_row, out_row, scratch)`, and it is bit-identical to `step_one`
-(same operations in the same order, no fastmath; tested) and about 2.5 times faster.
+Specialised tile kernels. `spec_kernel(spec)` is `step_one` with the plan baked in, for a tile
+of LANES = 8 controllers at once: Python source generated per spec (constant loop bounds, block
+offsets and state offsets, blocks summed in the same order), written as a real module file in
+the kernel cache directory (`cached_module`) and compiled with `njit(cache=True)`, so the
+compile is paid once per machine, not per process. Its call is
+`kernel(w, state, inputs, out, scratch, live)` on (rows, LANES) arrays, one controller per
+column; each neuron's sums and sigmoid are SIMD over the lanes (`_accumulate_tile`,
+`_sigmoid_tile`), and every live lane is bit-identical to `step_one` (same operations in the
+same order, no fastmath; the exp is the fixed polynomial `_exp_neg` in both; tested).
 
-`step` is a compiled loop over rows calling `spec_kernel(spec)`, and the simulator's fused
-episode kernel calls the same function: one compiled path, so a controller's outputs are
-bit-identical whatever the batch size and wherever it runs (robot or simulation).
+`step` is a compiled loop over tiles of the batch calling `spec_kernel(spec)`, and the
+simulator's fused episode kernel calls the same function: one compiled path, so a controller's
+outputs are bit-identical whatever the batch size, its lane, and wherever it runs (robot or
+simulation).
 `step_reference` is an independent vectorised numpy version used by the tests.
 """
 
@@ -721,7 +725,7 @@ def step(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One step of a batch: (outputs (B, outputs), new state); the arguments are not modified.
 
-    The canonical path (`spec_kernel(spec)`, one row at a time), bit-identical for any batch
+    The canonical path (`spec_kernel(spec)`, tile by tile), bit-identical for any batch
     size and to the simulator's episodes.
     """
     w, x, st = _checked(spec, weights, inputs, state)
