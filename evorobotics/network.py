@@ -489,8 +489,11 @@ def _kernel_source(spec: NetworkSpec) -> str:
                 "            if live[lane]:",
                 f"                scratch[{u}, lane] = _saturate(scratch[{u}, lane])",
             ]
-        else:
-            lines.append(f"        _sigmoid_tile(scratch, {u}, live)")
+        else:  # after the layer's sums: the neurons' exp chains are independent, so they overlap
+            lines += [
+                f"    for n in range({sizes[m]}):",
+                f"        _sigmoid_tile(scratch, {u}, live)",
+            ]
     for j in range(top + 1):
         n_j, h = sizes[j], hist[j]
         for r in range(spec.delays, 0, -1):
