@@ -1013,8 +1013,9 @@ def simulate(
 ) -> SimResult:
     """Run every robot (row of `weights`, row of `start_poses`) for `steps` steps in one call.
 
-    The canonical path: one compiled kernel, one robot after another, so each robot's result
-    is bit-identical whatever the batch it is part of.
+    The canonical path: one compiled kernel, robots in tiles of `network.LANES`, each robot
+    with the same operations in whichever lane, so its result is bit-identical whatever the
+    batch it is part of.
     """
     w, starts, gap = _prepare(spec, weights, start_poses, steps, params, gap)
     batch = w.shape[0]
