@@ -667,7 +667,7 @@ def _episodes(
     rows = solid.shape[0]
     cols = solid.shape[1]
     visited = np.zeros((lanes, rows * cols), dtype=np.uint8)
-    trail = np.empty((lanes, steps + 1), dtype=np.int64)
+    trail = np.empty((lanes, min(steps + 1, rows * cols)), dtype=np.int64)  # new cells only
     per_step = ranges.shape[1] != 1
     last = ranges.shape[2] - 1
     next_robot = 0
