@@ -1,14 +1,20 @@
-"""Simulator speed: robot-steps per second of the fused kernel, the numpy reference and evaluate().
+"""Simulator speed: robot-steps per second per core of the tiled kernel against the one-robot
+kernel it replaced (bench/_old_kernel.py), interleaved in one run, as a fraction of the core's
+measured FP64 peak; then the numpy reference, first-call compile times and evaluate().
 
 Run: .venv/bin/python bench/sim.py. Best of several repeats (the machine may be shared); one
 core (the kernel is single-threaded). Random genomes, 40-step trials in the "paper" maze from
 the evaluation's own start poses.
 
 Two kinds of rows. "default world": a robot that gets stuck (paper rule, stuck_after = 1) stops
-and its remaining steps are skipped, so the figure depends on how many robots get stuck.
-"never stuck": World(stuck_after=10**6), so every robot runs all 40 steps (controller,
-whiskers, physics, collision test each step), the honest cost of a robot-step and the figure
-the target (2 M robot-steps/s at batch >= 1024 for paper-best) is judged on.
+and its remaining steps are skipped (counted as robot-steps all the same), so the figure
+depends on how many robots get stuck. "never stuck": World(stuck_after=10**6), so every robot
+runs all 40 steps (controller, whiskers, physics, collision test each step), the honest cost
+of a robot-step.
+
+Peak: a loop of independent FP64 fused multiply-adds on 8-lane vectors, as many as the core
+retires (`fma_peak`). The fraction of peak counts 2 flops per weight (multiply, add) and 143
+for the geometry (whiskers, move, collision) per robot-step.
 """
 
 from __future__ import annotations
@@ -20,8 +26,14 @@ import tempfile
 import time
 from collections.abc import Callable
 from functools import partial
+from typing import Any
 
 import numpy as np
+from _old_kernel import simulate_old
+from llvmlite import ir as llvm_ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from evorobotics.evaluate import evaluate, start_poses, trial_steps
 from evorobotics.evolution import evolve
@@ -33,6 +45,48 @@ from schemas.world import World
 
 STEPS = 40
 NEVER_STUCK = World(stuck_after=10**6)
+GEOMETRY_FLOPS = 143
+CHAINS = 16
+"""Independent accumulators of the peak loop: enough to hide the FMA latency on two units."""
+
+
+@intrinsic
+def _fma_chains(typingctx: object, n: types.Integer) -> tuple[Any, Callable[..., object]]:
+    """n rounds of CHAINS independent 8-lane FP64 FMAs (acc = acc * a + b); the lanes' sum."""
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        vec = llvm_ir.VectorType(llvm_ir.DoubleType(), 8)
+        fma = cgutils.get_or_insert_function(
+            builder.module, llvm_ir.FunctionType(vec, [vec, vec, vec]), "llvm.fma.v8f64"
+        )
+        a = llvm_ir.Constant(vec, [0.999999] * 8)
+        b = llvm_ir.Constant(vec, [1e-6] * 8)
+        accs = [
+            cgutils.alloca_once_value(builder, llvm_ir.Constant(vec, [float(k)] * 8))
+            for k in range(CHAINS)
+        ]
+        count = context.cast(builder, args[0], signature.args[0], types.intp)
+        with cgutils.for_range(builder, count):
+            for acc in accs:
+                builder.store(builder.call(fma, [builder.load(acc), a, b]), acc)
+        total = builder.load(accs[0])
+        for acc in accs[1:]:
+            total = builder.fadd(total, builder.load(acc))
+        return builder.extract_element(total, llvm_ir.Constant(llvm_ir.IntType(32), 0))
+
+    return types.float64(n), codegen
+
+
+@njit
+def _peak_loop(n: int) -> float:
+    return float(_fma_chains(n))
+
+
+def fma_peak() -> float:
+    """The core's FP64 peak in flop/s, measured: best of repeats of the FMA loop."""
+    rounds = 2_000_000
+    seconds = best_of(lambda: _peak_loop(rounds), 5)
+    return rounds * CHAINS * 8 * 2 / seconds
 
 
 def best_of(fn: Callable[[], object], repeats: int) -> float:
@@ -46,17 +100,45 @@ def best_of(fn: Callable[[], object], repeats: int) -> float:
     return min(times)
 
 
-def rate(preset: str, batch: int, params: World, reference: bool = False) -> tuple[float, float]:
-    """(robot-steps per second, fraction of robots that ended stuck)."""
+def interleaved(fns: list[Callable[[], object]], repeats: int) -> list[float]:
+    """Shortest wall time of each function, called in turn (A, B, A, B, ...) after a warm-up."""
+    for fn in fns:
+        fn()
+    best = [float("inf")] * len(fns)
+    for _ in range(repeats):
+        for i, fn in enumerate(fns):
+            t0 = time.perf_counter()
+            fn()
+            best[i] = min(best[i], time.perf_counter() - t0)
+    return best
+
+
+def compare(preset: str, batch: int, params: World) -> tuple[float, float, float]:
+    """(old robot-steps/s, new robot-steps/s, fraction of robots that ended stuck)."""
     spec = PRESETS[preset]
     maze = load_maze("paper")
     weights = np.random.default_rng(0).normal(0.0, 1.5, (batch, spec.weight_count))
     starts = np.resize(start_poses(maze, 0, 0, 64), (batch, 3))
-    run = simulate_reference if reference else simulate
-    repeats = 3 if reference else max(3, 20_000 // batch)
-    seconds = best_of(lambda: run(spec, weights, maze, starts, STEPS, params), repeats)
-    stuck = float(run(spec, weights, maze, starts, STEPS, params).stuck.mean())
-    return batch * STEPS / seconds, stuck
+    work = batch * STEPS * spec.weight_count
+    repeats = max(3, min(200, 4_000_000 // work))
+    old, new = interleaved(
+        [
+            lambda: simulate_old(spec, weights, maze, starts, STEPS, params),
+            lambda: simulate(spec, weights, maze, starts, STEPS, params),
+        ],
+        repeats,
+    )
+    stuck = float(simulate(spec, weights, maze, starts, STEPS, params).stuck.mean())
+    return batch * STEPS / old, batch * STEPS / new, stuck
+
+
+def reference_rate(params: World) -> float:
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    weights = np.random.default_rng(0).normal(0.0, 1.5, (1024, spec.weight_count))
+    starts = np.resize(start_poses(maze, 0, 0, 64), (1024, 3))
+    seconds = best_of(lambda: simulate_reference(spec, weights, maze, starts, STEPS, params), 3)
+    return 1024 * STEPS / seconds
 
 
 FIRST_SIMULATE = """
@@ -83,14 +165,25 @@ def first_call_seconds(script: str, preset: str, cache: str) -> float:
 
 
 def main() -> None:
-    print(f"robot-steps/s, {STEPS}-step trials in the 'paper' maze (best of repeats, one core)")
-    rows = [
-        ("paper-best", 1),
-        ("paper-best", 256),
-        ("paper-best", 1024),
-        ("paper-best", 4096),
-        ("paper-largest", 1024),
-    ]
+    peak = fma_peak()
+    print(f"FP64 peak of one core (FMA loop): {peak / 1e9:.1f} GFLOP/s")
+    print(
+        f"robot-steps/s per core, {STEPS}-step trials in the 'paper' maze, one-robot kernel "
+        "against the tiled one, interleaved (best of repeats)"
+    )
+    for label, params in (("default world", DEFAULT_WORLD), ("never stuck", NEVER_STUCK)):
+        print(f" {label} (stuck_after={params.stuck_after}):")
+        for preset in ("paper-best", "paper-largest"):
+            flops = 2 * PRESETS[preset].weight_count + GEOMETRY_FLOPS
+            for batch in (1, 256, 1024, 4096):
+                old, new, stuck = compare(preset, batch, params)
+                print(
+                    f"  {preset:14s} batch {batch:5d}: old {old / 1e6:7.3f} M/s  "
+                    f"tiled {new / 1e6:7.3f} M/s  x{new / old:5.2f}  "
+                    f"{100 * new * flops / peak:5.2f} % of peak  stuck {stuck:.2f}"
+                )
+        ref = reference_rate(params)
+        print(f"  numpy reference paper-best batch  1024: {ref / 1e6:7.3f} M/s")
     for preset in ("paper-best", "paper-largest"):
         with tempfile.TemporaryDirectory() as cache:
             cold = first_call_seconds(FIRST_SIMULATE, preset, cache)
@@ -98,16 +191,8 @@ def main() -> None:
         print(
             f" first simulate() of {preset} in a process: cold cache {cold:.2f} s, warm {warm:.2f} s"
         )
-    for label, params in (("default world", DEFAULT_WORLD), ("never stuck", NEVER_STUCK)):
-        print(f" {label} (stuck_after={params.stuck_after}):")
-        for preset, batch in rows:
-            r, stuck = rate(preset, batch, params)
-            print(
-                f"  kernel     {preset:14s} batch {batch:5d}: {r / 1e6:7.3f} M/s  stuck {stuck:.2f}"
-            )
-        r, stuck = rate("paper-best", 1024, params, True)
-        print(f"  reference  paper-best     batch  1024: {r / 1e6:7.3f} M/s  stuck {stuck:.2f}")
-    evaluate_calls()
+    if "--kernel-only" not in sys.argv:
+        evaluate_calls()
 
 
 def each_call_a_new_generation(config: RunConfig, genomes: np.ndarray) -> Callable[[], object]:

@@ -37,10 +37,14 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
-from numba import njit
+from llvmlite import ir as llvm_ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.core.typing.templates import Signature
+from numba.extending import intrinsic
 
 from evorobotics import network
 from evorobotics.maze import Maze
@@ -353,7 +357,7 @@ def _visit(visited: np.ndarray, maze: Maze, pose: np.ndarray) -> None:
 # ---------------------------------------------------------------- compiled kernel
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _wall(solid: np.ndarray, j: int, i: int) -> bool:
     if j < 0 or i < 0 or j >= solid.shape[0] or i >= solid.shape[1]:
         return True
@@ -372,7 +376,7 @@ def _sat_extents(
     return (a * ac + b * as_ + h, a * as_ + b * ac + h, a + h * (ac + as_), b + h * (ac + as_))
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _blocked(
     solid: np.ndarray,
     cell: float,
@@ -403,17 +407,23 @@ def _blocked(
     return False
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _clearance(clear: np.ndarray, cell: float, x: float, y: float) -> float:
-    """Lower bound on the distance from (x, y) to any wall (0 outside the grid)."""
-    i = math.floor(x / cell)
-    j = math.floor(y / cell)
+    """Lower bound on the distance from (x, y) to any wall (0 outside the grid).
+
+    Multiplies by 1/cell (hoisted out of the episode loop once inlined) instead of dividing:
+    where the two round to different cells the point is within an ulp of their shared edge,
+    so either cell's bound (which keeps a 1e-9 margin) holds; an early out, never a result.
+    """
+    inv = 1.0 / cell
+    i = math.floor(x * inv)
+    j = math.floor(y * inv)
     if j < 0 or i < 0 or j >= clear.shape[0] or i >= clear.shape[1]:
         return 0.0
     return float(clear[j, i])
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _slab1(lo: float, hi: float, p: float, u: float) -> tuple[float, float]:
     if abs(u) < 1e-12:
         if lo <= p and p <= hi:
@@ -424,7 +434,7 @@ def _slab1(lo: float, hi: float, p: float, u: float) -> tuple[float, float]:
     return min(ta, tb), max(ta, tb)
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _whisker(
     solid: np.ndarray, cell: float, px: float, py: float, ux: float, uy: float, r: float
 ) -> bool:
@@ -448,6 +458,119 @@ def _whisker(
             if t_in <= t_out and t_in <= r:
                 return True
     return False
+
+
+SINCOS_LIMIT = 1e8
+"""Angles beyond this magnitude (only in absurd worlds, a tiny wheel base spun fast) take cos
+and sin from libm; within it the three-part reduction by pi/2 below is accurate."""
+TWO_OVER_PI = 0.6366197723675814
+PIO2 = (1.570796012878418, 3.139164164167596e-07, 6.223372171896613e-14)
+"""pi/2 in three parts, the first two of 21 bits, so n * part is exact for |n| < 2^32."""
+SIN_TAYLOR = tuple((-1.0) ** j / math.factorial(2 * j + 1) for j in range(8, 0, -1))
+"""sin r = r + r z S(z), z = r^2: S's Taylor coefficients, Horner order (to r^17)."""
+COS_TAYLOR = tuple((-1.0) ** j / math.factorial(2 * j) for j in range(9, 0, -1))
+"""cos r = 1 + z C(z): C's Taylor coefficients, Horner order (to r^18)."""
+
+
+@njit(cache=True)
+def _sincos(x: float) -> tuple[float, float]:
+    """(cos x, sin x) in the operations `_sincos_tile` repeats lane by lane.
+
+    Not libm's (which has no SIMD form in numba) but one fixed sequence of IEEE operations:
+    x = n pi/2 + r, |r| <= pi/4, Taylor polynomials in r, the quadrant n mod 4 picking signs
+    and order. Within a few ulp of libm; identical bits scalar or vectorised, on any machine.
+    """
+    if not abs(x) <= SINCOS_LIMIT:
+        return math.cos(x), math.sin(x)
+    n = math.floor(x * TWO_OVER_PI + 0.5)
+    r = ((x - n * PIO2[0]) - n * PIO2[1]) - n * PIO2[2]
+    z = r * r
+    ps = SIN_TAYLOR[0]
+    for i in range(1, len(SIN_TAYLOR)):
+        ps = ps * z + SIN_TAYLOR[i]
+    pc = COS_TAYLOR[0]
+    for i in range(1, len(COS_TAYLOR)):
+        pc = pc * z + COS_TAYLOR[i]
+    s = r + r * z * ps
+    c = 1.0 + z * pc
+    q = int(n) & 3
+    if q == 0:
+        return c, s
+    if q == 1:
+        return -s, c
+    if q == 2:
+        return -c, -s
+    return s, -c
+
+
+@intrinsic
+def _sincos_tile(
+    typingctx: object, x: Any, cos_out: Any, sin_out: Any
+) -> tuple[Signature, Callable[..., object]]:
+    """cos_out, sin_out = `_sincos`(x) for the LANES values of 1-D arrays, as SIMD.
+
+    Lanes beyond SINCOS_LIMIT (or NaN) get garbage: the caller takes libm's for them, as
+    `_sincos` does.
+    """
+    sig = types.void(x, cos_out, sin_out)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        lanes = network.LANES
+        f64 = llvm_ir.DoubleType()
+        vec = llvm_ir.VectorType(f64, lanes)
+        ivec = llvm_ir.VectorType(llvm_ir.IntType(64), lanes)
+
+        def splat(value: float) -> object:
+            return llvm_ir.Constant(vec, [value] * lanes)
+
+        def pointer(k: int) -> object:
+            data = context.make_array(signature.args[k])(context, builder, args[k]).data
+            return builder.bitcast(data, vec.as_pointer())
+
+        fnty = llvm_ir.FunctionType(vec, [vec])
+        floor = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+            builder.module, fnty, f"llvm.floor.v{lanes}f64"
+        )
+        fabs = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+            builder.module, fnty, f"llvm.fabs.v{lanes}f64"
+        )
+        x_v = builder.load(pointer(0), align=8)
+        inside = builder.fcmp_ordered("<=", builder.call(fabs, [x_v]), splat(SINCOS_LIMIT))
+        xc = builder.select(inside, x_v, splat(0.0))
+        n = builder.call(floor, [builder.fadd(builder.fmul(xc, splat(TWO_OVER_PI)), splat(0.5))])
+        r = xc
+        for part in PIO2:
+            r = builder.fsub(r, builder.fmul(n, splat(part)))
+        z = builder.fmul(r, r)
+        ps = splat(SIN_TAYLOR[0])
+        for coefficient in SIN_TAYLOR[1:]:
+            ps = builder.fadd(builder.fmul(ps, z), splat(coefficient))
+        pc = splat(COS_TAYLOR[0])
+        for coefficient in COS_TAYLOR[1:]:
+            pc = builder.fadd(builder.fmul(pc, z), splat(coefficient))
+        s = builder.fadd(r, builder.fmul(builder.fmul(r, z), ps))
+        c = builder.fadd(splat(1.0), builder.fmul(z, pc))
+        q = builder.and_(builder.fptosi(n, ivec), llvm_ir.Constant(ivec, [3] * lanes))
+
+        def quadrant(k: int) -> object:
+            return builder.icmp_signed("==", q, llvm_ir.Constant(ivec, [k] * lanes))
+
+        neg_s, neg_c = builder.fneg(s), builder.fneg(c)
+        cos_v = builder.select(
+            quadrant(0),
+            c,
+            builder.select(quadrant(1), neg_s, builder.select(quadrant(2), neg_c, s)),
+        )
+        sin_v = builder.select(
+            quadrant(0),
+            s,
+            builder.select(quadrant(1), c, builder.select(quadrant(2), neg_s, neg_c)),
+        )
+        builder.store(cos_v, pointer(1), align=8)
+        builder.store(sin_v, pointer(2), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @njit(inline="always")
@@ -482,17 +605,22 @@ def _episodes(
 ) -> None:
     """Every robot's whole trial: sense, think, act, collide, score (see the module docstring).
 
-    `kernel` is the controller (`network.spec_kernel`). Inlined (numba IR) into the generated
-    per-spec wrapper (`_episode_kernel`), where `kernel` is a module global: a dispatcher passed
-    as a value would make the wrapper uncacheable. Not disk-cached itself; the wrapper's cache
-    key covers this file, so an edit here is never served stale from disk.
+    `kernel` is the controller (`network.spec_kernel`), which steps a tile of `network.LANES`
+    robots at once. Each lane carries one robot through its trial; a lane whose robot is done
+    (all steps, or stuck when not recording: its terms are final) takes the next robot of the
+    batch, and once the batch is used up it idles (zero weights, skipped by the physics and
+    the activations). Robots meet the same arithmetic in any lane, so each robot's result is
+    bit-identical whatever the batch. Inlined (numba IR) into the generated per-spec wrapper
+    (`_episode_kernel`), where `kernel` is a module global: a dispatcher passed as a value
+    would make the wrapper uncacheable. Not disk-cached itself; the wrapper's cache key covers
+    this file, so an edit here is never served stale from disk.
 
     `ranges` (B, S, W) holds the whiskers' trigger distances: S = 1, fixed for the trial, or
     S = steps, one row per step; W = 1, shared by the five whiskers, or W = 5.
 
-    `cells_out[r]` counts the grid cells robot r's centre visited: a bitmap over the maze in
-    scratch, marked on every accepted move, whose marks are undone from `trail` after each robot
-    (cheaper than clearing the whole map).
+    `cells_out[r]` counts the grid cells robot r's centre visited: a bitmap over the maze per
+    lane, marked on every accepted move, whose marks are undone from the lane's `trail` when its
+    robot is done (cheaper than clearing the whole map).
     """
     dt = world[0]
     vmax = world[1]
@@ -500,122 +628,206 @@ def _episodes(
     a = world[3]
     b = world[4]
     hd = world[5]
-    state = np.empty(n_state)
-    scratch = np.empty(n_scratch)
-    inputs = np.empty(wx.shape[0])
-    out = np.empty(2)
+    lanes = network.LANES
+    n_q = wx.shape[0]
+    n_w = weights.shape[1]
+    batch = weights.shape[0]
+    w_tile = np.zeros((n_w, lanes))
+    state = np.zeros((n_state, lanes))
+    scratch = np.empty((n_scratch, lanes))
+    inputs = np.zeros((n_q, lanes))
+    out = np.empty((2, lanes))
+    out_row = np.empty(2)
     motor = np.empty(2)
-    rq = np.empty(wx.shape[0])
+    motors = np.zeros((2, lanes))
+    speed = np.zeros(lanes)
+    mids = np.zeros(lanes)
+    nths = np.zeros(lanes)
+    cos_mid = np.empty(lanes)
+    sin_mid = np.empty(lanes)
+    cos_new = np.empty(lanes)
+    sin_new = np.empty(lanes)
+    live = np.zeros(lanes, dtype=np.uint8)
+    robot = np.full(lanes, -1, dtype=np.int64)
+    step = np.zeros(lanes, dtype=np.int64)
+    xs = np.zeros(lanes)
+    ys = np.zeros(lanes)
+    ths = np.zeros(lanes)
+    cs = np.zeros(lanes)
+    ss = np.zeros(lanes)
+    x0s = np.zeros(lanes)
+    y0s = np.zeros(lanes)
+    rq = np.zeros((lanes, n_q))
+    r_max = np.zeros(lanes)  # the longest whisker: the body's early out must cover all five
+    blocked = np.zeros(lanes, dtype=np.int64)
+    stuck_at = np.full(lanes, -1, dtype=np.int64)
+    curve = np.zeros(lanes)
+    max_off = np.zeros(lanes)
+    n_cells = np.zeros(lanes, dtype=np.int64)
     rows = solid.shape[0]
     cols = solid.shape[1]
-    visited = np.zeros(rows * cols, dtype=np.uint8)
-    trail = np.empty(steps + 1, dtype=np.int64)
+    visited = np.zeros((lanes, rows * cols), dtype=np.uint8)
+    trail = np.empty((lanes, min(steps + 1, rows * cols)), dtype=np.int64)  # new cells only
     per_step = ranges.shape[1] != 1
     last = ranges.shape[2] - 1
-    for r in range(weights.shape[0]):
-        w = weights[r]
-        state[:] = 0.0
-        x0 = starts[r, 0]
-        y0 = starts[r, 1]
-        x = x0
-        y = y0
-        th = starts[r, 2]
-        r_max = 0.0  # the longest whisker: the body's early out must cover all five
-        if not per_step:
-            for q in range(wx.shape[0]):
-                rq[q] = ranges[r, 0, min(q, last)]
-                r_max = max(r_max, rq[q])
-        gl = gains[r, 0]
-        gr = gains[r, 1]
-        blocked = 0
-        stuck = False
-        stuck_at = -1
-        curve = 0.0
-        max_off = 0.0
-        n_cells = _mark(visited, trail, 0, cols, rows, cell, x, y)
-        if record:
-            rec_poses[r, 0, 0] = x
-            rec_poses[r, 0, 1] = y
-            rec_poses[r, 0, 2] = th
-        c = math.cos(th)
-        s = math.sin(th)
-        for k in range(steps):
-            if stuck and not record:
-                break  # frozen for good: its fitness terms are final
+    next_robot = 0
+    while True:
+        n_live = 0
+        for lane in range(lanes):
+            while True:  # retire a finished robot, take the next one
+                r = robot[lane]
+                if r >= 0 and step[lane] < steps and (stuck_at[lane] < 0 or record):
+                    break
+                if r >= 0:
+                    final[r, 0] = xs[lane]
+                    final[r, 1] = ys[lane]
+                    final[r, 2] = ths[lane]
+                    ox = xs[lane] - x0s[lane]
+                    oy = ys[lane] - y0s[lane]
+                    metrics[r, 0] = curve[lane]
+                    metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
+                    metrics[r, 2] = max_off[lane]
+                    stuck_out[r] = stuck_at[lane]
+                    cells_out[r] = n_cells[lane]
+                    for t in range(n_cells[lane]):
+                        visited[lane, trail[lane, t]] = 0
+                    for i in range(n_w):
+                        w_tile[i, lane] = 0.0
+                    robot[lane] = -1
+                if next_robot == batch:
+                    break
+                r = next_robot
+                next_robot += 1
+                robot[lane] = r
+                step[lane] = 0
+                for i in range(n_w):
+                    w_tile[i, lane] = weights[r, i]
+                for i in range(n_state):
+                    state[i, lane] = 0.0
+                x = starts[r, 0]
+                y = starts[r, 1]
+                th = starts[r, 2]
+                xs[lane] = x
+                ys[lane] = y
+                ths[lane] = th
+                x0s[lane] = x
+                y0s[lane] = y
+                cs[lane], ss[lane] = _sincos(th)
+                if not per_step:
+                    r_max[lane] = 0.0
+                    for q in range(n_q):
+                        rq[lane, q] = ranges[r, 0, min(q, last)]
+                        r_max[lane] = max(r_max[lane], rq[lane, q])
+                blocked[lane] = 0
+                stuck_at[lane] = -1
+                curve[lane] = 0.0
+                max_off[lane] = 0.0
+                n_cells[lane] = _mark(visited[lane], trail[lane], 0, cols, rows, cell, x, y)
+                if record:
+                    rec_poses[r, 0, 0] = x
+                    rec_poses[r, 0, 1] = y
+                    rec_poses[r, 0, 2] = th
+            live[lane] = robot[lane] >= 0
+            n_live += live[lane]
+        if n_live == 0:
+            break
+        for lane in range(lanes):  # sense
+            if not live[lane]:
+                continue
+            r = robot[lane]
+            x = xs[lane]
+            y = ys[lane]
+            c = cs[lane]
+            s = ss[lane]
             if per_step:
-                r_max = 0.0
-                for q in range(wx.shape[0]):
-                    rq[q] = ranges[r, k, min(q, last)]
-                    r_max = max(r_max, rq[q])
+                r_max[lane] = 0.0
+                for q in range(n_q):
+                    rq[lane, q] = ranges[r, step[lane], min(q, last)]
+                    r_max[lane] = max(r_max[lane], rq[lane, q])
             # early outs: no wall within reach of the centre / of an attachment point
-            far = _clearance(clear, cell, x, y) > reach + r_max
-            for q in range(wx.shape[0]):
-                inputs[q] = 0.0
+            far = _clearance(clear, cell, x, y) > reach + r_max[lane]
+            for q in range(n_q):
+                inputs[q, lane] = 0.0
                 if far:
                     continue
                 px = x + c * wx[q] - s * wy[q]
                 py = y + s * wx[q] + c * wy[q]
-                if _clearance(clear, cell, px, py) > rq[q]:
+                if _clearance(clear, cell, px, py) > rq[lane, q]:
                     continue
                 ux = c * ca[q] - s * sa[q]
                 uy = s * ca[q] + c * sa[q]
-                if _whisker(solid, cell, px, py, ux, uy, rq[q]):
-                    inputs[q] = 1.0
-            kernel(w, state, inputs, out, scratch)
-            motor_one(out, linear_output, motor)
-            if not stuck:
-                vl = motor[0] * gl * vmax
-                vr = motor[1] * gr * vmax
-                v = (vl + vr) * 0.5
-                om = (vr - vl) / base
-                mid = th + om * (dt * 0.5)
-                nx = x + v * dt * math.cos(mid)
-                ny = y + v * dt * math.sin(mid)
-                nth = th + om * dt
-                nth = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
-                nc = math.cos(nth)
-                ns = math.sin(nth)
+                if _whisker(solid, cell, px, py, ux, uy, rq[lane, q]):
+                    inputs[q, lane] = 1.0
+        kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
+        for lane in range(lanes):  # act: wheel commands, the unobstructed move's angles
+            if not live[lane]:
+                continue
+            r = robot[lane]
+            out_row[0] = out[0, lane]
+            out_row[1] = out[1, lane]
+            motor_one(out_row, linear_output, motor)
+            motors[0, lane] = motor[0]
+            motors[1, lane] = motor[1]
+            th = ths[lane]
+            vl = motor[0] * gains[r, 0] * vmax
+            vr = motor[1] * gains[r, 1] * vmax
+            speed[lane] = (vl + vr) * 0.5
+            om = (vr - vl) / base
+            mids[lane] = th + om * (dt * 0.5)
+            nth = th + om * dt
+            nths[lane] = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
+        _sincos_tile(mids, cos_mid, sin_mid)  # type: ignore[call-arg]  # numba supplies typingctx
+        _sincos_tile(nths, cos_new, sin_new)
+        for lane in range(lanes):  # collide, score
+            if not live[lane]:
+                continue
+            r = robot[lane]
+            k = step[lane]
+            if stuck_at[lane] < 0:
+                x = xs[lane]
+                y = ys[lane]
+                mid = mids[lane]
+                nth = nths[lane]
+                cm, sm = cos_mid[lane], sin_mid[lane]
+                if not abs(mid) <= SINCOS_LIMIT:
+                    cm, sm = _sincos(mid)
+                nc, ns = cos_new[lane], sin_new[lane]
+                if not abs(nth) <= SINCOS_LIMIT:
+                    nc, ns = _sincos(nth)
+                v = speed[lane]
+                nx = x + v * dt * cm
+                ny = y + v * dt * sm
                 if _clearance(clear, cell, nx, ny) <= hd and _blocked(
                     solid, cell, nx, ny, nc, ns, a, b, hd
                 ):
-                    blocked += 1
-                    if blocked >= stuck_after:
-                        stuck = True
-                        stuck_at = k + 1
+                    blocked[lane] += 1
+                    if blocked[lane] >= stuck_after:
+                        stuck_at[lane] = k + 1
                 else:
-                    blocked = 0
+                    blocked[lane] = 0
                     ddx = nx - x
                     ddy = ny - y
-                    curve += math.sqrt(ddx * ddx + ddy * ddy)
-                    x = nx
-                    y = ny
-                    th = nth
-                    c = nc
-                    s = ns
-                    ox = x - x0
-                    oy = y - y0
-                    max_off = max(max_off, math.sqrt(ox * ox + oy * oy))
-                    n_cells = _mark(visited, trail, n_cells, cols, rows, cell, x, y)
+                    curve[lane] += math.sqrt(ddx * ddx + ddy * ddy)
+                    xs[lane] = nx
+                    ys[lane] = ny
+                    ths[lane] = nth
+                    cs[lane] = nc
+                    ss[lane] = ns
+                    ox = nx - x0s[lane]
+                    oy = ny - y0s[lane]
+                    max_off[lane] = max(max_off[lane], math.sqrt(ox * ox + oy * oy))
+                    n_cells[lane] = _mark(
+                        visited[lane], trail[lane], n_cells[lane], cols, rows, cell, nx, ny
+                    )
             if record:
-                rec_poses[r, k + 1, 0] = x
-                rec_poses[r, k + 1, 1] = y
-                rec_poses[r, k + 1, 2] = th
-                for q in range(wx.shape[0]):
-                    rec_whiskers[r, k, q] = np.uint8(inputs[q])
-                rec_motors[r, k, 0] = motor[0]
-                rec_motors[r, k, 1] = motor[1]
-        final[r, 0] = x
-        final[r, 1] = y
-        final[r, 2] = th
-        ox = x - x0
-        oy = y - y0
-        metrics[r, 0] = curve
-        metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
-        metrics[r, 2] = max_off
-        stuck_out[r] = stuck_at
-        cells_out[r] = n_cells
-        for t in range(n_cells):
-            visited[trail[t]] = 0
+                rec_poses[r, k + 1, 0] = xs[lane]
+                rec_poses[r, k + 1, 1] = ys[lane]
+                rec_poses[r, k + 1, 2] = ths[lane]
+                for q in range(n_q):
+                    rec_whiskers[r, k, q] = np.uint8(inputs[q, lane])
+                rec_motors[r, k, 0] = motors[0, lane]
+                rec_motors[r, k, 1] = motors[1, lane]
+            step[lane] = k + 1
 
 
 @njit(inline="always")
@@ -801,8 +1013,9 @@ def simulate(
 ) -> SimResult:
     """Run every robot (row of `weights`, row of `start_poses`) for `steps` steps in one call.
 
-    The canonical path: one compiled kernel, one robot after another, so each robot's result
-    is bit-identical whatever the batch it is part of.
+    The canonical path: one compiled kernel, robots in tiles of `network.LANES`, each robot
+    with the same operations in whichever lane, so its result is bit-identical whatever the
+    batch it is part of.
     """
     w, starts, gap = _prepare(spec, weights, start_poses, steps, params, gap)
     batch = w.shape[0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -14,11 +15,16 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numba import njit
 
 from evorobotics.layout import layout
 from evorobotics.network import (
     CACHE_ENV,
+    LANES,
     LINEAR_BOUND,
+    _exp_neg,
+    _sigmoid,
+    _sigmoid_tile,
     cached_module,
     kernel_cache_dir,
     kernel_plan,
@@ -228,22 +234,64 @@ def test_state_layout_most_recent_first() -> None:
     assert state[0, h1 : h1 + 3].tolist() == [0.5, 0.5, 0.5]
 
 
+class Tile:
+    """A tile of LANES controllers for `spec_kernel(spec)`: rows in, lanes in between.
+
+    `lanes` maps each controller (row of the arguments) to its lane; the other lanes idle with
+    zero weights, as the simulator's do.
+    """
+
+    def __init__(self, spec: NetworkSpec, weights: np.ndarray, lanes: list[int]) -> None:
+        self.kernel = spec_kernel(spec)
+        self.lanes = lanes
+        self.w = np.zeros((spec.weight_count, LANES))
+        self.w[:, lanes] = weights.T
+        self.state = np.zeros((state_size(spec), LANES))
+        self.x = np.zeros((spec.inputs, LANES))
+        self.out = np.full((spec.outputs, LANES), np.nan)
+        self.live = np.zeros(LANES, dtype=np.uint8)
+        self.live[lanes] = 1
+        self.spec = spec
+
+    def step(self, state: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """Advance the rows of `state` in place (scratch full of NaN: must not matter)."""
+        self.state[:, self.lanes] = state.T
+        self.x[:, self.lanes] = inputs.T
+        scratch = np.full((scratch_size(self.spec), LANES), np.nan)
+        self.kernel(self.w, self.state, self.x, self.out, scratch, self.live)
+        state[:] = self.state[:, self.lanes].T
+        out: np.ndarray = self.out[:, self.lanes].T.copy()
+        return out
+
+
 @settings(max_examples=10, deadline=None)
-@given(spec=specs(), seed=st.integers(0, 2**32 - 1))
-def test_spec_kernel_is_step_one_bit_for_bit(spec: NetworkSpec, seed: int) -> None:
-    """The generated kernel of any spec does exactly what the generic `step_one` does."""
+@given(
+    spec=specs(),
+    seed=st.integers(0, 2**32 - 1),
+    lanes=st.lists(st.integers(0, LANES - 1), min_size=1, max_size=LANES, unique=True),
+)
+def test_spec_kernel_is_step_one_bit_for_bit(
+    spec: NetworkSpec, seed: int, lanes: list[int]
+) -> None:
+    """The generated tile kernel of any spec does in every lane exactly what the generic
+    `step_one` does, whichever lanes are live."""
     rng = np.random.default_rng(seed)
-    w = rng.normal(scale=2.0, size=spec.weight_count)
-    plan, kernel = kernel_plan(spec), spec_kernel(spec)
-    generic = rng.normal(size=state_size(spec))
+    batch = len(lanes)
+    w = rng.normal(scale=2.0, size=(batch, spec.weight_count))
+    plan = kernel_plan(spec)
+    generic = rng.normal(size=(batch, state_size(spec)))
     special = generic.copy()
-    out_g, out_s = np.empty(spec.outputs), np.empty(spec.outputs)
+    tile = Tile(spec, w, lanes)
+    out_g = np.empty((batch, spec.outputs))
     scratch = np.empty(scratch_size(spec))
-    for x in rng.normal(size=(8, spec.inputs)):
-        step_one(w, *plan, generic, x, out_g, scratch)
-        kernel(w, special, x, out_s, np.full(scratch_size(spec), np.nan))
+    for x in rng.normal(size=(8, batch, spec.inputs)):
+        for r in range(batch):
+            step_one(w[r], *plan, generic[r], x[r], out_g[r], scratch)
+        out_s = tile.step(special, x)
         assert out_g.tobytes() == out_s.tobytes()
         assert generic.tobytes() == special.tobytes()
+    idle = [lane for lane in range(LANES) if lane not in lanes]
+    assert not tile.state[:, idle].any()  # zero weights and inputs keep an idle lane at 0
 
 
 def test_step_one_is_the_same_call_from_python() -> None:
@@ -323,7 +371,7 @@ def test_non_finite_sums_of_a_linear_output_become_finite_in_every_implementatio
     w[0:3] = 1e308, 1e308, -1e300  # output 1: 1e308 + 1e308 = inf, then + (-inf) = NaN
     w[6:8] = -1e308, -1e308  # output 2: -inf
     x = np.array([1.0, 1.0, 1e300, 0.0, 0.0])
-    plan, kernel = kernel_plan(spec), spec_kernel(spec)
+    plan = kernel_plan(spec)
     results = []
     for fn in (step, step_reference):
         out, state = fn(spec, w[None], x[None], reset(spec, 1))
@@ -331,9 +379,9 @@ def test_non_finite_sums_of_a_linear_output_become_finite_in_every_implementatio
     row, out_row = reset(spec, 1)[0], np.empty(spec.outputs)
     step_one(w, *plan, row, x, out_row, np.empty(scratch_size(spec)))
     results.append((out_row.tobytes(), row.tobytes()))
-    special, out_s = reset(spec, 1)[0], np.empty(spec.outputs)
-    kernel(w, special, x, out_s, np.empty(scratch_size(spec)))
-    results.append((out_s.tobytes(), special.tobytes()))
+    special = reset(spec, 1)
+    out_s = Tile(spec, w[None], [3]).step(special, x[None])
+    results.append((out_s[0].tobytes(), special[0].tobytes()))
     assert out_row.tolist() == [0.0, -LINEAR_BOUND]
     assert np.isfinite(row).all()
     assert results == [results[0]] * 4
@@ -364,16 +412,17 @@ def test_large_weights_stay_finite_and_kernels_agree_bit_for_bit(
     batch = 3
     w = rng.normal(scale=scale, size=(batch, spec.weight_count))
     xs = rng.integers(0, 2, size=(300, batch, spec.inputs)).astype(np.float64)
-    plan, kernel = kernel_plan(spec), spec_kernel(spec)
+    plan = kernel_plan(spec)
     generic, special = reset(spec, batch), reset(spec, batch)
-    out_g, out_s = np.empty(spec.outputs), np.empty(spec.outputs)
+    tile = Tile(spec, w, [0, 5, 7])
+    out_g = np.empty(spec.outputs)
     scratch = np.empty(scratch_size(spec))
     motor_g = np.empty(spec.outputs)
     for x in xs:
+        out_s = tile.step(special, x)
         for r in range(batch):
             step_one(w[r], *plan, generic[r], x[r], out_g, scratch)
-            kernel(w[r], special[r], x[r], out_s, np.full(scratch_size(spec), np.nan))
-            assert out_g.tobytes() == out_s.tobytes()
+            assert out_g.tobytes() == out_s[r].tobytes()
             assert np.abs(out_g).max() <= LINEAR_BOUND
             motor_one(out_g, plan.linear_output, motor_g)
             assert motor_g.tobytes() == motor_commands(spec, out_g).tobytes()
@@ -584,3 +633,38 @@ def test_threads_importing_one_generated_module_at_once_all_see_it_whole(
     for t in [first, *others]:
         t.join(timeout=30)
     assert not early and errors == [] and seen == [True] * 5
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(-50.0, 50.0),
+            st.floats(allow_nan=True, allow_infinity=True),
+            st.sampled_from([0.0, -0.0, 708.0, -708.0, 709.0, -745.0, 36.7]),
+        ),
+        min_size=LANES,
+        max_size=LANES,
+    ),
+    st.lists(st.booleans(), min_size=LANES, max_size=LANES),
+)
+def test_sigmoid_tile_is_sigmoid_bit_for_bit_and_within_an_ulp_of_exp(
+    values: list[float], live: list[bool]
+) -> None:
+    """The SIMD sigmoid is the scalar one in every live lane (idle lanes keep their value), and
+    its exp is within an ulp of numpy's down to -708, below which it is 0."""
+    row = np.array([values])
+    _sigmoid_lanes(row, np.array(live, dtype=np.uint8))
+    for k, u in enumerate(values):
+        expected = _sigmoid(u) if live[k] else u
+        assert np.array([row[0, k]]).tobytes() == np.array([expected]).tobytes()
+        x = -abs(u)
+        if np.isfinite(x) and x > -708.0:
+            assert abs(_exp_neg(x) - math.exp(x)) <= np.spacing(math.exp(x))
+        elif not math.isnan(x):
+            assert _exp_neg(x) == 0.0
+
+
+@njit
+def _sigmoid_lanes(row: np.ndarray, live: np.ndarray) -> None:
+    _sigmoid_tile(row, 0, live)  # type: ignore[call-arg, arg-type]  # numba supplies typingctx

@@ -1,5 +1,6 @@
 """The simulator: whisker geometry, kinematics, blocked moves, stuck rule, kernel vs reference."""
 
+import hashlib
 import math
 import os
 import subprocess
@@ -11,14 +12,18 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from numba import njit
 
 from evorobotics import network
 from evorobotics.evaluate import draw_gap, start_poses
 from evorobotics.maze import load_maze
 from evorobotics.sim import (
     DEFAULT_WORLD,
+    SINCOS_LIMIT,
     Gap,
     _episode_kernel,
+    _sincos,
+    _sincos_tile,
     body_hits_wall,
     clear_of_walls,
     simulate,
@@ -548,3 +553,67 @@ def test_per_step_gap_shapes_are_checked() -> None:
     assert simulate(
         spec, w, ARENA, poses, 0, gap=Gap(np.empty((2, 0, 5)), np.ones((2, 2)))
     ).stuck.shape == (2,)
+
+
+def test_a_robot_gets_the_same_bits_in_any_lane_and_after_any_refill() -> None:
+    """Permuting a batch moves every robot to another lane and tile, next to other robots,
+    with lanes refilled at other times (stuck robots leave early): each result is unchanged."""
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    weights = np.random.default_rng(5).normal(0.0, 1.5, size=(37, spec.weight_count))
+    starts = np.resize(start_poses(maze, 0, 0, 64), (37, 3))
+    whole = simulate(spec, weights, maze, starts, 60)
+    assert 0.1 < whole.stuck.mean() < 0.9  # lanes do free up at different steps
+    order = np.random.default_rng(6).permutation(37)
+    moved = simulate(spec, weights[order], maze, starts[order], 60)
+    assert moved.components.tobytes() == whole.components[order].tobytes()
+    assert moved.poses_final.tobytes() == whole.poses_final[order].tobytes()
+    assert moved.stuck_step.tobytes() == whole.stuck_step[order].tobytes()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(-8.0, 8.0),
+            st.floats(-1e9, 1e9),
+            st.sampled_from([0.0, -0.0, math.pi, -math.pi, math.pi / 4, 1e8, -1e8, 1.5e8]),
+        ),
+        min_size=network.LANES,
+        max_size=network.LANES,
+    )
+)
+def test_sincos_tile_is_sincos_bit_for_bit_and_within_an_ulp_of_libm(angles: list[float]) -> None:
+    x = np.array(angles)
+    c, s = np.empty(network.LANES), np.empty(network.LANES)
+    _sincos_lanes(x, c, s)
+    for k, angle in enumerate(angles):
+        cos, sin = _sincos(angle)
+        if abs(angle) <= SINCOS_LIMIT:  # beyond it the tile's lanes are the caller's to fix
+            assert (c[k], s[k]) == (cos, sin)
+        if abs(angle) <= 8.0:  # the simulator's angles: headings in [-pi, pi) plus a turn
+            assert abs(cos - math.cos(angle)) <= 2.3e-16
+            assert abs(sin - math.sin(angle)) <= 2.3e-16
+
+
+@njit
+def _sincos_lanes(x: np.ndarray, c: np.ndarray, s: np.ndarray) -> None:
+    _sincos_tile(x, c, s)  # type: ignore[call-arg]  # numba supplies typingctx
+
+
+PINNED = "fcd04b30"
+"""sha256 (first 8 hex) of `test_simulate_bits_are_pinned`'s results: the fixed arithmetic
+(polynomial exp, sin and cos, no libm in the step) gives these bits on any machine."""
+
+
+def test_simulate_bits_are_pinned() -> None:
+    spec = PRESETS["paper-best"]
+    maze = load_maze("paper")
+    weights = np.random.default_rng(7).normal(0.0, 1.5, size=(24, spec.weight_count))
+    starts = start_poses(maze, 0, 0, 24)
+    res = simulate(spec, weights, maze, starts, 100, World(stuck_after=10**6), record=True)
+    assert res.poses is not None and res.motors is not None and res.cells is not None
+    digest = hashlib.sha256()
+    for part in (res.poses, res.motors, res.components, res.cells):
+        digest.update(np.ascontiguousarray(part).tobytes())
+    assert digest.hexdigest()[:8] == PINNED
