@@ -1188,9 +1188,10 @@ def _drive(
     om = (vr - vl) / world[2]
     mid = th + om * (dt * 0.5)
     nth = th + om * dt
+    cm, sm = _sincos(mid)
     return (
-        x + v * dt * math.cos(mid),
-        y + v * dt * math.sin(mid),
+        x + v * dt * cm,
+        y + v * dt * sm,
         nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI),
     )
 
@@ -1212,8 +1213,7 @@ def _sense_one(
     bits: np.ndarray,
 ) -> None:
     """The sensing of one robot in `_episodes`, with its early outs, into `bits` (5,)."""
-    c = math.cos(th)
-    s = math.sin(th)
+    c, s = _sincos(th)
     r_max = 0.0
     for q in range(wx.shape[0]):
         r_max = max(r_max, rq[q])
@@ -1269,8 +1269,9 @@ def _step_rows(
             nx, ny, nth = _drive(
                 x, y, th, motors[r, 0] * gains[r, 0], motors[r, 1] * gains[r, 1], world
             )
+            nc, ns = _sincos(nth)
             if _clearance(clear, cell, nx, ny) <= hd and _blocked(
-                solid, cell, nx, ny, math.cos(nth), math.sin(nth), a, b, hd
+                solid, cell, nx, ny, nc, ns, a, b, hd
             ):
                 blocked[r] += 1
                 if blocked[r] >= stuck_after:
