@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import glob
 import itertools
+import logging
 import os
 import shutil
 import socket
@@ -26,6 +27,17 @@ if TYPE_CHECKING:
     import sqlalchemy as sa
 
 PG_USER = "colony"
+
+
+@pytest.fixture(autouse=True)
+def _root_logging() -> Iterator[None]:
+    """An in-process `colony server`, `worker` or `agent` (CliRunner) points the root logger at
+    the runner's captured stderr; restore it, or later tests log to a closed stream."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
 
 
 def _pg_bin() -> Path | None:
