@@ -411,11 +411,12 @@ def _blocked(
 def _clearance(clear: np.ndarray, cell: float, x: float, y: float) -> float:
     """Lower bound on the distance from (x, y) to any wall (0 outside the grid).
 
-    Multiplies by 1/cell (hoisted out of the episode loop once inlined) instead of dividing:
-    where the two round to different cells the point is within an ulp of their shared edge,
-    so either cell's bound (which keeps a 1e-9 margin) holds; an early out, never a result.
+    Multiplies by CLEARANCE_SUB/cell (hoisted out of the episode loop once inlined) instead
+    of dividing: where the two round to different squares the point is within an ulp of their
+    shared edge, so either square's bound (which keeps a 1e-9 margin) holds; an early out,
+    never a result.
     """
-    inv = 1.0 / cell
+    inv = CLEARANCE_SUB / cell
     i = math.floor(x * inv)
     j = math.floor(y * inv)
     if j < 0 or i < 0 or j >= clear.shape[0] or i >= clear.shape[1]:
@@ -1097,27 +1098,40 @@ def _world_arrays(
 
 CLEARANCE_CELLS = 4
 """Clearance maps look this many cells around each cell (0.4 m at 0.1 m cells)."""
+CLEARANCE_SUB = 4
+"""Clearance maps split each maze cell into CLEARANCE_SUB x CLEARANCE_SUB squares: a bound
+per square (25 mm at 0.1 m cells) is tight enough that a whisker or a body near a wall but
+clear of it rarely needs the exact test."""
 
 
 @lru_cache(maxsize=64)
 def _clearance_map(maze: Maze) -> np.ndarray:
-    """clear[j, i]: a lower bound on the distance from any point of cell (j, i) to a wall.
+    """clear[b, a]: a lower bound on the distance from any point of square (b, a) to a wall.
 
-    Exact minimum over wall cells within CLEARANCE_CELLS (square-to-square gap), capped at the
-    window's reach, minus 1e-9 for rounding. The kernel skips the exact whisker and body tests
-    when it proves no wall is near: an early out that never changes a result.
+    Squares of cell / CLEARANCE_SUB, rows b over y. Exact minimum over wall cells within
+    CLEARANCE_CELLS of the square's cell (square-to-square gap), capped at the window's reach,
+    minus 1e-9 for rounding. The kernel skips the exact whisker and body tests when it proves
+    no wall is near: an early out that never changes a result.
     """
-    k = CLEARANCE_CELLS
+    k, sub = CLEARANCE_CELLS, CLEARANCE_SUB
     cell = maze.cell_size
+    side = cell / sub
     padded = np.pad(maze.solid, k, constant_values=True)
     ny, nx = maze.solid.shape
-    clear = np.full((ny, nx), k * cell)
+    at = np.arange(sub)  # a square's place in its cell, on one axis
+    clear = np.full((ny, sub, nx, sub), k * cell)
     for dj in range(-k, k + 1):
+        gy = np.maximum(np.maximum(dj * cell - (at + 1) * side, at * side - (dj + 1) * cell), 0.0)
         for di in range(-k, k + 1):
-            gap = math.hypot(max(abs(di) - 1, 0) * cell, max(abs(dj) - 1, 0) * cell)
+            gx = np.maximum(
+                np.maximum(di * cell - (at + 1) * side, at * side - (di + 1) * cell), 0.0
+            )
+            gap = np.hypot(gy[:, None], gx[None, :])  # (sub, sub): row b, column a
             wall = padded[k + dj : k + dj + ny, k + di : k + di + nx]
-            clear = np.where(wall, np.minimum(clear, gap), clear)
-    return np.ascontiguousarray(clear - 1e-9)
+            clear = np.where(
+                wall[:, None, :, None], np.minimum(clear, gap[None, :, None, :]), clear
+            )
+    return np.ascontiguousarray(clear.reshape(ny * sub, nx * sub) - 1e-9)
 
 
 @lru_cache(maxsize=64)
