@@ -649,6 +649,8 @@ def _episodes(
     cos_new = np.empty(lanes)
     sin_new = np.empty(lanes)
     live = np.zeros(lanes, dtype=np.uint8)
+    changed = np.zeros(lanes, dtype=np.uint8)  # robot taken or retired in this refill
+    new_lanes = np.zeros(lanes, dtype=np.int64)
     robot = np.full(lanes, -1, dtype=np.int64)
     step = np.zeros(lanes, dtype=np.int64)
     xs = np.zeros(lanes)
@@ -692,17 +694,15 @@ def _episodes(
                     cells_out[r] = n_cells[lane]
                     for t in range(n_cells[lane]):
                         visited[lane, trail[lane, t]] = 0
-                    for i in range(n_w):
-                        w_tile[i, lane] = 0.0
                     robot[lane] = -1
+                    changed[lane] = 1
                 if next_robot == batch:
                     break
                 r = next_robot
                 next_robot += 1
                 robot[lane] = r
+                changed[lane] = 1
                 step[lane] = 0
-                for i in range(n_w):
-                    w_tile[i, lane] = weights[r, i]
                 for i in range(n_state):
                     state[i, lane] = 0.0
                 x = starts[r, 0]
@@ -732,6 +732,26 @@ def _episodes(
             n_live += live[lane]
         if n_live == 0:
             break
+        n_new = 0  # the weights of lanes that changed robot: one pass over the tile's rows
+        for lane in range(lanes):
+            if changed[lane]:
+                changed[lane] = 0
+                if live[lane]:
+                    new_lanes[n_new] = lane
+                    n_new += 1
+                else:  # idle from now on: zero weights
+                    for i in range(n_w):
+                        w_tile[i, lane] = 0.0
+        if n_new == lanes:  # row by row: each row of the tile written whole
+            for i in range(n_w):
+                for lane in range(lanes):
+                    w_tile[i, lane] = weights[robot[lane], i]
+        else:
+            for f in range(n_new):
+                lane = new_lanes[f]
+                r = robot[lane]
+                for i in range(n_w):
+                    w_tile[i, lane] = weights[r, i]
         for lane in range(lanes):  # sense
             if not live[lane]:
                 continue
