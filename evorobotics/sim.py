@@ -236,6 +236,32 @@ def _kernel_array(a: np.ndarray) -> np.ndarray:
     return out if out.flags.writeable else out.copy()
 
 
+@lru_cache(maxsize=16)
+def _spec_sizes(spec: NetworkSpec) -> tuple[int, int, int, int]:
+    """(weight count, linear output, state size, scratch size) of `spec`, cached: a call of
+    `simulate` on a few robots must not spend its time recomputing them."""
+    return (
+        spec.weight_count,
+        network.kernel_plan(spec).linear_output,
+        network.state_size(spec),
+        network.scratch_size(spec),
+    )
+
+
+@lru_cache(maxsize=16)
+def _nominal_gap(batch: int, params: World) -> Gap:
+    """`Gap.nominal`, cached for the kernels, which only read it (private: never returned)."""
+    return Gap.nominal(batch, params)
+
+
+_NO_RECORD = (
+    np.zeros((0, 0, 3)),
+    np.zeros((0, 0, N_WHISKERS), dtype=np.uint8),
+    np.zeros((0, 0, 2)),
+)
+"""The trace arrays of a call without `record`: empty, never written."""
+
+
 def _prepare(
     spec: NetworkSpec,
     weights: np.ndarray,
@@ -250,8 +276,9 @@ def _prepare(
             f"{spec.inputs} and {spec.outputs}"
         )
     w = _kernel_array(weights)
-    if w.ndim != 2 or w.shape[1] != spec.weight_count:
-        raise ValueError(f"weights must be (batch, {spec.weight_count}), got {w.shape}")
+    n_weights = _spec_sizes(spec)[0]
+    if w.ndim != 2 or w.shape[1] != n_weights:
+        raise ValueError(f"weights must be (batch, {n_weights}), got {w.shape}")
     batch = w.shape[0]
     poses = _kernel_array(start_poses)
     if poses.shape != (batch, 3):
@@ -261,7 +288,7 @@ def _prepare(
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
     if gap is None:  # valid by construction (World checks whisker_range)
-        return w, poses, Gap.nominal(batch, params)
+        return w, poses, _nominal_gap(batch, params)
     ranges = _kernel_array(gap.whisker_range)
     gains = _kernel_array(gap.motor_gain)
     if ranges.shape not in ((batch,), (batch, steps, N_WHISKERS)) or gains.shape != (batch, 2):
@@ -687,9 +714,9 @@ def _episodes(
                     final[r, 2] = ths[lane]
                     ox = xs[lane] - x0s[lane]
                     oy = ys[lane] - y0s[lane]
-                    metrics[r, 0] = curve[lane]
-                    metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
-                    metrics[r, 2] = max_off[lane]
+                    metrics[0, r] = curve[lane]
+                    metrics[1, r] = math.sqrt(ox * ox + oy * oy)
+                    metrics[2, r] = max_off[lane]
                     stuck_out[r] = stuck_at[lane]
                     cells_out[r] = n_cells[lane]
                     for t in range(n_cells[lane]):
@@ -1042,21 +1069,23 @@ def simulate(
     batch = w.shape[0]
     world, wx, wy, ca, sa, reach = _world_arrays(params)
     final = np.empty((batch, 3))
-    metrics = np.empty((batch, 3))
+    metrics = np.empty((3, batch))
     stuck = np.empty(batch, dtype=np.int64)
     cells = np.empty(batch, dtype=np.int64)
-    shape = (batch, steps) if record else (0, 0)
-    rec_p = np.zeros((*shape[:1], steps + 1 if record else 0, 3))
-    rec_w = np.zeros((*shape, N_WHISKERS), dtype=np.uint8)
-    rec_m = np.zeros((*shape, 2))
+    rec_p, rec_w, rec_m = _NO_RECORD
+    if record:
+        rec_p = np.zeros((batch, steps + 1, 3))
+        rec_w = np.zeros((batch, steps, N_WHISKERS), dtype=np.uint8)
+        rec_m = np.zeros((batch, steps, 2))
     ranges = gap.whisker_range
     if ranges.ndim == 1:  # one per trial: the kernel's (B, S, W) with S = W = 1, a view
         ranges = ranges.reshape(batch, 1, 1)
+    _, linear_output, n_state, n_scratch = _spec_sizes(spec)
     _episode_kernel(spec)(
         w,
-        network.kernel_plan(spec).linear_output,
-        network.state_size(spec),
-        network.scratch_size(spec),
+        linear_output,
+        n_state,
+        n_scratch,
         _solid_u8(maze),
         maze.cell_size,
         starts,
@@ -1080,7 +1109,7 @@ def simulate(
         rec_w,
         rec_m,
     )
-    curve, net, max_off = metrics[:, 0].copy(), metrics[:, 1].copy(), metrics[:, 2].copy()
+    curve, net, max_off = metrics
     if record:
         return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m, cells)
     return SimResult(final, curve, net, max_off, stuck, cells=cells)
