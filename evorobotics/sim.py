@@ -677,6 +677,10 @@ def _episodes(
     sin_new = np.empty(lanes)
     live = np.zeros(lanes, dtype=np.uint8)
     changed = np.zeros(lanes, dtype=np.uint8)  # robot taken or retired in this refill
+    sensed = np.zeros(lanes, dtype=np.uint8)  # inputs hold the bits at the lane's pose
+    wall_x = np.full(lanes, np.nan)  # the last pose the lane's body was blocked at
+    wall_y = np.full(lanes, np.nan)
+    wall_th = np.full(lanes, np.nan)
     new_lanes = np.zeros(lanes, dtype=np.int64)
     robot = np.full(lanes, -1, dtype=np.int64)
     step = np.zeros(lanes, dtype=np.int64)
@@ -729,6 +733,7 @@ def _episodes(
                 next_robot += 1
                 robot[lane] = r
                 changed[lane] = 1
+                sensed[lane] = 0
                 step[lane] = 0
                 for i in range(n_state):
                     state[i, lane] = 0.0
@@ -780,7 +785,7 @@ def _episodes(
                 for i in range(n_w):
                     w_tile[i, lane] = weights[r, i]
         for lane in range(lanes):  # sense
-            if not live[lane]:
+            if not live[lane] or sensed[lane]:  # a blocked or stuck robot senses what it did
                 continue
             r = robot[lane]
             x = xs[lane]
@@ -806,6 +811,7 @@ def _episodes(
                 uy = s * ca[q] + c * sa[q]
                 if _whisker(solid, cell, px, py, ux, uy, rq[lane, q]):
                     inputs[q, lane] = 1.0
+            sensed[lane] = not per_step
         kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
         for lane in range(lanes):  # act: wheel commands, the unobstructed move's angles
             if not live[lane]:
@@ -845,13 +851,20 @@ def _episodes(
                 v = speed[lane]
                 nx = x + v * dt * cm
                 ny = y + v * dt * sm
-                if _clearance(clear, cell, nx, ny) <= hd and _blocked(
-                    solid, cell, nx, ny, nc, ns, a, b, hd
+                # a robot pushing into a wall often tries the same blocked pose again
+                again = nx == wall_x[lane] and ny == wall_y[lane] and nth == wall_th[lane]
+                if again or (
+                    _clearance(clear, cell, nx, ny) <= hd
+                    and _blocked(solid, cell, nx, ny, nc, ns, a, b, hd)
                 ):
+                    wall_x[lane] = nx
+                    wall_y[lane] = ny
+                    wall_th[lane] = nth
                     blocked[lane] += 1
                     if blocked[lane] >= stuck_after:
                         stuck_at[lane] = k + 1
                 else:
+                    sensed[lane] = 0
                     blocked[lane] = 0
                     ddx = nx - x
                     ddy = ny - y
