@@ -48,7 +48,6 @@ from numba.extending import intrinsic
 
 from evorobotics import network
 from evorobotics.maze import Maze
-from evorobotics.network import motor_one
 from schemas.network import NetworkSpec
 from schemas.world import N_WHISKERS, World
 
@@ -601,6 +600,91 @@ def _sincos_tile(
     return sig, codegen
 
 
+@intrinsic
+def _act_tile(
+    typingctx: object,
+    out: Any,
+    gains: Any,
+    ths: Any,
+    world: Any,
+    linear_output: Any,
+    motors: Any,
+    speed: Any,
+    mids: Any,
+    nths: Any,
+) -> tuple[Signature, Callable[..., object]]:
+    """The act step of `_episodes` for the LANES lanes at once, as SIMD.
+
+    From raw outputs `out` (2, LANES) and wheel gains (2, LANES): the wheel commands
+    (`network.motor_one`'s operations: 2y - 1 unless linear, NaN to 0, clipped to [-1, 1])
+    into `motors` (2, LANES), and with headings `ths` the move's speed, midpoint heading and
+    wrapped new heading, in `_drive`'s operations lane by lane (no FMA contraction).
+    """
+    sig = types.void(out, gains, ths, world, linear_output, motors, speed, mids, nths)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        lanes = network.LANES
+        f64 = llvm_ir.DoubleType()
+        vec = llvm_ir.VectorType(f64, lanes)
+
+        def splat(value: Any) -> Any:
+            if isinstance(value, float):
+                return llvm_ir.Constant(vec, [value] * lanes)
+            undef = llvm_ir.Constant(vec, llvm_ir.Undefined)
+            one = builder.insert_element(undef, value, llvm_ir.Constant(llvm_ir.IntType(32), 0))
+            return builder.shuffle_vector(
+                one,
+                undef,
+                llvm_ir.Constant(llvm_ir.VectorType(llvm_ir.IntType(32), lanes), [0] * lanes),
+            )
+
+        def row(k: int, r: int) -> Any:
+            data = context.make_array(signature.args[k])(context, builder, args[k]).data
+            return builder.bitcast(
+                builder.gep(data, [llvm_ir.Constant(llvm_ir.IntType(64), r * lanes)]),
+                vec.as_pointer(),
+            )
+
+        world_data = context.make_array(signature.args[3])(context, builder, args[3]).data
+
+        def world_at(i: int) -> Any:
+            return builder.load(builder.gep(world_data, [llvm_ir.Constant(llvm_ir.IntType(64), i)]))
+
+        dt, vmax, base = world_at(0), world_at(1), world_at(2)
+        floor = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+            builder.module, llvm_ir.FunctionType(vec, [vec]), f"llvm.floor.v{lanes}f64"
+        )
+        linear = builder.icmp_signed("!=", args[4], llvm_ir.Constant(args[4].type, 0))
+        commands = []
+        for k in range(2):
+            y = builder.load(row(0, k), align=8)
+            y = builder.select(linear, y, builder.fsub(builder.fmul(splat(2.0), y), splat(1.0)))
+            m = builder.select(builder.fcmp_ordered("<", y, splat(-1.0)), splat(-1.0), y)
+            m = builder.select(builder.fcmp_ordered(">", y, splat(1.0)), splat(1.0), m)
+            m = builder.select(builder.fcmp_unordered("uno", y, y), splat(0.0), m)
+            builder.store(m, row(5, k), align=8)
+            commands.append(m)
+        vm = splat(vmax)
+        vl = builder.fmul(builder.fmul(commands[0], builder.load(row(1, 0), align=8)), vm)
+        vr = builder.fmul(builder.fmul(commands[1], builder.load(row(1, 1), align=8)), vm)
+        builder.store(builder.fmul(builder.fadd(vl, vr), splat(0.5)), row(6, 0), align=8)
+        om = builder.fdiv(builder.fsub(vr, vl), splat(base))
+        th = builder.load(row(2, 0), align=8)
+        builder.store(
+            builder.fadd(th, builder.fmul(om, splat(builder.fmul(dt, llvm_ir.Constant(f64, 0.5))))),
+            row(7, 0),
+            align=8,
+        )
+        nth = builder.fadd(th, builder.fmul(om, splat(dt)))
+        turns = builder.call(
+            floor, [builder.fdiv(builder.fadd(nth, splat(math.pi)), splat(TWO_PI))]
+        )
+        builder.store(builder.fsub(nth, builder.fmul(splat(TWO_PI), turns)), row(8, 0), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 @njit(inline="always")
 def _episodes(
     kernel: network.Kernel,
@@ -651,8 +735,6 @@ def _episodes(
     robot is done (cheaper than clearing the whole map).
     """
     dt = world[0]
-    vmax = world[1]
-    base = world[2]
     a = world[3]
     b = world[4]
     hd = world[5]
@@ -665,8 +747,6 @@ def _episodes(
     scratch = np.empty((n_scratch, lanes))
     inputs = np.zeros((n_q, lanes))
     out = np.empty((2, lanes))
-    out_row = np.empty(2)
-    motor = np.empty(2)
     motors = np.zeros((2, lanes))
     speed = np.zeros(lanes)
     mids = np.zeros(lanes)
@@ -676,6 +756,7 @@ def _episodes(
     cos_new = np.empty(lanes)
     sin_new = np.empty(lanes)
     live = np.zeros(lanes, dtype=np.uint8)
+    gain_tile = np.zeros((2, lanes))
     changed = np.zeros(lanes, dtype=np.uint8)  # robot taken or retired in this refill
     sensed = np.zeros(lanes, dtype=np.uint8)  # inputs hold the bits at the lane's pose
     wall_x = np.full(lanes, np.nan)  # the last pose the lane's body was blocked at
@@ -733,6 +814,8 @@ def _episodes(
                 next_robot += 1
                 robot[lane] = r
                 changed[lane] = 1
+                gain_tile[0, lane] = gains[r, 0]
+                gain_tile[1, lane] = gains[r, 1]
                 sensed[lane] = 0
                 step[lane] = 0
                 for i in range(n_state):
@@ -813,23 +896,7 @@ def _episodes(
                     inputs[q, lane] = 1.0
             sensed[lane] = not per_step
         kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
-        for lane in range(lanes):  # act: wheel commands, the unobstructed move's angles
-            if not live[lane]:
-                continue
-            r = robot[lane]
-            out_row[0] = out[0, lane]
-            out_row[1] = out[1, lane]
-            motor_one(out_row, linear_output, motor)
-            motors[0, lane] = motor[0]
-            motors[1, lane] = motor[1]
-            th = ths[lane]
-            vl = motor[0] * gains[r, 0] * vmax
-            vr = motor[1] * gains[r, 1] * vmax
-            speed[lane] = (vl + vr) * 0.5
-            om = (vr - vl) / base
-            mids[lane] = th + om * (dt * 0.5)
-            nth = th + om * dt
-            nths[lane] = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
+        _act_tile(out, gain_tile, ths, world, linear_output, motors, speed, mids, nths)  # act
         _sincos_tile(mids, cos_mid, sin_mid)  # type: ignore[call-arg]  # numba supplies typingctx
         _sincos_tile(nths, cos_new, sin_new)
         for lane in range(lanes):  # collide, score
