@@ -896,8 +896,9 @@ def _episodes(
                     inputs[q, lane] = 1.0
             sensed[lane] = not per_step
         kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
-        _act_tile(out, gain_tile, ths, world, linear_output, motors, speed, mids, nths)  # act
-        _sincos_tile(mids, cos_mid, sin_mid)  # type: ignore[call-arg]  # numba supplies typingctx
+        # act; intrinsics: numba supplies their typingctx
+        _act_tile(out, gain_tile, ths, world, linear_output, motors, speed, mids, nths)  # type: ignore[call-arg]
+        _sincos_tile(mids, cos_mid, sin_mid)
         _sincos_tile(nths, cos_new, sin_new)
         for lane in range(lanes):  # collide, score
             if not live[lane]:
