@@ -25,7 +25,6 @@ from evorobotics.sim import (
     DEFAULT_WORLD,
     TWO_PI,
     SimResult,
-    _clearance_map,
     _prepare,
     _solid_u8,
     _world_arrays,
@@ -88,12 +87,30 @@ def _blocked(
 
 @njit(cache=True)
 def _clearance(clear: np.ndarray, cell: float, x: float, y: float) -> float:
-    """Lower bound on the distance from (x, y) to any wall (0 outside the grid)."""
+    """Lower bound on the distance from (x, y) to any wall (0 outside the grid), from a
+    per-cell map (`_clearance_map`)."""
     i = math.floor(x / cell)
     j = math.floor(y / cell)
     if j < 0 or i < 0 or j >= clear.shape[0] or i >= clear.shape[1]:
         return 0.0
     return float(clear[j, i])
+
+
+@cache
+def _clearance_map(maze: Maze) -> np.ndarray:
+    """clear[j, i]: a lower bound on the distance from any point of cell (j, i) to a wall
+    (within 4 cells, square-to-square gap, capped, minus 1e-9)."""
+    k = 4
+    cell = maze.cell_size
+    padded = np.pad(maze.solid, k, constant_values=True)
+    ny, nx = maze.solid.shape
+    clear = np.full((ny, nx), k * cell)
+    for dj in range(-k, k + 1):
+        for di in range(-k, k + 1):
+            gap = math.hypot(max(abs(di) - 1, 0) * cell, max(abs(dj) - 1, 0) * cell)
+            wall = padded[k + dj : k + dj + ny, k + di : k + di + nx]
+            clear = np.where(wall, np.minimum(clear, gap), clear)
+    return np.ascontiguousarray(clear - 1e-9)
 
 
 @njit(cache=True)

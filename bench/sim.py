@@ -9,8 +9,9 @@ the evaluation's own start poses.
 Two kinds of rows. "default world": a robot that gets stuck (paper rule, stuck_after = 1) stops
 and its remaining steps are skipped (counted as robot-steps all the same), so the figure
 depends on how many robots get stuck. "never stuck": World(stuck_after=10**6), so every robot
-runs all 40 steps (controller, whiskers, physics, collision test each step), the honest cost
-of a robot-step.
+runs all 40 steps (controller, physics and collision each step; a robot blocked against a wall
+keeps its whisker bits and its blocked pose's test result, as the kernel does in any world),
+the honest cost of a robot-step.
 
 Peak: a loop of independent FP64 fused multiply-adds on 8-lane vectors, as many as the core
 retires (`fma_peak`). The fraction of peak counts 2 flops per weight (multiply, add) and 143

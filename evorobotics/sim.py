@@ -48,7 +48,6 @@ from numba.extending import intrinsic
 
 from evorobotics import network
 from evorobotics.maze import Maze
-from evorobotics.network import motor_one
 from schemas.network import NetworkSpec
 from schemas.world import N_WHISKERS, World
 
@@ -236,6 +235,32 @@ def _kernel_array(a: np.ndarray) -> np.ndarray:
     return out if out.flags.writeable else out.copy()
 
 
+@lru_cache(maxsize=16)
+def _spec_sizes(spec: NetworkSpec) -> tuple[int, int, int, int]:
+    """(weight count, linear output, state size, scratch size) of `spec`, cached: a call of
+    `simulate` on a few robots must not spend its time recomputing them."""
+    return (
+        spec.weight_count,
+        network.kernel_plan(spec).linear_output,
+        network.state_size(spec),
+        network.scratch_size(spec),
+    )
+
+
+@lru_cache(maxsize=16)
+def _nominal_gap(batch: int, params: World) -> Gap:
+    """`Gap.nominal`, cached for the kernels, which only read it (private: never returned)."""
+    return Gap.nominal(batch, params)
+
+
+_NO_RECORD = (
+    np.zeros((0, 0, 3)),
+    np.zeros((0, 0, N_WHISKERS), dtype=np.uint8),
+    np.zeros((0, 0, 2)),
+)
+"""The trace arrays of a call without `record`: empty, never written."""
+
+
 def _prepare(
     spec: NetworkSpec,
     weights: np.ndarray,
@@ -250,8 +275,9 @@ def _prepare(
             f"{spec.inputs} and {spec.outputs}"
         )
     w = _kernel_array(weights)
-    if w.ndim != 2 or w.shape[1] != spec.weight_count:
-        raise ValueError(f"weights must be (batch, {spec.weight_count}), got {w.shape}")
+    n_weights = _spec_sizes(spec)[0]
+    if w.ndim != 2 or w.shape[1] != n_weights:
+        raise ValueError(f"weights must be (batch, {n_weights}), got {w.shape}")
     batch = w.shape[0]
     poses = _kernel_array(start_poses)
     if poses.shape != (batch, 3):
@@ -261,7 +287,7 @@ def _prepare(
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
     if gap is None:  # valid by construction (World checks whisker_range)
-        return w, poses, Gap.nominal(batch, params)
+        return w, poses, _nominal_gap(batch, params)
     ranges = _kernel_array(gap.whisker_range)
     gains = _kernel_array(gap.motor_gain)
     if ranges.shape not in ((batch,), (batch, steps, N_WHISKERS)) or gains.shape != (batch, 2):
@@ -411,11 +437,12 @@ def _blocked(
 def _clearance(clear: np.ndarray, cell: float, x: float, y: float) -> float:
     """Lower bound on the distance from (x, y) to any wall (0 outside the grid).
 
-    Multiplies by 1/cell (hoisted out of the episode loop once inlined) instead of dividing:
-    where the two round to different cells the point is within an ulp of their shared edge,
-    so either cell's bound (which keeps a 1e-9 margin) holds; an early out, never a result.
+    Multiplies by CLEARANCE_SUB/cell (hoisted out of the episode loop once inlined) instead
+    of dividing: where the two round to different squares the point is within an ulp of their
+    shared edge, so either square's bound (which keeps a 1e-9 margin) holds; an early out,
+    never a result.
     """
-    inv = 1.0 / cell
+    inv = CLEARANCE_SUB / cell
     i = math.floor(x * inv)
     j = math.floor(y * inv)
     if j < 0 or i < 0 or j >= clear.shape[0] or i >= clear.shape[1]:
@@ -573,6 +600,91 @@ def _sincos_tile(
     return sig, codegen
 
 
+@intrinsic
+def _act_tile(
+    typingctx: object,
+    out: Any,
+    gains: Any,
+    ths: Any,
+    world: Any,
+    linear_output: Any,
+    motors: Any,
+    speed: Any,
+    mids: Any,
+    nths: Any,
+) -> tuple[Signature, Callable[..., object]]:
+    """The act step of `_episodes` for the LANES lanes at once, as SIMD.
+
+    From raw outputs `out` (2, LANES) and wheel gains (2, LANES): the wheel commands
+    (`network.motor_one`'s operations: 2y - 1 unless linear, NaN to 0, clipped to [-1, 1])
+    into `motors` (2, LANES), and with headings `ths` the move's speed, midpoint heading and
+    wrapped new heading, in `_drive`'s operations lane by lane (no FMA contraction).
+    """
+    sig = types.void(out, gains, ths, world, linear_output, motors, speed, mids, nths)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        lanes = network.LANES
+        f64 = llvm_ir.DoubleType()
+        vec = llvm_ir.VectorType(f64, lanes)
+
+        def splat(value: Any) -> Any:
+            if isinstance(value, float):
+                return llvm_ir.Constant(vec, [value] * lanes)
+            undef = llvm_ir.Constant(vec, llvm_ir.Undefined)
+            one = builder.insert_element(undef, value, llvm_ir.Constant(llvm_ir.IntType(32), 0))
+            return builder.shuffle_vector(
+                one,
+                undef,
+                llvm_ir.Constant(llvm_ir.VectorType(llvm_ir.IntType(32), lanes), [0] * lanes),
+            )
+
+        def row(k: int, r: int) -> Any:
+            data = context.make_array(signature.args[k])(context, builder, args[k]).data
+            return builder.bitcast(
+                builder.gep(data, [llvm_ir.Constant(llvm_ir.IntType(64), r * lanes)]),
+                vec.as_pointer(),
+            )
+
+        world_data = context.make_array(signature.args[3])(context, builder, args[3]).data
+
+        def world_at(i: int) -> Any:
+            return builder.load(builder.gep(world_data, [llvm_ir.Constant(llvm_ir.IntType(64), i)]))
+
+        dt, vmax, base = world_at(0), world_at(1), world_at(2)
+        floor = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+            builder.module, llvm_ir.FunctionType(vec, [vec]), f"llvm.floor.v{lanes}f64"
+        )
+        linear = builder.icmp_signed("!=", args[4], llvm_ir.Constant(args[4].type, 0))
+        commands = []
+        for k in range(2):
+            y = builder.load(row(0, k), align=8)
+            y = builder.select(linear, y, builder.fsub(builder.fmul(splat(2.0), y), splat(1.0)))
+            m = builder.select(builder.fcmp_ordered("<", y, splat(-1.0)), splat(-1.0), y)
+            m = builder.select(builder.fcmp_ordered(">", y, splat(1.0)), splat(1.0), m)
+            m = builder.select(builder.fcmp_unordered("uno", y, y), splat(0.0), m)
+            builder.store(m, row(5, k), align=8)
+            commands.append(m)
+        vm = splat(vmax)
+        vl = builder.fmul(builder.fmul(commands[0], builder.load(row(1, 0), align=8)), vm)
+        vr = builder.fmul(builder.fmul(commands[1], builder.load(row(1, 1), align=8)), vm)
+        builder.store(builder.fmul(builder.fadd(vl, vr), splat(0.5)), row(6, 0), align=8)
+        om = builder.fdiv(builder.fsub(vr, vl), splat(base))
+        th = builder.load(row(2, 0), align=8)
+        builder.store(
+            builder.fadd(th, builder.fmul(om, splat(builder.fmul(dt, llvm_ir.Constant(f64, 0.5))))),
+            row(7, 0),
+            align=8,
+        )
+        nth = builder.fadd(th, builder.fmul(om, splat(dt)))
+        turns = builder.call(
+            floor, [builder.fdiv(builder.fadd(nth, splat(math.pi)), splat(TWO_PI))]
+        )
+        builder.store(builder.fsub(nth, builder.fmul(splat(TWO_PI), turns)), row(8, 0), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 @njit(inline="always")
 def _episodes(
     kernel: network.Kernel,
@@ -623,8 +735,6 @@ def _episodes(
     robot is done (cheaper than clearing the whole map).
     """
     dt = world[0]
-    vmax = world[1]
-    base = world[2]
     a = world[3]
     b = world[4]
     hd = world[5]
@@ -637,8 +747,6 @@ def _episodes(
     scratch = np.empty((n_scratch, lanes))
     inputs = np.zeros((n_q, lanes))
     out = np.empty((2, lanes))
-    out_row = np.empty(2)
-    motor = np.empty(2)
     motors = np.zeros((2, lanes))
     speed = np.zeros(lanes)
     mids = np.zeros(lanes)
@@ -648,6 +756,13 @@ def _episodes(
     cos_new = np.empty(lanes)
     sin_new = np.empty(lanes)
     live = np.zeros(lanes, dtype=np.uint8)
+    gain_tile = np.zeros((2, lanes))
+    changed = np.zeros(lanes, dtype=np.uint8)  # robot taken or retired in this refill
+    sensed = np.zeros(lanes, dtype=np.uint8)  # inputs hold the bits at the lane's pose
+    wall_x = np.full(lanes, np.nan)  # the last pose the lane's body was blocked at
+    wall_y = np.full(lanes, np.nan)
+    wall_th = np.full(lanes, np.nan)
+    new_lanes = np.zeros(lanes, dtype=np.int64)
     robot = np.full(lanes, -1, dtype=np.int64)
     step = np.zeros(lanes, dtype=np.int64)
     xs = np.zeros(lanes)
@@ -684,24 +799,25 @@ def _episodes(
                     final[r, 2] = ths[lane]
                     ox = xs[lane] - x0s[lane]
                     oy = ys[lane] - y0s[lane]
-                    metrics[r, 0] = curve[lane]
-                    metrics[r, 1] = math.sqrt(ox * ox + oy * oy)
-                    metrics[r, 2] = max_off[lane]
+                    metrics[0, r] = curve[lane]
+                    metrics[1, r] = math.sqrt(ox * ox + oy * oy)
+                    metrics[2, r] = max_off[lane]
                     stuck_out[r] = stuck_at[lane]
                     cells_out[r] = n_cells[lane]
                     for t in range(n_cells[lane]):
                         visited[lane, trail[lane, t]] = 0
-                    for i in range(n_w):
-                        w_tile[i, lane] = 0.0
                     robot[lane] = -1
+                    changed[lane] = 1
                 if next_robot == batch:
                     break
                 r = next_robot
                 next_robot += 1
                 robot[lane] = r
+                changed[lane] = 1
+                gain_tile[0, lane] = gains[r, 0]
+                gain_tile[1, lane] = gains[r, 1]
+                sensed[lane] = 0
                 step[lane] = 0
-                for i in range(n_w):
-                    w_tile[i, lane] = weights[r, i]
                 for i in range(n_state):
                     state[i, lane] = 0.0
                 x = starts[r, 0]
@@ -731,8 +847,28 @@ def _episodes(
             n_live += live[lane]
         if n_live == 0:
             break
+        n_new = 0  # the weights of lanes that changed robot: one pass over the tile's rows
+        for lane in range(lanes):
+            if changed[lane]:
+                changed[lane] = 0
+                if live[lane]:
+                    new_lanes[n_new] = lane
+                    n_new += 1
+                else:  # idle from now on: zero weights
+                    for i in range(n_w):
+                        w_tile[i, lane] = 0.0
+        if n_new == lanes:  # row by row: each row of the tile written whole
+            for i in range(n_w):
+                for lane in range(lanes):
+                    w_tile[i, lane] = weights[robot[lane], i]
+        else:
+            for f in range(n_new):
+                lane = new_lanes[f]
+                r = robot[lane]
+                for i in range(n_w):
+                    w_tile[i, lane] = weights[r, i]
         for lane in range(lanes):  # sense
-            if not live[lane]:
+            if not live[lane] or sensed[lane]:  # a blocked or stuck robot senses what it did
                 continue
             r = robot[lane]
             x = xs[lane]
@@ -758,25 +894,11 @@ def _episodes(
                 uy = s * ca[q] + c * sa[q]
                 if _whisker(solid, cell, px, py, ux, uy, rq[lane, q]):
                     inputs[q, lane] = 1.0
+            sensed[lane] = not per_step
         kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
-        for lane in range(lanes):  # act: wheel commands, the unobstructed move's angles
-            if not live[lane]:
-                continue
-            r = robot[lane]
-            out_row[0] = out[0, lane]
-            out_row[1] = out[1, lane]
-            motor_one(out_row, linear_output, motor)
-            motors[0, lane] = motor[0]
-            motors[1, lane] = motor[1]
-            th = ths[lane]
-            vl = motor[0] * gains[r, 0] * vmax
-            vr = motor[1] * gains[r, 1] * vmax
-            speed[lane] = (vl + vr) * 0.5
-            om = (vr - vl) / base
-            mids[lane] = th + om * (dt * 0.5)
-            nth = th + om * dt
-            nths[lane] = nth - TWO_PI * math.floor((nth + math.pi) / TWO_PI)
-        _sincos_tile(mids, cos_mid, sin_mid)  # type: ignore[call-arg]  # numba supplies typingctx
+        # act; intrinsics: numba supplies their typingctx
+        _act_tile(out, gain_tile, ths, world, linear_output, motors, speed, mids, nths)  # type: ignore[call-arg]
+        _sincos_tile(mids, cos_mid, sin_mid)
         _sincos_tile(nths, cos_new, sin_new)
         for lane in range(lanes):  # collide, score
             if not live[lane]:
@@ -797,13 +919,20 @@ def _episodes(
                 v = speed[lane]
                 nx = x + v * dt * cm
                 ny = y + v * dt * sm
-                if _clearance(clear, cell, nx, ny) <= hd and _blocked(
-                    solid, cell, nx, ny, nc, ns, a, b, hd
+                # a robot pushing into a wall often tries the same blocked pose again
+                again = nx == wall_x[lane] and ny == wall_y[lane] and nth == wall_th[lane]
+                if again or (
+                    _clearance(clear, cell, nx, ny) <= hd
+                    and _blocked(solid, cell, nx, ny, nc, ns, a, b, hd)
                 ):
+                    wall_x[lane] = nx
+                    wall_y[lane] = ny
+                    wall_th[lane] = nth
                     blocked[lane] += 1
                     if blocked[lane] >= stuck_after:
                         stuck_at[lane] = k + 1
                 else:
+                    sensed[lane] = 0
                     blocked[lane] = 0
                     ddx = nx - x
                     ddy = ny - y
@@ -1021,21 +1150,23 @@ def simulate(
     batch = w.shape[0]
     world, wx, wy, ca, sa, reach = _world_arrays(params)
     final = np.empty((batch, 3))
-    metrics = np.empty((batch, 3))
+    metrics = np.empty((3, batch))
     stuck = np.empty(batch, dtype=np.int64)
     cells = np.empty(batch, dtype=np.int64)
-    shape = (batch, steps) if record else (0, 0)
-    rec_p = np.zeros((*shape[:1], steps + 1 if record else 0, 3))
-    rec_w = np.zeros((*shape, N_WHISKERS), dtype=np.uint8)
-    rec_m = np.zeros((*shape, 2))
+    rec_p, rec_w, rec_m = _NO_RECORD
+    if record:
+        rec_p = np.zeros((batch, steps + 1, 3))
+        rec_w = np.zeros((batch, steps, N_WHISKERS), dtype=np.uint8)
+        rec_m = np.zeros((batch, steps, 2))
     ranges = gap.whisker_range
     if ranges.ndim == 1:  # one per trial: the kernel's (B, S, W) with S = W = 1, a view
         ranges = ranges.reshape(batch, 1, 1)
+    _, linear_output, n_state, n_scratch = _spec_sizes(spec)
     _episode_kernel(spec)(
         w,
-        network.kernel_plan(spec).linear_output,
-        network.state_size(spec),
-        network.scratch_size(spec),
+        linear_output,
+        n_state,
+        n_scratch,
         _solid_u8(maze),
         maze.cell_size,
         starts,
@@ -1059,7 +1190,7 @@ def simulate(
         rec_w,
         rec_m,
     )
-    curve, net, max_off = metrics[:, 0].copy(), metrics[:, 1].copy(), metrics[:, 2].copy()
+    curve, net, max_off = metrics
     if record:
         return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m, cells)
     return SimResult(final, curve, net, max_off, stuck, cells=cells)
@@ -1097,27 +1228,40 @@ def _world_arrays(
 
 CLEARANCE_CELLS = 4
 """Clearance maps look this many cells around each cell (0.4 m at 0.1 m cells)."""
+CLEARANCE_SUB = 4
+"""Clearance maps split each maze cell into CLEARANCE_SUB x CLEARANCE_SUB squares: a bound
+per square (25 mm at 0.1 m cells) is tight enough that a whisker or a body near a wall but
+clear of it rarely needs the exact test."""
 
 
 @lru_cache(maxsize=64)
 def _clearance_map(maze: Maze) -> np.ndarray:
-    """clear[j, i]: a lower bound on the distance from any point of cell (j, i) to a wall.
+    """clear[b, a]: a lower bound on the distance from any point of square (b, a) to a wall.
 
-    Exact minimum over wall cells within CLEARANCE_CELLS (square-to-square gap), capped at the
-    window's reach, minus 1e-9 for rounding. The kernel skips the exact whisker and body tests
-    when it proves no wall is near: an early out that never changes a result.
+    Squares of cell / CLEARANCE_SUB, rows b over y. Exact minimum over wall cells within
+    CLEARANCE_CELLS of the square's cell (square-to-square gap), capped at the window's reach,
+    minus 1e-9 for rounding. The kernel skips the exact whisker and body tests when it proves
+    no wall is near: an early out that never changes a result.
     """
-    k = CLEARANCE_CELLS
+    k, sub = CLEARANCE_CELLS, CLEARANCE_SUB
     cell = maze.cell_size
+    side = cell / sub
     padded = np.pad(maze.solid, k, constant_values=True)
     ny, nx = maze.solid.shape
-    clear = np.full((ny, nx), k * cell)
+    at = np.arange(sub)  # a square's place in its cell, on one axis
+    clear = np.full((ny, sub, nx, sub), k * cell)
     for dj in range(-k, k + 1):
+        gy = np.maximum(np.maximum(dj * cell - (at + 1) * side, at * side - (dj + 1) * cell), 0.0)
         for di in range(-k, k + 1):
-            gap = math.hypot(max(abs(di) - 1, 0) * cell, max(abs(dj) - 1, 0) * cell)
+            gx = np.maximum(
+                np.maximum(di * cell - (at + 1) * side, at * side - (di + 1) * cell), 0.0
+            )
+            gap = np.hypot(gy[:, None], gx[None, :])  # (sub, sub): row b, column a
             wall = padded[k + dj : k + dj + ny, k + di : k + di + nx]
-            clear = np.where(wall, np.minimum(clear, gap), clear)
-    return np.ascontiguousarray(clear - 1e-9)
+            clear = np.where(
+                wall[:, None, :, None], np.minimum(clear, gap[None, :, None, :]), clear
+            )
+    return np.ascontiguousarray(clear.reshape(ny * sub, nx * sub) - 1e-9)
 
 
 @lru_cache(maxsize=64)

@@ -135,6 +135,36 @@ def test_driving_into_a_wall_blocks_then_sticks() -> None:
     assert res2.poses_final[0] == pytest.approx(res.poses_final[0])
 
 
+@pytest.mark.parametrize("gap_kind", ["nominal", "trial", "step"])
+def test_robots_pushing_into_a_wall_sense_what_the_numpy_geometry_senses(gap_kind: str) -> None:
+    # blocked step after step on the same candidate pose, never stuck: every recorded bit is
+    # the exact test's at that pose and that step's ranges (per-step draws change them while
+    # the pose stands still)
+    steps, batch = 30, 6
+    east = 1.9 - DEFAULT_WORLD.body_length / 2
+    start = np.array([[east - 0.1, 0.4 + 0.2 * n, 0.3 * (n - 2.5)] for n in range(batch)])
+    g = np.random.default_rng(5)
+    gap = {
+        "nominal": None,
+        "trial": Gap(g.uniform(0.0, 0.12, batch), np.ones((batch, 2))),
+        "step": Gap(g.uniform(0.0, 0.12, (batch, steps, 5)), np.ones((batch, 2))),
+    }[gap_kind]
+    params = World(stuck_after=10**6)
+    w = const_weights(1.0, 0.9, batch)
+    res = simulate(CONST, w, ARENA, start, steps, params, gap, record=True)
+    assert res.poses is not None and res.whiskers is not None
+    assert (res.poses[:, -1] == res.poses[:, -10]).all()  # blocked for the last steps
+    for k in range(steps + 1):
+        assert not body_hits_wall(ARENA, res.poses[:, k]).any()
+    for k in range(steps):
+        ranges = None if gap is None else gap.whisker_range
+        if ranges is not None and ranges.ndim == 3:
+            ranges = ranges[:, k]
+        assert (res.whiskers[:, k] == whisker_bits(ARENA, res.poses[:, k], params, ranges)).all()
+    ref = simulate_reference(CONST, w, ARENA, start, steps, params, gap)
+    assert ref.poses_final == pytest.approx(res.poses_final, abs=1e-9)
+
+
 def test_stuck_robot_stays_immobile_but_blocked_one_can_back_off() -> None:
     # front 15 mm from the wall; the controller alternates full forward / full reverse
     start = np.array([[1.9 - 0.0825 - 0.015, 1.0, 0.0]])
