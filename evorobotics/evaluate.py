@@ -13,14 +13,23 @@ it is evaluated in:
 
 A run's validation set (`validate`) and exploration reports (`evorobotics.explore`) draw the
 same way from streams of their own, so they never reuse a training pose.
+
+Robots are independent of their batch-mates, so a batch can be cut into contiguous slices
+simulated on threads (`threads=`; the kernel releases the GIL) with bit-identical results:
+`colony evolve` uses every core this way, workers and the server's executor one thread each
+(one of them per core already).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import get_args
+from functools import cache, lru_cache
+from typing import TypeVar, get_args
 
 import numpy as np
 
@@ -34,6 +43,7 @@ from schemas.world import N_WHISKERS, World
 
 _CANDIDATES = 64
 _MAX_ROUNDS = 1000
+_T = TypeVar("_T")
 
 
 DESCRIPTORS: tuple[Descriptor, ...] = get_args(Descriptor)
@@ -229,6 +239,51 @@ def robot_steps(config: RunConfig, individuals: int) -> int:
     return individuals * config.trials * trial_steps(config)
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity): `colony evolve`'s default threads."""
+    return len(os.sched_getaffinity(0))
+
+
+def thread_slices(n: int, threads: int, most: int | None = None) -> list[tuple[int, int]]:
+    """Contiguous [start, stop) slices covering 0..n in order, as even as possible: a multiple
+    of `threads` of them (every thread gets as many), none longer than `most`, none empty
+    unless n = 0 (one slice (0, 0))."""
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    if most is not None and most < 1:
+        raise ValueError(f"most must be >= 1, got {most}")
+    if n < 1:
+        return [(0, 0)]
+    least = 1 if most is None else -(-n // most)  # slices no longer than `most`
+    count = min(n, threads * -(-least // threads))
+    return list(itertools.pairwise(n * i // count for i in range(count + 1)))
+
+
+@cache
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """One pool per size for the process: its threads are started once, not per call."""
+    return ThreadPoolExecutor(workers, thread_name_prefix="evaluate")
+
+
+os.register_at_fork(after_in_child=_pool.cache_clear)  # a forked child has none of its threads
+
+
+def map_slices(
+    work: Callable[[int, int], _T], slices: list[tuple[int, int]], threads: int
+) -> list[_T]:
+    """`work(start, stop)` of every slice, in order, on up to `threads` threads: the caller
+    takes the first slice and a process-wide pool the others (one thread: no pool at all)."""
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    if threads == 1 or len(slices) == 1:
+        return [work(a, b) for a, b in slices]
+    per_thread = -(-len(slices) // threads)
+    groups = [slices[i : i + per_thread] for i in range(0, len(slices), per_thread)]
+    pending = [_pool(threads - 1).submit(map_slices, work, g, 1) for g in groups[1:]]
+    first = map_slices(work, groups[0], 1)
+    return first + [item for future in pending for item in future.result()]
+
+
 def _trials(
     config: RunConfig,
     genomes: np.ndarray,
@@ -258,8 +313,12 @@ def _trials(
     )
 
 
-def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluation:
-    """Eq 12 of k genomes (k, n_weights) on the generation's training trials."""
+def evaluate(
+    config: RunConfig, generation: int, genomes: np.ndarray, *, threads: int = 1
+) -> Evaluation:
+    """Eq 12 of k genomes (k, n_weights) on the generation's training trials, simulated in
+    `threads` contiguous slices on as many threads (`thread_slices`): the same bits whatever
+    the count."""
     maze = load_maze(config.maze)
     poses = start_poses(maze, config.seed, generation, config.trials, config.world)
     steps = trial_steps(config)
@@ -268,7 +327,22 @@ def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluat
         if config.reality_gap
         else None
     )
-    return _trials(config, genomes, poses, gap, steps)
+    g = np.asarray(genomes, dtype=np.float64)
+    if g.ndim != 2:
+        raise ValueError(f"genomes must be (k, {config.network_spec.weight_count}), got {g.shape}")
+    parts = map_slices(
+        lambda a, b: _trials(config, g[a:b], poses, gap, steps),
+        thread_slices(len(g), threads),
+        threads,
+    )
+    if len(parts) == 1:
+        return parts[0]
+    return Evaluation(
+        *(
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("fitness", "components", "descriptors")
+        )
+    )
 
 
 def validation_set(config: RunConfig) -> tuple[np.ndarray, Gap | None]:
