@@ -205,10 +205,14 @@ def evolve_command(
         Path | None,
         typer.Option(metavar="DIR", help="also write TensorBoard event files into DIR"),
     ] = None,
+    threads: Annotated[
+        int | None,
+        typer.Option(min=1, help="simulation threads; the result is the same [cores available]"),
+    ] = None,
 ) -> None:
     """Evolve a controller in one process (defaults: the paper's experiment) and plot it."""
     # numba and the simulator: only when evolving, so `colony --help` stays fast
-    from evorobotics.evaluate import trial_steps
+    from evorobotics.evaluate import available_cores, trial_steps
     from evorobotics.evolution import evolve
 
     overrides: dict[str, Any] = {
@@ -228,10 +232,11 @@ def evolve_command(
         typer.echo(f"colony evolve: invalid {err}", err=True)
         raise typer.Exit(code=2) from None
     spec = cfg.network_spec
+    workers = available_cores() if threads is None else threads
     typer.echo(
         f"evolving: population {cfg.population}, {cfg.generations} generations, "
         f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}, "
-        f"strategy {cfg.strategy}"
+        f"strategy {cfg.strategy}, {workers} threads"
     )
     started = time.perf_counter()
     events = None
@@ -246,7 +251,7 @@ def evolve_command(
             if events is not None:
                 events.generation(s.generation, best=s.best, mean=s.mean)
 
-        result = evolve(cfg, on_generation=on_generation)
+        result = evolve(cfg, on_generation=on_generation, threads=workers)
     if events is not None:
         if result.best.validation is not None:
             events.validation(result.history[-1].generation, result.best.validation)

@@ -275,12 +275,16 @@ def map_slices(
     takes the first slice and a process-wide pool the others (one thread: no pool at all)."""
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
+
+    def run(group: list[tuple[int, int]]) -> list[_T]:
+        return [work(a, b) for a, b in group]
+
     if threads == 1 or len(slices) == 1:
-        return [work(a, b) for a, b in slices]
+        return run(slices)
     per_thread = -(-len(slices) // threads)
     groups = [slices[i : i + per_thread] for i in range(0, len(slices), per_thread)]
-    pending = [_pool(threads - 1).submit(map_slices, work, g, 1) for g in groups[1:]]
-    first = map_slices(work, groups[0], 1)
+    pending = [_pool(threads - 1).submit(run, group) for group in groups[1:]]
+    first = run(groups[0])
     return first + [item for future in pending for item in future.result()]
 
 
