@@ -244,14 +244,18 @@ def evolve_command(
         from server.tracking import RunEvents  # tensorboardX only when asked for
 
         events = RunEvents(tensorboard)
+    told_last = started  # after the last generation, `evolve` picks the champion: validation
     with _progress(cfg.generations) as report:
 
         def on_generation(s: GenerationSummary) -> None:
+            nonlocal told_last
             report(s)
             if events is not None:
                 events.generation(s.generation, best=s.best, mean=s.mean)
+            told_last = time.perf_counter()
 
         result = evolve(cfg, on_generation=on_generation, threads=workers)
+    validated = time.perf_counter() - told_last
     if events is not None:
         if result.best.validation is not None:
             events.validation(result.history[-1].generation, result.best.validation)
@@ -262,5 +266,6 @@ def evolve_command(
     typer.echo(f"champion {result.best.sha256[:12]}: {champion_summary(result.best)}")
     typer.echo(f"wrote {', '.join(str(p) for p in files)}")
     typer.echo(
-        f"wall time {total:.2f} s (evolution {evolved:.2f} s, files {total - evolved:.2f} s)"
+        f"wall time {total:.2f} s (evolution {evolved:.2f} s, of which validation "
+        f"{validated:.2f} s; files {total - evolved:.2f} s)"
     )
