@@ -379,3 +379,21 @@ def record_path(
     return simulate(
         spec, w, load_maze(config.maze), pose, steps, params=config.world, gap=gap, record=True
     )
+
+
+PATH_STEPS = 200
+"""Fig 6: the best controller drives longer than in training, to show its behaviour."""
+
+PATH_TRIALS = 3
+
+
+def unseen_paths(
+    config: RunConfig, genome: np.ndarray, trials: int = PATH_TRIALS, steps: int = PATH_STEPS
+) -> SimResult:
+    """One genome's `trials` recorded trials of `steps` steps from start poses evolution never
+    saw: those of generation `config.generations`, one past the last trained (Fig 6's paths,
+    `plots.paths_plot`); no reality gap."""
+    maze = load_maze(config.maze)
+    starts = start_poses(maze, config.seed, config.generations, trials, config.world)
+    w = np.repeat(np.asarray(genome, dtype=np.float64).reshape(1, -1), trials, axis=0)
+    return simulate(config.network_spec, w, maze, starts, steps, params=config.world, record=True)
