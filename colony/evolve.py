@@ -270,7 +270,7 @@ def evolve_command(
     ] = None,
     threads: Annotated[
         int | None,
-        typer.Option(min=1, help="simulation threads; the result is the same [cores available]"),
+        typer.Option(help="simulation threads; the result is the same [cores available]"),
     ] = None,
 ) -> None:
     """Evolve a controller in one process (defaults: the paper's experiment) and plot it."""
@@ -285,6 +285,9 @@ def evolve_command(
         "reality_gap": reality_gap,
         "strategy": strategy,
     }
+    if threads is not None and threads < 1:
+        typer.echo(f"colony evolve: invalid threads: must be >= 1, got {threads}", err=True)
+        raise typer.Exit(code=2)
     plotter = Plotter()  # first: it imports matplotlib while this process imports numba
     try:
         _evolve(config, overrides, out, tensorboard, threads, plotter)
