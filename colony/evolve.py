@@ -8,8 +8,10 @@ so `config.json` alone reproduces the run anywhere.
 from __future__ import annotations
 
 import csv
+import gc
 import json
 import multiprocessing
+import os
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -109,10 +111,24 @@ def champion_summary(best: ControllerDocument) -> str:
     )
 
 
+@contextmanager
+def _collector_paused() -> Iterator[None]:
+    """The cyclic garbage collector off while the simulator or matplotlib is imported: its
+    collections there (about 0.1 s each) find only module objects, which live on."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def _plot_loop(connection: Connection) -> None:
     """The plotter process: import matplotlib, then draw each (plot function name, args)
     received, answering None or the error's line, until None."""
-    from evorobotics import plots
+    with _collector_paused():
+        from evorobotics import plots
 
     figures: dict[str, Callable[..., None]] = {
         f.__name__: f
@@ -288,6 +304,9 @@ def evolve_command(
     if threads is not None and threads < 1:
         typer.echo(f"colony evolve: invalid threads: must be >= 1, got {threads}", err=True)
         raise typer.Exit(code=2)
+    # numpy's and scipy's OpenBLAS would start a thread per core, each spinning about 0.1 s of
+    # CPU as it loads: the run uses no BLAS worth a thread (the plotter inherits this)
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     plotter = Plotter()  # first: it imports matplotlib while this process imports numba
     try:
         _evolve(config, overrides, out, tensorboard, threads, plotter)
@@ -305,14 +324,15 @@ def _evolve(
 ) -> None:
     """`evolve_command` once its plotter is started."""
     # numba and the simulator: only when evolving, so `colony --help` stays fast
-    from evorobotics.evaluate import available_cores, trial_steps
-    from evorobotics.evolution import evolve
+    with _collector_paused():
+        from evorobotics.evaluate import available_cores, trial_steps
+        from evorobotics.evolution import evolve
 
-    try:
-        cfg = resolve_config(config, overrides)
-    except ConfigError as err:
-        typer.echo(f"colony evolve: invalid {err}", err=True)
-        raise typer.Exit(code=2) from None
+        try:
+            cfg = resolve_config(config, overrides)  # loads the compiled kernels
+        except ConfigError as err:
+            typer.echo(f"colony evolve: invalid {err}", err=True)
+            raise typer.Exit(code=2) from None
     spec = cfg.network_spec
     workers = available_cores() if threads is None else threads
     typer.echo(
