@@ -144,6 +144,10 @@ def _plot_loop(connection: Connection) -> None:
             connection.send(None)
 
 
+class PlotError(Exception):
+    """A plot could not be drawn (its function's error, or the plotter process is gone)."""
+
+
 class Plotter:
     """The run's plots drawn by a process started with the command: its matplotlib import
     (about 0.3 s) overlaps this process's imports of the simulator, and it draws while this
@@ -164,15 +168,15 @@ class Plotter:
         self._pending += 1
 
     def wait(self) -> None:
-        """Return once every figure sent is written; RuntimeError naming one that failed."""
+        """Return once every figure sent is written; PlotError naming one that failed."""
         try:
             answers = [self._connection.recv() for _ in range(self._pending)]
         except EOFError:
-            raise RuntimeError("the plotter process exited") from None
+            raise PlotError("the plotter process exited") from None
         self._pending = 0
         failed = [a for a in answers if a is not None]
         if failed:
-            raise RuntimeError(f"plot failed: {failed[0]}")
+            raise PlotError(f"plot failed: {failed[0]}")
 
     def close(self) -> None:
         """Stop the process (its figures are written or no longer wanted)."""
@@ -310,6 +314,9 @@ def evolve_command(
     plotter = Plotter()  # first: it imports matplotlib while this process imports numba
     try:
         _evolve(config, overrides, out, tensorboard, threads, plotter)
+    except PlotError as err:
+        typer.echo(f"colony evolve: {err}", err=True)
+        raise typer.Exit(code=1) from None
     finally:
         plotter.close()
 

@@ -112,3 +112,12 @@ def test_bad_config_file_is_a_clear_error(tmp_path: Path) -> None:
     result = runner.invoke(app, ["evolve", "--config", str(bad), "--out", str(tmp_path)])
     assert result.exit_code == 2
     assert "colour" in result.output
+
+
+def test_a_plot_that_cannot_be_written_is_a_one_line_error(tmp_path: Path) -> None:
+    (tmp_path / "fitness.png").mkdir()  # the plotter process cannot save over a directory
+    result = runner.invoke(app, ["evolve", *SMALL, "--out", str(tmp_path)])
+    assert result.exit_code == 1
+    assert "Traceback" not in result.output
+    assert "colony evolve: plot failed: fitness_plot: IsADirectoryError" in result.output
+    assert (tmp_path / "network.png").stat().st_size > 0  # the other plots are drawn
