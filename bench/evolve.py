@@ -41,11 +41,12 @@ def run(flags: list[str], env: dict[str, str], cwd: str) -> dict[str, float]:
         [sys.executable, "-c", "from colony.cli import main; main()", "evolve", *flags],
         env=env,
         cwd=cwd,
-        check=True,
         capture_output=True,
         text=True,
     )
     wall = time.perf_counter() - started
+    if done.returncode != 0:
+        raise SystemExit(f"colony evolve {' '.join(flags)} failed:\n{done.stderr[-2000:]}")
     found = WALL_LINE.search(done.stdout)
     if found is None:
         raise SystemExit(f"no wall time line in the output of colony evolve:\n{done.stdout}")
