@@ -391,9 +391,10 @@ def unseen_paths(
     config: RunConfig, genome: np.ndarray, trials: int = PATH_TRIALS, steps: int = PATH_STEPS
 ) -> SimResult:
     """One genome's `trials` recorded trials of `steps` steps from start poses evolution never
-    saw: those of generation `config.generations`, one past the last trained (Fig 6's paths,
-    `plots.paths_plot`); no reality gap."""
+    saw: `start_poses` of generation `config.generations`, one past the last trained, drawn
+    for the default world as docs/evolve.md says (Fig 6's paths, `plots.paths_plot`); no
+    reality gap."""
     maze = load_maze(config.maze)
-    starts = start_poses(maze, config.seed, config.generations, trials, config.world)
+    starts = start_poses(maze, config.seed, config.generations, trials)
     w = np.repeat(np.asarray(genome, dtype=np.float64).reshape(1, -1), trials, axis=0)
     return simulate(config.network_spec, w, maze, starts, steps, params=config.world, record=True)

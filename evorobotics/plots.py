@@ -170,9 +170,8 @@ def paths_plot(
     paths: SimResult | None = None,
 ) -> None:
     """The best controller driving from UNSEEN start poses (Fig 6): `paths`, by default
-    `evaluate.unseen_paths(config, best.weights)` (a caller may
-    simulate them elsewhere: drawing needs no simulator). Dotted path, start dot, final body
-    outline."""
+    `evaluate.unseen_paths(config, best.weights)`, which a caller may simulate elsewhere (the
+    drawing needs no simulator). Dotted path, start dot, final body outline."""
     if paths is None:
         paths = unseen_paths(config, best.weights)
     if paths.poses is None or len(paths.poses) == 0:
