@@ -262,13 +262,14 @@ def _timed_evolve(config: RunConfig, go: threading.Event, seconds: Any) -> None:
     seconds.put(None)
     go.wait()
     began = time.perf_counter()
-    evolve(config)
+    evolve(config, threads=1)
     seconds.put(time.perf_counter() - began)
 
 
 def bench_capacity(config: RunConfig) -> None:
-    """`colony evolve` alone and beside a second one: what two processes get from this
-    machine's cores (the ceiling of anything that runs beside the evolution, a server included)."""
+    """An evolution on one thread alone and beside a second one: what two processes get from
+    this machine's cores (the ceiling of anything that runs beside the evolution, a server
+    included)."""
     from evorobotics.evolution import evolve
 
     ctx = mp.get_context("spawn")
@@ -278,17 +279,17 @@ def bench_capacity(config: RunConfig) -> None:
     seconds.get(timeout=300)
     evolve(RunConfig(generations=1, seed=99))
     began = time.perf_counter()
-    evolve(config)
+    evolve(config, threads=1)
     alone = time.perf_counter() - began
     go.set()
     began = time.perf_counter()
-    evolve(config)
+    evolve(config, threads=1)
     beside = time.perf_counter() - began
     other_s = seconds.get(timeout=300)
     other.join(timeout=30)
     pair = (beside + other_s) / 2
     print(
-        f"two colony evolve side by side: {pair:.2f} s each against {alone:.2f} s alone: this "
+        f"two one-thread evolutions side by side: {pair:.2f} s each against {alone:.2f} s alone: this "
         f"machine runs two at {2 * alone / pair:.2f}x one (load average {os.getloadavg()[0]:.2f})"
     )
 

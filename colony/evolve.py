@@ -8,11 +8,15 @@ so `config.json` alone reproduces the run anywhere.
 from __future__ import annotations
 
 import csv
+import gc
 import json
+import multiprocessing
+import os
 import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -107,10 +111,90 @@ def champion_summary(best: ControllerDocument) -> str:
     )
 
 
-def write_outputs(out: Path, config: RunConfig, result: EvolutionResult) -> list[Path]:
+@contextmanager
+def _importing() -> Iterator[None]:
+    """Import the simulator or matplotlib with the cyclic garbage collector off, then freeze
+    what is there (`gc.freeze`): collections would only walk module objects, which live on
+    (about 0.1 s while importing, 0.15 s more at exit)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        if enabled:
+            gc.enable()
+
+
+def _plot_loop(connection: Connection) -> None:
+    """The plotter process: import matplotlib, then draw each (plot function name, args)
+    received, answering None or the error's line, until None."""
+    with _importing():
+        from evorobotics import plots
+
+    figures: dict[str, Callable[..., None]] = {
+        f.__name__: f
+        for f in (plots.fitness_plot, plots.paths_plot, plots.network_plot, plots.archive_plot)
+    }
+    while (request := connection.recv()) is not None:
+        name, args = request
+        try:
+            figures[name](*args)
+        except Exception as exc:  # the command reports it and fails
+            connection.send(f"{name}: {type(exc).__name__}: {exc}")
+        else:
+            connection.send(None)
+
+
+class PlotError(Exception):
+    """A plot could not be drawn (its function's error, or the plotter process is gone)."""
+
+
+class Plotter:
+    """The run's plots drawn by a process started with the command: its matplotlib import
+    (about 0.3 s) overlaps this process's imports of the simulator, and it draws while this
+    one goes on (fitness.png during the champion's validation). Spawned, not forked: the
+    caller may hold threads (a test runner)."""
+
+    def __init__(self) -> None:
+        context = multiprocessing.get_context("spawn")
+        self._connection, theirs = context.Pipe()
+        self._process = context.Process(target=_plot_loop, args=(theirs,), daemon=True)
+        self._process.start()
+        theirs.close()
+        self._pending = 0
+
+    def draw(self, name: str, *args: Any) -> None:
+        """Send `evorobotics.plots.<name>(*args)` to be drawn."""
+        self._connection.send((name, args))
+        self._pending += 1
+
+    def wait(self) -> None:
+        """Return once every figure sent is written; PlotError naming one that failed."""
+        try:
+            answers = [self._connection.recv() for _ in range(self._pending)]
+        except EOFError:
+            raise PlotError("the plotter process exited") from None
+        self._pending = 0
+        failed = [a for a in answers if a is not None]
+        if failed:
+            raise PlotError(f"plot failed: {failed[0]}")
+
+    def close(self) -> None:
+        """Stop the process (its figures are written or no longer wanted)."""
+        self._process.kill()
+        self._process.join()
+        self._connection.close()
+
+
+def write_outputs(
+    out: Path, config: RunConfig, result: EvolutionResult, plotter: Plotter
+) -> list[Path]:
     """best.json, generations.csv, config.json and the three plots, and archive.csv and
-    archive.png for a strategy with an archive; returns the paths."""
-    from evorobotics import plots  # matplotlib is slow to import: only when writing
+    archive.png for a strategy with an archive; returns the paths once all are written. The
+    plots are drawn by `plotter` (the champion's paths simulated here; fitness.png may have
+    been sent already)."""
+    from evorobotics.evaluate import unseen_paths
 
     out.mkdir(parents=True, exist_ok=True)
     files = {
@@ -124,17 +208,18 @@ def write_outputs(out: Path, config: RunConfig, result: EvolutionResult) -> list
             "network.png",
         )
     }
-    files["best.json"].write_text(result.best.to_json())
-    write_generations_csv(files["generations.csv"], result.history)
-    files["config.json"].write_text(config.model_dump_json(indent=2) + "\n")
-    plots.fitness_plot(result.history, files["fitness.png"])
-    plots.paths_plot(config, result.best, files["paths.png"])
-    plots.network_plot(result.best.spec, result.best.weights, files["network.png"])
+    best = result.best
+    plotter.draw("paths_plot", config, best, files["paths.png"], unseen_paths(config, best.weights))
+    plotter.draw("network_plot", best.spec, best.weights, files["network.png"])
     if result.archive is not None:
         files["archive.csv"] = out / "archive.csv"
         files["archive.png"] = out / "archive.png"
+        plotter.draw("archive_plot", config, result.archive, files["archive.png"])
         write_archive_csv(files["archive.csv"], config, result.archive)
-        plots.archive_plot(config, result.archive, files["archive.png"])
+    files["best.json"].write_text(best.to_json())
+    write_generations_csv(files["generations.csv"], result.history)
+    files["config.json"].write_text(config.model_dump_json(indent=2) + "\n")
+    plotter.wait()
     return list(files.values())
 
 
@@ -205,12 +290,12 @@ def evolve_command(
         Path | None,
         typer.Option(metavar="DIR", help="also write TensorBoard event files into DIR"),
     ] = None,
+    threads: Annotated[
+        int | None,
+        typer.Option(help="simulation threads; the result is the same [cores available]"),
+    ] = None,
 ) -> None:
     """Evolve a controller in one process (defaults: the paper's experiment) and plot it."""
-    # numba and the simulator: only when evolving, so `colony --help` stays fast
-    from evorobotics.evaluate import trial_steps
-    from evorobotics.evolution import evolve
-
     overrides: dict[str, Any] = {
         "population": population,
         "generations": generations,
@@ -222,16 +307,47 @@ def evolve_command(
         "reality_gap": reality_gap,
         "strategy": strategy,
     }
+    if threads is not None and threads < 1:
+        typer.echo(f"colony evolve: invalid threads: must be >= 1, got {threads}", err=True)
+        raise typer.Exit(code=2)
+    # numpy's and scipy's OpenBLAS would start a thread per core, each spinning about 0.1 s of
+    # CPU as it loads: the run uses no BLAS worth a thread (the plotter inherits this)
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    plotter = Plotter()  # first: it imports matplotlib while this process imports numba
     try:
-        cfg = resolve_config(config, overrides)
-    except ConfigError as err:
-        typer.echo(f"colony evolve: invalid {err}", err=True)
-        raise typer.Exit(code=2) from None
+        _evolve(config, overrides, out, tensorboard, threads, plotter)
+    except PlotError as err:
+        typer.echo(f"colony evolve: {err}", err=True)
+        raise typer.Exit(code=1) from None
+    finally:
+        plotter.close()
+
+
+def _evolve(
+    config: Path | None,
+    overrides: dict[str, Any],
+    out: Path,
+    tensorboard: Path | None,
+    threads: int | None,
+    plotter: Plotter,
+) -> None:
+    """`evolve_command` once its plotter is started."""
+    # numba and the simulator: only when evolving, so `colony --help` stays fast
+    with _importing():
+        from evorobotics.evaluate import available_cores, trial_steps
+        from evorobotics.evolution import evolve
+
+        try:
+            cfg = resolve_config(config, overrides)  # loads the compiled kernels
+        except ConfigError as err:
+            typer.echo(f"colony evolve: invalid {err}", err=True)
+            raise typer.Exit(code=2) from None
     spec = cfg.network_spec
+    workers = available_cores() if threads is None else threads
     typer.echo(
         f"evolving: population {cfg.population}, {cfg.generations} generations, "
         f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}, "
-        f"strategy {cfg.strategy}"
+        f"strategy {cfg.strategy}, {workers} threads"
     )
     started = time.perf_counter()
     events = None
@@ -239,23 +355,33 @@ def evolve_command(
         from server.tracking import RunEvents  # tensorboardX only when asked for
 
         events = RunEvents(tensorboard)
+    told_last = started  # after the last generation, `evolve` picks the champion: validation
+    history: list[GenerationSummary] = []
     with _progress(cfg.generations) as report:
 
         def on_generation(s: GenerationSummary) -> None:
+            nonlocal told_last
             report(s)
             if events is not None:
                 events.generation(s.generation, best=s.best, mean=s.mean)
+            history.append(s)
+            if len(history) == cfg.generations:  # drawn while the champion is validated
+                out.mkdir(parents=True, exist_ok=True)
+                plotter.draw("fitness_plot", history, out / "fitness.png")
+            told_last = time.perf_counter()
 
-        result = evolve(cfg, on_generation=on_generation)
+        result = evolve(cfg, on_generation=on_generation, threads=workers)
+    validated = time.perf_counter() - told_last
     if events is not None:
         if result.best.validation is not None:
             events.validation(result.history[-1].generation, result.best.validation)
         events.close()
     evolved = time.perf_counter() - started
-    files = write_outputs(out, cfg, result)
+    files = write_outputs(out, cfg, result, plotter)
     total = time.perf_counter() - started
     typer.echo(f"champion {result.best.sha256[:12]}: {champion_summary(result.best)}")
     typer.echo(f"wrote {', '.join(str(p) for p in files)}")
     typer.echo(
-        f"wall time {total:.2f} s (evolution {evolved:.2f} s, files {total - evolved:.2f} s)"
+        f"wall time {total:.2f} s (evolution {evolved:.2f} s, of which validation "
+        f"{validated:.2f} s; files {total - evolved:.2f} s)"
     )

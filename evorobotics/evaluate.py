@@ -13,14 +13,23 @@ it is evaluated in:
 
 A run's validation set (`validate`) and exploration reports (`evorobotics.explore`) draw the
 same way from streams of their own, so they never reuse a training pose.
+
+Robots are independent of their batch-mates, so a batch can be cut into contiguous slices
+simulated on threads (`threads=`; the kernel releases the GIL) with bit-identical results:
+`colony evolve` uses every core this way, workers and the server's executor one thread each
+(one of them per core already).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import get_args
+from functools import cache, lru_cache
+from typing import TypeVar, get_args
 
 import numpy as np
 
@@ -34,6 +43,7 @@ from schemas.world import N_WHISKERS, World
 
 _CANDIDATES = 64
 _MAX_ROUNDS = 1000
+_T = TypeVar("_T")
 
 
 DESCRIPTORS: tuple[Descriptor, ...] = get_args(Descriptor)
@@ -229,6 +239,55 @@ def robot_steps(config: RunConfig, individuals: int) -> int:
     return individuals * config.trials * trial_steps(config)
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity): `colony evolve`'s default threads."""
+    return len(os.sched_getaffinity(0))
+
+
+def thread_slices(n: int, threads: int, most: int | None = None) -> list[tuple[int, int]]:
+    """Contiguous [start, stop) slices covering 0..n in order, as even as possible: a multiple
+    of `threads` of them (every thread gets as many), none longer than `most`, none empty
+    unless n = 0 (one slice (0, 0))."""
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    if most is not None and most < 1:
+        raise ValueError(f"most must be >= 1, got {most}")
+    if n < 1:
+        return [(0, 0)]
+    least = 1 if most is None else -(-n // most)  # slices no longer than `most`
+    count = min(n, threads * -(-least // threads))
+    return list(itertools.pairwise(n * i // count for i in range(count + 1)))
+
+
+@cache
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """One pool per size for the process: its threads are started once, not per call."""
+    return ThreadPoolExecutor(workers, thread_name_prefix="evaluate")
+
+
+os.register_at_fork(after_in_child=_pool.cache_clear)  # a forked child has none of its threads
+
+
+def map_slices(
+    work: Callable[[int, int], _T], slices: list[tuple[int, int]], threads: int
+) -> list[_T]:
+    """`work(start, stop)` of every slice, in order, on up to `threads` threads: the caller
+    takes the first slice and a process-wide pool the others (one thread: no pool at all)."""
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+
+    def run(group: list[tuple[int, int]]) -> list[_T]:
+        return [work(a, b) for a, b in group]
+
+    if threads == 1 or len(slices) == 1:
+        return run(slices)
+    per_thread = -(-len(slices) // threads)
+    groups = [slices[i : i + per_thread] for i in range(0, len(slices), per_thread)]
+    pending = [_pool(threads - 1).submit(run, group) for group in groups[1:]]
+    first = run(groups[0])
+    return first + [item for future in pending for item in future.result()]
+
+
 def _trials(
     config: RunConfig,
     genomes: np.ndarray,
@@ -258,8 +317,12 @@ def _trials(
     )
 
 
-def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluation:
-    """Eq 12 of k genomes (k, n_weights) on the generation's training trials."""
+def evaluate(
+    config: RunConfig, generation: int, genomes: np.ndarray, *, threads: int = 1
+) -> Evaluation:
+    """Eq 12 of k genomes (k, n_weights) on the generation's training trials, simulated in
+    `threads` contiguous slices on as many threads (`thread_slices`): the same bits whatever
+    the count."""
     maze = load_maze(config.maze)
     poses = start_poses(maze, config.seed, generation, config.trials, config.world)
     steps = trial_steps(config)
@@ -268,7 +331,22 @@ def evaluate(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluat
         if config.reality_gap
         else None
     )
-    return _trials(config, genomes, poses, gap, steps)
+    g = np.asarray(genomes, dtype=np.float64)
+    if g.ndim != 2:
+        raise ValueError(f"genomes must be (k, {config.network_spec.weight_count}), got {g.shape}")
+    parts = map_slices(
+        lambda a, b: _trials(config, g[a:b], poses, gap, steps),
+        thread_slices(len(g), threads),
+        threads,
+    )
+    if len(parts) == 1:
+        return parts[0]
+    return Evaluation(
+        *(
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("fitness", "components", "descriptors")
+        )
+    )
 
 
 def validation_set(config: RunConfig) -> tuple[np.ndarray, Gap | None]:
@@ -301,3 +379,22 @@ def record_path(
     return simulate(
         spec, w, load_maze(config.maze), pose, steps, params=config.world, gap=gap, record=True
     )
+
+
+PATH_STEPS = 200
+"""Fig 6: the best controller drives longer than in training, to show its behaviour."""
+
+PATH_TRIALS = 3
+
+
+def unseen_paths(
+    config: RunConfig, genome: np.ndarray, trials: int = PATH_TRIALS, steps: int = PATH_STEPS
+) -> SimResult:
+    """One genome's `trials` recorded trials of `steps` steps from start poses evolution never
+    saw: `start_poses` of generation `config.generations`, one past the last trained, drawn
+    for the default world as docs/evolve.md says (Fig 6's paths, `plots.paths_plot`); no
+    reality gap."""
+    maze = load_maze(config.maze)
+    starts = start_poses(maze, config.seed, config.generations, trials)
+    w = np.repeat(np.asarray(genome, dtype=np.float64).reshape(1, -1), trials, axis=0)
+    return simulate(config.network_spec, w, maze, starts, steps, params=config.world, record=True)

@@ -19,7 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evaluate import DESCRIPTORS, evaluate, validation_set
+from evorobotics.evaluate import (
+    DESCRIPTORS,
+    available_cores,
+    evaluate,
+    map_slices,
+    thread_slices,
+    validation_set,
+)
 from evorobotics.explore import confined
 from evorobotics.fitness import mean_fitness
 from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, rank, tell
@@ -115,11 +122,13 @@ class Validated:
 
 
 VALIDATION_CHUNK_BYTES = 64 * 2**20
-"""Recorded validation trials are simulated in chunks of candidates of about this many bytes."""
+"""Recorded validation trials are simulated in slices of candidates of about this many bytes
+in all (over the threads simulating at once)."""
 
 
-def validate(config: RunConfig, genomes: np.ndarray) -> Validated:
-    """Score k genomes (k, n_weights) on the run's validation set (`evaluate.validation_set`).
+def validate(config: RunConfig, genomes: np.ndarray, *, threads: int = 1) -> Validated:
+    """Score k genomes (k, n_weights) on the run's validation set (`evaluate.validation_set`),
+    in contiguous slices of candidates on `threads` threads (the same bits whatever the count).
 
     Each candidate runs every validation pose for `validation.steps` steps; a trial roams if
     it neither sticks nor is confined (`explore.confined`), the measure of the paper's claim.
@@ -134,14 +143,13 @@ def validate(config: RunConfig, genomes: np.ndarray) -> Validated:
     per_candidate = v.poses * (v.steps + 1) * 3 * 8 + (
         0 if gap is None else gap.whisker_range.nbytes
     )
-    chunk = max(1, VALIDATION_CHUNK_BYTES // per_candidate)
-    score, stuck, roaming = (np.empty(len(g)) for _ in range(3))
-    for a in range(0, len(g), chunk):
-        rows = g[a : a + chunk]
-        k = len(rows)
+    most = max(1, VALIDATION_CHUNK_BYTES // (per_candidate * threads))
+
+    def scored(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        k = b - a
         result = simulate(
             config.network_spec,
-            np.repeat(rows, v.poses, axis=0),
+            np.repeat(g[a:b], v.poses, axis=0),
             maze,
             np.tile(poses, (k, 1)),
             v.steps,
@@ -151,10 +159,15 @@ def validate(config: RunConfig, genomes: np.ndarray) -> Validated:
         )
         assert result.poses is not None
         trials = (k, v.poses)
-        score[a : a + k] = mean_fitness(result.components.reshape(*trials, 4), config.fitness)
-        stuck[a : a + k] = result.stuck.reshape(trials).mean(axis=1)
         free = ~confined(result.poses, result.stuck_step) & ~result.stuck
-        roaming[a : a + k] = free.reshape(trials).mean(axis=1)
+        return (
+            mean_fitness(result.components.reshape(*trials, 4), config.fitness),
+            result.stuck.reshape(trials).mean(axis=1),
+            free.reshape(trials).mean(axis=1),
+        )
+
+    parts = map_slices(scored, thread_slices(len(g), threads, most), threads)
+    score, stuck, roaming = (np.concatenate([p[i] for p in parts]) for i in range(3))
     return Validated(score, stuck, roaming)
 
 
@@ -166,8 +179,10 @@ def champion(
     *,
     generation: int,
     run: str | int = "local",
+    threads: int = 1,
 ) -> ControllerDocument:
-    """The controller a finished run exports: its final population's best on validation.
+    """The controller a finished run exports: its final population's best on validation
+    (simulated on `threads` threads).
 
     Training ranks a generation on a few short trials, so its rank 0 is partly luck (a
     winner's curse). The `config.validation.candidates` fittest on training are re-scored on
@@ -179,7 +194,7 @@ def champion(
     if v.poses == 0:
         return best_document(config, genomes, fitness, order, generation=generation, run=run)
     candidates = np.asarray(order[: v.candidates])
-    scored = validate(config, np.asarray(genomes)[candidates])
+    scored = validate(config, np.asarray(genomes)[candidates], threads=threads)
     # lexicographic: roaming, then Eq 12, then training rank (lexsort's last key is primary)
     pick = int(np.lexsort((np.arange(len(candidates)), -scored.score, -scored.roaming))[0])
     return best_document(
@@ -204,13 +219,14 @@ def champion(
 
 
 def evaluate_population(
-    config: RunConfig, generation: int, genomes: np.ndarray
+    config: RunConfig, generation: int, genomes: np.ndarray, *, threads: int = 1
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fitness (n,), components (n, trials, 4) and descriptors (n, 4) (`evaluate.DESCRIPTORS`)
     of a generation's n = population genomes: `RunLoop.tell`'s arguments, in its order.
 
-    One `evaluate` call for the whole population: bit-identical to evaluating it job by job in
-    `job_slices` and concatenating (property-tested), without the per-call cost of each job.
+    One `evaluate` call for the whole population (on `threads` threads): bit-identical to
+    evaluating it job by job in `job_slices` and concatenating (property-tested), without the
+    per-call cost of each job.
     """
     genomes = np.asarray(genomes)
     if genomes.ndim != 2 or genomes.shape[0] != config.population:
@@ -218,7 +234,7 @@ def evaluate_population(
             f"genomes must be ({config.population}, n_weights), one row per individual, "
             f"got {genomes.shape}"
         )
-    result = evaluate(config, generation, genomes)
+    result = evaluate(config, generation, genomes, threads=threads)
     return result.fitness, result.components, result.descriptors
 
 
@@ -436,14 +452,22 @@ def evolve(
     config: RunConfig,
     *,
     on_generation: Callable[[GenerationSummary], None] | None = None,
+    threads: int | None = None,
 ) -> EvolutionResult:
-    """Run the whole experiment of `config` in this process; a pure function of the config."""
+    """Run the whole experiment of `config` in this process; a pure function of the config.
+
+    Generations and the champion's validation are simulated on `threads` threads (None: every
+    core available, `evaluate.available_cores`); the result does not depend on the count.
+    """
+    threads = available_cores() if threads is None else threads
     loop = RunLoop(config)
     history: list[GenerationSummary] = []
     told: Told | None = None
     components = np.empty(0)
     while not loop.done:
-        fitness, components, descriptors = evaluate_population(config, loop.generation, loop.ask())
+        fitness, components, descriptors = evaluate_population(
+            config, loop.generation, loop.ask(), threads=threads
+        )
         told = loop.tell(fitness, components, descriptors)
         history.append(told.summary())
         if on_generation is not None:
@@ -451,7 +475,9 @@ def evolve(
     if told is None:
         raise ValueError("a run needs at least one generation")
     genomes, fitness = loop.candidates(told.genomes, told.fitness)
-    best = champion(config, genomes, fitness, rank(fitness), generation=told.generation)
+    best = champion(
+        config, genomes, fitness, rank(fitness), generation=told.generation, threads=threads
+    )
     return EvolutionResult(
         loop.state,
         tuple(history),

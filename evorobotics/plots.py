@@ -20,21 +20,17 @@ from matplotlib.collections import LineCollection
 from matplotlib.lines import Line2D
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evaluate import record_path, start_poses
+from evorobotics.evaluate import unseen_paths
 from evorobotics.evolution import GenerationSummary
 from evorobotics.layout import layout
 from evorobotics.maze import Maze, load_maze
+from evorobotics.sim import SimResult
 from evorobotics.strategies import Archive
 from schemas.network import NetworkSpec
 from schemas.run import RunConfig
 
 PNG_METADATA: dict[str, Any] = {"Software": None}
 """Drop matplotlib's version stamp so a PNG depends on its data only."""
-
-PATH_STEPS = 200
-"""Fig 6: the best controller drives longer than in training, to show its behaviour."""
-
-PATH_TRIALS = 3
 
 
 def _save(fig: Any, path: Path) -> None:
@@ -168,36 +164,39 @@ def _body_outline(pose: np.ndarray, length: float, width: float) -> np.ndarray:
 
 
 def paths_plot(
-    config: RunConfig, best: ControllerDocument, path: Path, steps: int = PATH_STEPS
+    config: RunConfig,
+    best: ControllerDocument,
+    path: Path,
+    paths: SimResult | None = None,
 ) -> None:
-    """The best controller driving from three UNSEEN start poses (Fig 6).
-
-    The start poses are those of generation `config.generations`, one past the last trained
-    generation, so evolution never saw them. Dotted path, start dot, final body outline.
-    """
+    """The best controller driving from UNSEEN start poses (Fig 6): `paths`, by default
+    `evaluate.unseen_paths(config, best.weights)`, which a caller may simulate elsewhere (the
+    drawing needs no simulator). Dotted path, start dot, final body outline."""
+    if paths is None:
+        paths = unseen_paths(config, best.weights)
+    if paths.poses is None or len(paths.poses) == 0:
+        raise ValueError("paths_plot needs recorded paths of at least one trial")
     maze = load_maze(config.maze)
     params = config.world
-    starts = start_poses(maze, config.seed, config.generations, PATH_TRIALS)
     rows, cols = maze.grid.shape
     extent = (0.0, cols * maze.cell_size, 0.0, rows * maze.cell_size)
-    fig, axes = plt.subplots(1, PATH_TRIALS, figsize=(4.2 * PATH_TRIALS, 4.4))
+    trials = len(paths.poses)
+    fig, axes = plt.subplots(1, trials, figsize=(4.2 * trials, 4.4))
     for k, ax in enumerate(np.atleast_1d(axes)):
-        sim = record_path(config, best.weights, starts[k], steps)
-        if sim.poses is None:
-            raise ValueError("record_path returned no poses")
-        poses = sim.poses.reshape(-1, 3)
+        poses = paths.poses[k]
         ax.imshow(maze.grid, cmap="Greys", extent=extent, origin="upper", vmin=0, vmax=1.4)
         ax.plot(poses[:, 0], poses[:, 1], ":", color="tab:blue", linewidth=1.2)
         ax.plot(poses[0, 0], poses[0, 1], "o", color="tab:green", markersize=4)
         outline = _body_outline(poses[-1], params.body_length, params.body_width)
         ax.plot(outline[:, 0], outline[:, 1], "-", color="tab:red", linewidth=1.5)
-        stuck = " (stuck)" if bool(np.asarray(sim.stuck).reshape(-1)[0]) else ""
-        ax.set_title(f"start {k + 1}: max offset {float(sim.max_offset[0]):.2f} m{stuck}")
+        stuck = " (stuck)" if paths.stuck[k] else ""
+        ax.set_title(f"start {k + 1}: max offset {float(paths.max_offset[k]):.2f} m{stuck}")
         ax.set_xlim(extent[0], extent[1])
         ax.set_ylim(extent[2], extent[3])
         ax.set_xticks([])
         ax.set_yticks([])
     score = "n/a" if best.fitness is None else f"{best.fitness:.3f}"
+    steps = paths.poses.shape[1] - 1
     title = f"champion, {steps} steps from unseen start poses: training fitness {score}"
     if best.validation is not None:
         v = best.validation

@@ -67,6 +67,11 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
             "targets hold:",
         ),
         ("cli.py", ["--repeats", "1"], "colony run list"),
+        (
+            "evolve.py",
+            ["--repeats", "1", "--flags", "--population 8 --generations 2 --steps 10"],
+            "of which validation",
+        ),
     ],
 )
 def test_a_bench_script_runs_on_a_tiny_size(script: str, args: list[str], printed: str) -> None:

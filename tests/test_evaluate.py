@@ -11,6 +11,8 @@ from evorobotics.errors import MazeError
 from evorobotics.evaluate import (
     DESCRIPTORS,
     GAP_CACHE_STEPS,
+    PATH_STEPS,
+    PATH_TRIALS,
     START_CACHE,
     _cached_start_poses,
     draw_gap,
@@ -18,6 +20,7 @@ from evorobotics.evaluate import (
     record_path,
     start_poses,
     trial_steps,
+    unseen_paths,
     validation_set,
 )
 from evorobotics.evolution import validate
@@ -213,6 +216,18 @@ def test_record_path_matches_evaluation() -> None:
     assert np.array_equal(rec.poses[0, 0], pose)
     assert np.abs(rec.motors).max() <= 1.0
     assert rec.components[0].tobytes() == ev.components[2, 1].tobytes()
+
+
+def test_unseen_paths_are_recorded_trials_from_the_next_generations_poses() -> None:
+    # Fig 6's trials in one batch are each the batch-1 recording from its start pose
+    config = RunConfig(generations=7, seed=4, world=World(whisker_range=0.08))
+    genome = genomes(1, 3)[0]
+    paths = unseen_paths(config, genome)
+    assert paths.poses is not None and paths.poses.shape == (PATH_TRIALS, PATH_STEPS + 1, 3)
+    for k, start in enumerate(start_poses(load_maze("paper"), 4, 7, PATH_TRIALS)):
+        one = record_path(config, genome, start, PATH_STEPS)
+        assert one.poses is not None and one.poses[0].tobytes() == paths.poses[k].tobytes()
+        assert one.max_offset[0] == paths.max_offset[k] and one.stuck[0] == paths.stuck[k]
 
 
 def test_bad_genome_shape() -> None:

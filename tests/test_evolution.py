@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evorobotics.evaluate import evaluate
+from evorobotics.evaluate import evaluate, map_slices, thread_slices
 from evorobotics.evolution import (
     GenerationSummary,
     RunLoop,
@@ -16,6 +16,7 @@ from evorobotics.evolution import (
     evaluate_population,
     evolve,
     job_slices,
+    validate,
 )
 from evorobotics.ga import GAParams, GAState, ask, ga_rng, init, tell
 from evorobotics.layout import layout
@@ -94,6 +95,87 @@ def test_evolve_equals_manual_composition_whatever_the_slicing() -> None:
     assert result.best.fitness == fitness[order[rank]]
     assert result.best.provenance == {"seed": 7, "generation": 3, "rank": rank, "run": "local"}
     assert result.components.shape == (12, SMALL.trials, 4)
+
+
+@given(n=st.integers(0, 3000), threads=st.integers(1, 8), most=st.none() | st.integers(1, 400))
+def test_thread_slices_share_the_rows_evenly_in_order(
+    n: int, threads: int, most: int | None
+) -> None:
+    slices = thread_slices(n, threads, most)
+    assert slices[0][0] == 0 and slices[-1][1] == n
+    assert all(b == c for (_, b), (c, _) in pairwise(slices))
+    sizes = [b - a for a, b in slices]
+    if n == 0:
+        assert slices == [(0, 0)]
+        return
+    assert min(sizes) >= 1 and max(sizes) - min(sizes) <= 1
+    assert len(slices) % threads == 0 or len(slices) == n  # each thread as many slices
+    if most is not None:
+        assert max(sizes) <= most
+        assert len(slices) < threads + -(-n // most)  # no more than needed
+    else:
+        assert len(slices) == min(n, threads)
+
+
+def test_thread_slices_and_map_slices_examples() -> None:
+    assert thread_slices(100, 2) == [(0, 50), (50, 100)]
+    assert thread_slices(100, 2, 34) == [(0, 25), (25, 50), (50, 75), (75, 100)]
+    assert thread_slices(3, 4) == [(0, 1), (1, 2), (2, 3)]
+    slices = thread_slices(1000, 3, 7)
+    assert map_slices(lambda a, b: (a, b), slices, 3) == slices
+    for bad in ((10, 0, None), (10, 2, 0)):
+        with pytest.raises(ValueError, match="must be >= 1"):
+            thread_slices(*bad)
+
+
+def test_a_slice_error_reaches_the_caller() -> None:
+    def work(a: int, b: int) -> int:
+        if a > 0:
+            raise ArithmeticError(f"slice {a}")
+        return b
+
+    with pytest.raises(ArithmeticError, match="slice"):
+        map_slices(work, thread_slices(10, 2), 2)
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    population=st.integers(4, 40),
+    threads=st.integers(2, 5),
+    gap=st.booleans(),
+)
+def test_evaluate_is_the_same_on_any_number_of_threads(
+    seed: int, population: int, threads: int, gap: bool
+) -> None:
+    # each robot's trial is independent of its batch-mates: slices on threads change nothing
+    config = RunConfig(population=population, steps=30, seed=seed, reality_gap=gap)
+    pop = np.random.default_rng(seed).normal(0.0, 1.5, (population, 222))
+    one = evaluate(config, 3, pop)
+    many = evaluate(config, 3, pop, threads=threads)
+    for name in ("fitness", "components", "descriptors"):
+        assert getattr(one, name).tobytes() == getattr(many, name).tobytes(), name
+
+
+def test_validation_is_the_same_on_any_number_of_threads() -> None:
+    config = SMALL.model_copy(
+        update={"validation": SMALL.validation.model_copy(update={"poses": 5, "steps": 200})}
+    )
+    pop = np.random.default_rng(5).normal(0.0, 1.5, (9, 222))
+    one = validate(config, pop)
+    for threads in (2, 3):
+        many = validate(config, pop, threads=threads)
+        assert one.score.tobytes() == many.score.tobytes()
+        assert one.stuck.tobytes() == many.stuck.tobytes()
+        assert one.roaming.tobytes() == many.roaming.tobytes()
+
+
+def test_evolve_is_the_same_on_one_thread_and_two() -> None:
+    one, two = evolve(SMALL, threads=1), evolve(SMALL, threads=2)
+    assert one.best.sha256 == two.best.sha256
+    assert one.fitness.tobytes() == two.fitness.tobytes()
+    assert one.components.tobytes() == two.components.tobytes()
+    assert one.history == two.history
 
 
 def test_history_statistics_are_ordered() -> None:

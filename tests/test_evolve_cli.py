@@ -76,9 +76,18 @@ def test_config_file_with_flag_override_and_files_for_maze_and_network(tmp_path:
     assert config.network_spec == PRESETS["recurrent-small"]
 
 
+def test_every_file_is_the_same_on_one_thread_and_two(tmp_path: Path) -> None:
+    # the plots come from another process, the generations from two threads: same bytes
+    assert "1 threads" in _evolve(tmp_path / "one", "--threads", "1")
+    assert "2 threads" in _evolve(tmp_path / "two", "--threads", "2")
+    for name in FILES:
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes()
+
+
 @pytest.mark.parametrize(
     ("flags", "named"),
     [
+        (["--threads", "0"], "threads"),
         (["--population", "2"], "population"),
         (["--trials", "0"], "trials"),
         (["--network", "no-such-net"], "network"),
@@ -103,3 +112,12 @@ def test_bad_config_file_is_a_clear_error(tmp_path: Path) -> None:
     result = runner.invoke(app, ["evolve", "--config", str(bad), "--out", str(tmp_path)])
     assert result.exit_code == 2
     assert "colour" in result.output
+
+
+def test_a_plot_that_cannot_be_written_is_a_one_line_error(tmp_path: Path) -> None:
+    (tmp_path / "fitness.png").mkdir()  # the plotter process cannot save over a directory
+    result = runner.invoke(app, ["evolve", *SMALL, "--out", str(tmp_path)])
+    assert result.exit_code == 1
+    assert "Traceback" not in result.output
+    assert "colony evolve: plot failed: fitness_plot: IsADirectoryError" in result.output
+    assert (tmp_path / "network.png").stat().st_size > 0  # the other plots are drawn
