@@ -152,7 +152,7 @@ def _whisker(
 
 @njit(inline="always")
 def _episodes(
-    kernel: network.Kernel,
+    kernel: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], None],
     weights: np.ndarray,
     linear_output: int,
     n_state: int,

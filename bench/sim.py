@@ -33,7 +33,7 @@ import numpy as np
 from _old_kernel import simulate_old
 from llvmlite import ir as llvm_ir
 from numba import njit, types
-from numba.core import cgutils
+from numba.core import cgutils as _cgutils
 from numba.extending import intrinsic
 
 from evorobotics.evaluate import evaluate, start_poses, trial_steps
@@ -47,12 +47,14 @@ from schemas.world import World
 STEPS = 40
 NEVER_STUCK = World(stuck_after=10**6)
 GEOMETRY_FLOPS = 143
+cgutils: Any = _cgutils
+"""numba's codegen helpers, untyped."""
+
 CHAINS = 16
 """Independent accumulators of the peak loop: enough to hide the FMA latency on two units."""
 
 
-@intrinsic
-def _fma_chains(typingctx: object, n: types.Integer) -> tuple[Any, Callable[..., object]]:
+def _fma_chains_typer(typingctx: object, n: types.Integer) -> tuple[Any, Callable[..., object]]:
     """n rounds of CHAINS independent 8-lane FP64 FMAs (acc = acc * a + b); the lanes' sum."""
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
@@ -78,9 +80,14 @@ def _fma_chains(typingctx: object, n: types.Integer) -> tuple[Any, Callable[...,
     return types.float64(n), codegen
 
 
-@njit
-def _peak_loop(n: int) -> float:
+_fma_chains: Any = intrinsic(_fma_chains_typer)
+
+
+def _peak_loop_py(n: int) -> float:
     return float(_fma_chains(n))
+
+
+_peak_loop: Any = njit(_peak_loop_py)
 
 
 def fma_peak() -> float:
