@@ -7,7 +7,7 @@ DEV := $(VENV)/.dev-installed
 
 .PHONY: demo test bench chaos load lint clean
 
-# The product's dependencies only: enough for demo, bench, chaos and load.
+# The product's dependencies only: enough for demo, bench and load.
 $(RUNTIME): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
@@ -29,7 +29,9 @@ test: $(DEV)
 bench: $(RUNTIME)
 	@for f in bench/[!_]*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
 
-chaos: $(RUNTIME)
+# The scheduler's interleaving properties with thousands of examples, then real processes killed.
+chaos: $(DEV)
+	$(BIN)/pytest -q tests/test_scheduler.py -k interleaving --hypothesis-profile=chaos
 	$(BIN)/python chaos/chaos.py
 
 load: $(RUNTIME)

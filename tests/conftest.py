@@ -22,6 +22,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pytest
+from hypothesis import settings
+
+settings.register_profile("chaos", max_examples=2000)
+"""`make chaos`: the scheduler's interleaving properties, many more examples than a test run."""
 
 if TYPE_CHECKING:
     import sqlalchemy as sa
