@@ -76,7 +76,7 @@ def measure(config: RunConfig, weights: np.ndarray, poses: int, steps: int) -> E
         steps=steps,
         maze=config.maze,
         seed=TEST_SEED,
-        reality_gap=config.reality_gap,
+        reality_gap=config.gap,
         world=config.world,
         fitness_weights=config.fitness,
     )

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from evorobotics.document import ControllerDocument
     from evorobotics.evolution import EvolutionResult, GenerationSummary
     from evorobotics.strategies import Archive
-    from schemas.run import RunConfig
+    from schemas.run import Proportion, RunConfig
 
 LOG_LINES = 20
 """Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
@@ -108,6 +108,24 @@ def champion_summary(best: ControllerDocument) -> str:
     return (
         f"training fitness {training} (rank {v.training_rank}); validation on {v.poses} poses x "
         f"{v.steps} steps: score {v.score:.4f}, stuck {v.stuck:.0%}, roaming {v.roaming:.0%}"
+    )
+
+
+def held_out_summary(best: ControllerDocument) -> str | None:
+    """One line: the champion's held-out test, the figures to quote about it (None: no test)."""
+    t = best.test
+    if t is None:
+        return None
+
+    def part(name: str, p: Proportion) -> str:
+        return f"{name} {p.value:.0%} [{p.low:.0%}, {p.high:.0%}]"
+
+    worlds = [
+        f"{label}: {part('roaming', w.roaming)}, {part('stuck', w.stuck)}"
+        for label, w in (("under the reality gap", t.gap), ("nominal", t.nominal))
+    ]
+    return f"held-out test on {t.poses} unseen poses x {t.steps} steps (95 % CI), " + "; ".join(
+        worlds
     )
 
 
@@ -271,10 +289,13 @@ def evolve_command(
         str | None,
         typer.Option(metavar="PRESET_OR_FILE", help="network preset or NetworkSpec JSON file"),
     ] = None,
-    reality_gap: Annotated[
-        bool | None,
-        typer.Option("--reality-gap/--no-reality-gap", help="evolve under the reality-gap model"),
-    ] = None,
+    nominal: Annotated[
+        bool,
+        typer.Option(
+            "--nominal",
+            help="evolve in the ideal world (reality_gap off) instead of under the paper's gap",
+        ),
+    ] = False,
     strategy: Annotated[
         str | None,
         typer.Option(
@@ -304,7 +325,7 @@ def evolve_command(
         "seed": seed,
         "maze": maze,
         "network": network,
-        "reality_gap": reality_gap,
+        "reality_gap": "off" if nominal else None,
         "strategy": strategy,
     }
     if threads is not None and threads < 1:
@@ -380,6 +401,9 @@ def _evolve(
     files = write_outputs(out, cfg, result, plotter)
     total = time.perf_counter() - started
     typer.echo(f"champion {result.best.sha256[:12]}: {champion_summary(result.best)}")
+    held_out = held_out_summary(result.best)
+    if held_out is not None:
+        typer.echo(held_out)
     typer.echo(f"wrote {', '.join(str(p) for p in files)}")
     typer.echo(
         f"wall time {total:.2f} s (evolution {evolved:.2f} s, of which validation "

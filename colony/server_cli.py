@@ -424,10 +424,13 @@ def run_start(
             help="network preset (colony presets) or NetworkSpec JSON file (its spec is sent)",
         ),
     ] = None,
-    reality_gap: Annotated[
-        bool | None,
-        typer.Option("--reality-gap/--no-reality-gap", help="evolve under the reality-gap model"),
-    ] = None,
+    nominal: Annotated[
+        bool,
+        typer.Option(
+            "--nominal",
+            help="evolve in the ideal world (reality_gap off) instead of under the paper's gap",
+        ),
+    ] = False,
     job_size: Annotated[int | None, typer.Option("--job-size")] = None,
     strategy: Annotated[
         str | None,
@@ -469,7 +472,7 @@ def run_start(
         "seed": seed,
         "maze": maze_text,
         "network": spec if spec is None or isinstance(spec, str) else spec.model_dump(mode="json"),
-        "reality_gap": reality_gap,
+        "reality_gap": "off" if nominal else None,
         "job_size": job_size,
         "strategy": strategy,
     }

@@ -7,6 +7,7 @@ Python's shortest round-trip float repr), so one controller always gives byte-id
      "format": "evocolony.controller/1",
      "provenance": {"run": "...", "generation": 349, ...},
      "validation": {<ValidationScore>},   (a run's champion only)
+     "test": {<HeldOutScore>},               (a run's champion: its held-out figures)
      "world": {<World>},                  (when known: the world it was evolved in)
      "sha256": "<hex>",
      "spec": {<NetworkSpec, every field>},
@@ -14,7 +15,7 @@ Python's shortest round-trip float repr), so one controller always gives byte-id
 
 The id is `sha256` of canonical spec JSON + b"\\n" + the weights' little-endian float64 bytes.
 The spec is hashed too, so two structurally different controllers (same weight count, other
-layers) never share an id. Fitness, provenance, validation and world are not hashed: they
+layers) never share an id. Fitness, provenance, validation, test and world are not hashed: they
 describe, not define.
 Loading never unpickles; every malformed, non-finite or tampered document raises
 `ControllerDocumentError` naming the problem.
@@ -36,7 +37,7 @@ from pydantic import ValidationError
 
 from evorobotics.errors import ControllerDocumentError
 from schemas.network import NetworkSpec
-from schemas.run import ValidationScore
+from schemas.run import HeldOutScore, ValidationScore
 from schemas.world import World
 
 FORMAT = "evocolony.controller/1"
@@ -45,7 +46,7 @@ FORMAT = "evocolony.controller/1"
 Provenance = dict[str, str | int | float | None]
 
 _FIELDS = frozenset({"format", "spec", "weights", "sha256", "fitness", "provenance"})
-_OPTIONAL = frozenset({"validation", "world"})
+_OPTIONAL = frozenset({"validation", "world", "test"})
 """Members written only when known (a champion's); described, never hashed."""
 _ANNOTATIONS = frozenset({"field"})
 """Members a server may add beside a document (field performance); read past, never hashed."""
@@ -83,6 +84,8 @@ class ControllerDocument:
     """The champion's score on its run's validation set; None for any other controller."""
     world: World | None = None
     """The world it was evolved in (its run's `world`); None when unknown."""
+    test: HeldOutScore | None = None
+    """The champion's held-out test figures; None for any other controller."""
 
     def __post_init__(self) -> None:
         """Copy and check the arguments (ValueError), so a document is always trustworthy."""
@@ -129,6 +132,8 @@ class ControllerDocument:
             out["validation"] = self.validation.model_dump(mode="json")
         if self.world is not None:
             out["world"] = self.world.model_dump(mode="json")
+        if self.test is not None:
+            out["test"] = self.test.model_dump(mode="json")
         return out
 
     def to_json(self) -> str:
@@ -169,10 +174,11 @@ class ControllerDocument:
                 else ValidationScore.model_validate(obj["validation"])
             )
             world = None if obj.get("world") is None else World.model_validate(obj["world"])
+            test = None if obj.get("test") is None else HeldOutScore.model_validate(obj["test"])
         except ValidationError as exc:
-            raise ControllerDocumentError(f"invalid validation or world: {exc}") from None
+            raise ControllerDocumentError(f"invalid validation, test or world: {exc}") from None
         try:
-            doc = cls(spec, weights, fitness, obj["provenance"], validation, world)
+            doc = cls(spec, weights, fitness, obj["provenance"], validation, world, test)
         except ValueError as exc:
             raise ControllerDocumentError(str(exc)) from None
         if obj["sha256"] != doc.sha256:

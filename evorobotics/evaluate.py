@@ -6,10 +6,10 @@ it is evaluated in:
 
 - trial start poses from rng(seed, generation, Purpose.START_POSES): uniform position and
   heading, rejected until the body is clear of walls and no whisker touches one;
-- with `reality_gap` on, per trial t from rng(seed, generation, Purpose.REALITY_GAP, t): one
-  whisker trigger distance and two wheel gains in the world's gap ranges (by default 25-100 mm
-  and 0.85-1.15, section 4); with the world's "step" gap model, every whisker's trigger
-  distance of every step besides.
+- with the reality gap on, per trial t from rng(seed, generation, Purpose.REALITY_GAP, t): each
+  whisker's trigger distance and each wheel's gain in the world's gap ranges (by default
+  25-100 mm and 0.85-1.15 of the nominal gain, section 4); with the world's "step" gap model,
+  every whisker's trigger distance of every step instead.
 
 A run's validation set (`validate`) and exploration reports (`evorobotics.explore`) draw the
 same way from streams of their own, so they never reuse a training pose.
@@ -156,15 +156,14 @@ def draw_gap(
 ) -> Gap:
     """Reality-gap draws of `trials` trials from `purpose`'s stream (read-only arrays).
 
-    Trial t draws from rng(seed, generation, purpose, t): a whisker trigger distance uniform in
-    `world.gap_whisker_range`, then two wheel gains uniform in 1 +- `world.gap_motor_gain`;
-    whisker_range (trials,), motor_gain (trials, 2). With `world.gap_model == "step"` the
-    stream goes on to draw every whisker's distance of every step, step by step, and
-    whisker_range is (trials, steps, 5): `steps`, the trial length, is then required. The gains
-    are the trial model's either way, and a shorter trial's draws are a longer one's first
-    steps. Cached like `start_poses` (every job of a generation draws the same), except
-    step-model draws over GAP_CACHE_STEPS robot-steps (a validation set, an exploration report:
-    drawn once per use, 40 bytes a robot-step); read-only views.
+    Trial t draws from rng(seed, generation, purpose, t) (`trial_gap`): whisker_range
+    (trials, 5), each whisker's trigger distance, and motor_gain (trials, 2). With
+    `world.gap_model == "step"` the stream goes on to draw every whisker's distance of every
+    step, step by step, and whisker_range is (trials, steps, 5): `steps`, the trial length, is
+    then required. The gains are the trial model's either way, and a shorter trial's draws are
+    a longer one's first steps. Cached like `start_poses` (every job of a generation draws the
+    same), except step-model draws over GAP_CACHE_STEPS robot-steps (a validation set, an
+    exploration report: drawn once per use, 40 bytes a robot-step); read-only views.
     """
     if trials < 0:
         raise ValueError(f"trials must be >= 0, got {trials}")
@@ -182,19 +181,32 @@ GAP_CACHE_STEPS = 20_000
 """Step-model gap draws of at most this many robot-steps (800 kB) are cached."""
 
 
+def trial_gap(
+    gen: np.random.Generator, world: World, steps: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """One trial's robot under the reality gap, from `gen`: each whisker's trigger distance
+    (5,) uniform in `world.gap_whisker_range`, then each wheel's gain (2,), `world.motor_gain`
+    times uniform 1 +- `world.gap_motor_gain`; with `steps` (the step model) every step's five
+    distances after them, (steps, 5), in place of the trial's."""
+    lo, hi = world.gap_whisker_range
+    ranges = gen.uniform(lo, hi, N_WHISKERS)
+    g = world.gap_motor_gain
+    gains = np.array(world.motor_gain) * gen.uniform(1.0 - g, 1.0 + g, 2)
+    if steps is not None:
+        ranges = gen.uniform(lo, hi, (steps, N_WHISKERS))
+    return ranges, gains
+
+
 def _draw_gap(
     seed: int, generation: int, trials: int, world: World, purpose: Purpose, steps: int
 ) -> Gap:
     """`draw_gap` without the cache: the draws themselves, in read-only arrays."""
-    lo, hi = world.gap_whisker_range
     per_step = world.gap_model == "step"
-    ranges = np.empty((trials, steps, N_WHISKERS) if per_step else trials)
+    ranges = np.empty((trials, steps, N_WHISKERS) if per_step else (trials, N_WHISKERS))
     gains = np.empty((trials, 2))
     for t in range(trials):
         gen = rng(seed, generation, purpose, t)
-        shared = gen.uniform(lo, hi)  # drawn by both models: the step model's gains stay equal
-        gains[t] = gen.uniform(1.0 - world.gap_motor_gain, 1.0 + world.gap_motor_gain, 2)
-        ranges[t] = gen.uniform(lo, hi, (steps, N_WHISKERS)) if per_step else shared
+        ranges[t], gains[t] = trial_gap(gen, world, steps if per_step else None)
     ranges.flags.writeable = False
     gains.flags.writeable = False
     return Gap(ranges, gains)
@@ -327,8 +339,8 @@ def evaluate(
     poses = start_poses(maze, config.seed, generation, config.trials, config.world)
     steps = trial_steps(config)
     gap = (
-        draw_gap(config.seed, generation, config.trials, config.world, steps=steps)
-        if config.reality_gap
+        draw_gap(config.seed, generation, config.trials, config.training_world, steps=steps)
+        if config.gap
         else None
     )
     g = np.asarray(genomes, dtype=np.float64)
@@ -352,16 +364,19 @@ def evaluate(
 def validation_set(config: RunConfig) -> tuple[np.ndarray, Gap | None]:
     """The run's validation trials: (poses, 3) start poses and, with the gap on, their draws.
 
-    Poses from rng(seed, 0, Purpose.VALIDATION), gap draws from Purpose.VALIDATION_GAP:
+    Poses from rng(seed, 0, Purpose.VALIDATION), gap draws from Purpose.VALIDATION_GAP in the
+    run's `training_world`:
     streams no training trial draws from, so a champion is chosen on poses it was never
     trained on, the same ones for every candidate. Fresh writeable arrays.
     """
     v = config.validation
     maze = load_maze(config.maze)
     poses = start_poses(maze, config.seed, 0, v.poses, config.world, Purpose.VALIDATION).copy()
-    if not config.reality_gap:
+    if not config.gap:
         return poses, None
-    drawn = draw_gap(config.seed, 0, v.poses, config.world, Purpose.VALIDATION_GAP, v.steps)
+    drawn = draw_gap(
+        config.seed, 0, v.poses, config.training_world, Purpose.VALIDATION_GAP, v.steps
+    )
     return poses, Gap(drawn.whisker_range.copy(), drawn.motor_gain.copy())
 
 

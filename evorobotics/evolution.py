@@ -22,8 +22,10 @@ from evorobotics.document import ControllerDocument
 from evorobotics.evaluate import (
     DESCRIPTORS,
     available_cores,
+    draw_gap,
     evaluate,
     map_slices,
+    start_poses,
     thread_slices,
     validation_set,
 )
@@ -32,9 +34,11 @@ from evorobotics.fitness import mean_fitness
 from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, rank, tell
 from evorobotics.layout import layout
 from evorobotics.maze import load_maze
-from evorobotics.sim import simulate
+from evorobotics.seeds import Purpose
+from evorobotics.sim import Gap, simulate
+from evorobotics.stats import wilson
 from evorobotics.strategies import Archive, make_strategy
-from schemas.run import RunConfig, ValidationScore
+from schemas.run import HeldOutScore, Proportion, RunConfig, ValidationScore, WorldScore
 
 
 def job_slices(population: int, job_size: int) -> list[tuple[int, int]]:
@@ -84,6 +88,7 @@ def best_document(
     run: str | int = "local",
     rank: int = 0,
     validation: ValidationScore | None = None,
+    test: HeldOutScore | None = None,
 ) -> ControllerDocument:
     """The controller document of training rank `rank` (`order[rank]`) of a completed generation.
 
@@ -109,6 +114,7 @@ def best_document(
         provenance={"seed": config.seed, "generation": generation, "rank": rank, "run": run},
         validation=validation,
         world=config.world,
+        test=test,
     )
 
 
@@ -171,6 +177,62 @@ def validate(config: RunConfig, genomes: np.ndarray, *, threads: int = 1) -> Val
     return Validated(score, stuck, roaming)
 
 
+def _world_score(
+    config: RunConfig, weights: np.ndarray, poses: np.ndarray, gap: Gap | None, threads: int
+) -> WorldScore:
+    """One controller from every test pose, in slices of poses on `threads` threads."""
+    steps = config.validation.steps
+    maze = load_maze(config.maze)
+    w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
+
+    def run(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        result = simulate(
+            config.network_spec,
+            np.repeat(w, b - a, axis=0),
+            maze,
+            poses[a:b],
+            steps,
+            params=config.world,
+            gap=None if gap is None else Gap(gap.whisker_range[a:b], gap.motor_gain[a:b]),
+            record=True,
+        )
+        assert result.poses is not None
+        free = ~confined(result.poses, result.stuck_step) & ~result.stuck
+        return free, result.stuck, result.max_offset
+
+    parts = map_slices(run, thread_slices(len(poses), threads), threads)
+    free, stuck, offset = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    n = len(poses)
+
+    def proportion(hits: np.ndarray) -> Proportion:
+        low, high = wilson(int(hits.sum()), n)
+        return Proportion(value=float(hits.mean()), low=low, high=high)
+
+    return WorldScore(
+        roaming=proportion(free), stuck=proportion(stuck), max_offset=float(offset.mean())
+    )
+
+
+def held_out(config: RunConfig, weights: np.ndarray, *, threads: int = 1) -> HeldOutScore:
+    """A controller's held-out test: `validation.test_poses` start poses from Purpose.TEST,
+    each run for `validation.steps` steps in the nominal world and in a world of the reality
+    gap drawn from Purpose.TEST_GAP (whatever the run trained in). Neither stream chose the
+    champion, so these are the figures to quote about it."""
+    v = config.validation
+    if v.test_poses < 1:
+        raise ValueError("the test is off (validation.test_poses = 0)")
+    maze = load_maze(config.maze)
+    poses = start_poses(maze, config.seed, 0, v.test_poses, config.world, Purpose.TEST)
+    gap = draw_gap(config.seed, 0, v.test_poses, config.world, Purpose.TEST_GAP, v.steps)
+    return HeldOutScore(
+        poses=v.test_poses,
+        steps=v.steps,
+        seed=config.seed,
+        nominal=_world_score(config, weights, poses, None, threads),
+        gap=_world_score(config, weights, poses, gap, threads),
+    )
+
+
 def champion(
     config: RunConfig,
     genomes: np.ndarray,
@@ -188,13 +250,23 @@ def champion(
     winner's curse). The `config.validation.candidates` fittest on training are re-scored on
     the run's validation set (`validate`); the champion roams on the most validation trials,
     ties to the higher mean Eq 12 there, then to the better training rank. Its document
-    carries those figures. With validation off it is training rank 0.
+    carries those figures, and its held-out test (`held_out`, with `validation.test_poses` > 0). With
+    validation off it is training rank 0.
     """
     v = config.validation
+    genomes = np.asarray(genomes)
+
+    def tested(rank: int) -> HeldOutScore | None:
+        if v.test_poses == 0:
+            return None
+        return held_out(config, genomes[int(order[rank])], threads=threads)
+
     if v.poses == 0:
-        return best_document(config, genomes, fitness, order, generation=generation, run=run)
+        return best_document(
+            config, genomes, fitness, order, generation=generation, run=run, test=tested(0)
+        )
     candidates = np.asarray(order[: v.candidates])
-    scored = validate(config, np.asarray(genomes)[candidates], threads=threads)
+    scored = validate(config, genomes[candidates], threads=threads)
     # lexicographic: roaming, then Eq 12, then training rank (lexsort's last key is primary)
     pick = int(np.lexsort((np.arange(len(candidates)), -scored.score, -scored.roaming))[0])
     return best_document(
@@ -215,6 +287,7 @@ def champion(
             stuck=float(scored.stuck[pick]),
             roaming=float(scored.roaming[pick]),
         ),
+        test=tested(pick),
     )
 
 

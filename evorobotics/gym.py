@@ -27,7 +27,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from evorobotics.evaluate import crossing_steps, free_poses
+from evorobotics.evaluate import crossing_steps, free_poses, trial_gap
 from evorobotics.maze import load_maze
 from evorobotics.sim import Bodies, body_hits_wall, sense_bodies, step_bodies
 from schemas.run import FitnessWeights, RunConfig
@@ -73,8 +73,8 @@ class _Batch:
         self.n = n
         self.bodies = Bodies(
             np.zeros((n, 3)),
-            np.ones((n, 2)),
-            np.full((n, N_WHISKERS), self.world.whisker_range),
+            np.tile(np.array(self.world.motor_gain), (n, 1)),
+            np.tile(np.array(self.world.whisker_ranges), (n, 1)),
         )
         self.starts = np.zeros((n, 3))
         self.net = np.zeros(n)
@@ -87,15 +87,13 @@ class _Batch:
     def place(self, rows: np.ndarray, poses: np.ndarray | None = None) -> None:
         """Start new episodes in `rows`: given poses (len(rows), 3) or drawn; gap drawn."""
         b = self.bodies
-        lo, hi = self.world.gap_whisker_range
-        g = self.world.gap_motor_gain
         for k, r in enumerate(rows):
             gen = self.rngs[r]
             b.poses[r] = free_poses(self.maze, gen, 1, self.world)[0] if poses is None else poses[k]
             if self.reality_gap:
-                shared = gen.uniform(lo, hi)
-                b.gains[r] = gen.uniform(1.0 - g, 1.0 + g, 2)
-                b.ranges[r] = self._step_ranges(r) if self._per_step else shared
+                b.ranges[r], b.gains[r] = trial_gap(gen, self.world)
+                if self._per_step:
+                    b.ranges[r] = self._step_ranges(r)
         self.starts[rows] = b.poses[rows]
         for a in (self.net, self.max_off, self.curve, b.travelled, b.blocked, self.t):
             a[rows] = 0

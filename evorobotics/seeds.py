@@ -27,6 +27,8 @@ class Purpose(IntEnum):
     EXPLORATION_GAP = 10
     BODY_GAP = 11
     STRATEGY = 12
+    TEST = 13
+    TEST_GAP = 14
 
 
 def rng(seed: int, generation: int, purpose: Purpose, index: int = 0) -> np.random.Generator:

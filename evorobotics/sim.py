@@ -60,17 +60,20 @@ DEFAULT_WORLD = World()
 
 @dataclass(frozen=True)
 class Gap:
-    """Reality-gap draws per robot: wheel gains (B, 2) and whisker trigger distances in m,
-    either (B,) one per trial shared by the five whiskers, or (B, steps, 5) one per step and
-    whisker (`World.gap_model`)."""
+    """A robot's physics per robot: wheel gains (B, 2) and whisker trigger distances in m,
+    either fixed for the trial, (B, 5) one per whisker or (B,) shared by the five, or
+    (B, steps, 5) one per step and whisker (`World.gap_model`)."""
 
     whisker_range: np.ndarray
     motor_gain: np.ndarray
 
     @classmethod
     def nominal(cls, batch: int, params: World = DEFAULT_WORLD) -> Gap:
-        """No gap: every robot at the nominal whisker range and unit gains."""
-        return cls(np.full(batch, params.whisker_range), np.ones((batch, 2)))
+        """No gap: every robot at the world's nominal whisker ranges and wheel gains."""
+        return cls(
+            np.tile(np.array(params.whisker_ranges), (batch, 1)),
+            np.tile(np.array(params.motor_gain), (batch, 1)),
+        )
 
     def tile(self, k: int) -> Gap:
         """The batch repeated k times, in order: each of k individuals meets the same draws."""
@@ -158,11 +161,15 @@ def whisker_bits(
     """(B, 5) uint8: 1 where a wall lies within range of a whisker's attachment point.
 
     `ranges` is the trigger distance per robot (B,) or per robot and whisker (B, 5); by default
-    the world's nominal `whisker_range`.
+    the world's nominal `whisker_ranges`.
     """
     poses = np.asarray(poses, dtype=np.float64)
     batch = poses.shape[0]
-    r = np.full((batch, 1), params.whisker_range) if ranges is None else np.asarray(ranges, float)
+    r = (
+        np.tile(np.array(params.whisker_ranges), (batch, 1))
+        if ranges is None
+        else np.asarray(ranges, float)
+    )
     if r.ndim == 1:
         r = r[:, None]
     if r.shape not in ((batch, 1), (batch, N_WHISKERS)):
@@ -290,9 +297,11 @@ def _prepare(
         return w, poses, _nominal_gap(batch, params)
     ranges = _kernel_array(gap.whisker_range)
     gains = _kernel_array(gap.motor_gain)
-    if ranges.shape not in ((batch,), (batch, steps, N_WHISKERS)) or gains.shape != (batch, 2):
+    shapes = ((batch,), (batch, N_WHISKERS), (batch, steps, N_WHISKERS))
+    if ranges.shape not in shapes or gains.shape != (batch, 2):
         raise ValueError(
-            f"gap must hold whisker_range ({batch},) or ({batch}, {steps}, {N_WHISKERS}) and "
+            f"gap must hold whisker_range ({batch},), ({batch}, {N_WHISKERS}) or "
+            f"({batch}, {steps}, {N_WHISKERS}) and "
             f"motor_gain ({batch}, 2), got {ranges.shape} and {gains.shape}"
         )
     if not (np.isfinite(ranges).all() and (ranges >= 0).all() and np.isfinite(gains).all()):
@@ -1048,7 +1057,7 @@ def _clear_of_walls(
     wy: np.ndarray,
     ca: np.ndarray,
     sa: np.ndarray,
-    r: float,
+    r: np.ndarray,
     k_whisker: int,
     out: np.ndarray,
 ) -> None:
@@ -1065,12 +1074,12 @@ def _clear_of_walls(
             py = y + s * wx[q] + c * wy[q]
             ux = c * ca[q] - s * sa[q]
             uy = s * ca[q] + c * sa[q]
-            free = not _whisker_touches(solid, cell, px, py, ux, uy, r, k_whisker)
+            free = not _whisker_touches(solid, cell, px, py, ux, uy, r[q], k_whisker)
         out[n] = free
 
 
 def clear_of_walls(maze: Maze, poses: np.ndarray, params: World = DEFAULT_WORLD) -> np.ndarray:
-    """(B,) True where the body at `poses` (B, 3) is clear and no whisker (nominal range) touches.
+    """(B,) True where the body at `poses` (B, 3) is clear and no whisker (nominal ranges) touches.
 
     Bit for bit `~body_hits_wall(...) & ~whisker_bits(...).any(axis=1)` (the start-pose test),
     over ten times cheaper: the same cells and operations, one pose at a time in compiled code
@@ -1099,8 +1108,8 @@ def clear_of_walls(maze: Maze, poses: np.ndarray, params: World = DEFAULT_WORLD)
         np.array(params.whisker_y),
         np.cos(angles),
         np.sin(angles),
-        params.whisker_range,
-        math.ceil(max(params.whisker_range, 0.0) / cell) + 2,
+        np.array(params.whisker_ranges),
+        math.ceil(max(params.whisker_ranges) / cell) + 2,
         out,
     )
     return out
@@ -1159,8 +1168,8 @@ def simulate(
         rec_w = np.zeros((batch, steps, N_WHISKERS), dtype=np.uint8)
         rec_m = np.zeros((batch, steps, 2))
     ranges = gap.whisker_range
-    if ranges.ndim == 1:  # one per trial: the kernel's (B, S, W) with S = W = 1, a view
-        ranges = ranges.reshape(batch, 1, 1)
+    if ranges.ndim < 3:  # fixed for the trial: the kernel's (B, S, W) with S = 1, a view
+        ranges = ranges.reshape(batch, 1, -1)
     _, linear_output, n_state, n_scratch = _spec_sizes(spec)
     _episode_kernel(spec)(
         w,

@@ -35,6 +35,23 @@ METRICS: dict[str, bool] = {
 }
 """Final metrics of a run -> whether a higher value is better (`stuck` is a failure rate)."""
 
+Z_975 = 1.959963984540054
+"""The standard normal's 97.5 % quantile: two-sided 95 % intervals."""
+
+
+def wilson(successes: int, trials: int) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a proportion: unlike the normal approximation it
+    stays inside [0, 1] and is not empty at 0 or all successes (a champion stuck 0 times)."""
+    if trials < 1 or not 0 <= successes <= trials:
+        raise ValueError(f"need 0 <= successes <= trials >= 1, got {successes} of {trials}")
+    p = successes / trials
+    z2 = Z_975 * Z_975
+    centre = (p + z2 / (2 * trials)) / (1 + z2 / trials)
+    half = Z_975 * np.sqrt(p * (1 - p) / trials + z2 / (4 * trials * trials)) / (1 + z2 / trials)
+    low = 0.0 if successes == 0 else max(0.0, float(centre - half))
+    return low, 1.0 if successes == trials else min(1.0, float(centre + half))
+
+
 MAGNITUDES = ((0.71, "large"), (0.64, "medium"), (0.56, "small"))
 """Vargha-Delaney thresholds on max(A12, 1 - A12); below the last one the effect is negligible."""
 

@@ -7,8 +7,8 @@ blocked move leaves the pose unchanged but does not freeze the robot for good (t
 records `blocked` so traces carry the ground truth the stuck detector is measured against.
 
 The start pose and reality gap of robot `index` are those `evorobotics.evaluate` gives trial
-`index` of generation 0 (`start_poses`, `draw_gap`): a free pose with no whisker touching, whisker
-trigger distance uniform in 25-100 mm, each wheel's gain within +/-15 % (paper section 4). With
+`index` of generation 0 (`start_poses`, `draw_gap`): a free pose with no whisker touching, each
+whisker's trigger distance uniform in 25-100 mm, each wheel's gain within +/-15 % (paper section 4). With
 the world's "step" gap model a virtual robot runs for as long as it is driven, so its whiskers'
 distances cannot be drawn in advance: the body draws five anew on every step from
 rng(seed, 0, Purpose.BODY_GAP, index).
@@ -56,8 +56,10 @@ class SimBody:
             raise ValueError(f"start pose {pose[0].tolist()} overlaps a wall")
         self.pose = pose
         self.gap = gap or Gap.nominal(1, self.params)
-        if self.gap.whisker_range.shape != (1,) or self.gap.motor_gain.shape != (1, 2):
-            raise ValueError("SimBody needs a batch-of-one Gap: shapes (1,) and (1, 2)")
+        if self.gap.whisker_range.shape not in ((1,), (1, N_WHISKERS)) or (
+            self.gap.motor_gain.shape != (1, 2)
+        ):
+            raise ValueError("SimBody needs a batch-of-one Gap: shapes (1, 5) and (1, 2)")
         self.blocked = False
         self._whisker_draws = whisker_draws
         self.whisker_range = self._next_ranges()

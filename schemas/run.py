@@ -6,9 +6,10 @@ flags, `POST /api/runs` bodies, evaluation jobs sent to workers. A run is a pure
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.network import NetworkSpec, resolve_network
 from schemas.world import World
@@ -135,6 +136,47 @@ class ValidationConfig(BaseModel):
     candidates: int = Field(
         100, ge=1, le=10_000, description="the final population's fittest this many are re-scored"
     )
+    test_poses: int = Field(
+        200,
+        ge=0,
+        le=10_000,
+        description="the champion's held-out test: start poses (and gap worlds) never used to "
+        "choose it, each run nominal and under the gap for `steps` steps; 0: no test",
+    )
+
+
+class Proportion(BaseModel):
+    """A fraction of trials with its 95 % Wilson score interval."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    value: float = Field(ge=0.0, le=1.0)
+    low: float = Field(ge=0.0, le=1.0)
+    high: float = Field(ge=0.0, le=1.0)
+
+
+class WorldScore(BaseModel):
+    """A champion's held-out figures in one kind of world."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    roaming: Proportion = Field(description="neither stuck nor confined over the whole trial")
+    stuck: Proportion = Field(description="stuck by the trial's last step")
+    max_offset: float = Field(ge=0.0, le=1e6, description="mean largest distance from start, m")
+
+
+class HeldOutScore(BaseModel):
+    """A champion's held-out test (the `test` member of its document): start poses from
+    Purpose.TEST and gap worlds from Purpose.TEST_GAP, streams that neither training nor
+    validation draw from, so these figures are not biased by the choice they report on."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    poses: int = Field(ge=1, le=10_000)
+    steps: int = Field(ge=1, le=100_000)
+    seed: int = Field(ge=0, lt=2**63, description="the run's seed")
+    nominal: WorldScore = Field(description="the world's nominal robot")
+    gap: WorldScore = Field(description="every trial's robot drawn from the reality gap")
 
 
 class ValidationScore(BaseModel):
@@ -154,6 +196,12 @@ class ValidationScore(BaseModel):
     roaming: float = Field(
         ge=0.0, le=1.0, description="fraction neither stuck nor confined (evorobotics.explore)"
     )
+
+
+@lru_cache(maxsize=64)
+def _with_gap_range(world: World, whisker_range: tuple[float, float]) -> World:
+    """`world` with another gap range, cached: every job of a run asks for the same one."""
+    return world.model_copy(update={"gap_whisker_range": whisker_range})
 
 
 class RunConfig(BaseModel):
@@ -181,8 +229,20 @@ class RunConfig(BaseModel):
     maze: str = Field("paper", min_length=1, max_length=4096, description="maze name or text")
     network: str | NetworkSpec = Field("paper-best", description="preset name or a spec")
     fitness: FitnessWeights = FitnessWeights()
-    reality_gap: bool = False
+    reality_gap: Literal["on", "off"] = Field(
+        "on",
+        description="'on': every trial's robot is drawn from the paper's reality gap (each "
+        "whisker 25-100 mm, each wheel +-15 %: `world`'s gap fields), in training, validation "
+        "and the champion's test; 'off': the ideal world of `world`'s nominal values",
+    )
     world: World = World()
+    train_whisker_range: tuple[float, float] | None = Field(
+        (0.025, 0.06),
+        description="with the gap on, training and validation draw each whisker's trigger "
+        "distance from this range, m: the short whiskers under which controllers get stuck "
+        "(docs/evolve.md); the champion's test draws from the world's whole gap range. None: "
+        "the world's range throughout",
+    )
     validation: ValidationConfig = ValidationConfig()
     ga: GAConfig = GAConfig()
     strategy: StrategyName = Field(
@@ -199,10 +259,24 @@ class RunConfig(BaseModel):
         "size, or one per live zenoh worker if larger; results never depend on the cut",
     )
 
+    @field_validator("reality_gap", mode="before")
+    @classmethod
+    def _stored_flag(cls, value: object) -> object:
+        """Configs stored before the gap was a choice hold a boolean: read true as on."""
+        if isinstance(value, bool):
+            return "on" if value else "off"
+        return value
+
     @model_validator(mode="after")
     def _check(self) -> RunConfig:
         if isinstance(self.network, str):
             resolve_network(self.network)  # raises ValueError naming the presets
+        if self.train_whisker_range is not None:
+            lo, hi = self.train_whisker_range
+            if not 0.0 <= lo <= hi <= 1.0:
+                raise ValueError(
+                    f"train_whisker_range must be 0 <= low <= high <= 1 m, got {lo} and {hi}"
+                )
         m = self.replacement_count
         if 2 * m + 1 > self.population:
             raise ValueError(
@@ -234,6 +308,19 @@ class RunConfig(BaseModel):
                 f"{NOVELTY_ARCHIVE} archive entries"
             )
         return self
+
+    @property
+    def gap(self) -> bool:
+        """Whether trials draw their robot from the reality gap."""
+        return self.reality_gap == "on"
+
+    @property
+    def training_world(self) -> World:
+        """The world training and validation trials draw their gap from: `world` with
+        `train_whisker_range` as its gap range."""
+        if self.train_whisker_range is None:
+            return self.world
+        return _with_gap_range(self.world, self.train_whisker_range)
 
     @property
     def network_spec(self) -> NetworkSpec:

@@ -31,8 +31,15 @@ class World(BaseModel):
     )
     body_length: float = Field(0.165, gt=0.0, le=10.0, description="along the heading, m")
     body_width: float = Field(0.127, gt=0.0, le=10.0, description="across the heading, m")
-    whisker_range: float = Field(
-        0.05, ge=0.0, le=1.0, description="nominal trigger distance from the attachment point, m"
+    whisker_range: float | tuple[float, float, float, float, float] = Field(
+        0.05,
+        description="nominal trigger distance from the attachment point, m: one for all five "
+        "whiskers or one per whisker, left to right",
+    )
+    motor_gain: tuple[float, float] = Field(
+        (1.0, 1.0),
+        description="nominal wheel gains [left, right]: a wheel's speed is command x gain x "
+        "max_speed",
     )
     whisker_x: tuple[float, ...] = Field(
         (0.0825,) * N_WHISKERS, description="attachment points, forward in the body frame, m"
@@ -53,17 +60,21 @@ class World(BaseModel):
     )
     gap_whisker_range: tuple[float, float] = Field(
         (0.025, 0.100),
-        description="reality gap: whisker trigger distance drawn uniformly in this range, m",
+        description="reality gap: each whisker's trigger distance drawn uniformly in this "
+        "range, m (the paper's measured 25-100 mm)",
     )
     gap_motor_gain: float = Field(
-        0.15, ge=0.0, lt=1.0, description="reality gap: wheel gains drawn in 1 +- this"
+        0.15,
+        ge=0.0,
+        lt=1.0,
+        description="reality gap: each wheel's gain drawn in motor_gain x (1 +- this)",
     )
     gap_model: Literal["trial", "step"] = Field(
         "trial",
         description=(
-            "reality gap: 'trial' draws one trigger distance per trial shared by the five "
-            "whiskers; 'step' draws each whisker's anew every step (noisy switches); wheel "
-            "gains are per trial either way"
+            "reality gap: 'trial' draws each whisker's trigger distance once per trial; "
+            "'step' draws each whisker's anew every step (noisy switches); wheel gains are "
+            "per trial either way"
         ),
     )
 
@@ -77,12 +88,22 @@ class World(BaseModel):
                 )
             if not all(math.isfinite(v) and abs(v) <= 360.0 for v in values):
                 raise ValueError(f"{name} must be finite and within +-360, got {values}")
+        if not all(0.0 <= r <= 1.0 for r in self.whisker_ranges):
+            raise ValueError(f"whisker_range must be within 0-1 m, got {self.whisker_range}")
+        if not all(0.0 < g <= 10.0 for g in self.motor_gain):
+            raise ValueError(f"motor_gain must be within (0, 10], got {self.motor_gain}")
         lo, hi = self.gap_whisker_range
         if not (0.0 <= lo <= hi <= 1.0):
             raise ValueError(
                 f"gap_whisker_range must be 0 <= low <= high <= 1 m, got {self.gap_whisker_range}"
             )
         return self
+
+    @property
+    def whisker_ranges(self) -> tuple[float, ...]:
+        """The five nominal trigger distances, left to right, m."""
+        r = self.whisker_range
+        return (r,) * N_WHISKERS if isinstance(r, float) else r
 
     @property
     def whisker_angle(self) -> tuple[float, ...]:

@@ -135,10 +135,13 @@ def test_push_best_controller_to_a_robot_with_a_click(
         run_id = client.post("/api/runs", json=QUICK).json()["id"]
         assert eventually(lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed")
         best = client.get(f"/api/runs/{run_id}/best").json()
-        page.goto(f"{served.url}/?run={run_id}")  # the champion's validation beside training
+        page.goto(f"{served.url}/?run={run_id}")  # the champion's held-out test, then its choice
         shown = page.locator("[data-testid=run-validation]")
-        shown.filter(has_text=f"stuck {round(100 * best['validation']['stuck'])} %").wait_for()
-        assert f"rank {best['validation']['training_rank']}" in shown.inner_text()
+        gap = best["test"]["gap"]
+        shown.filter(has_text=f"roaming {round(100 * gap['roaming']['value'])} %").wait_for()
+        text = shown.inner_text()
+        assert "held-out test" in text and "under the reality gap" in text
+        assert f"rank {best['validation']['training_rank']}" in text
         colony = Colony(served.url, db_url, run_id, served.app, tmp_path)
         with robot_link(colony) as link, virtual_robot("virt-1", link, tmp_path) as (agent, _):
             assert eventually(lambda: online(client, "virt-1"))

@@ -7,16 +7,20 @@ from hypothesis import strategies as st
 
 from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
-from evorobotics.evaluate import start_poses, validation_set
+from evorobotics.evaluate import draw_gap, start_poses, validation_set
 from evorobotics.evolution import (
     RunLoop,
     best_document,
     champion,
     evaluate_population,
     evolve,
+    held_out,
     validate,
 )
+from evorobotics.explore import confined
 from evorobotics.maze import load_maze
+from evorobotics.seeds import Purpose
+from evorobotics.sim import simulate
 from schemas.run import RunConfig, ValidationConfig
 
 SMALL = RunConfig(
@@ -38,7 +42,8 @@ def _final(config: RunConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
 
 def test_validation_poses_are_never_training_poses() -> None:
     poses, gap = validation_set(SMALL)
-    assert poses.shape == (12, 3) and gap is None
+    assert poses.shape == (12, 3) and gap is not None and gap.whisker_range.shape == (12, 5)
+    assert validation_set(SMALL.model_copy(update={"reality_gap": "off"}))[1] is None
     maze = load_maze(SMALL.maze)
     for generation in range(SMALL.generations + 1):
         training = start_poses(maze, SMALL.seed, generation, 50, SMALL.world)
@@ -77,7 +82,8 @@ def test_validation_off_or_one_candidate_is_training_rank_zero() -> None:
     genomes, fitness, order, generation = _final(SMALL)
     off = SMALL.model_copy(update={"validation": ValidationConfig(poses=0)})
     doc = champion(off, genomes, fitness, order, generation=generation)
-    assert doc == best_document(off, genomes, fitness, order, generation=generation)
+    test = held_out(off, genomes[order[0]])
+    assert doc == best_document(off, genomes, fitness, order, generation=generation, test=test)
     assert doc.validation is None
     one = SMALL.model_copy(update={"validation": ValidationConfig(poses=5, candidates=1)})
     only = champion(one, genomes, fitness, order, generation=generation)
@@ -86,8 +92,8 @@ def test_validation_off_or_one_candidate_is_training_rank_zero() -> None:
 
 
 @settings(max_examples=5, deadline=None)
-@given(seed=st.integers(0, 2**31), gap=st.booleans())
-def test_a_candidates_score_does_not_depend_on_its_batch(seed: int, gap: bool) -> None:
+@given(seed=st.integers(0, 2**31), gap=st.sampled_from(["on", "off"]))
+def test_a_candidates_score_does_not_depend_on_its_batch(seed: int, gap: str) -> None:
     config = SMALL.model_copy(update={"seed": seed, "reality_gap": gap})
     genomes = RunLoop(config).ask()[:4]
     together = validate(config, genomes)
@@ -108,3 +114,44 @@ def test_the_champion_document_round_trips_and_refuses_a_forged_score() -> None:
     forged["validation"]["roaming"] = 2.0
     with pytest.raises(ControllerDocumentError, match="validation"):
         ControllerDocument.from_dict(forged)
+
+
+def test_the_champions_test_is_held_out_and_what_it_says() -> None:
+    """The test's poses and worlds are no training or validation trial's, and its figures are
+    the champion's own trials from them, nominal and under the gap, with their intervals."""
+    genomes, fitness, order, generation = _final(SMALL)
+    config = SMALL.model_copy(
+        update={"validation": ValidationConfig(poses=12, steps=150, candidates=6, test_poses=30)}
+    )
+    doc = champion(config, genomes, fitness, order, generation=generation)
+    test = doc.test
+    assert test is not None and (test.poses, test.steps, test.seed) == (30, 150, SMALL.seed)
+    maze = load_maze(config.maze)
+    poses = start_poses(maze, config.seed, 0, 30, config.world, Purpose.TEST)
+    chosen_on = [validation_set(config)[0]] + [
+        start_poses(maze, config.seed, g, 50, config.world) for g in range(config.generations + 1)
+    ]
+    for other in chosen_on:
+        assert not (poses[:, None, :] == other[None, :, :]).all(axis=2).any()
+    gap = draw_gap(config.seed, 0, 30, config.world, Purpose.TEST_GAP, 150)
+    chosen_gap = validation_set(config)[1]
+    assert chosen_gap is not None
+    assert not np.isin(gap.whisker_range, chosen_gap.whisker_range).any()
+    for figures, drawn in ((test.nominal, None), (test.gap, gap)):
+        w = np.repeat(doc.weights[None], 30, axis=0)
+        run = simulate(config.network_spec, w, maze, poses, 150, config.world, drawn, record=True)
+        assert run.poses is not None
+        roaming = ~confined(run.poses, run.stuck_step) & ~run.stuck
+        assert figures.roaming.value == roaming.mean() and figures.stuck.value == run.stuck.mean()
+        assert figures.max_offset == pytest.approx(run.max_offset.mean())
+        for p in (figures.roaming, figures.stuck):
+            assert 0.0 <= p.low <= p.value <= p.high <= 1.0 and p.high - p.low > 0.05
+    assert champion(config, genomes, fitness, order, generation=generation, threads=3) == doc
+    back = ControllerDocument.from_json(doc.to_json())
+    assert back.test == test
+    forged = doc.to_dict()
+    forged["test"]["gap"]["roaming"]["value"] = 1.5
+    with pytest.raises(ControllerDocumentError, match="test"):
+        ControllerDocument.from_dict(forged)
+    off = config.model_copy(update={"validation": ValidationConfig(poses=12, test_poses=0)})
+    assert champion(off, genomes, fitness, order, generation=generation).test is None

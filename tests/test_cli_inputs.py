@@ -100,7 +100,7 @@ def test_evolve_refuses_the_same_mazes_in_one_line(tmp_path: Path) -> None:
         assert named in out and "Traceback" not in out and len(out.strip().splitlines()) == 1
 
 
-def test_run_start_sends_maze_and_network_files_and_the_reality_gap(
+def test_run_start_sends_maze_and_network_files_and_the_nominal_world(
     server: Colony, tmp_path: Path
 ) -> None:
     maze = tmp_path / "room.txt"
@@ -111,12 +111,12 @@ def test_run_start_sends_maze_and_network_files_and_the_reality_gap(
     network.write_text(PRESETS["reactive"].model_dump_json())
     code, out = colony(
         "run", "start", "--population", "8", "--generations", "1", "--steps", "5",
-        "--maze", str(maze), "--network", str(network), "--reality-gap",
+        "--maze", str(maze), "--network", str(network), "--nominal",
         "--server", server.url, "--json",
     )  # fmt: skip
     assert code == 0, out
     config = RunConfig.model_validate(json.loads(out)["config"])
-    assert config.maze == maze.read_text() and config.reality_gap
+    assert config.maze == maze.read_text() and config.reality_gap == "off"
     assert config.network_spec == PRESETS["reactive"]
     binary = tmp_path / "maze.bin"
     binary.write_bytes(b"\xff\xfe\x00")

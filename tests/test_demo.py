@@ -63,7 +63,8 @@ def test_demo_end_to_end_leaves_files_summary_and_no_process(tmp_path: Path) -> 
     assert len(robot_rows) == 2
     for row in robot_rows:
         cells = [c.strip() for c in row.split("│") if c.strip()]
-        assert cells[1] == "yes" and cells[2] == "running", row
+        # A 5-generation controller may be stuck and escaping at the snapshot; either way it drives.
+        assert cells[1] == "yes" and cells[2] in ("running", "escaping"), row
         assert int(cells[3]) > 0, row  # the pushed controller drove it
     assert "dashboard: http://127.0.0.1:" in text
     assert processes_mentioning(f"127.0.0.1:{zenoh_port}") == []

@@ -114,7 +114,7 @@ def test_reality_gap_draws_are_in_the_paper_ranges_and_deterministic() -> None:
         & (ranges <= DEFAULT_WORLD.gap_whisker_range[1])
     ).all()
     assert (np.abs(gains - 1) <= DEFAULT_WORLD.gap_motor_gain).all()
-    assert len(set(ranges.tolist())) == 50
+    assert ranges.shape == (50, 5) and len(set(ranges.ravel().tolist())) == 250
     assert np.array_equal(draw_gap(7, 3).motor_gain, gaps[3].motor_gain)
     a, b = SimBody.create("paper", seed=7, index=3), SimBody.create("paper", seed=7, index=3)
     assert np.array_equal(a.pose, b.pose)
@@ -193,6 +193,6 @@ def test_a_virtual_robot_under_the_step_gap_model_draws_its_whiskers_every_step(
     other = SimBody.create("paper", seed=5, index=3, world=world)
     assert not np.array_equal(other.whisker_range, ranges[:1])
     trial = SimBody.create("paper", seed=5, index=2)
-    assert trial.whisker_range.shape == (1,)
+    assert trial.whisker_range.shape == (1, 5)
     trial.step(0.5, 0.6)
     assert np.array_equal(trial.whisker_range, draw_gap(5, 2).whisker_range)

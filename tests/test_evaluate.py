@@ -170,7 +170,7 @@ def test_evaluate_is_deterministic_and_slice_independent(gap: str | None) -> Non
 
 
 def test_descriptors_are_the_trials_normalised_and_averaged() -> None:
-    config = RunConfig(seed=3, steps=60)
+    config = RunConfig(seed=3, steps=60, reality_gap="off")
     pop = genomes(5, seed=8)
     ev = evaluate(config, 1, pop)
     assert DESCRIPTORS == ("final_x", "final_y", "max_offset", "coverage")
@@ -195,8 +195,8 @@ def test_descriptors_are_the_trials_normalised_and_averaged() -> None:
 
 def test_reality_gap_changes_fitness_and_stuck_is_penalised() -> None:
     pop = genomes(40, seed=3)
-    plain = evaluate(RunConfig(seed=2), 0, pop)
-    gapped = evaluate(RunConfig(seed=2, reality_gap=True), 0, pop)
+    plain = evaluate(RunConfig(seed=2, reality_gap="off"), 0, pop)
+    gapped = evaluate(RunConfig(seed=2), 0, pop)  # the gap is on by default
     assert not np.array_equal(plain.fitness, gapped.fitness)
     stuck = plain.components[..., 3]
     assert set(np.unique(stuck)) <= {0.0, 1.0} and stuck.any()
@@ -205,7 +205,7 @@ def test_reality_gap_changes_fitness_and_stuck_is_penalised() -> None:
 
 
 def test_record_path_matches_evaluation() -> None:
-    config = RunConfig(seed=9)
+    config = RunConfig(seed=9, reality_gap="off")
     pop = genomes(3, seed=5)
     ev = evaluate(config, 2, pop)
     pose = start_poses(load_maze("paper"), 9, 2, 3)[1]
@@ -239,13 +239,17 @@ STEP = World(gap_model="step")
 
 
 def test_the_trial_gap_model_draws_as_documented() -> None:
-    # one distance per trial, then two gains, from the trial's own stream: never reordered
-    gap = draw_gap(8, 2, 3, steps=50)
+    # five distances per trial (left to right), then two gains around the world's nominal
+    # ones, from the trial's own stream: never reordered
+    world = World(motor_gain=(0.9, 1.1))
+    gap = draw_gap(8, 2, 3, world, steps=50)
+    assert gap.whisker_range.shape == (3, 5)
     for t in range(3):
         gen = rng(8, 2, Purpose.REALITY_GAP, t)
-        assert gap.whisker_range[t] == gen.uniform(0.025, 0.1)
-        assert gap.motor_gain[t].tobytes() == gen.uniform(0.85, 1.15, 2).tobytes()
-    assert draw_gap(8, 2, 3).whisker_range.tobytes() == gap.whisker_range.tobytes()
+        assert gap.whisker_range[t].tobytes() == gen.uniform(0.025, 0.1, 5).tobytes()
+        gains = np.array([0.9, 1.1]) * gen.uniform(0.85, 1.15, 2)
+        assert gap.motor_gain[t].tobytes() == gains.tobytes()
+    assert draw_gap(8, 2, 3, world).whisker_range.tobytes() == gap.whisker_range.tobytes()
 
 
 @settings(max_examples=20, deadline=None)

@@ -218,18 +218,23 @@ def test_body_collision_is_the_rectangle() -> None:
     ("preset", "batch", "steps"),
     [("paper-best", 96, 40), ("recurrent-small", 48, 40), ("paper-largest", 8, 15)],
 )
-@pytest.mark.parametrize("with_gap", [False, True])
-def test_kernel_agrees_with_reference(preset: str, batch: int, steps: int, with_gap: bool) -> None:
+@pytest.mark.parametrize("with_gap", ["none", "shared", "per-whisker", "nominal-world"])
+def test_kernel_agrees_with_reference(preset: str, batch: int, steps: int, with_gap: str) -> None:
+    # whisker ranges shared by the five or one per whisker, in a gap or as a world's nominal
     spec = PRESETS[preset]
     maze = load_maze("paper")
     g = np.random.default_rng(7)
     weights = g.normal(0.0, 1.0, (batch, spec.weight_count))
     starts = np.tile(start_poses(maze, 3, 0, 8), (batch // 8, 1))
-    gap = None
-    if with_gap:
+    gap, world = None, World()
+    if with_gap == "shared":
         gap = Gap(g.uniform(0.025, 0.1, batch), g.uniform(0.85, 1.15, (batch, 2)))
-    fast = simulate(spec, weights, maze, starts, steps, gap=gap, record=True)
-    ref = simulate_reference(spec, weights, maze, starts, steps, gap=gap, record=True)
+    elif with_gap == "per-whisker":
+        gap = Gap(g.uniform(0.025, 0.1, (batch, 5)), g.uniform(0.85, 1.15, (batch, 2)))
+    elif with_gap == "nominal-world":
+        world = World(whisker_range=(0.03, 0.09, 0.025, 0.06, 0.1), motor_gain=(0.88, 1.13))
+    fast = simulate(spec, weights, maze, starts, steps, world, gap, record=True)
+    ref = simulate_reference(spec, weights, maze, starts, steps, world, gap, record=True)
     assert fast.poses is not None and ref.poses is not None
     assert fast.whiskers is not None and ref.whiskers is not None
     assert fast.motors is not None and ref.motors is not None
@@ -573,7 +578,7 @@ def test_per_step_gap_shapes_are_checked() -> None:
     spec = PRESETS["paper-best"]
     w = np.zeros((2, spec.weight_count))
     poses = np.tile([[1.0, 1.0, 0.0]], (2, 1))
-    for ranges in (np.full((2, 4, 5), 0.05), np.full((2, 5, 4), 0.05), np.full((2, 5), 0.05)):
+    for ranges in (np.full((2, 4, 5), 0.05), np.full((2, 5, 4), 0.05), np.full((2, 4), 0.05)):
         with pytest.raises(ValueError, match="gap must hold"):
             simulate(spec, w, ARENA, poses, 5, gap=Gap(ranges, np.ones((2, 2))))
     with pytest.raises(ValueError, match="gap values"):
@@ -647,3 +652,20 @@ def test_simulate_bits_are_pinned() -> None:
     for part in (res.poses, res.motors, res.components, res.cells):
         digest.update(np.ascontiguousarray(part).tobytes())
     assert digest.hexdigest()[:8] == PINNED
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    ranges=st.lists(st.floats(0.0, 0.15), min_size=5, max_size=5),
+)
+def test_start_poses_keep_every_whisker_of_its_own_length_clear(
+    seed: int, ranges: list[float]
+) -> None:
+    # the compiled start-pose test reads each whisker's nominal range, as whisker_bits does
+    world = World(whisker_range=tuple(ranges))
+    maze = load_maze("paper")
+    g = np.random.default_rng(seed)
+    poses = np.column_stack([g.uniform(0, 2, 200), g.uniform(0, 2, 200), g.uniform(-3, 3, 200)])
+    expected = ~body_hits_wall(maze, poses, world) & ~whisker_bits(maze, poses, world).any(axis=1)
+    assert np.array_equal(clear_of_walls(maze, poses, world), expected)

@@ -389,10 +389,16 @@ async function showValidation(run) {
     const v = best.validation;
     if (!v || state.selected !== run.id) return;
     const line = $("#run-validation");
-    line.textContent =
-      `champion: training fitness ${fmt(best.fitness)} (rank ${v.training_rank}) · ` +
-      `validation ${fmt(v.score)} over ${v.poses} poses × ${v.steps} steps · ` +
-      `stuck ${fmt(100 * v.stuck, 0)} % · roaming ${fmt(100 * v.roaming, 0)} %`;
+    const chosen =
+      `chosen on validation ${fmt(v.score)} over ${v.poses} poses × ${v.steps} steps ` +
+      `(training fitness ${fmt(best.fitness)}, rank ${v.training_rank})`;
+    const t = best.test;
+    const pct = (p) => `${fmt(100 * p.value, 0)} % [${fmt(100 * p.low, 0)}, ${fmt(100 * p.high, 0)}]`;
+    const world = (label, w) => `${label}: roaming ${pct(w.roaming)}, stuck ${pct(w.stuck)}`;
+    line.textContent = t
+      ? `champion, held-out test on ${t.poses} unseen poses × ${t.steps} steps (95 % CI) · ` +
+        `${world("under the reality gap", t.gap)} · ${world("nominal", t.nominal)} · ${chosen}`
+      : `champion ${chosen} · stuck ${fmt(100 * v.stuck, 0)} % · roaming ${fmt(100 * v.roaming, 0)} %`;
     line.hidden = false;
   } catch {
     state.validationFor = null; // asked again with the next run event
