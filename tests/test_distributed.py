@@ -27,7 +27,9 @@ from schemas.run import RunConfig
 from tests.helpers import free_port
 
 CONFIG = {"population": 16, "job_size": 4, "generations": 6, "steps": 2000, "seed": 11}
-"""Jobs of tens of milliseconds, so a worker is caught holding one."""
+"""Jobs of tens of milliseconds, so a worker is caught holding one. Under the reality gap (the
+default), so every kill, restart and span below also checks that the gap draws do not depend
+on who evaluated what."""
 EVALUATIONS = 16 * 6
 TIMEOUT_S = 45.0
 COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]

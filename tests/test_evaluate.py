@@ -1,5 +1,6 @@
 """Eq 12 fitness, start poses, reality-gap draws, determinism and slicing independence."""
 
+import itertools
 import math
 
 import numpy as np
@@ -151,18 +152,27 @@ def genomes(n: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).normal(0.0, 1.5, (n, 222))
 
 
-@pytest.mark.parametrize("gap", [None, "trial", "step"])
-def test_evaluate_is_deterministic_and_slice_independent(gap: str | None) -> None:
+@settings(max_examples=15, deadline=None)
+@given(
+    gap=st.sampled_from([None, "trial", "step"]),
+    cuts=st.lists(st.integers(1, 29), max_size=4, unique=True).map(sorted),
+    threads=st.integers(1, 3),
+)
+def test_evaluate_is_deterministic_and_slice_independent(
+    gap: str | None, cuts: list[int], threads: int
+) -> None:
+    """A job's slice of a generation, on any threads, sees the trials' poses and gap draws of
+    the whole: the same bits however a generation is cut among workers (spans and restarts
+    replay whole slices: tests/test_distributed.py runs them against `evolve`)."""
     world = World(gap_model="trial" if gap is None else gap)
-    config = RunConfig(seed=11, reality_gap=gap is not None, world=world)
+    config = RunConfig(seed=11, steps=60, reality_gap="off" if gap is None else "on", world=world)
     pop = genomes(30)
     whole = evaluate(config, 4, pop)
     assert whole.fitness.shape == (30,)
     assert whole.components.shape == (30, 3, 4)
     assert np.array_equal(whole.fitness, mean_fitness(whole.components, config.fitness))
-    again = evaluate(config, 4, pop)
-    assert whole.fitness.tobytes() == again.fitness.tobytes()
-    parts = [evaluate(config, 4, pop[a:b]) for a, b in ((0, 1), (1, 13), (13, 30))]
+    bounds = [0, *cuts, 30]
+    parts = [evaluate(config, 4, pop[a:b], threads=threads) for a, b in itertools.pairwise(bounds)]
     assert np.concatenate([p.fitness for p in parts]).tobytes() == whole.fitness.tobytes()
     assert np.concatenate([p.components for p in parts]).tobytes() == whole.components.tobytes()
     assert np.concatenate([p.descriptors for p in parts]).tobytes() == whole.descriptors.tobytes()
