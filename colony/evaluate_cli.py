@@ -17,6 +17,7 @@ import typer
 if TYPE_CHECKING:
     from evorobotics.document import ControllerDocument
     from evorobotics.explore import Exploration
+    from evorobotics.robustness import RobustnessMap
 
 
 def _fail(message: str) -> typer.Exit:
@@ -91,6 +92,64 @@ def print_table(doc: ControllerDocument, e: Exploration) -> None:
         )
 
 
+def print_map(doc: ControllerDocument, m: RobustnessMap) -> None:
+    """Two tables, roaming then stuck: a row per whisker range, a column per gain ratio."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    world = "the document's world" if doc.world is not None else "the default World"
+    console.print(
+        f"controller {doc.sha256[:12]} in maze {m.maze!r}, {world}: {m.poses} unseen start "
+        f"poses (robustness stream, seed {m.seed}) x {m.steps} steps in every cell"
+    )
+    for name in ("roaming", "stuck"):
+        table = Table(
+            title=f"{name}, % of trials", caption="columns: wheel gain ratio, left / right"
+        )
+        table.add_column("whisker")
+        for ratio in m.gain_ratios:
+            table.add_column(f"{ratio:g}", justify="right")
+        for r, row in zip(m.whisker_ranges, getattr(m, name), strict=True):
+            table.add_row(f"{1000 * r:g} mm", *(f"{100 * v:.0f}" for v in row))
+        console.print(table)
+    console.print(f"worst cell's roaming: {_percent(m.worst_roaming)}")
+
+
+def _robustness(
+    doc: ControllerDocument, poses: int, steps: int, maze: str, seed: int, out: Path, as_json: bool
+) -> None:
+    """`--robustness`: the map, printed or as JSON, and its heat map in OUT/robustness.png."""
+    from evorobotics.errors import EvoError
+    from evorobotics.evaluate import available_cores
+    from evorobotics.plots import robustness_plot
+    from evorobotics.robustness import robustness
+
+    try:
+        m = robustness(
+            doc.spec,
+            doc.weights,
+            poses=poses,
+            steps=steps,
+            maze=maze,
+            seed=seed,
+            world=doc.world,
+            threads=available_cores(),
+        )
+    except (EvoError, ValueError) as exc:
+        raise _fail(str(exc)) from None
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        robustness_plot(m, out / "robustness.png")
+    except OSError as exc:
+        raise _fail(f"--out: {exc}") from None
+    if as_json:
+        typer.echo(json.dumps({"controller": doc.sha256, **m.as_dict()}, allow_nan=False))
+    else:
+        print_map(doc, m)
+        typer.echo(f"wrote {out / 'robustness.png'}")
+
+
 def evaluate_command(
     controller: Annotated[
         Path | None, typer.Argument(help="controller document JSON (e.g. out/best.json)")
@@ -105,16 +164,31 @@ def evaluate_command(
             help="evaluate the controller with this sha256 or 8+ digit prefix (with --server)"
         ),
     ] = None,
-    poses: Annotated[int, typer.Option(help="unseen start poses, one trial each")] = 1000,
+    poses: Annotated[
+        int | None,
+        typer.Option(help="unseen start poses, one trial each (per cell with --robustness)"),
+    ] = None,
     steps: Annotated[int, typer.Option(help="steps of each trial (H)")] = 1000,
     maze: Annotated[str, typer.Option(help="shipped maze, gen:SIZE:SEED or a file")] = "paper",
     seed: Annotated[int, typer.Option(help="seed of the exploration start poses")] = 0,
     reality_gap: Annotated[
         bool, typer.Option("--reality-gap", help="draw whisker ranges and motor gains per trial")
     ] = False,
+    robustness: Annotated[
+        bool,
+        typer.Option(
+            "--robustness",
+            help="map roaming and stuck over whisker range x wheel gain ratio instead "
+            "(default 50 poses per cell)",
+        ),
+    ] = False,
+    out: Annotated[
+        Path, typer.Option(help="with --robustness: directory of robustness.png (created)")
+    ] = Path("out"),
     as_json: Annotated[bool, typer.Option("--json", help="print the report as JSON")] = False,
 ) -> None:
-    """Stuck, confined and roaming fractions, offsets, coverage and Eq 12 fitness over long runs.
+    """Stuck, confined and roaming fractions, offsets, coverage and Eq 12 fitness over long runs,
+    or (`--robustness`) the same trials across the reality gap, cell by cell.
 
     Trials start from poses no training or validation trial uses (docs/explore.md).
     """
@@ -124,9 +198,13 @@ def evaluate_command(
     from evorobotics.explore import MAX_ROBOT_STEPS, explore
     from evorobotics.maze import load_maze
 
+    if poses is None:
+        poses = 50 if robustness else 1000
     if poses < 1 or steps < 1:
         raise _fail(f"--poses and --steps must be >= 1, got {poses} and {steps}")
-    if poses * steps > MAX_ROBOT_STEPS:
+    if robustness and reality_gap:
+        raise _fail("--robustness sets the gap per cell: leave out --reality-gap")
+    if not robustness and poses * steps > MAX_ROBOT_STEPS:
         raise _fail(f"--poses x --steps = {poses * steps} exceeds {MAX_ROBOT_STEPS} robot steps")
     if seed < 0:
         raise _fail(f"--seed must be >= 0, got {seed}")
@@ -138,6 +216,9 @@ def evaluate_command(
         load_maze(maze)
     except (EvoError, OSError, ValueError) as exc:
         raise _fail(f"--maze: {exc}") from None
+    if robustness:
+        _robustness(doc, poses, steps, maze, seed, out, as_json)
+        return
     try:
         result = explore(
             doc.spec,

@@ -24,6 +24,7 @@ from evorobotics.evaluate import unseen_paths
 from evorobotics.evolution import GenerationSummary
 from evorobotics.layout import layout
 from evorobotics.maze import Maze, load_maze
+from evorobotics.robustness import RobustnessMap
 from evorobotics.sim import SimResult
 from evorobotics.strategies import Archive
 from schemas.network import NetworkSpec
@@ -250,5 +251,28 @@ def archive_plot(config: RunConfig, archive: Archive, path: Path) -> None:
     ax.set_ylabel("y (m)" if on_maze else axes[1])
     filled = int(np.isfinite(grid).sum())
     ax.set_title(f"{config.strategy} archive: {len(archive.fitness)} entries, {filled} cells")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def robustness_plot(m: RobustnessMap, path: Path) -> None:
+    """Roaming and stuck fractions over whisker range x wheel gain ratio, each cell labelled."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
+    for ax, name, cmap in ((axes[0], "roaming", "viridis"), (axes[1], "stuck", "magma_r")):
+        grid = np.array(getattr(m, name))
+        image = ax.imshow(grid, cmap=cmap, vmin=0.0, vmax=1.0, origin="lower", aspect="auto")
+        for (i, j), value in np.ndenumerate(grid):
+            ink = "white" if (value < 0.5) == (name == "roaming") else "black"
+            ax.text(j, i, f"{100 * value:.0f}", ha="center", va="center", fontsize=8, color=ink)
+        ax.set_xticks(range(len(m.gain_ratios)), [f"{r:g}" for r in m.gain_ratios])
+        ax.set_yticks(range(len(m.whisker_ranges)), [f"{1000 * r:g}" for r in m.whisker_ranges])
+        ax.set_xlabel("wheel gain ratio, left / right")
+        ax.set_ylabel("whisker range (mm)")
+        ax.set_title(f"{name} (% of trials)")
+        fig.colorbar(image, ax=ax, fraction=0.046)
+    fig.suptitle(
+        f"robustness map: {m.poses} unseen poses x {m.steps} steps per cell, "
+        f"maze {m.maze!r}, seed {m.seed}"
+    )
     fig.tight_layout()
     _save(fig, path)

@@ -29,6 +29,7 @@ class Purpose(IntEnum):
     STRATEGY = 12
     TEST = 13
     TEST_GAP = 14
+    ROBUSTNESS = 15
 
 
 def rng(seed: int, generation: int, purpose: Purpose, index: int = 0) -> np.random.Generator:

@@ -142,6 +142,11 @@ def test_push_best_controller_to_a_robot_with_a_click(
         text = shown.inner_text()
         assert "held-out test" in text and "under the reality gap" in text
         assert f"rank {best['validation']['training_rank']}" in text
+        robust = client.get(f"/api/controllers/{best['sha256']}/robustness").json()
+        worst = min(min(row) for row in robust["roaming"])
+        mapped = page.locator("[data-testid=run-robustness]")
+        mapped.filter(has_text=f"worst cell {round(100 * worst)} %").wait_for()
+        assert page.locator("#robustness-table td").count() == 49
         colony = Colony(served.url, db_url, run_id, served.app, tmp_path)
         with robot_link(colony) as link, virtual_robot("virt-1", link, tmp_path) as (agent, _):
             assert eventually(lambda: online(client, "virt-1"))
@@ -259,7 +264,7 @@ def test_an_archive_is_mapped_and_an_elite_pushed_to_a_robot_with_a_click(
             page.wait_for_function(
                 f"document.querySelector('#archive-map').dataset.elites === '{len(cells)}'"
             )
-            page.locator("[data-testid=run-validation]").wait_for()  # the layout is complete
+            page.locator("[data-testid=run-robustness]").wait_for()  # the layout is complete
             canvas = page.locator("#archive-map")
             box = canvas.bounding_box()
             x, y = cells[0]["descriptors"]

@@ -1,5 +1,6 @@
-"""`colony evaluate` and GET /api/controllers/{sha256}/evaluation: the exploration report of a
-file or a stored controller, in the document's world, with every bad input refused by name."""
+"""`colony evaluate` and GET /api/controllers/{sha256}/evaluation and /robustness: the
+exploration report and the robustness map of a file or a stored controller, in the document's
+world, with every bad input refused by name."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typer.testing import CliRunner
 from colony.cli import app
 from evorobotics.document import ControllerDocument
 from evorobotics.explore import MAX_ROBOT_STEPS, explore
+from evorobotics.robustness import robustness
 from schemas.network import PRESETS
 from schemas.run import ValidationScore
 from schemas.world import World
@@ -208,3 +210,51 @@ def test_cli_evaluates_a_runs_best(served: Served) -> None:
     want = explore(best.spec, best.weights, poses=30, steps=150, world=best.world)
     assert got["controller"] == best.sha256 and got["roaming_fraction"] == want.roaming
     assert got["training_fitness"] == best.fitness
+
+
+def test_robustness_map_from_the_cli_prints_tables_json_and_a_heat_map(tmp_path: Path) -> None:
+    path = tmp_path / "best.json"
+    path.write_text(CHAMPION.to_json())
+    small = ["--robustness", "--poses", "4", "--steps", "60", "--seed", "2"]
+    code, out, err = invoke(str(path), *small, "--json", "--out", str(tmp_path / "a"))
+    assert code == 0, err
+    want = robustness(REACTIVE, CHAMPION.weights, poses=4, steps=60, seed=2, world=CHAMPION.world)
+    assert json.loads(out) == {"controller": CHAMPION.sha256, **want.as_dict()}
+    assert (tmp_path / "a" / "robustness.png").read_bytes().startswith(b"\x89PNG")
+    code, out, err = invoke(str(path), *small, "--out", str(tmp_path / "b"))
+    assert code == 0, err
+    assert "roaming, % of trials" in out and "stuck, % of trials" in out and "25 mm" in out
+    assert f"{100 * want.roaming[0][0]:.0f}" in out and "robustness.png" in out
+    code, _, err = invoke(str(path), *small, "--reality-gap")
+    assert code == 2 and "--reality-gap" in err and err.startswith("colony evaluate: ")
+    code, _, err = invoke(str(path), "--robustness", "--poses", "10000", "--steps", "1000")
+    assert code == 2 and "exceeds the limit" in err
+
+
+def test_rest_robustness_is_the_map_plus_the_sha_and_refuses_bad_parameters(
+    served: Served,
+) -> None:
+    url = f"{served.url}/api/controllers/{CHAMPION.sha256[:12]}/robustness"
+    params: dict[str, str | int] = {"poses": 3, "steps": 50, "seed": 1, "maze": "arena"}
+    first = httpx.get(url, params=params, timeout=60)
+    assert first.status_code == 200, first.text
+    want = robustness(
+        REACTIVE, CHAMPION.weights, poses=3, steps=50, seed=1, maze="arena", world=CHAMPION.world
+    )
+    assert first.json() == {**want.as_dict(), "sha256": CHAMPION.sha256}
+    assert httpx.get(url, params=params, timeout=60).content == first.content
+    refused: list[tuple[dict[str, str | int], str]] = [
+        ({"poses": 0}, "poses"),
+        ({"poses": 201}, "poses"),
+        ({"steps": 2001}, "steps"),
+        ({"seed": -1}, "seed"),
+        ({"poses": 200, "steps": 501}, "poses x steps"),
+        ({"maze": "/etc/passwd"}, "maze"),
+        ({"maze": "gen:1000:1"}, "maze"),
+    ]
+    for bad, name in refused:
+        answer = httpx.get(url, params=bad, timeout=30)
+        assert answer.status_code == 422, (bad, answer.text)
+        assert name in answer.json()["detail"], (bad, answer.text)
+    unknown = httpx.get(f"{served.url}/api/controllers/{'0' * 64}/robustness", timeout=30)
+    assert unknown.status_code == 404

@@ -11,7 +11,7 @@ from evorobotics.errors import EvoError
 from evorobotics.maze import is_shipped_or_generated, load_maze
 from server import crud
 from server.deps import ManagerDep, SessionDep
-from server.evaluation import EVALUATIONS, Params
+from server.evaluation import EVALUATIONS, MapParams, Params
 
 router = APIRouter(prefix="/api/controllers", tags=["controllers"])
 
@@ -24,6 +24,9 @@ MAX_EVALUATION_POSES = 1000
 MAX_EVALUATION_STEPS = 2000
 MAX_EVALUATION_ROBOT_STEPS = 1_000_000
 """poses x steps of one evaluation request: about 1 s of one core (docs/api.md)."""
+MAX_ROBUSTNESS_POSES = 200
+MAX_ROBUSTNESS_ROBOT_STEPS = 100_000
+"""poses x steps per cell of one robustness map: 4.9 M robot-steps over its 49 cells."""
 
 
 @router.get(
@@ -78,6 +81,43 @@ def get_evaluation(
             detail=f"poses x steps: {poses} x {steps} = {poses * steps} exceeds the limit of "
             f"{MAX_EVALUATION_ROBOT_STEPS} robot steps",
         )
+    return _report(document, maze, Params(poses, steps, maze, seed, reality_gap))
+
+
+@router.get(
+    "/{sha256}/robustness",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"application/json": {}},
+            "description": "the controller's robustness map (evorobotics.robustness, "
+            "docs/explore.md): roaming and stuck per whisker range x wheel gain ratio, plus "
+            "its `sha256`",
+        }
+    },
+)
+def get_robustness(
+    manager: ManagerDep,
+    sha256: Sha,
+    poses: Annotated[int, Query(ge=1, le=MAX_ROBUSTNESS_POSES)] = 50,
+    steps: Annotated[int, Query(ge=1, le=MAX_EVALUATION_STEPS)] = 1000,
+    maze: Annotated[str, Query(min_length=1, max_length=4096)] = "paper",
+    seed: Annotated[int, Query(ge=0, lt=2**63)] = 0,
+) -> Response:
+    """CPU-bound (up to a few seconds): a sync route, so it runs in the threadpool."""
+    with manager.sessions() as session:
+        document = crud.find_controller(session, sha256=sha256).document
+    if poses * steps > MAX_ROBUSTNESS_ROBOT_STEPS:
+        raise HTTPException(
+            422,
+            detail=f"poses x steps: {poses} x {steps} = {poses * steps} exceeds the limit of "
+            f"{MAX_ROBUSTNESS_ROBOT_STEPS} robot steps per cell",
+        )
+    return _report(document, maze, MapParams(poses, steps, maze, seed))
+
+
+def _report(document: str, maze: str, params: Params | MapParams) -> Response:
+    """The cached report or map of a stored document; 422 naming a bad maze or parameter."""
     # a bare path would read a file on the server
     if not is_shipped_or_generated(maze):
         raise HTTPException(
@@ -88,7 +128,7 @@ def get_evaluation(
     except (EvoError, ValueError) as exc:
         raise HTTPException(422, detail=f"maze: {exc}") from None
     try:
-        body = EVALUATIONS.report(document, Params(poses, steps, maze, seed, reality_gap))
+        body = EVALUATIONS.report(document, params)
     except (EvoError, ValueError) as exc:
         raise HTTPException(422, detail=str(exc)) from None
     return Response(content=body, media_type="application/json")

@@ -400,9 +400,42 @@ async function showValidation(run) {
         `${world("under the reality gap", t.gap)} · ${world("nominal", t.nominal)} · ${chosen}`
       : `champion ${chosen} · stuck ${fmt(100 * v.stuck, 0)} % · roaming ${fmt(100 * v.roaming, 0)} %`;
     line.hidden = false;
+    showRobustness(run.id, best.sha256);
   } catch {
     state.validationFor = null; // asked again with the next run event
   }
+}
+
+async function showRobustness(runId, sha) {
+  // The champion's roaming per whisker range x wheel gain ratio (GET .../robustness, cached).
+  const box = $("#run-robustness");
+  box.hidden = true;
+  let m;
+  try {
+    m = await api("GET", `/api/controllers/${sha}/robustness`);
+  } catch {
+    return; // the map is extra: the run page stands without it
+  }
+  if (state.selected !== runId) return;
+  const table = $("#robustness-table");
+  table.replaceChildren(
+    el("tr", {}, el("th", { text: "whisker \\ L/R gain" }),
+      ...m.gain_ratios.map((r) => el("th", { text: fmt(r, 2) }))),
+  );
+  for (let i = m.whisker_ranges.length - 1; i >= 0; i--) {
+    const cells = m.roaming[i].map((v, j) => {
+      const td = el("td", { text: `${fmt(100 * v, 0)}` });
+      td.style.background = `hsl(${Math.round(120 * v)}, 60%, 38%)`;
+      td.title = `roaming ${fmt(100 * v, 0)} %, stuck ${fmt(100 * m.stuck[i][j], 0)} %`;
+      return td;
+    });
+    table.append(el("tr", {}, el("th", { text: `${fmt(1000 * m.whisker_ranges[i], 1)} mm` }), ...cells));
+  }
+  const worst = Math.min(...m.roaming.flat());
+  $("#robustness-caption").textContent =
+    `roaming, % of ${m.poses} unseen poses × ${m.steps} steps per cell (hover: stuck); ` +
+    `worst cell ${fmt(100 * worst, 0)} %`;
+  box.hidden = false;
 }
 
 async function steer(action) {
