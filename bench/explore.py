@@ -5,13 +5,16 @@ paper-best and reactive), evolves RunConfig(seed=s, network=n) with every other 
 default (`evorobotics.evolution.evolve`, validated champion included), then measures its
 champion with `evorobotics.explore.explore` over `--poses` (1,000) unseen start poses x
 `--steps` (1,000) steps: the exploration stream of seed 12345, which no run trains or validates
-on, in the run's world. Prints per seed: training fitness, the champion's validation score,
-stuck and roaming, then roaming, stuck by 40/200/H steps, confined; per network: median, range
-and mean with a 95 % t confidence interval; the wall time of validation against the whole run
-(issue 23 wants at most 20 %); and the random Eq 7 population (generation 0) as a reference.
+on, in the run's world, twice: in the nominal world and with every trial's robot drawn from
+the paper's whole reality gap (`--reality-gap` of `colony evaluate`). Then under the gap in
+mazes no run trains on (`--mazes`: two generated ones and the dead-end maze `deadends`).
+Prints per seed: training fitness, the champion's validation score, stuck and roaming, then
+roaming, stuck by 40/200/H steps, confined; per network and world: median, range and mean with
+a 95 % t confidence interval; the wall time of validation against the whole run (issue 23
+wants at most 20 %); and the random Eq 7 population (generation 0) as a reference.
 
 Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G]
-[--config JSON] [--poses P] [--steps H] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
+[--config JSON] [--poses P] [--steps H] [--mazes M ...] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
 """
 
 from __future__ import annotations
@@ -32,6 +35,10 @@ TEST_SEED = 12345
 """Seed of the exploration start poses every controller is measured on."""
 RANDOM_CONTROLLERS = 20
 """Controllers of generation 0 (Eq 7) in the random reference row."""
+UNSEEN_MAZES = ("gen:5:1", "gen:5:2", "deadends")
+"""Mazes no default run trains on, where champions are measured under the gap."""
+WORLDS = ("nominal", "gap")
+"""The paper maze's two measures of every controller."""
 
 
 @dataclass(frozen=True)
@@ -42,7 +49,8 @@ class Row:
     """Training fitness of the champion (None for a random controller)."""
     validation: tuple[float, float, float] | None
     """The champion's validation score, stuck and roaming fractions."""
-    e: Exploration
+    by: dict[str, Exploration]
+    """"nominal" and "gap" in the paper maze, then each unseen maze under the gap."""
 
 
 def t_quantile_975(df: int) -> float:
@@ -68,21 +76,36 @@ def summary(values: list[float]) -> str:
     return f"{middle}  mean {v.mean():.3f} +- {half:.3f}"
 
 
-def measure(config: RunConfig, weights: np.ndarray, poses: int, steps: int) -> Exploration:
-    return explore(
-        config.network_spec,
-        weights,
-        poses=poses,
-        steps=steps,
-        maze=config.maze,
-        seed=TEST_SEED,
-        reality_gap=config.gap,
-        world=config.world,
-        fitness_weights=config.fitness,
-    )
+def measure(
+    config: RunConfig,
+    weights: np.ndarray,
+    poses: int,
+    steps: int,
+    mazes: tuple[str, ...] = (),
+    worlds: tuple[str, ...] = WORLDS,
+) -> dict[str, Exploration]:
+    """The run's maze in `worlds` (nominal, under the gap), then each of `mazes` under the gap."""
+
+    def one(maze: str, gap: bool) -> Exploration:
+        return explore(
+            config.network_spec,
+            weights,
+            poses=poses,
+            steps=steps,
+            maze=maze,
+            seed=TEST_SEED,
+            reality_gap=gap,
+            world=config.world,
+            fitness_weights=config.fitness,
+        )
+
+    found = {world: one(config.maze, world == "gap") for world in worlds}
+    return found | {maze: one(maze, True) for maze in mazes}
 
 
-def evolved(config: RunConfig, poses: int, steps: int) -> tuple[Row, Row, float, float]:
+def evolved(
+    config: RunConfig, poses: int, steps: int, mazes: tuple[str, ...]
+) -> tuple[Row, Row, float, float]:
     """The champion's row, training rank 0's row (what a run exported without validation), and
     the run's wall time in training and in validation (s).
 
@@ -103,7 +126,7 @@ def evolved(config: RunConfig, poses: int, steps: int) -> tuple[Row, Row, float,
         config.seed,
         best.fitness,
         None if v is None else (v.score, v.stuck, v.roaming),
-        measure(config, np.asarray(best.weights), poses, steps),
+        measure(config, np.asarray(best.weights), poses, steps, mazes),
     )
     fitness = np.where(np.isfinite(result.fitness), result.fitness, -np.inf)
     top = int(np.argmax(fitness))  # training rank 0: the fittest, ties to the lower index
@@ -134,7 +157,7 @@ def effect(label: str, a: list[float], b: list[float], *, paired: bool) -> None:
     print(f"  {label:46s} {diff:+.3f} +- {half:.3f} (95 % CI), Cohen's d {cohen}")
 
 
-def print_rows(rows: list[Row], steps: int) -> None:
+def print_rows(rows: list[Row], steps: int, world: str) -> None:
     print(
         f"{'network':12s} {'seed':>4s} {'train F':>8s} {'val F':>7s} {'val stuck':>9s} "
         f"{'val roam':>8s} {'roaming':>7s} {'stuck40':>7s} {'stuck200':>8s} "
@@ -144,7 +167,7 @@ def print_rows(rows: list[Row], steps: int) -> None:
         trained = "-" if r.trained is None else f"{r.trained:.2f}"
         val = ("-", "-", "-") if r.validation is None else tuple(f"{x:.2f}" for x in r.validation)
         seed = "-" if r.seed is None else str(r.seed)
-        e = r.e
+        e = r.by[world]
         print(
             f"{r.label:12s} {seed:>4s} {trained:>8s} {val[0]:>7s} {val[1]:>9s} {val[2]:>8s} "
             f"{e.roaming:7.3f} {e.stuck[40]:7.3f} {e.stuck[200]:8.3f} {e.stuck[steps]:9.3f} "
@@ -152,14 +175,14 @@ def print_rows(rows: list[Row], steps: int) -> None:
         )
 
 
-def print_summary(label: str, rows: list[Row], steps: int) -> None:
-    print(f"{label} ({len(rows)} controllers): median [range]  mean +- 95 % CI")
+def print_summary(label: str, rows: list[Row], steps: int, world: str) -> None:
+    print(f"{label} ({len(rows)} controllers, {world}): median [range]  mean +- 95 % CI")
     measures = {
-        "roaming": [r.e.roaming for r in rows],
-        "stuck by 40": [r.e.stuck[40] for r in rows],
-        "stuck by 200": [r.e.stuck[200] for r in rows],
-        f"stuck by {steps}": [r.e.stuck[steps] for r in rows],
-        f"max offset by {steps}, m": [r.e.max_offset[steps] for r in rows],
+        "roaming": [r.by[world].roaming for r in rows],
+        "stuck by 40": [r.by[world].stuck[40] for r in rows],
+        "stuck by 200": [r.by[world].stuck[200] for r in rows],
+        f"stuck by {steps}": [r.by[world].stuck[steps] for r in rows],
+        f"max offset by {steps}, m": [r.by[world].max_offset[steps] for r in rows],
     }
     for name, values in measures.items():
         print(f"  {name:22s} {summary(values)}")
@@ -177,6 +200,7 @@ def main() -> None:
         default="{}",
         help="RunConfig fields every run sets, as JSON, e.g. '{\"steps\": 240}' (default: none)",
     )
+    parser.add_argument("--mazes", nargs="*", default=list(UNSEEN_MAZES), help="unseen mazes")
     parser.add_argument("--quick", action="store_true", help="2 seeds, 30 generations")
     args = parser.parse_args()
     if args.steps < 200:
@@ -198,14 +222,17 @@ def main() -> None:
             config = RunConfig.model_validate(
                 {**overrides, "seed": seed, "network": network, "generations": generations}
             )
-            row, rank0, trained_s, validated_s = evolved(config, args.poses, args.steps)
+            row, rank0, trained_s, validated_s = evolved(
+                config, args.poses, args.steps, tuple(args.mazes)
+            )
             rows[network].append(row)
             unvalidated[network].append(rank0)
             training += trained_s
             validation += validated_s
             print(
                 f"{network} seed {seed}: {generations} generation(s) in {trained_s:.1f} s, "
-                f"validation {validated_s:.2f} s, roaming {row.e.roaming:.3f}",
+                f"validation {validated_s:.2f} s, roaming {row.by['nominal'].roaming:.3f} "
+                f"nominal, {row.by['gap'].roaming:.3f} under the gap",
                 flush=True,
             )
 
@@ -218,37 +245,53 @@ def main() -> None:
         for g in random_genomes
     ]
 
-    print()
-    print(
-        f"champions over {args.poses} unseen start poses x {args.steps} steps (exploration "
-        f"stream, seed {TEST_SEED}, maze {base.maze!r}, each run's world)"
-    )
-    print_rows([r for network in args.networks for r in rows[network]], args.steps)
-    print_rows([r for network in args.networks for r in unvalidated[network]], args.steps)
-    print()
-    for network in args.networks:
-        print_summary(f"evolved {network}, validated champion", rows[network], args.steps)
-        print_summary(
-            f"evolved {network}, training rank 0 (no validation)", unvalidated[network], args.steps
-        )
-    print_summary(f"random {args.networks[0]} (generation 0 of seed 0, Eq 7)", randoms, args.steps)
-    if seeds >= 2:
+    champions = [r for network in args.networks for r in rows[network]]
+    ranks0 = [r for network in args.networks for r in unvalidated[network]]
+    for world in WORLDS:
         print()
-        print("effects on roaming (fraction of unseen trials):")
+        print(
+            f"champions over {args.poses} unseen start poses x {args.steps} steps (exploration "
+            f"stream, seed {TEST_SEED}, maze {base.maze!r}, each run's world, {world})"
+        )
+        print_rows(champions, args.steps, world)
+        print_rows(ranks0, args.steps, world)
+        print()
         for network in args.networks:
-            effect(
-                f"{network}: champion - training rank 0 (paired)",
-                [r.e.roaming for r in rows[network]],
-                [r.e.roaming for r in unvalidated[network]],
-                paired=True,
+            print_summary(
+                f"evolved {network}, validated champion", rows[network], args.steps, world
             )
-        for other in args.networks[1:]:
-            effect(
-                f"{args.networks[0]} - {other} (champions)",
-                [r.e.roaming for r in rows[args.networks[0]]],
-                [r.e.roaming for r in rows[other]],
-                paired=False,
+            print_summary(
+                f"evolved {network}, training rank 0 (no validation)",
+                unvalidated[network],
+                args.steps,
+                world,
             )
+        print_summary(
+            f"random {args.networks[0]} (generation 0 of seed 0, Eq 7)", randoms, args.steps, world
+        )
+        if seeds >= 2:
+            print()
+            print(f"effects on roaming (fraction of unseen trials, {world}):")
+            for network in args.networks:
+                effect(
+                    f"{network}: champion - training rank 0 (paired)",
+                    [r.by[world].roaming for r in rows[network]],
+                    [r.by[world].roaming for r in unvalidated[network]],
+                    paired=True,
+                )
+            for other in args.networks[1:]:
+                effect(
+                    f"{args.networks[0]} - {other} (champions)",
+                    [r.by[world].roaming for r in rows[args.networks[0]]],
+                    [r.by[world].roaming for r in rows[other]],
+                    paired=False,
+                )
+    if args.mazes:
+        print()
+        print(f"champions in unseen mazes under the gap, {args.poses} poses x {args.steps} steps")
+        for maze in args.mazes:
+            for network in args.networks:
+                print_summary(f"{network} champions in {maze!r}", rows[network], args.steps, maze)
     total = training + validation
     print()
     print(

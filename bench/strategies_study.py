@@ -2,13 +2,13 @@
 paper maze and in generated mazes never used in training (issue 26, "The comparison").
 
 For each strategy (`--strategies`) and seed 0..N-1 (`--seeds`, default 10), evolves the paper's
-experiment (RunConfig's defaults but `strategy` and `seed`: population 100 x 350 generations,
-the same evaluation budget for every strategy) with `evorobotics.evolution.evolve`, which ends
+experiment in the nominal world (RunConfig's defaults but `strategy`, `seed` and `reality_gap:
+"off"`: population 100 x 350 generations, the same evaluation budget for every strategy) with `evorobotics.evolution.evolve`, which ends
 with the validated champion, in `--jobs` worker processes. Each champion is written to `--out`
 as a controller document (`STRATEGY-pPOP-gGEN-seedS.json`); `--reuse` explores the ones found
 there instead of evolving them again. Every champion is then explored (bench/explore.py's
 `measure`: `--poses` unseen start poses x `--steps` steps, the exploration stream of seed
-12345) in the paper maze and in each of `--mazes` (generated, checked connected and roomy
+12345, nominal) in the paper maze and in each of `--mazes` (generated, checked connected and roomy
 first). Prints per strategy x maze the median [bootstrap 95 % CI] of roaming, stuck by the
 horizon and coverage; per maze, Mann-Whitney U between every pair of strategies on roaming and
 stuck (Holm-corrected over that maze's comparisons, Vargha-Delaney A12) and the verdicts
@@ -69,7 +69,12 @@ class Task:
 
     @property
     def config(self) -> RunConfig:
-        return RunConfig(strategy=self.strategy, seed=self.seed, generations=self.generations)
+        return RunConfig(
+            strategy=self.strategy,
+            seed=self.seed,
+            generations=self.generations,
+            reality_gap="off",
+        )
 
     @property
     def path(self) -> Path:
@@ -104,7 +109,13 @@ def run(task: Task) -> Outcome:
         partial.replace(task.path)
     weights = np.asarray(champion.weights)
     explored = {
-        maze: measure(config.model_copy(update={"maze": maze}), weights, task.poses, task.steps)
+        maze: measure(
+            config.model_copy(update={"maze": maze}),
+            weights,
+            task.poses,
+            task.steps,
+            worlds=("nominal",),
+        )["nominal"]
         for maze in task.mazes
     }
     return Outcome(task.strategy, task.seed, evolved_s, explored)

@@ -21,7 +21,16 @@ Row = Mapping[str, Any]
 Fetch = Callable[[str], Any]
 """GET a REST path and return its JSON (the caller owns the connection and its errors)."""
 
-METRIC_ORDER = ("best_fitness", "validation_score", "roaming", "stuck", "max_offset", "coverage")
+METRIC_ORDER = (
+    "best_fitness",
+    "validation_score",
+    "roaming",
+    "stuck",
+    "max_offset",
+    "coverage",
+    "gap_roaming",
+    "gap_stuck",
+)
 """The final metrics of a completed run (docs/studies.md), in the order tables and plots use."""
 
 COMPONENTS = ("curve_length", "net_offset", "max_offset", "stuck")

@@ -32,6 +32,8 @@ METRICS: dict[str, bool] = {
     "stuck": False,
     "max_offset": True,
     "coverage": True,
+    "gap_roaming": True,
+    "gap_stuck": False,
 }
 """Final metrics of a run -> whether a higher value is better (`stuck` is a failure rate)."""
 

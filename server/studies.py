@@ -7,7 +7,8 @@ of a generation whose values did not change are reused, so a GET while runs evol
 only the new generations.
 
 A completed run's metrics come from its champion: `validation_score` from the document's
-`validation` member; `roaming`, `stuck` (by the report's horizon), `max_offset` and `coverage`
+`validation` member, `gap_roaming` and `gap_stuck` from its held-out `test` under the reality
+gap; `roaming`, `stuck` (by the report's horizon), `max_offset` and `coverage`
 from its exploration report on unseen start poses at `colony evaluate`'s defaults (not from
 the validation poses: the champion was chosen on those, so they flatter it) (`server.evaluation`, the cache that serves
 `GET /api/controllers/{sha}/evaluation`). A report costs about a second of one core, so it is
@@ -330,6 +331,10 @@ class StudyService:
         validation = json.loads(document).get("validation")
         if validation is not None:
             found["validation_score"] = _finite(validation["score"])
+        test = json.loads(document).get("test")
+        if test is not None:
+            found["gap_roaming"] = _finite(test["gap"]["roaming"]["value"])
+            found["gap_stuck"] = _finite(test["gap"]["stuck"]["value"])
         report = self.evaluations.peek(document, EXPLORATION)
         if report is None:
             self._queue(document)

@@ -84,11 +84,15 @@ def test_a_study_runs_its_conditions_and_seeds_as_evolve_would(url: str) -> None
         )
         done = client.get(f"/api/studies/{study['id']}").json()
         assert client.get("/api/studies").json()[0]["id"] == study["id"]  # newest first
-        champions = {
-            r["run_id"]: client.get(f"/api/runs/{r['run_id']}/best").json()["sha256"]
-            for r in done["runs"]
+        bests = {
+            r["run_id"]: client.get(f"/api/runs/{r['run_id']}/best").json() for r in done["runs"]
         }
+        champions = {run_id: best["sha256"] for run_id, best in bests.items()}
     assert done["finished_at"] is not None
+    for run in done["runs"]:  # the champion's held-out test under the gap
+        gap = bests[run["run_id"]]["test"]["gap"]
+        assert run["metrics"]["gap_roaming"] == gap["roaming"]["value"]
+        assert run["metrics"]["gap_stuck"] == gap["stuck"]["value"]
     for run in done["runs"]:
         config = RunConfig.model_validate(
             {**TINY, **conditions[run["condition"]], "seed": run["seed"]}
