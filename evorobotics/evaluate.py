@@ -340,7 +340,7 @@ def evaluate(
     steps = trial_steps(config)
     gap = (
         draw_gap(config.seed, generation, config.trials, config.training_world, steps=steps)
-        if config.gap
+        if config.trains_under_gap(generation)
         else None
     )
     g = np.asarray(genomes, dtype=np.float64)

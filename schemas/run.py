@@ -243,6 +243,15 @@ class RunConfig(BaseModel):
         "(docs/evolve.md); the champion's test draws from the world's whole gap range. None: "
         "the world's range throughout",
     )
+    nominal_first: float = Field(
+        0.5,
+        ge=0.0,
+        lt=1.0,
+        description="with the gap on, this fraction of the generations trains in the nominal "
+        "world before the rest trains under the gap: a curriculum that roams more under the gap "
+        "and keeps the nominal world's roaming (docs/evolve.md); 0: under the gap throughout. "
+        "Validation and the champion's test are under the gap either way",
+    )
     validation: ValidationConfig = ValidationConfig()
     ga: GAConfig = GAConfig()
     strategy: StrategyName = Field(
@@ -313,6 +322,10 @@ class RunConfig(BaseModel):
     def gap(self) -> bool:
         """Whether trials draw their robot from the reality gap."""
         return self.reality_gap == "on"
+
+    def trains_under_gap(self, generation: int) -> bool:
+        """Whether generation `generation`'s training trials draw their robot from the gap."""
+        return self.gap and generation >= round(self.nominal_first * self.generations)
 
     @property
     def training_world(self) -> World:

@@ -165,7 +165,8 @@ def test_evaluate_is_deterministic_and_slice_independent(
     the whole: the same bits however a generation is cut among workers (spans and restarts
     replay whole slices: tests/test_distributed.py runs them against `evolve`)."""
     world = World(gap_model="trial" if gap is None else gap)
-    config = RunConfig(seed=11, steps=60, reality_gap="off" if gap is None else "on", world=world)
+    gap_on = "off" if gap is None else "on"
+    config = RunConfig(seed=11, steps=60, reality_gap=gap_on, nominal_first=0.0, world=world)
     pop = genomes(30)
     whole = evaluate(config, 4, pop)
     assert whole.fitness.shape == (30,)
@@ -206,7 +207,7 @@ def test_descriptors_are_the_trials_normalised_and_averaged() -> None:
 def test_reality_gap_changes_fitness_and_stuck_is_penalised() -> None:
     pop = genomes(40, seed=3)
     plain = evaluate(RunConfig(seed=2, reality_gap="off"), 0, pop)
-    gapped = evaluate(RunConfig(seed=2), 0, pop)  # the gap is on by default
+    gapped = evaluate(RunConfig(seed=2, nominal_first=0.0), 0, pop)  # the gap is on by default
     assert not np.array_equal(plain.fitness, gapped.fitness)
     stuck = plain.components[..., 3]
     assert set(np.unique(stuck)) <= {0.0, 1.0} and stuck.any()
@@ -302,8 +303,8 @@ def test_step_gap_draws_beyond_the_cache_are_the_same_draws() -> None:
 
 def test_the_step_gap_model_changes_fitness() -> None:
     pop = genomes(20, seed=4)
-    trial = evaluate(RunConfig(seed=2, reality_gap=True), 0, pop)
-    step = evaluate(RunConfig(seed=2, reality_gap=True, world=STEP), 0, pop)
+    trial = evaluate(RunConfig(seed=2, nominal_first=0.0), 0, pop)
+    step = evaluate(RunConfig(seed=2, nominal_first=0.0, world=STEP), 0, pop)
     assert not np.array_equal(trial.fitness, step.fitness)
 
 
@@ -324,3 +325,25 @@ def test_validation_and_exploration_take_the_step_gap_model() -> None:
     again = explore(spec, pop[0], poses=5, steps=60, seed=2, reality_gap=True, world=STEP)
     assert e == again
     assert e != explore(spec, pop[0], poses=5, steps=60, seed=2, reality_gap=True)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    generations=st.integers(1, 40),
+    nominal_first=st.floats(0.0, 0.99),
+    generation=st.integers(0, 39),
+)
+def test_the_curriculum_trains_nominal_first_then_under_the_gap(
+    generations: int, nominal_first: float, generation: int
+) -> None:
+    """Generations before round(nominal_first x generations) are the nominal run's, bit for
+    bit; the later ones draw the gap."""
+    config = RunConfig(seed=6, steps=40, generations=generations, nominal_first=nominal_first)
+    nominal = config.model_copy(update={"reality_gap": "off"})
+    pop = genomes(6, seed=2)
+    same = evaluate(config, generation, pop).fitness.tobytes() == (
+        evaluate(nominal, generation, pop).fitness.tobytes()
+    )
+    switch = round(nominal_first * generations)
+    assert config.trains_under_gap(generation) == (generation >= switch)
+    assert same == (generation < switch)
