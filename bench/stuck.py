@@ -4,11 +4,16 @@ Robots run in lockstep with the simulator's sensing, motion and collision (`evor
 blocked moves refused, as robot_agent.sim_body does), reality gap on, under two kinds of
 controller: random networks (paper-best preset, weights uniform in [-1, 1]) and evolved-like
 ones (drive forward; on contact back up, then turn away for a random time; some never back up).
+Then the champions of `--champions` default runs (`colony evolve --seed S`, S = 0..N-1), each
+on `--robots` / N robots, in the nominal world and under the gap, as the agent uses the
+detector: an alarm resets it (a new controller would start afresh), and the alarms are counted
+per robot-hour, false ones (the robot was not stuck) apart.
 Truth at step t (from positions the robot itself cannot see): in the last `--window` steps
 the robot stayed within `--radius` m of where it was at the window's start, i.e. it is pinned,
 spinning or rocking in place. Steps before the first full window are not scored.
 
     .venv/bin/python bench/stuck.py [--robots 200] [--steps 600] [--maze paper] [--seed 0]
+        [--champions 10] [--champion-steps 3000]
 """
 
 from __future__ import annotations
@@ -19,11 +24,13 @@ import numpy as np
 
 from evorobotics import network
 from evorobotics.evaluate import draw_gap, start_poses
+from evorobotics.evolution import evolve
 from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose, rng
-from evorobotics.sim import body_hits_wall, move, whisker_bits
-from robot_agent.stuck import StuckConfig, detect
+from evorobotics.sim import Gap, body_hits_wall, move, whisker_bits
+from robot_agent.stuck import StuckConfig, StuckDetector, detect
 from schemas.network import PRESETS
+from schemas.run import RunConfig
 from schemas.world import World
 
 
@@ -87,6 +94,64 @@ def traces(
     return w_all, m_all, xy
 
 
+def champion_traces(
+    maze_name: str, weights: np.ndarray, steps: int, seed: int, gap_on: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Traces of evolved champions (B, weights): whiskers, motors, positions as `traces`."""
+    maze = load_maze(maze_name)
+    params = World()
+    robots = weights.shape[0]
+    poses = start_poses(maze, seed, 1, robots, params).copy()
+    gap = draw_gap(seed, 1, robots) if gap_on else Gap.nominal(robots, params)
+    spec = PRESETS["paper-best"]
+    state = network.reset(spec, robots)
+    w_all = np.zeros((robots, steps, 5), dtype=np.uint8)
+    m_all = np.zeros((robots, steps, 2))
+    xy = np.zeros((robots, steps + 1, 2))
+    xy[:, 0] = poses[:, :2]
+    for t in range(steps):
+        bits = whisker_bits(maze, poses, params, gap.whisker_range)
+        out, state = network.step(spec, weights, bits.astype(np.float64), state)
+        motors = network.motor_commands(spec, out)
+        moved = move(poses, motors, gap.motor_gain, params)
+        ok = ~body_hits_wall(maze, moved, params)
+        poses[ok] = moved[ok]
+        w_all[:, t], m_all[:, t], xy[:, t + 1] = bits, motors, poses[:, :2]
+    return w_all, m_all, xy
+
+
+def alarms(whiskers: np.ndarray, motors: np.ndarray, cfg: StuckConfig) -> list[int]:
+    """Steps at which the agent would raise a stuck alarm; each alarm resets the detector."""
+    detector = StuckDetector(cfg)
+    out = []
+    for t in range(whiskers.shape[0]):
+        if detector.update(tuple(bool(b) for b in whiskers[t]), motors[t]) is not None:
+            out.append(t)
+            detector.reset()
+    return out
+
+
+def field_figures(label: str, w: np.ndarray, m: np.ndarray, real: np.ndarray, window: int) -> None:
+    """Alarms per robot-hour, false ones apart, and the share of truly stuck robots alarmed."""
+    cfg = StuckConfig()
+    true_alarms = false_alarms = 0
+    caught = stuck_robots = 0
+    for b in range(w.shape[0]):
+        fired = [t for t in alarms(w[b], m[b], cfg) if t >= window]
+        hits = [t for t in fired if real[b, t]]
+        true_alarms += len(hits)
+        false_alarms += len(fired) - len(hits)
+        if real[b, window:].any():
+            stuck_robots += 1
+            caught += bool(hits)
+    hours = w.shape[0] * w.shape[1] * World().dt / 3600.0
+    print(
+        f"{label:30s} alarms/robot-hour {((true_alarms + false_alarms) / hours):7.1f}, "
+        f"false {false_alarms / hours:7.1f} ({false_alarms} of {true_alarms + false_alarms}); "
+        f"robots ever stuck {stuck_robots}/{w.shape[0]}, alarmed while stuck {caught}"
+    )
+
+
 def truth(xy: np.ndarray, window: int, radius: float) -> np.ndarray:
     """(B, T) bool: stayed within `radius` of the window-start position for `window` steps."""
     robots, n = xy.shape[0], xy.shape[1] - 1
@@ -105,6 +170,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--window", type=int, default=40, help="truth window, steps (4 s)")
     parser.add_argument("--radius", type=float, default=0.1, help="truth radius, m")
+    parser.add_argument("--champions", type=int, default=10, help="default runs' champions")
+    parser.add_argument("--champion-steps", type=int, default=3000, help="steps of their traces")
     args = parser.parse_args()
     w, m, xy = traces(args.maze, args.robots, args.steps, args.seed)
     real = truth(xy, args.window, args.radius)
@@ -138,6 +205,20 @@ def main() -> None:
             f"(stuck {int(r.sum())}/{int(s.sum())})  robots: precision {rp:.3f} recall {rr:.3f} "
             f"(stuck {int(ever_r.sum())}, flagged {int(ever_f.sum())})"
         )
+    if args.champions < 1:
+        return
+    champions = np.stack([evolve(RunConfig(seed=s)).best.weights for s in range(args.champions)])
+    per = max(args.robots // args.champions, 1)
+    weights = np.repeat(champions, per, axis=0)
+    print(
+        f"champions of seeds 0-{args.champions - 1}, {per} robots each, "
+        f"{args.champion_steps} steps ({args.champion_steps * World().dt:.0f} s) in {args.maze!r}"
+    )
+    for gap_on in (False, True):
+        w, m, xy = champion_traces(args.maze, weights, args.champion_steps, args.seed, gap_on)
+        real = truth(xy, args.window, args.radius)
+        label = "under the gap" if gap_on else "nominal"
+        field_figures(f"champions, {label}", w, m, real, args.window)
 
 
 if __name__ == "__main__":

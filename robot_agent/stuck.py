@@ -2,13 +2,10 @@
 
 An EvBot knows only what it senses (five whisker bits) and what it commands (two wheels), so
 the agent decides "stuck" from their history (docs/stuck-detection.md has the measured
-precision and recall and the reasoning behind the defaults). Three signs, each configurable:
+precision and recall and the reasoning behind the defaults). Two signs, each configurable:
 
 - contact held: some whisker has been on for `contact_steps` steps in a row while the wheels
   drive. A robot pressed against a wall keeps its whiskers bent; one that gets away loses them.
-- pattern recurs: the same whisker pattern has started `recur_count` times within the last
-  `recur_window` steps: the robot bumps the same wall over and over (the paper's "bump up
-  against the same wall over and over again").
 - going nowhere: dead reckoning of the commanded wheel speeds with the simulator's nominal
   kinematics (`World`) keeps the robot within `odometry_radius` of where it was
   `odometry_window` steps ago: spinning or circling in place (the paper's "spinning
@@ -37,7 +34,6 @@ class StuckReason(StrEnum):
     """Which heuristic fired."""
 
     CONTACT_HELD = "contact-held"
-    PATTERN_RECURS = "pattern-recurs"
     GOING_NOWHERE = "going-nowhere"
 
 
@@ -47,10 +43,6 @@ class StuckConfig:
 
     contact_steps: int = 25
     """Steps of unbroken contact while driving (2.5 s)."""
-    recur_window: int = 80
-    """Steps over which contact onsets are counted (8 s)."""
-    recur_count: int = 5
-    """Onsets of one same pattern within the window."""
     odometry_window: int = 50
     """Steps of dead reckoning looked back over (5 s)."""
     odometry_radius: float = 0.08
@@ -59,7 +51,7 @@ class StuckConfig:
     """Wheels count as driving (for contact held) when the larger command reaches this."""
 
     def __post_init__(self) -> None:
-        for name in ("contact_steps", "recur_window", "recur_count", "odometry_window"):
+        for name in ("contact_steps", "odometry_window"):
             if getattr(self, name) < 1:
                 raise ValueError(f"StuckConfig.{name} must be >= 1, got {getattr(self, name)}")
         if not self.odometry_radius > 0:
@@ -74,16 +66,12 @@ class StuckDetector:
     def __init__(self, config: StuckConfig | None = None, world: World | None = None) -> None:
         self.config = config or StuckConfig()
         self.world = world or World()
-        self._onsets: deque[tuple[int, int]] = deque()
         self._track: deque[tuple[float, float]] = deque(maxlen=self.config.odometry_window + 1)
         self.reset()
 
     def reset(self) -> None:
         """Forget the history (a new controller deserves a fresh start)."""
-        self._step = 0
         self._contact_run = 0
-        self._previous = 0
-        self._onsets.clear()
         self._pose = (0.0, 0.0, 0.0)
         self._track.clear()
         self._track.append((0.0, 0.0))
@@ -94,22 +82,12 @@ class StuckDetector:
             raise ValueError(f"need {WHISKERS} whiskers and 2 motors")
         cfg = self.config
         left, right = float(motors[0]), float(motors[1])
-        pattern = sum(1 << k for k, w in enumerate(whiskers) if w)
         driving = max(abs(left), abs(right)) >= cfg.drive_min
-        self._step += 1
-
-        self._contact_run = self._contact_run + 1 if pattern and driving else 0
-        if pattern and pattern != self._previous:
-            self._onsets.append((self._step, pattern))
-        while self._onsets and self._onsets[0][0] <= self._step - cfg.recur_window:
-            self._onsets.popleft()
-        self._previous = pattern
+        self._contact_run = self._contact_run + 1 if any(whiskers) and driving else 0
         self._dead_reckon(left, right)
 
         if self._contact_run >= cfg.contact_steps:
             return StuckReason.CONTACT_HELD
-        if pattern and sum(1 for _, p in self._onsets if p == pattern) >= cfg.recur_count:
-            return StuckReason.PATTERN_RECURS
         if len(self._track) == self._track.maxlen:
             x0, y0 = self._track[0]
             r2 = cfg.odometry_radius**2
