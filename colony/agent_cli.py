@@ -55,6 +55,13 @@ def agent_command(
         ),
     ] = None,
     baud: Annotated[int, typer.Option(help="serial baud rate")] = 115_200,
+    return_after: Annotated[
+        int,
+        typer.Option(
+            help="steps a replacement runs unstuck before the robot goes back to its pushed "
+            "controller (0: never)"
+        ),
+    ] = 300,
     start_pose: Annotated[
         str,
         typer.Option(
@@ -113,6 +120,7 @@ def agent_command(
             require_signature=not insecure_no_verify,
             auth=auth,
             start_pose=_pose(start_pose),
+            return_after_steps=return_after,
         )
         emulator = (
             BasicXEmulator(

@@ -14,7 +14,9 @@ The robot keeps running its controller without the network. Traces wait in a bou
 (oldest dropped first, counted) and go out after reconnection. The last accepted controller is
 written to the state directory so a restarted agent resumes with it. A stuck robot backs up and
 turns (scripted escape) at once, while it asks the server; if a replacement arrives it takes
-over after the escape, otherwise the current controller resumes from fresh state.
+over after the escape, otherwise the current controller resumes from fresh state. A
+replacement that runs `return_after_steps` steps unstuck hands the robot back to its home
+controller (the last pushed).
 """
 
 from __future__ import annotations
@@ -121,6 +123,10 @@ class AgentSettings:
     escape_back_steps: int = 8
     escape_turn_steps: int = 6
     escape_speed: float = 0.6
+    return_after_steps: int = 300
+    """A replacement that has run this many steps without getting stuck hands the robot back to
+    its home controller (the last one pushed, or the saved one at start): the situation that
+    stuck the home one is over (30 s). 0: a replacement stays."""
     stuck: StuckConfig = field(default_factory=StuckConfig)
     multicast_scouting: bool = False
     server_key: bytes | None = None
@@ -146,6 +152,8 @@ class AgentSettings:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.escape_back_steps < 0 or self.escape_turn_steps < 0:
             raise ValueError("escape steps must be >= 0")
+        if self.return_after_steps < 0:
+            raise ValueError(f"return_after_steps must be >= 0, got {self.return_after_steps}")
         if not 0 < self.escape_speed <= 1:
             raise ValueError(f"escape_speed must be in (0, 1], got {self.escape_speed}")
         if len(self.start_pose) != 3 or not np.isfinite(self.start_pose).all():
@@ -247,6 +255,10 @@ class Agent:
         self._pending: _Pending | None = None
         self._after_escape: ControllerDocument | None = None
         self._doc: ControllerDocument | None = None
+        self._home: ControllerDocument | None = None
+        """The controller the robot returns to after a replacement has done its job."""
+        self._ran = 0
+        """Steps the current controller has run since it was installed."""
         self._weights = np.empty((1, 0))
         self._net_state = np.empty((1, 0))
         self._fresh = False
@@ -283,6 +295,7 @@ class Agent:
         saved = self._load_saved()
         if saved is not None:
             self._install(saved)
+            self._home = saved
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -415,7 +428,20 @@ class Agent:
                 self.dropped += 1
             self._buffer.append(sample)
             self.steps += 1
-            if sha is not None and self._state == "running":
+            self._ran += sha is not None
+            if self._returns_home():
+                assert self._home is not None
+                log.info(
+                    "robot %s: replacement %s ran %d steps unstuck; back to %s",
+                    self.settings.robot_id,
+                    sha and sha[:12],
+                    self._ran,
+                    self._home.sha256[:12],
+                )
+                self._install(self._home)
+                self._outbox.put(self._home)  # persisted by the link thread
+                self._wake.set()
+            elif sha is not None and self._state == "running":
                 reason = self._detector.update([b == 1 for b in bits], motors)
                 if reason is not None:
                     self.stuck_events += 1
@@ -433,6 +459,18 @@ class Agent:
             self.changed.notify_all()
         if len(self._buffer) >= self.settings.batch_steps:
             self._wake.set()
+
+    def _returns_home(self) -> bool:
+        """Whether a replacement has run long enough unstuck to hand the robot back (lock held)."""
+        after = self.settings.return_after_steps
+        return (
+            after > 0
+            and self._state == "running"
+            and self._home is not None
+            and self._doc is not None
+            and self._doc.sha256 != self._home.sha256
+            and self._ran >= after
+        )
 
     def _pose(self) -> tuple[float, float, float]:
         """The robot's pose as it senses: its own (emulator) or odometry's, for good once the
@@ -480,6 +518,7 @@ class Agent:
             self._after_escape = None
         else:
             self._install(pending.document)
+            self._home = pending.document
             self._outbox.put(pending.document)  # persisted by the link thread
         if pending.push_id is not None:
             self._outbox.put(
@@ -498,6 +537,7 @@ class Agent:
         self._weights = np.ascontiguousarray(doc.weights[np.newaxis, :])
         self._net_state = network.reset(doc.spec, 1)
         self._fresh = True
+        self._ran = 0
         self._state = "running"
         self._escape = []
         self._after_escape = None

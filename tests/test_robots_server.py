@@ -195,6 +195,36 @@ def test_stuck_robot_gets_a_replacement_from_the_run(colony: Colony, tmp_path: P
         assert (tmp_path / "controller.json").read_text() == best.to_json()  # resumes with it
 
 
+def test_a_replacement_that_ran_unstuck_hands_the_robot_back_to_its_home_controller(
+    colony: Colony, tmp_path: Path
+) -> None:
+    wall = constant_drive(0.9, 0.9, NetworkSpec())  # drives into the first wall it meets
+    save(tmp_path, wall)
+    with robot_link(colony) as link:
+        with link.service.sessions.begin() as db:
+            crud.put_controller(
+                db,
+                sha256=wall.sha256,
+                document=wall.to_json(),
+                run_id=colony.run_id,
+                generation=None,
+                fitness=None,
+            )
+        stuck = StuckConfig(contact_steps=5)
+        with virtual_robot(
+            "r-home", link, tmp_path, stuck=stuck, period=0.02, return_after_steps=10
+        ) as (agent, _):
+            assert agent.wait_for(
+                lambda: agent.controller is not None and agent.controller.sha256 != wall.sha256,
+                WAIT,
+            )
+            # home again with no push in between: the server never sends it (it failed here)
+            assert agent.wait_for(
+                lambda: agent.controller is not None and agent.controller.sha256 == wall.sha256,
+                WAIT,
+            )
+
+
 def test_server_restart_buffered_traces_arrive(colony: Colony, tmp_path: Path) -> None:
     doc = random_controller(13, NetworkSpec())
     save(tmp_path, doc)
