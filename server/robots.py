@@ -605,6 +605,12 @@ class RobotService:
         )
         if policy == "archive":
             return self._pick_elite(db, failed.run_id, request.sha256, recent)
+        run = db.get(Run, failed.run_id)
+        best = None if run is None else crud.champion(db, run=run)
+        if best is not None and best.sha256 not in recent:  # chosen on unseen poses, tested
+            return ControllerDocument.from_json(best.document), (
+                f"the validated champion of run {failed.run_id}"
+            )
         for rank in range(_population(db, failed.run_id)):
             doc = ranked_document(db, failed.run_id, rank)
             if doc.sha256 not in recent:

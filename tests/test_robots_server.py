@@ -38,6 +38,7 @@ from schemas.robots import (
 from schemas.robots import encode_message as encode_robot_message
 from schemas.wire import WireError
 from server import crud
+from server.models import Run
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
 from server.robots import RobotSettings, ranked_document, replay_trace
 from server.settings import Settings
@@ -173,7 +174,11 @@ def test_stuck_robot_gets_a_replacement_from_the_run(colony: Colony, tmp_path: P
                 generation=None,
                 fitness=None,
             )
-            best = ranked_document(db, colony.run_id, 0)
+            run = db.get(Run, colony.run_id)
+            assert run is not None
+            champion = crud.champion(db, run=run)
+            assert champion is not None  # the completed run's, validated and tested
+            best = ControllerDocument.from_json(champion.document)
         stuck = StuckConfig(contact_steps=5)
         with virtual_robot("r-stuck", link, tmp_path, stuck=stuck) as (agent, _):
             assert agent.wait_for(
