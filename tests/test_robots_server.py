@@ -40,7 +40,7 @@ from schemas.wire import WireError
 from server import crud
 from server.models import Run
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
-from server.robots import RobotSettings, ranked_document, replay_trace
+from server.robots import RobotSettings, replay_trace
 from server.settings import Settings
 from tests.helpers import (
     QUICK,
