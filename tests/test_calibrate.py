@@ -1,0 +1,100 @@
+"""Calibration: a robot's hidden whisker ranges and wheel gains fitted back from its traces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+
+from evorobotics.calibrate import MIN_SAMPLES, CalibrationError, calibrate
+from evorobotics.maze import load_maze
+from evorobotics.sim import Gap
+from robot_agent.sim_body import SimBody
+from schemas.world import World
+
+MAZE = load_maze("arena")
+
+
+def drive(body: SimBody, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Traces of a robot wandering under random commands: ahead, and on contact (or a refused
+    move) backing up then turning a random way for a random time."""
+    gen = np.random.default_rng(seed)
+    poses, bits, motors = [], [], []
+    plan: list[tuple[float, float]] = []
+    for _ in range(steps):
+        felt = body.whiskers()
+        poses.append(np.asarray(body.pose, dtype=np.float64).reshape(3))
+        bits.append([int(b) for b in felt])
+        if not plan and (any(felt) or body.blocked):
+            turn = 0.6 if gen.random() < 0.5 else -0.6
+            plan = [(-0.5, -0.5)] * 3 + [(-turn, turn)] * int(gen.integers(2, 12))
+        if plan:
+            m = plan.pop(0)
+        else:
+            ahead = float(gen.uniform(0.4, 1.0))
+            m = (ahead, ahead * float(gen.uniform(0.9, 1.1)))
+        motors.append(m)
+        body.step(*m)
+    return np.array(poses), np.array(bits), np.array(motors)
+
+
+@settings(max_examples=12, deadline=None)
+@example(ranges=[0.06, 0.05, 0.04, 0.07, 0.09], gains=(0.9, 1.12), seed=0)  # every whisker touches
+@given(
+    ranges=st.lists(st.floats(0.025, 0.1), min_size=5, max_size=5),
+    gains=st.tuples(st.floats(0.85, 1.15), st.floats(0.85, 1.15)),
+    seed=st.integers(0, 1000),
+)
+def test_hidden_physics_lie_within_the_fit_and_its_uncertainty(
+    ranges: list[float], gains: tuple[float, float], seed: int
+) -> None:
+    world = World()
+    start = np.array([[1.0, 1.0, 0.3]])
+    body = SimBody(MAZE, start[0], Gap(np.array([ranges]), np.array([gains])), world)
+    poses, bits, motors = drive(body, 1500, seed)
+    untouched = [k for k in range(5) if not bits[:, k].any()]
+    if untouched:  # a short whisker beside long ones may never be the first to touch
+        with pytest.raises(CalibrationError, match=f"whisker {untouched[0]} never touched"):
+            calibrate(MAZE, poses, bits, motors, world)
+        return
+    fit = calibrate(MAZE, poses, bits, motors, world)
+    assert fit.motor_gain == pytest.approx(gains, abs=1e-9)
+    assert fit.pose_residual_m < 1e-9
+    for got, err, hidden in zip(
+        fit.whisker_range, fit.whisker_range_uncertainty, ranges, strict=True
+    ):
+        assert abs(got - hidden) <= err + 1e-7
+    assert fit.whisker_disagreements == (0,) * 5
+    assert fit.samples == 1500 and set(fit.as_dict()) >= {"whisker_range", "uncertainty"}
+
+
+def test_steps_across_a_break_in_the_traces_are_not_fitted() -> None:
+    world = World()
+    body = SimBody(MAZE, np.array([1.0, 1.0, 0.0]), Gap(np.full((1, 5), 0.05), np.ones((1, 2))))
+    poses, bits, motors = drive(body, 400, 3)
+    poses[200:, :2] += 0.5  # a teleport: another agent start, elsewhere
+    with pytest.raises(AssertionError):
+        assert calibrate(MAZE, poses, bits, motors, world).pose_residual_m < 1e-9
+    follows = np.ones(399, dtype=bool)
+    follows[199] = False
+    fit = calibrate(MAZE, poses, bits, motors, world, follows)
+    assert fit.pose_residual_m < 1e-9 and fit.moving_steps <= 398
+
+
+def test_too_little_or_uninformative_data_is_refused_by_name() -> None:
+    world = World()
+    still = np.tile([1.0, 1.0, 0.0], (MIN_SAMPLES, 1))
+    none = np.zeros((MIN_SAMPLES, 5), dtype=int)
+    idle = np.zeros((MIN_SAMPLES, 2))
+    with pytest.raises(CalibrationError, match="at least"):
+        calibrate(MAZE, still[:10], none[:10], idle[:10], world)
+    with pytest.raises(CalibrationError, match="never moved"):
+        calibrate(MAZE, still, none, idle, world)
+    body = SimBody(MAZE, np.array([1.0, 1.0, 0.0]), Gap(np.full((1, 5), 0.05), np.ones((1, 2))))
+    poses, bits, motors = drive(body, 200, 1)
+    bits[:, 2] = 0
+    with pytest.raises(CalibrationError, match="whisker 2 never touched"):
+        calibrate(MAZE, poses, bits, motors, world)
+    with pytest.raises(CalibrationError, match="non-finite"):
+        calibrate(MAZE, poses * np.nan, bits, motors, world)
