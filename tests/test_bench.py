@@ -15,7 +15,17 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 @pytest.mark.parametrize(
     ("script", "args", "printed"),
     [
-        ("stuck.py", ["--robots", "4", "--steps", "100", "--window", "20"], "evolved-like"),
+        (
+            "stuck.py",
+            ["--robots", "4", "--steps", "100", "--window", "20", "--champions", "1"]
+            + ["--champion-steps", "60"],
+            "false",
+        ),
+        (
+            "field.py",
+            ["--robots", "2", "--horizons", "150", "--hours", "0.005"],
+            "alarms per robot-hour",
+        ),
         (
             "explore.py",
             [

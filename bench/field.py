@@ -1,0 +1,159 @@
+"""The field loop's figures: calibration from traces, and false stuck alarms per robot-hour.
+
+Emulated robots run as the agent runs them (robot_agent.agent): the controller at every step,
+the agent's stuck detector (`StuckConfig()`), and on an alarm its scripted escape (8 steps
+back, 6 turning) before the same controller resumes from fresh state; moves into a wall are
+refused, as robot_agent.sim_body does. The controller is the default run's champion
+(`colony evolve`, seed 0), the maze the paper's.
+
+- Calibration: `--robots` (10) robots, each with hidden physics drawn from the paper's gap
+  (`SimBody.create("paper", seed=--seed, index=i)`: each whisker 25-100 mm, each wheel +-15 %),
+  traced for each of `--horizons` steps (1,200 = 120 s, the target's; 6,000 = 10 min), then
+  `evorobotics.calibrate.calibrate` on the traces' true poses. Prints per robot the largest
+  whisker-range and wheel-gain errors, and how many robots are within 3 mm and 0.02
+  (the target: 9 of 10 at 1,200 steps).
+- False alarms: 8 robots in the nominal world for `--hours` (1) hour each: alarms per
+  robot-hour, and those raised while the robot was not stuck (it moved more than 0.1 m in the
+  40 steps before: docs/stuck-detection.md's truth). Target: at most 1.
+
+    .venv/bin/python bench/field.py [--robots 10] [--horizons 1200 6000] [--hours 1] [--seed 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from evorobotics import network
+from evorobotics.calibrate import CalibrationError, calibrate
+from evorobotics.evolution import evolve
+from evorobotics.maze import load_maze
+from evorobotics.sim import Gap, body_hits_wall, move, whisker_bits
+from robot_agent.agent import AgentSettings
+from robot_agent.sim_body import SimBody
+from robot_agent.stuck import StuckDetector
+from schemas.network import NetworkSpec
+from schemas.run import RunConfig
+from schemas.world import World
+
+TRUTH_STEPS = 40
+TRUTH_RADIUS = 0.1
+
+
+def run_colony(
+    spec: NetworkSpec, weights: np.ndarray, poses: np.ndarray, gap: Gap, steps: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[list[int]]]:
+    """Robots (B,) under the agent's loop: poses (B, T, 3) sensed at, whiskers (B, T, 5),
+    motors (B, T, 2), and each robot's alarm steps."""
+    maze, world = load_maze("paper"), World()
+    agent = AgentSettings(robot_id="bench")
+    escape = [(-agent.escape_speed, -agent.escape_speed)] * agent.escape_back_steps + [
+        (agent.escape_speed, -agent.escape_speed)
+    ] * agent.escape_turn_steps
+    b = poses.shape[0]
+    pose = poses.copy()
+    w = np.repeat(weights[None], b, axis=0)
+    state = network.reset(spec, b)
+    detectors = [StuckDetector(agent.stuck) for _ in range(b)]
+    plans: list[list[tuple[float, float]]] = [[] for _ in range(b)]
+    alarms: list[list[int]] = [[] for _ in range(b)]
+    out_p, out_w, out_m = (
+        np.zeros((b, steps, 3)),
+        np.zeros((b, steps, 5), int),
+        np.zeros((b, steps, 2)),
+    )
+    for t in range(steps):
+        bits = whisker_bits(maze, pose, world, gap.whisker_range)
+        out, state = network.step(spec, w, bits.astype(np.float64), state)
+        motors = network.motor_commands(spec, out)
+        for i in range(b):
+            if plans[i]:
+                motors[i] = plans[i].pop(0)
+                if not plans[i]:  # the controller resumes from fresh state
+                    state[i] = 0.0
+                    detectors[i].reset()
+            elif detectors[i].update([bool(x) for x in bits[i]], motors[i]) is not None:
+                alarms[i].append(t)
+                plans[i] = list(escape)
+        out_p[:, t], out_w[:, t], out_m[:, t] = pose, bits, motors
+        moved = move(pose, motors, gap.motor_gain, world)
+        ok = ~body_hits_wall(maze, moved, world)
+        pose[ok] = moved[ok]
+    return out_p, out_w, out_m, alarms
+
+
+def calibration(
+    spec: NetworkSpec, weights: np.ndarray, robots: int, horizon: int, seed: int
+) -> None:
+    bodies = [SimBody.create("paper", seed=seed, index=i) for i in range(robots)]
+    gap = Gap(
+        np.concatenate([np.broadcast_to(x.gap.whisker_range, (1, 5)) for x in bodies]),
+        np.concatenate([x.gap.motor_gain for x in bodies]),
+    )
+    poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
+    began = time.perf_counter()
+    p, w, m, _ = run_colony(spec, weights, poses, gap, horizon)
+    traced = time.perf_counter() - began
+    maze, world = load_maze("paper"), World()
+    within = 0
+    print(f"calibration from {horizon} steps ({horizon * world.dt:.0f} s) of traces per robot:")
+    for i in range(robots):
+        try:
+            fit = calibrate(maze, p[i], w[i], m[i], world)
+        except CalibrationError as exc:
+            print(f"  robot {i}: not calibrated: {exc}")
+            continue
+        r_err = float(np.abs(np.array(fit.whisker_range) - gap.whisker_range[i]).max())
+        g_err = float(np.abs(np.array(fit.motor_gain) - gap.motor_gain[i]).max())
+        ok = r_err <= 0.003 and g_err <= 0.02
+        within += ok
+        hidden = ", ".join(f"{1000 * r:.0f}" for r in gap.whisker_range[i])
+        print(
+            f"  robot {i}: hidden whiskers [{hidden}] mm, gains {gap.motor_gain[i].round(3)}; "
+            f"largest error {1000 * r_err:.2f} mm and {g_err:.2e}"
+            f"{'' if ok else '  (outside the target)'}"
+        )
+    print(
+        f"  within 3 mm and 0.02: {within} of {robots} robots (target 9 of 10); "
+        f"{traced:.1f} s to trace"
+    )
+
+
+def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int) -> None:
+    world = World()
+    steps = int(round(hours * 3600 / world.dt))
+    bodies = [SimBody.create("paper", seed=seed, index=i, gap=False) for i in range(8)]
+    poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
+    p, _, _, alarms = run_colony(spec, weights, poses, Gap.nominal(8, world), steps)
+    false = total = 0
+    for i, fired in enumerate(alarms):
+        for t in fired:
+            total += 1
+            start = max(t - TRUTH_STEPS, 0)
+            travelled = np.linalg.norm(p[i, start : t + 1, :2] - p[i, start, :2], axis=1).max()
+            false += travelled > TRUTH_RADIUS
+    robot_hours = 8 * steps * world.dt / 3600
+    print(
+        f"nominal colony, 8 robots x {hours:g} h: {total / robot_hours:.1f} alarms per "
+        f"robot-hour, {false / robot_hours:.2f} false ({false} of {total}; target <= 1)"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robots", type=int, default=10)
+    parser.add_argument("--horizons", type=int, nargs="+", default=[1200, 6000])
+    parser.add_argument("--hours", type=float, default=1.0)
+    parser.add_argument("--seed", type=int, default=3)
+    args = parser.parse_args()
+    champion = evolve(RunConfig()).best
+    print(f"the default run's champion {champion.sha256[:12]}, maze 'paper'")
+    for horizon in args.horizons:
+        calibration(champion.spec, champion.weights, args.robots, horizon, args.seed)
+    false_alarms(champion.spec, champion.weights, args.hours, args.seed)
+
+
+if __name__ == "__main__":
+    main()
