@@ -123,7 +123,7 @@ def calibration(
 
 def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int) -> None:
     world = World()
-    steps = int(round(hours * 3600 / world.dt))
+    steps = round(hours * 3600 / world.dt)
     bodies = [SimBody.create("paper", seed=seed, index=i, gap=False) for i in range(8)]
     poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
     p, _, _, alarms = run_colony(spec, weights, poses, Gap.nominal(8, world), steps)

@@ -7,6 +7,7 @@ and exit non-zero.
 
 from __future__ import annotations
 
+import itertools
 import json
 import socket
 import threading
@@ -877,6 +878,95 @@ def robot_stuck(
             _fmt(e["steps_run"]),
         )
     Console().print(table)
+
+
+CALIBRATION_POSES = ("sim", "tracker")
+"""Pose sources a calibration may use: measured outside the robot's model, never odometry."""
+
+
+@robot_app.command("calibrate")
+def robot_calibrate(
+    ctx: typer.Context,
+    robot: str,
+    since: Annotated[
+        str | None,
+        typer.Option(help="only samples from this time on (ISO 8601, e.g. 2026-12-03T10:00)"),
+    ] = None,
+    limit: Annotated[int, typer.Option(help="newest samples fetched")] = 36_000,
+    server: ServerOpt = DEFAULT_SERVER,
+    token: TokenOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Fit the robot's whisker ranges and wheel gains from its traces with poses (emulator or
+    tracker, never odometry) in the lab maze, and store them with the robot."""
+    from datetime import datetime
+
+    import numpy as np
+
+    from evorobotics.calibrate import CalibrationError, calibrate
+    from evorobotics.maze import parse_maze
+    from schemas.world import World
+
+    try:
+        start = None if since is None else datetime.fromisoformat(since).timestamp()
+    except ValueError:
+        raise typer.BadParameter(f"--since {since!r} is not an ISO 8601 time") from None
+    samples = call_server(ctx, server, token, "GET", f"/api/robots/{robot}/traces?limit={limit}")[
+        "samples"
+    ]
+    kept = [
+        x
+        for x in samples
+        if x["pose"] is not None
+        and x["pose_source"] in CALIBRATION_POSES
+        and (start is None or (x["at"] is not None and x["at"] >= start))
+    ]
+    if not kept:
+        odometry = any(x["pose_source"] == "odometry" for x in samples)
+        why = "only odometry, which cannot calibrate the physics it assumes" if odometry else "none"
+        typer.echo(f"colony robot calibrate: {robot} has no samples with poses: {why}", err=True)
+        raise typer.Exit(2)
+    maze = call_server(ctx, server, token, "GET", "/api/colony/map?samples=1")["maze"]
+    follows = np.array(
+        [
+            b["boot"] == a["boot"] and b["step"] == a["step"] + 1
+            for a, b in itertools.pairwise(kept)
+        ],
+        dtype=bool,
+    )
+    try:
+        fit = calibrate(
+            parse_maze("\n".join(maze["rows"]), maze["name"], maze["cell_size"]),
+            np.array([x["pose"] for x in kept]),
+            np.array([[int(c) for c in x["whiskers"]] for x in kept]),
+            np.array([x["motors"] for x in kept]),
+            World(),
+            follows,
+        )
+    except CalibrationError as exc:
+        typer.echo(f"colony robot calibrate: {robot}: {exc}; nothing stored", err=True)
+        raise typer.Exit(2) from None
+    stored = call_server(
+        ctx, server, token, "POST", f"/api/robots/{robot}/calibration", fit.as_dict()
+    )
+    if as_json:
+        _print_json(stored)
+        return
+    c = stored["calibration"]
+    table = Table(title=f"calibration of {robot} from {c['samples']} samples")
+    for column in ("", "left", "", "centre", "", "right"):
+        table.add_column(column, justify="right")
+    ranges = [f"{1000 * r:.1f}" for r in c["whisker_range"]]
+    errs = [f"+-{1000 * e:.1f}" for e in c["uncertainty"]["whisker_range"]]
+    table.add_row("whisker range, mm", *ranges)
+    table.add_row("uncertainty, mm", *errs)
+    Console().print(table)
+    gains, gain_errs = c["motor_gain"], c["uncertainty"]["motor_gain"]
+    typer.echo(
+        f"wheel gains: left {gains[0]:.4f} +- {gain_errs[0]:.1g}, right {gains[1]:.4f} +- "
+        f"{gain_errs[1]:.1g}; pose residual {c['residuals']['pose_rms_m']:.2g} m over "
+        f"{c['residuals']['moving_steps']} moving steps; stored for {robot}"
+    )
 
 
 def _pushed(result: dict[str, Any], as_json: bool) -> None:

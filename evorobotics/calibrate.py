@@ -31,6 +31,8 @@ MAX_RANGE = 0.25
 """Metres: whisker distances are searched up to this (the gap's 100 mm and beyond)."""
 MIN_SAMPLES = 100
 """Fewer steps than this fit nothing (10 s of robot time)."""
+OUTLIER_FLOOR = 1e-9
+"""Residuals (in wheel-command units) below this are never dropped as outliers."""
 BISECTIONS = 40
 """Halvings of [0, MAX_RANGE]: well under a micrometre."""
 
@@ -177,6 +179,13 @@ def _fit_gains(
     ]
     y = np.concatenate([total, diff])[np.concatenate([moved, moved])]
     fit, *_ = np.linalg.lstsq(a, y, rcond=None)
+    # a real link is not lockstep: a command can take effect a step late, and such steps lie
+    # far off the fit; they are dropped (beyond 4 median absolute residuals) and it is redone
+    res = np.abs(a @ fit - y)
+    keep = res <= max(4.0 * float(np.median(res)), OUTLIER_FLOOR)
+    if keep.sum() >= 2 and not keep.all():
+        a, y = a[keep], y[keep]
+        fit, *_ = np.linalg.lstsq(a, y, rcond=None)
     dof = max(len(y) - 2, 1)
     sigma2 = float(np.sum((a @ fit - y) ** 2)) / dof
     cov = sigma2 * np.linalg.pinv(a.T @ a)

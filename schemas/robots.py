@@ -574,3 +574,42 @@ class FieldStats(_Model):
     robot_hours: float
     stuck_events: int
     stuck_per_hour: float | None
+
+
+Range = Annotated[float, Field(ge=0.0, le=0.25, allow_inf_nan=False)]
+"""A whisker trigger distance, m (`evorobotics.calibrate.MAX_RANGE`)."""
+Gain = Annotated[float, Field(gt=0.0, le=3.0, allow_inf_nan=False)]
+
+
+class CalibrationUncertainty(_Model):
+    whisker_range: tuple[Range, Range, Range, Range, Range]
+    motor_gain: tuple[
+        Annotated[float, Field(ge=0.0, le=3.0)], Annotated[float, Field(ge=0.0, le=3.0)]
+    ]
+
+
+class CalibrationResiduals(_Model):
+    moving_steps: int = Field(ge=0, le=10**8)
+    pose_rms_m: float = Field(ge=0.0, le=100.0, allow_inf_nan=False)
+    whisker_disagreements: tuple[int, int, int, int, int] = Field(
+        description="recorded bits per whisker the fitted range reads otherwise"
+    )
+
+
+class RobotCalibration(_Model):
+    """A robot's physics fitted from its traces (`colony robot calibrate`, docs/robots.md):
+    the body of `POST /api/robots/{id}/calibration`, `evorobotics.calibrate.Calibration`'s JSON."""
+
+    whisker_range: tuple[Range, Range, Range, Range, Range] = Field(
+        description="each whisker's trigger distance, left to right, m"
+    )
+    motor_gain: tuple[Gain, Gain] = Field(description="the wheels' gains [left, right]")
+    uncertainty: CalibrationUncertainty
+    samples: int = Field(ge=100, le=10**8)
+    residuals: CalibrationResiduals
+
+
+class CalibrationOut(_Model):
+    robot: str
+    stored_at: datetime
+    calibration: RobotCalibration

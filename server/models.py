@@ -130,3 +130,6 @@ class Robot(Base):
     last_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     replacement: Mapped[str | None] = mapped_column(String(16), nullable=True)
     """Its own replacement policy (`schemas.robots.ReplacementPolicy`); None: the colony's."""
+    calibration: Mapped[str | None] = mapped_column(Text, nullable=True)
+    """Its physics fitted from its traces (`schemas.robots.RobotCalibration` JSON); None: never."""
+    calibrated_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)

@@ -51,6 +51,7 @@ from schemas.robots import (
     KEY_REPLACE,
     KEY_ROBOTS_ALIVE,
     KEY_TRACES,
+    CalibrationOut,
     ControllerPush,
     FieldStats,
     PolicySource,
@@ -59,6 +60,7 @@ from schemas.robots import (
     Replacement,
     ReplacementPolicy,
     ReplayOut,
+    RobotCalibration,
     RobotDetail,
     RobotOut,
     StopCommand,
@@ -720,6 +722,35 @@ class RobotService:
                 )
             )
         return StuckEventsOut(robot=robot_id, events=[_event_out(r) for r in reversed(rows)])
+
+    def calibration(self, robot_id: str) -> CalibrationOut:
+        """The robot's stored calibration; NotFoundError for an unknown or uncalibrated robot."""
+        with self.sessions() as db:
+            row = db.get(Robot, robot_id)
+            if row is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            if row.calibration is None or row.calibrated_at is None:
+                raise NotFoundError(f"robot {robot_id} has no calibration (colony robot calibrate)")
+            return CalibrationOut(
+                robot=robot_id,
+                stored_at=aware(row.calibrated_at),
+                calibration=RobotCalibration.model_validate_json(row.calibration),
+            )
+
+    def set_calibration(self, robot_id: str, calibration: RobotCalibration) -> CalibrationOut:
+        """Store the robot's fitted physics (replacing any earlier fit)."""
+        with self.sessions.begin() as db:
+            row = db.get(Robot, robot_id)
+            if row is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            row.calibration = calibration.model_dump_json()
+            row.calibrated_at = utcnow()
+        log.info(
+            "robot %s calibrated: whiskers %s m, gains %s", robot_id,
+            [round(r, 4) for r in calibration.whisker_range],
+            [round(g, 4) for g in calibration.motor_gain],
+        )  # fmt: skip
+        return self.calibration(robot_id)
 
     def forget(self, robot_id: str) -> None:
         """Remove an offline robot: its registry row, last report, stuck events and traces.

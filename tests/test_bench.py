@@ -17,8 +17,10 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     [
         (
             "stuck.py",
-            ["--robots", "4", "--steps", "100", "--window", "20", "--champions", "1"]
-            + ["--champion-steps", "60"],
+            [
+                *("--robots", "4", "--steps", "100", "--window", "20"),
+                *("--champions", "1", "--champion-steps", "60"),
+            ],
             "false",
         ),
         (

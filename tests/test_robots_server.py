@@ -441,3 +441,44 @@ def test_archive_policy_replaces_with_an_elite_and_pushes_reach_archive_entries(
             assert past.status_code == 404 and f"has {len(archive)} entries" in past.text
             both = httpx.post(path, json={"run_id": run_id, "elite": 0, "rank": 0})
             assert both.status_code == 422 and "at most one of rank or elite" in both.text
+
+
+def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
+    colony: Colony, tmp_path: Path
+) -> None:
+    """Traces with the emulator's true poses, `colony robot calibrate` over REST, the fit
+    stored with the robot: the hidden whisker ranges and wheel gains within its uncertainty."""
+    from evorobotics.evaluate import draw_gap
+
+    save(tmp_path, constant_drive(0.8, 0.8, NetworkSpec()))  # ahead until a wall, escape, again
+    hidden = draw_gap(5, 0, 1)  # SimBody.create("paper", seed=5): robot 0's gap
+    stuck = StuckConfig(contact_steps=2, odometry_window=20)
+    with (
+        robot_link(colony) as link,
+        virtual_robot("r-cal", link, tmp_path, seed=5, stuck=stuck, period=0.005) as (agent, _),
+    ):
+        assert agent.wait_for(lambda: agent.delivered >= 3000, WAIT * 2)
+        assert httpx.get(f"{colony.url}/api/robots/r-cal/calibration").status_code == 404
+        done = CliRunner().invoke(
+            cli, ["robot", "calibrate", "r-cal", "--server", colony.url, "--json"]
+        )
+        if "never touched" in done.stderr:  # a whisker the escapes never brought to a wall
+            assert done.exit_code == 2 and "nothing stored" in done.stderr
+            assert httpx.get(f"{colony.url}/api/robots/r-cal/calibration").status_code == 404
+            return
+        assert done.exit_code == 0, done.stderr
+        fit = json.loads(done.stdout)["calibration"]
+        stored = httpx.get(f"{colony.url}/api/robots/r-cal/calibration").json()
+        bad = {**fit, "motor_gain": [0.0, 1.0]}
+        refused = httpx.post(f"{colony.url}/api/robots/r-cal/calibration", json=bad)
+        assert refused.status_code == 422 and "motor_gain" in refused.text
+    assert stored["calibration"] == fit and stored["robot"] == "r-cal"
+    # the emulator steps in real time, not in lockstep with the agent: a physics step may fall
+    # between a sample's whisker and pose reads, or take the previous command (the fit drops
+    # such steps as outliers)
+    assert fit["motor_gain"] == pytest.approx(hidden.motor_gain[0].tolist(), abs=0.005)
+    for got, err, true in zip(
+        fit["whisker_range"], fit["uncertainty"]["whisker_range"], hidden.whisker_range[0],
+        strict=True,
+    ):  # fmt: skip
+        assert abs(got - true) <= err + 0.002

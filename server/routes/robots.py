@@ -1,5 +1,5 @@
 """/api/robots: the colony's EvBots, controller pushes, stop, replacement policy, stuck ledger,
-traces and the replay check.
+traces, calibration and the replay check.
 
 Reads the `RobotService` the app's lifespan puts in `app.state.robots`.
 """
@@ -11,10 +11,12 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from schemas.robots import (
+    CalibrationOut,
     PushBody,
     PushOut,
     ReplacementBody,
     ReplayOut,
+    RobotCalibration,
     RobotDetail,
     RobotOut,
     StuckEventsOut,
@@ -111,3 +113,15 @@ def get_traces(
 def replay(robots: RobotsDep, robot_id: str) -> ReplayOut:
     """Same whiskers into the same controller: are the motor commands bit-identical?"""
     return robots.replay(robot_id)
+
+
+@router.get("/{robot_id}/calibration", response_model=CalibrationOut)
+def get_calibration(robots: RobotsDep, robot_id: str) -> CalibrationOut:
+    """The robot's physics as last fitted from its traces (404 when never calibrated)."""
+    return robots.calibration(robot_id)
+
+
+@router.post("/{robot_id}/calibration", response_model=CalibrationOut)
+def post_calibration(robots: RobotsDep, robot_id: str, body: RobotCalibration) -> CalibrationOut:
+    """Store a fit (`colony robot calibrate` posts its own); it replaces the earlier one."""
+    return robots.set_calibration(robot_id, body)
