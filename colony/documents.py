@@ -5,20 +5,18 @@ from __future__ import annotations
 from pathlib import Path
 
 import httpx
+from pydantic import ValidationError
 
 from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
+from schemas.robots import CalibrationOut
+from schemas.world import World
 
 TIMEOUT_S = 30.0
 
 
-def fetch_document(
-    server: str, *, run: int | None = None, sha: str | None = None
-) -> ControllerDocument:
-    """GET a run's best or a controller by sha256; ValueError with the server's reason."""
-    if (run is None) == (sha is None):
-        raise ValueError("give exactly one of run and sha")
-    path = f"/api/runs/{run}/best" if run is not None else f"/api/controllers/{sha}"
+def _get(server: str, path: str) -> bytes:
+    """The body of GET server+path; ValueError with the server's reason."""
     url = server.rstrip("/") + path
     try:
         response = httpx.get(url, timeout=TIMEOUT_S)
@@ -30,10 +28,33 @@ def fetch_document(
         except (ValueError, KeyError, TypeError):
             detail = response.text
         raise ValueError(f"GET {url}: {response.status_code} {detail}")
+    return response.content
+
+
+def fetch_document(
+    server: str, *, run: int | None = None, sha: str | None = None
+) -> ControllerDocument:
+    """GET a run's best or a controller by sha256; ValueError with the server's reason."""
+    if (run is None) == (sha is None):
+        raise ValueError("give exactly one of run and sha")
+    path = f"/api/runs/{run}/best" if run is not None else f"/api/controllers/{sha}"
     try:
-        return ControllerDocument.from_json(response.content)
+        return ControllerDocument.from_json(_get(server, path))
     except ControllerDocumentError as exc:
-        raise ValueError(f"GET {url}: {exc}") from None
+        raise ValueError(f"GET {server.rstrip('/')}{path}: {exc}") from None
+
+
+def robot_world(server: str, robot: str, world: World | None) -> World:
+    """`world` (default World()) with the robot's calibrated whiskers and wheel gains
+    (`GET /api/robots/{id}/calibration`); ValueError when it has none or is unknown."""
+    body = _get(server, f"/api/robots/{robot}/calibration")
+    try:
+        fit = CalibrationOut.model_validate_json(body).calibration
+    except ValidationError as exc:
+        raise ValueError(f"robot {robot}'s calibration: {exc.errors()[0]['msg']}") from None
+    return (world or World()).model_copy(
+        update={"whisker_range": fit.whisker_range, "motor_gain": fit.motor_gain}
+    )
 
 
 def load_document(

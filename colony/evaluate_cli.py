@@ -18,6 +18,7 @@ if TYPE_CHECKING:
     from evorobotics.document import ControllerDocument
     from evorobotics.explore import Exploration
     from evorobotics.robustness import RobustnessMap
+    from schemas.world import World
 
 
 def _fail(message: str) -> typer.Exit:
@@ -25,13 +26,13 @@ def _fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
-def report_dict(doc: ControllerDocument, e: Exploration) -> dict[str, Any]:
+def report_dict(doc: ControllerDocument, e: Exploration, world: str) -> dict[str, Any]:
     """The JSON of `colony evaluate --json`: units in the keys, the document's own scores beside."""
     from evorobotics.explore import COVERAGE_CELL
 
     return {
         "controller": doc.sha256,
-        "world": "document" if doc.world is not None else "default",
+        "world": world,
         "maze": e.maze,
         "poses": e.poses,
         "steps": e.steps,
@@ -53,7 +54,7 @@ def _percent(x: float) -> str:
     return f"{100.0 * x:.1f} %"
 
 
-def print_table(doc: ControllerDocument, e: Exploration) -> None:
+def print_table(doc: ControllerDocument, e: Exploration, world: str) -> None:
     """One row per measure, then the document's training fitness and validation, labelled."""
     from rich.console import Console
     from rich.table import Table
@@ -61,10 +62,9 @@ def print_table(doc: ControllerDocument, e: Exploration) -> None:
     from evorobotics.explore import COVERAGE_CELL, PAPER_TRIAL
 
     console = Console()
-    world = "the document's world" if doc.world is not None else "the default World"
     gap = ", reality gap" if e.reality_gap else ""
     console.print(
-        f"controller {doc.sha256[:12]} in maze {e.maze!r}, {world}{gap}: {e.poses} unseen start "
+        f"controller {doc.sha256[:12]} in maze {e.maze!r}, {_world_label(world)}{gap}: {e.poses} unseen start "
         f"poses (exploration stream, seed {e.seed}) x {e.steps} steps"
     )
     table = Table(title="exploration report")
@@ -92,15 +92,20 @@ def print_table(doc: ControllerDocument, e: Exploration) -> None:
         )
 
 
-def print_map(doc: ControllerDocument, m: RobustnessMap) -> None:
+def _world_label(world: str) -> str:
+    if world.startswith("robot:"):
+        return f"robot {world[6:]}'s calibrated world"
+    return "the document's world" if world == "document" else "the default World"
+
+
+def print_map(doc: ControllerDocument, m: RobustnessMap, world: str) -> None:
     """Two tables, roaming then stuck: a row per whisker range, a column per gain ratio."""
     from rich.console import Console
     from rich.table import Table
 
     console = Console()
-    world = "the document's world" if doc.world is not None else "the default World"
     console.print(
-        f"controller {doc.sha256[:12]} in maze {m.maze!r}, {world}: {m.poses} unseen start "
+        f"controller {doc.sha256[:12]} in maze {m.maze!r}, {_world_label(world)}: {m.poses} unseen start "
         f"poses (robustness stream, seed {m.seed}) x {m.steps} steps in every cell"
     )
     for name in ("roaming", "stuck"):
@@ -117,7 +122,14 @@ def print_map(doc: ControllerDocument, m: RobustnessMap) -> None:
 
 
 def _robustness(
-    doc: ControllerDocument, poses: int, steps: int, maze: str, seed: int, out: Path, as_json: bool
+    doc: ControllerDocument,
+    world: tuple[str, World | None],
+    poses: int,
+    steps: int,
+    maze: str,
+    seed: int,
+    out: Path,
+    as_json: bool,
 ) -> None:
     """`--robustness`: the map, printed or as JSON, and its heat map in OUT/robustness.png."""
     from evorobotics.errors import EvoError
@@ -133,7 +145,7 @@ def _robustness(
             steps=steps,
             maze=maze,
             seed=seed,
-            world=doc.world,
+            world=world[1],
             threads=available_cores(),
         )
     except (EvoError, ValueError) as exc:
@@ -146,7 +158,7 @@ def _robustness(
     if as_json:
         typer.echo(json.dumps({"controller": doc.sha256, **m.as_dict()}, allow_nan=False))
     else:
-        print_map(doc, m)
+        print_map(doc, m, world[0])
         typer.echo(f"wrote {out / 'robustness.png'}")
 
 
@@ -162,6 +174,12 @@ def evaluate_command(
         str | None,
         typer.Option(
             help="evaluate the controller with this sha256 or 8+ digit prefix (with --server)"
+        ),
+    ] = None,
+    robot: Annotated[
+        str | None,
+        typer.Option(
+            help="in this robot's calibrated world (with --server; colony robot calibrate)"
         ),
     ] = None,
     poses: Annotated[
@@ -193,7 +211,7 @@ def evaluate_command(
     Trials start from poses no training or validation trial uses (docs/explore.md).
     """
     # numba and the simulator: only when evaluating, so `colony --help` stays fast
-    from colony.documents import load_document
+    from colony.documents import load_document, robot_world
     from evorobotics.errors import EvoError
     from evorobotics.explore import MAX_ROBOT_STEPS, explore
     from evorobotics.maze import load_maze
@@ -209,7 +227,16 @@ def evaluate_command(
     if seed < 0:
         raise _fail(f"--seed must be >= 0, got {seed}")
     try:
-        doc = load_document(controller, server, run, sha)
+        if robot is not None and server is None:
+            raise ValueError("--robot needs --server: the calibration is stored there")
+        doc = load_document(  # with --robot, --server is where the calibration is
+            controller, None if robot is not None and controller is not None else server, run, sha
+        )
+        world: tuple[str, World | None] = (
+            ("document" if doc.world is not None else "default", doc.world)
+            if robot is None or server is None
+            else (f"robot:{robot}", robot_world(server, robot, doc.world))
+        )
     except ValueError as exc:
         raise _fail(str(exc)) from None
     try:
@@ -217,7 +244,7 @@ def evaluate_command(
     except (EvoError, OSError, ValueError) as exc:
         raise _fail(f"--maze: {exc}") from None
     if robustness:
-        _robustness(doc, poses, steps, maze, seed, out, as_json)
+        _robustness(doc, world, poses, steps, maze, seed, out, as_json)
         return
     try:
         result = explore(
@@ -228,11 +255,11 @@ def evaluate_command(
             maze=maze,
             seed=seed,
             reality_gap=reality_gap,
-            world=doc.world,
+            world=world[1],
         )
     except (EvoError, ValueError) as exc:
         raise _fail(str(exc)) from None
     if as_json:
-        typer.echo(json.dumps(report_dict(doc, result), allow_nan=False))
+        typer.echo(json.dumps(report_dict(doc, result, world[0]), allow_nan=False))
     else:
-        print_table(doc, result)
+        print_table(doc, result, world[0])

@@ -482,3 +482,37 @@ def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
         strict=True,
     ):  # fmt: skip
         assert abs(got - true) <= err + 0.002
+
+
+def test_evaluate_in_a_robots_calibrated_world(colony: Colony, tmp_path: Path) -> None:
+    """`colony evaluate --robot ID` runs the controller with the robot's stored whiskers and
+    gains; an uncalibrated robot is one line and exit 2."""
+    from colony.documents import robot_world
+    from evorobotics.explore import explore
+    from schemas.world import World
+
+    doc = random_controller(21, NetworkSpec())
+    path = tmp_path / "c.json"
+    path.write_text(doc.to_json())
+    fit = {
+        "whisker_range": [0.03, 0.04, 0.05, 0.06, 0.07],
+        "motor_gain": [0.9, 1.1],
+        "uncertainty": {"whisker_range": [0.001] * 5, "motor_gain": [0.001, 0.001]},
+        "samples": 500,
+        "residuals": {"moving_steps": 400, "pose_rms_m": 0.0, "whisker_disagreements": [0] * 5},
+    }
+    with robot_link(colony) as link, virtual_robot("r-eval", link, tmp_path) as (agent, _):
+        assert eventually(lambda: link.service.is_online("r-eval"))
+        args = ["evaluate", str(path), "--poses", "20", "--steps", "60", "--server", colony.url]
+        done = CliRunner().invoke(cli, [*args, "--robot", "r-eval", "--json"])
+        assert done.exit_code == 2 and "no calibration" in done.stderr
+        posted = httpx.post(f"{colony.url}/api/robots/r-eval/calibration", json=fit)
+        assert posted.status_code == 200, posted.text
+        done = CliRunner().invoke(cli, [*args, "--robot", "r-eval", "--json"])
+        assert done.exit_code == 0, done.stderr
+        world = robot_world(colony.url, "r-eval", None)
+    assert world.whisker_range == (0.03, 0.04, 0.05, 0.06, 0.07) and world.motor_gain == (0.9, 1.1)
+    want = explore(doc.spec, doc.weights, poses=20, steps=60, world=world)
+    got = json.loads(done.stdout)
+    assert got["world"] == "robot:r-eval" and got["roaming_fraction"] == want.roaming
+    assert want != explore(doc.spec, doc.weights, poses=20, steps=60, world=World())
