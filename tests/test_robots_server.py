@@ -501,7 +501,7 @@ def test_evaluate_in_a_robots_calibrated_world(colony: Colony, tmp_path: Path) -
         "samples": 500,
         "residuals": {"moving_steps": 400, "pose_rms_m": 0.0, "whisker_disagreements": [0] * 5},
     }
-    with robot_link(colony) as link, virtual_robot("r-eval", link, tmp_path) as (agent, _):
+    with robot_link(colony) as link, virtual_robot("r-eval", link, tmp_path):
         assert eventually(lambda: link.service.is_online("r-eval"))
         args = ["evaluate", str(path), "--poses", "20", "--steps", "60", "--server", colony.url]
         done = CliRunner().invoke(cli, [*args, "--robot", "r-eval", "--json"])
