@@ -20,7 +20,7 @@ from evorobotics.document import ControllerDocument
 from robot_agent.stuck import StuckConfig
 from schemas.network import NetworkSpec
 from server import crud
-from server.robots import ranked_document
+from server.models import Run
 from server.settings import Settings
 from tests.helpers import (
     QUICK,
@@ -125,7 +125,11 @@ def test_colony_off_keeps_the_controller_and_the_ledger_counts_its_steps(
 
 def test_a_robots_own_rank_wins_over_the_colonys_off(server: Server, tmp_path: Path) -> None:
     with server.link.service.sessions.begin() as db:
-        best = ranked_document(db, server.run_id, 0)
+        run = db.get(Run, server.run_id)
+        assert run is not None
+        champion = crud.champion(db, run=run)  # the run completed: its validated champion
+        assert champion is not None
+        best = ControllerDocument.from_json(champion.document)
     with (
         virtual_robot("r-rank", server.link, tmp_path, stuck=STUCK, server_key=server.key) as (
             agent,
@@ -145,11 +149,11 @@ def test_a_robots_own_rank_wins_over_the_colonys_off(server: Server, tmp_path: P
 
         pushed = client.post("/api/robots/r-rank/controller", json={"sha256": server.wall.sha256})
         assert pushed.json()["accepted"], pushed.text
-        assert agent.wait_for(lambda: agent.controller == best, WAIT)  # the run's rank 0
+        assert agent.wait_for(lambda: agent.controller == best, WAIT)
         (event,) = ledger(client, "r-rank")
         assert event["policy"] == "rank" and event["controller_sha256"] == server.wall.sha256
         assert event["replacement_sha256"] == best.sha256
-        assert event["answer"] == f"rank 0 of run {server.run_id}"
+        assert event["answer"] == f"the validated champion of run {server.run_id}"
         assert event["steps_run"] is None  # the replacement is running
 
         # an operator push comes before the replacement's next stuck event: no steps for it
