@@ -93,6 +93,12 @@ class _Model(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
+Sha256 = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+"""A controller's sha256: exactly 64 lowercase hex digits, nothing larger travels or is stored."""
+Reason = Annotated[str, Field(max_length=256)]
+"""A one-line reason from a peer: bounded, so no message grows the log or the database."""
+
+
 class _RobotMessage(_Model):
     robot: str
 
@@ -107,7 +113,7 @@ class ControllerPush(_Model):
 
     kind: Literal["push"] = "push"
     push_id: str = Field(min_length=1, max_length=64)
-    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    sha256: Sha256
     document: str = Field(description="controller document JSON (evorobotics.document)")
     seq: int = Field(0, ge=0, description="server sequence number; agents refuse seq <= last")
     signature: str = Field(
@@ -134,10 +140,10 @@ class PushAck(_RobotMessage):
     """Agent -> server on ack_key: a push or stop applied (accepted) or refused (reason)."""
 
     kind: Literal["ack"] = "ack"
-    push_id: str
+    push_id: str = Field(min_length=1, max_length=64)
     accepted: bool
-    sha256: str | None = Field(description="the controller the robot runs after this message")
-    reason: str = ""
+    sha256: Sha256 | None = Field(description="the controller the robot runs after this message")
+    reason: Reason = ""
 
 
 AgentState = Literal["running", "escaping", "stopped", "idle"]
@@ -149,7 +155,7 @@ class RobotStatus(_Model):
 
     state: AgentState
     steps: int = Field(ge=0, description="control steps run since the agent started")
-    sha256: str | None = Field(description="controller in force")
+    sha256: Sha256 | None = Field(description="controller in force")
     serial_ok: bool = Field(description="the BasicX answered the last step's requests")
     serial_errors: int = Field(0, ge=0)
     resends: int = Field(0, ge=0)
@@ -163,7 +169,7 @@ class TraceHeader(_RobotMessage):
     protocol: int = Field(PROTOCOL, description="schemas.wire.PROTOCOL of the agent")
     pose_source: PoseSource
     boot: int = Field(ge=0, lt=2**31, description="agent start count: (boot, step) names a sample")
-    controllers: list[Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]] = Field(
+    controllers: list[Sha256] = Field(
         max_length=MAX_TRACE_SAMPLES, description="sha256 of each controller index in the batch"
     )
     status: RobotStatus
@@ -319,7 +325,7 @@ class StuckRequest(_RobotMessage):
     """Agent -> server on KEY_REPLACE: the robot is stuck with `sha256`; send another."""
 
     kind: Literal["stuck"] = "stuck"
-    sha256: str | None
+    sha256: Sha256 | None
     reason: str = Field(max_length=64)
     step: int = Field(ge=0)
     nonce: str = Field(

@@ -23,10 +23,13 @@ import hmac
 import ipaddress
 import json
 import math
+import re
 import socket
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
 
 from evorobotics.errors import EvoError
 from evorobotics.evaluate import check_config, robot_steps
@@ -158,6 +161,23 @@ def _finite_float(text: str) -> float:
     return value
 
 
+MAX_JSON_DEPTH = 64
+"""Nesting of arrays and objects a JSON body may have: every model here nests a few levels,
+and a deeper body would reach the parser's recursion limit (a 500) or waste its time."""
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"')
+_OPEN = np.zeros(256, dtype=np.int8)
+_OPEN[[ord("["), ord("{")]] = 1
+_OPEN[[ord("]"), ord("}")]] = -1
+
+
+def json_depth(body: bytes) -> int:
+    """How deep arrays and objects nest in a JSON text (brackets inside strings not counted);
+    linear in C, so a body at the size limit costs milliseconds."""
+    bare = _JSON_STRING.sub(b'""', body)
+    steps = _OPEN[np.frombuffer(bare, dtype=np.uint8)]
+    return int(np.cumsum(steps, dtype=np.int64).max(initial=0))
+
+
 def non_finite_error(body: bytes) -> str | None:
     """Why a JSON body is refused (`NaN`, `Infinity`, `-Infinity` or an overflowing number),
     or None: malformed JSON is left to the route's own parser and its 422."""
@@ -254,6 +274,9 @@ class SecurityMiddleware:
             )
         if scope["method"] not in MUTATING:
             return None
+        origins = [v for k, v in scope.get("headers", ()) if k == b"origin"]
+        if len(origins) > 1:
+            return f"{len(origins)} Origin headers: a request has one origin, cross-site refused"
         origin = _header(scope, b"origin")
         if origin is not None and not same_origin(origin, host, scope.get("scheme", "http")):
             return f"Origin header {origin!r} is not this server's: cross-site requests refused"
@@ -328,7 +351,12 @@ class SecurityMiddleware:
                 break
         body = b"".join(chunks)
         if body and _is_json(_header(scope, b"content-type")):
-            refused = non_finite_error(body)
+            depth = json_depth(body)
+            refused = (
+                f"body: JSON nested {depth} deep, more than the limit of {MAX_JSON_DEPTH}"
+                if depth > MAX_JSON_DEPTH
+                else non_finite_error(body)
+            )
             if refused is not None:
                 await _reply(send, 422, refused)
                 return

@@ -7,7 +7,15 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
-from schemas.robots import decode_message, decode_trace
+from schemas.robots import (
+    PushAck,
+    RobotMessage,
+    RobotStatus,
+    StuckRequest,
+    decode_message,
+    decode_trace,
+    encode_message,
+)
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES
 from schemas.wire import WireError
 from server.settings import Settings
@@ -56,5 +64,54 @@ def test_oversized_robot_payloads_are_refused() -> None:
         decode_trace(b"\0" * (MAX_TRACE_BYTES + 1))
 
 
+@pytest.mark.parametrize(
+    ("message", "field"),
+    [
+        (StuckRequest.model_construct(robot="r", sha256="a" * 1_000_000, reason="x", step=0,
+                                      nonce="0" * 32), "sha256"),
+        (StuckRequest.model_construct(robot="r", sha256="A" * 64, reason="x", step=0,
+                                      nonce="0" * 32), "sha256"),
+        (PushAck.model_construct(robot="r", push_id="p", accepted=True, sha256=None,
+                                 reason="x" * 100_000), "reason"),
+        (PushAck.model_construct(robot="r", push_id="p" * 65, accepted=True, sha256=None,
+                                 reason=""), "push_id"),
+    ],
+)  # fmt: skip
+def test_robot_messages_bound_every_string_field(message: RobotMessage, field: str) -> None:
+    """A robot credential cannot grow the database or the log through a message's strings: a
+    sha256 is exactly 64 hex digits, a reason or an id short (attack 5 of issue 38)."""
+    with pytest.raises(WireError, match=field):
+        decode_message(encode_message(message))
+    with pytest.raises(ValueError, match="sha256"):
+        RobotStatus(state="running", steps=0, sha256="f" * 65, serial_ok=True)
+
+
 def test_in_memory_database_keeps_the_signing_key_in_memory() -> None:
     assert Settings(db_url="sqlite://").server_key_path() is None
+
+
+def test_deeply_nested_json_is_422_not_500(client: httpx.Client) -> None:
+    """Attack 6 of issue 38: a body nested past the parser's recursion limit was a 500 with a
+    traceback; it is refused before any parser runs, naming the limit."""
+    for depth in (65, 100_000):
+        body = b'{"maze": ' + b"[" * depth + b"]" * depth + b"}"
+        response = client.post(
+            "/api/runs", content=body, headers={"content-type": "application/json"}
+        )
+        assert response.status_code == 422, response.text
+        assert f"nested {depth + 1} deep" in response.json()["detail"]  # the object too
+    shallow = b'{"maze": "[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[["}'
+    answer = client.post("/api/runs", content=shallow, headers={"content-type": "application/json"})
+    assert "nested" not in answer.text  # brackets inside a string are not nesting
+
+
+def test_two_origin_headers_are_403_even_when_the_first_is_the_servers(
+    client: httpx.Client,
+) -> None:
+    own = str(client.base_url).rstrip("/")
+    response = client.post(
+        "/api/runs",
+        json={"population": 4, "generations": 1},
+        headers=[("origin", own), ("origin", "http://evil.example")],
+    )
+    assert response.status_code == 403 and "2 Origin headers" in response.json()["detail"]
