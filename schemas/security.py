@@ -22,6 +22,9 @@ MAX_POPULATION_WEIGHTS = 8_000_000
 """population x weights of one run: its genomes are 64 MB of float64 (paper: 100 x 7104)."""
 MAX_GENERATION_STEPS = 50_000_000
 """population x trials x steps: robot steps of one generation (paper: 100 x 3 x 40 = 12,000)."""
+MAX_RUN_STEPS = 100_000_000_000
+"""population x trials x steps x generations: robot steps of one run's training (the default
+run: 25 M; 10^11 is hours of a few dozen cores)."""
 MAX_ZENOH_MESSAGE = 128 << 20
 """zenoh messages the server's router accepts (transport/link/rx/max_message_size)."""
 MAX_ROBOT_MESSAGE = 32 << 20

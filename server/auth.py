@@ -373,7 +373,11 @@ class SecurityMiddleware:
 
 
 def run_limit_error(
-    config: RunConfig, *, max_population_weights: int, max_generation_steps: int
+    config: RunConfig,
+    *,
+    max_population_weights: int,
+    max_generation_steps: int,
+    max_run_steps: int,
 ) -> str | None:
     """Why the server refuses a run from a client (memory, CPU, a server file as maze), or None.
 
@@ -396,6 +400,11 @@ def run_limit_error(
         return (
             f"population x trials x steps = {steps} exceeds the server's limit of "
             f"{max_generation_steps} robot steps per generation"
+        )
+    if steps * config.generations > max_run_steps:
+        return (
+            f"population x trials x steps x generations = {steps * config.generations} exceeds "
+            f"the server's limit of {max_run_steps} robot steps per run (COLONY_MAX_RUN_STEPS)"
         )
     v = config.validation
     validation_steps = min(v.candidates, config.population) * v.poses * v.steps

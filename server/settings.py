@@ -15,6 +15,7 @@ from schemas.robots import DEFAULT_REPLACEMENT, ReplacementPolicy
 from schemas.security import (
     MAX_BODY_BYTES,
     MAX_GENERATION_STEPS,
+    MAX_RUN_STEPS,
     MAX_POPULATION_WEIGHTS,
     MAX_ZENOH_MESSAGE,
     ZenohRoles,
@@ -81,6 +82,11 @@ class Settings(BaseSettings):
     )
     max_generation_steps: int = Field(
         MAX_GENERATION_STEPS, ge=1, description="population x trials x steps (CPU per generation)"
+    )
+    max_run_steps: int = Field(
+        MAX_RUN_STEPS,
+        ge=1,
+        description="population x trials x steps x generations (CPU of a whole run)",
     )
     server_key: Path | None = Field(
         None, description="Ed25519 key signing robot pushes (default: beside the SQLite file)"

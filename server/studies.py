@@ -131,6 +131,7 @@ class StudyService:
                 config,
                 max_population_weights=settings.max_population_weights,
                 max_generation_steps=settings.max_generation_steps,
+                max_run_steps=settings.max_run_steps,
             )
             if refused is not None:
                 raise StudyRefusedError(f"conditions.{condition}: {refused}")

@@ -49,6 +49,10 @@ def test_body_over_the_limit_is_413(client: httpx.Client) -> None:
         ({"population": 10_000, "trials": 100, "steps": 1000}, "robot steps"),
         ({"maze": "/etc/passwd"}, "not a shipped maze"),
         ({"population": 20_000}, "population"),
+        (  # issue 38, attack 10: a run of 5 x 10^12 robot-steps was accepted
+            {"population": 10_000, "generations": 100_000, "trials": 5, "steps": 1000},
+            "robot steps per run (COLONY_MAX_RUN_STEPS)",
+        ),
     ],
 )
 def test_run_limits_are_422(client: httpx.Client, body: dict[str, object], words: str) -> None:

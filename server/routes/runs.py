@@ -84,6 +84,7 @@ def create_run(
         config,
         max_population_weights=manager.settings.max_population_weights,
         max_generation_steps=manager.settings.max_generation_steps,
+        max_run_steps=manager.settings.max_run_steps,
     )
     if refused is not None:
         raise HTTPException(422, refused)
