@@ -15,8 +15,8 @@ from schemas.robots import DEFAULT_REPLACEMENT, ReplacementPolicy
 from schemas.security import (
     MAX_BODY_BYTES,
     MAX_GENERATION_STEPS,
-    MAX_RUN_STEPS,
     MAX_POPULATION_WEIGHTS,
+    MAX_RUN_STEPS,
     MAX_ZENOH_MESSAGE,
     ZenohRoles,
     ZenohRouterAuth,
