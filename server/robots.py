@@ -122,6 +122,12 @@ class RobotSettings:
     """Seconds a trace batch may spend in flight (the agent's request timeout, with margin)."""
     replacement: ReplacementPolicy = DEFAULT_REPLACEMENT
     """The colony's replacement policy: a robot without its own gets this one."""
+    stuck_burst: int = 20
+    stuck_per_s: float = 1.0
+    """Stuck requests a robot may send at once, and then per second (a token bucket): an honest
+    agent sends one per escape (1.4 s at 10 Hz); beyond, a request is refused unrecorded."""
+    stuck_retention: int = 10_000
+    """Stuck events kept per robot (the oldest go first): the field ledger's depth."""
 
     def __post_init__(self) -> None:
         if self.replacement not in POLICIES:
@@ -130,6 +136,8 @@ class RobotSettings:
             raise ValueError("retention_samples, recent_failures and max_backlog must be >= 1")
         if not self.push_timeout > 0 or not self.dt > 0 or not self.request_slack >= 0:
             raise ValueError("push_timeout and dt must be > 0, request_slack >= 0")
+        if min(self.stuck_burst, self.stuck_retention) < 1 or not self.stuck_per_s > 0:
+            raise ValueError("stuck_burst and stuck_retention must be >= 1, stuck_per_s > 0")
 
 
 MAX_STEPS = 2**32
@@ -202,6 +210,8 @@ class RobotService:
         """Samples stored per robot, as committed."""
         self._boots: dict[tuple[str, int], _Boot] = {}
         """Per (robot, boot), as committed."""
+        self._stuck_tokens: dict[str, tuple[float, float]] = {}
+        """Per robot: stuck-request tokens left and when they were counted (service thread)."""
         self._entities: list[Any] = []
         self._thread: threading.Thread | None = None
         self.traces_received = 0
@@ -344,6 +354,12 @@ class RobotService:
             except WireError as exc:
                 query.reply_err(f"malformed: {exc}".encode())
                 return
+            if not self._stuck_allowed(request.robot, time.monotonic()):
+                query.reply_err(
+                    f"rate limited: more than {self.settings.stuck_burst} stuck requests at over "
+                    f"{self.settings.stuck_per_s:g} a second; not recorded".encode()
+                )
+                return
             doc, reason = self._replace(request)
             text = doc.to_json() if doc else None
             seq, signature = self._sign("replacement", request.robot, request.nonce, text)
@@ -355,6 +371,15 @@ class RobotService:
                 signature=signature,
             )
             query.reply(query.key_expr, encode_message(reply))
+
+    def _stuck_allowed(self, robot: str, now: float) -> bool:
+        """Take a token from the robot's bucket (service thread only)."""
+        s = self.settings
+        tokens, at = self._stuck_tokens.get(robot, (float(s.stuck_burst), now))
+        tokens = min(float(s.stuck_burst), tokens + (now - at) * s.stuck_per_s)
+        allowed = tokens >= 1.0
+        self._stuck_tokens[robot] = (tokens - 1.0 if allowed else tokens, now)
+        return allowed
 
     # ------------------------------------------------------------------ traces
 
@@ -569,6 +594,7 @@ class RobotService:
                 boot=state.boot,
             )
             db.add(event)
+            _trim_events(db, request.robot, self.settings.stuck_retention)
             state.stuck_events += 1
             if request.sha256 is not None:
                 _field_row(db, request.sha256).stuck_events += 1
@@ -1043,6 +1069,22 @@ def _field_row(db: Session, sha256: str) -> FieldStatsRow:
         row = FieldStatsRow(sha256=sha256, steps=0, stuck_events=0)
         db.add(row)
     return row
+
+
+def _trim_events(db: Session, robot: str, keep: int) -> None:
+    """Delete the robot's stuck events older than its newest `keep` (the one being added
+    included)."""
+    cutoff = db.scalar(
+        select(StuckEventRow.id)
+        .where(StuckEventRow.robot_id == robot)
+        .order_by(StuckEventRow.id.desc())
+        .offset(keep - 1)
+        .limit(1)
+    )
+    if cutoff is not None:
+        db.execute(
+            delete(StuckEventRow).where(StuckEventRow.robot_id == robot, StuckEventRow.id < cutoff)
+        )
 
 
 def _check_sender(robot: str, query: zenoh.Query) -> None:

@@ -38,7 +38,7 @@ from schemas.robots import (
 from schemas.robots import encode_message as encode_robot_message
 from schemas.wire import WireError
 from server import crud
-from server.models import Run
+from server.models import Robot, Run
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
 from server.robots import RobotSettings, replay_trace
 from server.settings import Settings
@@ -46,6 +46,7 @@ from tests.helpers import (
     QUICK,
     WAIT,
     Colony,
+    client_config,
     completed_run,
     constant_drive,
     eventually,
@@ -516,3 +517,37 @@ def test_evaluate_in_a_robots_calibrated_world(colony: Colony, tmp_path: Path) -
     got = json.loads(done.stdout)
     assert got["world"] == "robot:r-eval" and got["roaming_fraction"] == want.roaming
     assert want != explore(doc.spec, doc.weights, poses=20, steps=60, world=World())
+
+
+def test_a_robot_flooding_stuck_requests_is_rate_limited_and_its_ledger_trimmed(
+    colony: Colony,
+) -> None:
+    """Issue 38, attack 5: a robot credential sent 87 signed, fsynced stuck requests a second,
+    and the events were never trimmed. Beyond a burst, requests are refused unrecorded; the
+    ledger keeps the newest `stuck_retention` events."""
+    from schemas.robots import StuckRequest, replace_key
+
+    settings = RobotSettings(push_timeout=5.0, stuck_burst=6, stuck_per_s=0.5, stuck_retention=4)
+    with robot_link(colony, settings=settings) as link:
+        with link.service.sessions.begin() as db:  # known to the colony, as its agent made it
+            db.add(Robot(id="r-flood", status="online"))
+        session = zenoh.open(client_config(link.port))
+        try:
+            answers = []
+            for k in range(12):
+                request = StuckRequest(
+                    robot="r-flood", sha256=None, reason="x", step=k, nonce=uuid.uuid4().hex
+                )
+                replies = list(
+                    session.get(
+                        replace_key("r-flood"), payload=encode_robot_message(request), timeout=5
+                    )
+                )
+                assert len(replies) == 1
+                answers.append(replies[0].ok is not None)
+        finally:
+            session.close()  # type: ignore[no-untyped-call]
+        allowed = sum(answers)
+        assert answers[:6] == [True] * 6 and not any(answers[7:])  # 0.5 a second refills slowly
+        ledger = link.service.stuck_events("r-flood").events
+        assert [e.step for e in ledger] == list(range(allowed - 4, allowed))
