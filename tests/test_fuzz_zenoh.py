@@ -69,7 +69,7 @@ from schemas.wire import (
 )
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, DispatchSettings
-from server.robots import RobotService
+from server.robots import RobotService, RobotSettings
 from server.scheduler import Policy, Scheduler
 from tests.helpers import (
     WAIT,
@@ -364,7 +364,9 @@ def robots(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[RobotServ
     upgrade(engine)
     router = zenoh.open(router_config(port))
     session = zenoh.open(client_config(port))
-    service = RobotService(router, engine).start()
+    # every example ends with a valid stuck request: no rate limit here (tested on its own)
+    unlimited = RobotSettings(stuck_burst=1_000_000, stuck_per_s=1e6)
+    service = RobotService(router, engine, unlimited).start()
     try:
         yield service, session
     finally:
