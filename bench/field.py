@@ -25,12 +25,13 @@ import argparse
 import time
 
 import numpy as np
+from stuck import lockstep
 
 from evorobotics import network
 from evorobotics.calibrate import CalibrationError, calibrate
 from evorobotics.evolution import evolve
 from evorobotics.maze import load_maze
-from evorobotics.sim import Gap, body_hits_wall, move, whisker_bits
+from evorobotics.sim import Gap
 from robot_agent.agent import AgentSettings
 from robot_agent.sim_body import SimBody
 from robot_agent.stuck import StuckDetector
@@ -47,25 +48,20 @@ def run_colony(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[list[int]]]:
     """Robots (B,) under the agent's loop: poses (B, T, 3) sensed at, whiskers (B, T, 5),
     motors (B, T, 2), and each robot's alarm steps."""
-    maze, world = load_maze("paper"), World()
     agent = AgentSettings(robot_id="bench")
     escape = [(-agent.escape_speed, -agent.escape_speed)] * agent.escape_back_steps + [
         (agent.escape_speed, -agent.escape_speed)
     ] * agent.escape_turn_steps
     b = poses.shape[0]
-    pose = poses.copy()
     w = np.repeat(weights[None], b, axis=0)
     state = network.reset(spec, b)
     detectors = [StuckDetector(agent.stuck) for _ in range(b)]
     plans: list[list[tuple[float, float]]] = [[] for _ in range(b)]
     alarms: list[list[int]] = [[] for _ in range(b)]
-    out_p, out_w, out_m = (
-        np.zeros((b, steps, 3)),
-        np.zeros((b, steps, 5), int),
-        np.zeros((b, steps, 2)),
-    )
-    for t in range(steps):
-        bits = whisker_bits(maze, pose, world, gap.whisker_range)
+    step = 0
+
+    def control(bits: np.ndarray) -> np.ndarray:
+        nonlocal state, step
         out, state = network.step(spec, w, bits.astype(np.float64), state)
         motors = network.motor_commands(spec, out)
         for i in range(b):
@@ -75,13 +71,13 @@ def run_colony(
                     state[i] = 0.0
                     detectors[i].reset()
             elif detectors[i].update([bool(x) for x in bits[i]], motors[i]) is not None:
-                alarms[i].append(t)
+                alarms[i].append(step)
                 plans[i] = list(escape)
-        out_p[:, t], out_w[:, t], out_m[:, t] = pose, bits, motors
-        moved = move(pose, motors, gap.motor_gain, world)
-        ok = ~body_hits_wall(maze, moved, world)
-        pose[ok] = moved[ok]
-    return out_p, out_w, out_m, alarms
+        step += 1
+        return motors
+
+    p, whiskers, motors = lockstep(load_maze("paper"), poses, gap, steps, control)
+    return p[:, :-1], whiskers, motors, alarms
 
 
 def calibration(

@@ -19,17 +19,18 @@ spinning or rocking in place. Steps before the first full window are not scored.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 import numpy as np
 
 from evorobotics import network
 from evorobotics.evaluate import draw_gap, start_poses
 from evorobotics.evolution import evolve
-from evorobotics.maze import load_maze
+from evorobotics.maze import Maze, load_maze
 from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import Gap, body_hits_wall, move, whisker_bits
 from robot_agent.stuck import StuckConfig, StuckDetector, detect
-from schemas.network import PRESETS
+from schemas.network import PRESETS, NetworkSpec
 from schemas.run import RunConfig
 from schemas.world import World
 
@@ -56,19 +57,55 @@ def evolved_like(whiskers: np.ndarray, memory: np.ndarray, traits: np.ndarray) -
     return motors
 
 
+Control = Callable[[np.ndarray], np.ndarray]
+"""A batch's controller step: whisker bits (B, 5) in, wheel commands (B, 2) out."""
+
+
+def lockstep(
+    maze: Maze, poses: np.ndarray, gap: Gap, steps: int, control: Control
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robots stepped with the simulator's sensing, motion and collision (a move into a wall
+    is refused): poses (B, T + 1, 3), each step's sensed at and the last, whiskers (B, T, 5)
+    and motors (B, T, 2)."""
+    params = World()
+    pose = poses.copy()  # a cached draw is read-only
+    robots = pose.shape[0]
+    p_all = np.zeros((robots, steps + 1, 3))
+    w_all = np.zeros((robots, steps, 5), dtype=np.uint8)
+    m_all = np.zeros((robots, steps, 2))
+    p_all[:, 0] = pose
+    for t in range(steps):
+        bits = whisker_bits(maze, pose, params, gap.whisker_range)
+        motors = control(bits)
+        moved = move(pose, motors, gap.motor_gain, params)
+        ok = ~body_hits_wall(maze, moved, params)
+        pose[ok] = moved[ok]
+        w_all[:, t], m_all[:, t], p_all[:, t + 1] = bits, motors, pose
+    return p_all, w_all, m_all
+
+
+def network_control(spec: NetworkSpec, weights: np.ndarray) -> Control:
+    """Networks of `weights` (B, n) stepping on the bits, from fresh state."""
+    state = network.reset(spec, weights.shape[0])
+
+    def control(bits: np.ndarray) -> np.ndarray:
+        nonlocal state
+        out, state = network.step(spec, weights, bits.astype(np.float64), state)
+        return network.motor_commands(spec, out)
+
+    return control
+
+
 def traces(
     maze_name: str, robots: int, steps: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Whiskers (B, T, 5), motors (B, T, 2), positions (B, T + 1, 2); half random, half evolved-like."""
     maze = load_maze(maze_name)
-    params = World()
-    poses = start_poses(maze, seed, 0, robots, params).copy()  # the cached draw is read-only
-    gap = draw_gap(seed, 0, robots)
+    poses = start_poses(maze, seed, 0, robots, World())
     spec = PRESETS["paper-best"]
     n_random = robots // 2
     gen = rng(seed, 0, Purpose.EVALUATION, 0)
-    weights = gen.uniform(-1.0, 1.0, (n_random, spec.weight_count))
-    state = network.reset(spec, n_random)
+    randoms = network_control(spec, gen.uniform(-1.0, 1.0, (n_random, spec.weight_count)))
     traits = np.column_stack(
         [
             gen.uniform(0.3, 1.0, robots - n_random),
@@ -77,21 +114,15 @@ def traces(
         ]
     )
     memory = np.zeros((robots - n_random, 2))
-    w_all = np.zeros((robots, steps, 5), dtype=np.uint8)
-    m_all = np.zeros((robots, steps, 2))
-    xy = np.zeros((robots, steps + 1, 2))
-    xy[:, 0] = poses[:, :2]
-    for t in range(steps):
-        bits = whisker_bits(maze, poses, params, gap.whisker_range)
-        out, state = network.step(spec, weights, bits[:n_random].astype(np.float64), state)
+
+    def control(bits: np.ndarray) -> np.ndarray:
         motors = np.empty((robots, 2))
-        motors[:n_random] = network.motor_commands(spec, out)
+        motors[:n_random] = randoms(bits[:n_random])
         motors[n_random:] = evolved_like(bits[n_random:], memory, traits)
-        moved = move(poses, motors, gap.motor_gain, params)
-        ok = ~body_hits_wall(maze, moved, params)
-        poses[ok] = moved[ok]
-        w_all[:, t], m_all[:, t], xy[:, t + 1] = bits, motors, poses[:, :2]
-    return w_all, m_all, xy
+        return motors
+
+    p, w, m = lockstep(maze, poses, draw_gap(seed, 0, robots), steps, control)
+    return w, m, p[:, :, :2]
 
 
 def champion_traces(
@@ -99,25 +130,12 @@ def champion_traces(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Traces of evolved champions (B, weights): whiskers, motors, positions as `traces`."""
     maze = load_maze(maze_name)
-    params = World()
     robots = weights.shape[0]
-    poses = start_poses(maze, seed, 1, robots, params).copy()
-    gap = draw_gap(seed, 1, robots) if gap_on else Gap.nominal(robots, params)
-    spec = PRESETS["paper-best"]
-    state = network.reset(spec, robots)
-    w_all = np.zeros((robots, steps, 5), dtype=np.uint8)
-    m_all = np.zeros((robots, steps, 2))
-    xy = np.zeros((robots, steps + 1, 2))
-    xy[:, 0] = poses[:, :2]
-    for t in range(steps):
-        bits = whisker_bits(maze, poses, params, gap.whisker_range)
-        out, state = network.step(spec, weights, bits.astype(np.float64), state)
-        motors = network.motor_commands(spec, out)
-        moved = move(poses, motors, gap.motor_gain, params)
-        ok = ~body_hits_wall(maze, moved, params)
-        poses[ok] = moved[ok]
-        w_all[:, t], m_all[:, t], xy[:, t + 1] = bits, motors, poses[:, :2]
-    return w_all, m_all, xy
+    poses = start_poses(maze, seed, 1, robots, World())
+    gap = draw_gap(seed, 1, robots) if gap_on else Gap.nominal(robots, World())
+    control = network_control(PRESETS["paper-best"], weights)
+    p, w, m = lockstep(maze, poses, gap, steps, control)
+    return w, m, p[:, :, :2]
 
 
 def alarms(whiskers: np.ndarray, motors: np.ndarray, cfg: StuckConfig) -> list[int]:

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from colony.options import NominalOpt
 from colony.run_inputs import ConfigError, maze_value, network_value, validation_message
 
 if TYPE_CHECKING:
@@ -289,13 +290,7 @@ def evolve_command(
         str | None,
         typer.Option(metavar="PRESET_OR_FILE", help="network preset or NetworkSpec JSON file"),
     ] = None,
-    nominal: Annotated[
-        bool,
-        typer.Option(
-            "--nominal",
-            help="evolve in the ideal world (reality_gap off) instead of under the paper's gap",
-        ),
-    ] = False,
+    nominal: NominalOpt = False,
     strategy: Annotated[
         str | None,
         typer.Option(

@@ -1,4 +1,5 @@
-"""Options shared by the process commands (`colony worker`, `colony agent`): zenoh and logs."""
+"""Options shared by several commands: zenoh and logs (`colony worker`, `colony agent`), the
+ideal world (`colony evolve`, `colony run start`)."""
 
 from __future__ import annotations
 
@@ -26,5 +27,12 @@ LogFormatOpt = Annotated[
     typer.Option(
         envvar="COLONY_LOG_FORMAT",
         help="text, or json: one JSON object per line carrying this process's id",
+    ),
+]
+NominalOpt = Annotated[
+    bool,
+    typer.Option(
+        "--nominal",
+        help="evolve in the ideal world (reality_gap off) instead of under the paper's gap",
     ),
 ]

@@ -22,6 +22,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from colony.options import NominalOpt
+
 if TYPE_CHECKING:
     from server.settings import Settings
 
@@ -425,13 +427,7 @@ def run_start(
             help="network preset (colony presets) or NetworkSpec JSON file (its spec is sent)",
         ),
     ] = None,
-    nominal: Annotated[
-        bool,
-        typer.Option(
-            "--nominal",
-            help="evolve in the ideal world (reality_gap off) instead of under the paper's gap",
-        ),
-    ] = False,
+    nominal: NominalOpt = False,
     job_size: Annotated[int | None, typer.Option("--job-size")] = None,
     strategy: Annotated[
         str | None,
@@ -899,8 +895,6 @@ def robot_calibrate(
 ) -> None:
     """Fit the robot's whisker ranges and wheel gains from its traces with poses (emulator or
     tracker, never odometry) in the lab maze, and store them with the robot."""
-    from datetime import datetime
-
     import numpy as np
 
     from evorobotics.calibrate import CalibrationError, calibrate

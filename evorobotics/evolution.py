@@ -250,8 +250,8 @@ def champion(
     winner's curse). The `config.validation.candidates` fittest on training are re-scored on
     the run's validation set (`validate`); the champion roams on the most validation trials,
     ties to the higher mean Eq 12 there, then to the better training rank. Its document
-    carries those figures, and its held-out test (`held_out`, with `validation.test_poses` > 0). With
-    validation off it is training rank 0.
+    carries those figures, and its held-out test (`held_out`, with `validation.test_poses` >
+    0). With validation off it is training rank 0.
     """
     v = config.validation
     genomes = np.asarray(genomes)

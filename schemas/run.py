@@ -232,8 +232,9 @@ class RunConfig(BaseModel):
     reality_gap: Literal["on", "off"] = Field(
         "on",
         description="'on': every trial's robot is drawn from the paper's reality gap (each "
-        "whisker 25-100 mm, each wheel +-15 %: `world`'s gap fields), in training, validation "
-        "and the champion's test; 'off': the ideal world of `world`'s nominal values",
+        "whisker 25-100 mm, each wheel +-15 %: `world`'s gap fields), in training after "
+        "`nominal_first`, in validation and in the champion's test; 'off': the ideal world of "
+        "`world`'s nominal values",
     )
     world: World = World()
     train_whisker_range: tuple[float, float] | None = Field(
