@@ -29,13 +29,17 @@ from stuck import lockstep
 
 from evorobotics import network
 from evorobotics.calibrate import CalibrationError, calibrate
-from evorobotics.evolution import evolve
+from evorobotics.evaluate import available_cores
+from evorobotics.evolution import evolve, rank_in_world
+from evorobotics.ga import rank
 from evorobotics.maze import load_maze
 from evorobotics.sim import Gap
+from evorobotics.stats import a12
 from robot_agent.agent import AgentSettings
 from robot_agent.sim_body import SimBody
 from robot_agent.stuck import StuckDetector
 from schemas.network import NetworkSpec
+from schemas.robots import RobotCalibration
 from schemas.run import RunConfig
 from schemas.world import World
 
@@ -46,14 +50,14 @@ TRUTH_RADIUS = 0.1
 def run_colony(
     spec: NetworkSpec, weights: np.ndarray, poses: np.ndarray, gap: Gap, steps: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[list[int]]]:
-    """Robots (B,) under the agent's loop: poses (B, T, 3) sensed at, whiskers (B, T, 5),
-    motors (B, T, 2), and each robot's alarm steps."""
+    """Robots (B,) under the agent's loop, running `weights` (n,) or each its own (B, n):
+    poses (B, T, 3) sensed at, whiskers (B, T, 5), motors (B, T, 2), each robot's alarm steps."""
     agent = AgentSettings(robot_id="bench")
     escape = [(-agent.escape_speed, -agent.escape_speed)] * agent.escape_back_steps + [
         (agent.escape_speed, -agent.escape_speed)
     ] * agent.escape_turn_steps
     b = poses.shape[0]
-    w = np.repeat(weights[None], b, axis=0)
+    w = weights if weights.ndim == 2 else np.repeat(weights[None], b, axis=0)
     state = network.reset(spec, b)
     detectors = [StuckDetector(agent.stuck) for _ in range(b)]
     plans: list[list[tuple[float, float]]] = [[] for _ in range(b)]
@@ -137,18 +141,79 @@ def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int
     )
 
 
+def loop_pays(seeds: int, minutes: float, threads: int) -> None:
+    """Per seed S: the champion of `colony evolve --seed S` on 8 robots with hidden physics
+    (`SimBody.create("paper", seed=100 + S, index=i)`) for `minutes` each, pushed blind; then
+    each robot calibrated from those traces and given the `fit` choice among the run's
+    `validation.candidates` fittest (`evolution.rank_in_world` in its calibrated world, as the
+    server ranks them), run again from the same start poses. A robot whose traces do not
+    calibrate keeps the champion (the server refuses `push --fit` for it). Replacement is off
+    in both: the figures are the pushed controllers' own stuck rates."""
+    world = World()
+    steps = round(minutes * 60 / world.dt)
+    maze = load_maze("paper")
+    blind_rates, fit_rates = [], []
+    print(f"the loop pays: 8 robots x {minutes:g} min per seed, blind champion, then fit:")
+    for seed in range(seeds):
+        config = RunConfig(seed=seed)
+        result = evolve(config, threads=threads)
+        spec, champion = result.best.spec, result.best.weights
+        candidates = result.genomes[rank(result.fitness)[: config.validation.candidates]]
+        bodies = [SimBody.create("paper", seed=100 + seed, index=i) for i in range(8)]
+        gap = Gap(
+            np.concatenate([np.broadcast_to(x.gap.whisker_range, (1, 5)) for x in bodies]),
+            np.concatenate([x.gap.motor_gain for x in bodies]),
+        )
+        poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
+        p, w, m, blind = run_colony(spec, champion, poses, gap, steps)
+        picks, kept = [], 0
+        for i in range(8):
+            try:
+                fit = calibrate(maze, p[i], w[i], m[i], world)
+            except CalibrationError:
+                picks.append(champion)
+                kept += 1
+                continue
+            there = RobotCalibration.model_validate(fit.as_dict()).world(world)
+            order, _ = rank_in_world(config, candidates, there, threads=threads)
+            picks.append(candidates[order[0]])
+        _, _, _, after = run_colony(spec, np.stack(picks), poses, gap, steps)
+        hours = 8 * steps * world.dt / 3600
+        blind_rates.append(sum(map(len, blind)) / hours)
+        fit_rates.append(sum(map(len, after)) / hours)
+        print(
+            f"  seed {seed}: {blind_rates[-1]:6.1f} -> {fit_rates[-1]:6.1f} stuck events per "
+            f"robot-hour (per robot {[len(a) for a in blind]} -> {[len(a) for a in after]}; "
+            f"{kept} not calibrated, kept the champion)"
+        )
+    b, f = np.array(blind_rates), np.array(fit_rates)
+    ratio = f.sum() / b.sum()
+    boot = np.random.default_rng(0).integers(0, len(b), (2000, len(b)))
+    low, high = np.quantile(
+        f[boot].sum(axis=1) / np.maximum(b[boot].sum(axis=1), 1e-9), [0.025, 0.975]
+    )
+    print(
+        f"  over {seeds} seeds: {b.mean():.1f} -> {f.mean():.1f} per robot-hour, ratio "
+        f"{ratio:.2f} (95 % bootstrap CI {low:.2f}-{high:.2f}; target <= 0.20); fit better on "
+        f"{int((f < b).sum())}, worse on {int((f > b).sum())} seeds; A12 {a12(blind_rates, fit_rates):.2f}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robots", type=int, default=10)
     parser.add_argument("--horizons", type=int, nargs="+", default=[1200, 6000])
     parser.add_argument("--hours", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=10, help="runs for the loop-pays figure")
+    parser.add_argument("--minutes", type=float, default=10.0)
     args = parser.parse_args()
     champion = evolve(RunConfig()).best
     print(f"the default run's champion {champion.sha256[:12]}, maze 'paper'")
     for horizon in args.horizons:
         calibration(champion.spec, champion.weights, args.robots, horizon, args.seed)
     false_alarms(champion.spec, champion.weights, args.hours, args.seed)
+    loop_pays(args.seeds, args.minutes, available_cores())
 
 
 if __name__ == "__main__":

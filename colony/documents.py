@@ -52,9 +52,7 @@ def robot_world(server: str, robot: str, world: World | None) -> World:
         fit = CalibrationOut.model_validate_json(body).calibration
     except ValidationError as exc:
         raise ValueError(f"robot {robot}'s calibration: {exc.errors()[0]['msg']}") from None
-    return (world or World()).model_copy(
-        update={"whisker_range": fit.whisker_range, "motor_gain": fit.motor_gain}
-    )
+    return fit.world(world or World())
 
 
 def load_document(

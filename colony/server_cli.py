@@ -821,7 +821,7 @@ def robot_show(
     typer.echo(f"{'last seen':22s} {ago(detail['last_seen'])}")
 
 
-POLICY_CHOICES = ("off", "rank", "archive", "colony")
+POLICY_CHOICES = ("off", "rank", "archive", "fit", "colony")
 """`colony robot replacement` values; `colony` clears the robot's own policy."""
 
 
@@ -829,7 +829,9 @@ POLICY_CHOICES = ("off", "rank", "archive", "colony")
 def robot_replacement(
     ctx: typer.Context,
     robot: str,
-    policy: Annotated[str, typer.Argument(help="off, rank, or colony (follow the colony's)")],
+    policy: Annotated[
+        str, typer.Argument(help="off, rank, archive, fit, or colony (follow the colony's)")
+    ],
     server: ServerOpt = DEFAULT_SERVER,
     token: TokenOpt = None,
     as_json: JsonOpt = False,
@@ -988,6 +990,14 @@ def robot_push(
         int | None,
         typer.Option(help="entry of the run's archive (colony run archive; QD runs)"),
     ] = None,
+    fit: Annotated[
+        bool,
+        typer.Option(
+            "--fit",
+            help="the run's candidate that roams most in the robot's calibrated world "
+            "(colony robot calibrate)",
+        ),
+    ] = False,
     sha: Annotated[
         str | None,
         typer.Option("--sha", help="push a stored controller: its sha256 or a prefix of 8+ digits"),
@@ -997,15 +1007,15 @@ def robot_push(
     as_json: JsonOpt = False,
 ) -> None:
     """Push a run's best (--run: its validated champion once completed), a training rank of its
-    latest generation (--run --rank N), an entry of its archive (--run --elite K), or a stored
-    controller (--sha).
+    latest generation (--run --rank N), an entry of its archive (--run --elite K), its candidate
+    that roams most in the robot's calibrated world (--run --fit), or a stored controller (--sha).
 
     Exit status 1 unless the robot accepted it."""
     if (run is None) == (sha is None):
         raise typer.BadParameter("give exactly one of --run or --sha")
     body: dict[str, Any] = {"sha256": sha}
     if run is not None:
-        body = {"run_id": run, "rank": rank, "elite": elite}
+        body = {"run_id": run, "rank": rank, "elite": elite, "fit": fit}
     _pushed(
         call_server(ctx, server, token, "POST", f"/api/robots/{robot}/controller", body), as_json
     )

@@ -38,7 +38,15 @@ from evorobotics.seeds import Purpose
 from evorobotics.sim import Gap, simulate
 from evorobotics.stats import wilson
 from evorobotics.strategies import Archive, make_strategy
-from schemas.run import HeldOutScore, Proportion, RunConfig, ValidationScore, WorldScore
+from schemas.run import (
+    HeldOutScore,
+    Proportion,
+    RunConfig,
+    ValidationConfig,
+    ValidationScore,
+    WorldScore,
+)
+from schemas.world import World
 
 
 def job_slices(population: int, job_size: int) -> list[tuple[int, int]]:
@@ -175,6 +183,20 @@ def validate(config: RunConfig, genomes: np.ndarray, *, threads: int = 1) -> Val
     parts = map_slices(scored, thread_slices(len(g), threads, most), threads)
     score, stuck, roaming = (np.concatenate([p[i] for p in parts]) for i in range(3))
     return Validated(score, stuck, roaming)
+
+
+def rank_in_world(
+    config: RunConfig, genomes: np.ndarray, world: World, *, threads: int = 1
+) -> tuple[np.ndarray, Validated]:
+    """A run's candidates (k, n_weights) ranked for one robot, best first, with their scores:
+    run from the run's validation poses in `world` (a robot's calibrated world, no reality gap
+    drawn on top), most roaming trials first, ties to the higher mean Eq 12, then to candidate
+    order. The `fit` replacement policy's order (docs/robots.md); a run without validation
+    uses the default validation set."""
+    v = config.validation if config.validation.poses else ValidationConfig(test_poses=0)
+    there = config.model_copy(update={"world": world, "reality_gap": "off", "validation": v})
+    scored = validate(there, genomes, threads=threads)
+    return np.lexsort((np.arange(len(scored.score)), -scored.score, -scored.roaming)), scored
 
 
 def _world_score(

@@ -31,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES, MAX_TRACE_SAMPLES
 from schemas.wire import NAME_PATTERN, PROTOCOL, WireError, decode_frame, encode_frame
+from schemas.world import World
 
 KEY_ROBOTS_ALIVE = "evocolony/robots/*/alive"
 """Liveliness key expression matching every robot's token."""
@@ -385,11 +386,12 @@ def decode_message(payload: bytes) -> RobotMessage:
 
 # ---------------------------------------------------------------------------- REST bodies
 
-ReplacementPolicy = Literal["off", "rank", "archive"]
+ReplacementPolicy = Literal["off", "rank", "archive", "fit"]
 """What a stuck robot gets (docs/robots.md): `off` nothing (its scripted escape carries on and
 its controller resumes), `rank` the next rank of the run its controller came from, `archive`
 the elite of that run's archive (map-elites, cma-me, novelty) whose behaviour differs most from
-the stuck controller's."""
+the stuck controller's, `fit` the candidate of that run that roams most in the robot's
+calibrated world."""
 DEFAULT_REPLACEMENT: ReplacementPolicy = "rank"
 PolicySource = Literal["robot", "colony"]
 """Where a robot's effective replacement policy comes from: its own setting or the colony's."""
@@ -447,14 +449,20 @@ class PushBody(_Model):
         "(map-elites, cma-me, novelty)",
     )
 
+    fit: bool = Field(
+        False,
+        description="the run's candidate (validated ranks and archive elites) that roams most "
+        "in this robot's calibrated world",
+    )
+
     @model_validator(mode="after")
     def _one_choice(self) -> PushBody:
         if (self.sha256 is None) == (self.run_id is None):
             raise ValueError("give exactly one of sha256 or run_id")
-        if self.run_id is None and (self.rank is not None or self.elite is not None):
-            raise ValueError("rank and elite choose within a run: give run_id")
-        if self.rank is not None and self.elite is not None:
-            raise ValueError("give at most one of rank or elite")
+        if self.run_id is None and (self.rank is not None or self.elite is not None or self.fit):
+            raise ValueError("rank, elite and fit choose within a run: give run_id")
+        if (self.rank is not None) + (self.elite is not None) + self.fit > 1:
+            raise ValueError("give at most one of rank, elite or fit")
         return self
 
 
@@ -462,7 +470,7 @@ class ReplacementBody(_Model):
     """PUT /api/robots/{id}/replacement: the robot's own policy, or null for the colony's."""
 
     policy: ReplacementPolicy | None = Field(
-        description="off, rank, or null: follow the colony's setting"
+        description="off, rank, archive, fit, or null: follow the colony's setting"
     )
 
 
@@ -613,6 +621,12 @@ class RobotCalibration(_Model):
     uncertainty: CalibrationUncertainty
     samples: int = Field(ge=100, le=10**8)
     residuals: CalibrationResiduals
+
+    def world(self, base: World) -> World:
+        """`base` with this robot's whisker ranges and wheel gains."""
+        return base.model_copy(
+            update={"whisker_range": self.whisker_range, "motor_gain": self.motor_gain}
+        )
 
 
 class CalibrationOut(_Model):

@@ -11,7 +11,10 @@ same run whose controller this robot has not failed with in its last `recent_fai
 events (its current one included); a controller that came from no run, or a run whose every
 individual failed recently on this robot, gets none. `archive`: the elite of that run's
 archive farthest in behaviour from the stuck controller's entry (the fittest when it is not an
-elite), skipping recent failures; none when the run keeps no archive. Without a replacement
+elite), skipping recent failures; none when the run keeps no archive. `fit`: the run's
+candidate (validated training ranks and archive elites) that roams most in the robot's
+calibrated world, ranked once per calibration and generation on a thread of its own (`rank`'s
+choice meanwhile, or for an uncalibrated robot). Without a replacement
 the agent's scripted escape carries on and its controller resumes. Each stuck event keeps the policy that served it,
 and the next stuck event of the robot fills in how many steps the previous one's outcome ran.
 
@@ -29,6 +32,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import Any, get_args
@@ -43,6 +47,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from evorobotics import network
 from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.errors import ControllerDocumentError
+from evorobotics.evolution import rank_in_world
 from evorobotics.strategies import Archive
 from schemas.robots import (
     DEFAULT_REPLACEMENT,
@@ -77,7 +82,7 @@ from schemas.robots import (
     encode_message,
     robot_from_key,
 )
-from schemas.run import RunConfig
+from schemas.run import RunConfig, ValidationConfig
 from schemas.wire import WireError
 from schemas.world import World
 from server import crud
@@ -90,6 +95,41 @@ from server.signing import Signer
 log = logging.getLogger(__name__)
 
 POLICIES: tuple[ReplacementPolicy, ...] = get_args(ReplacementPolicy)
+
+
+FIT_RANKINGS_KEPT = 32
+"""`fit` rankings kept in memory, one per (robot, calibration, run, generation)."""
+
+
+@dataclass(frozen=True)
+class FitCandidate:
+    """One of a run's candidates scored in a robot's calibrated world."""
+
+    sha256: str
+    rank: int | None
+    """Its training rank in the run's latest generation, or None for an archive elite."""
+    elite: int | None
+    """Its entry in the run's archive, or None for a training rank."""
+    roaming: float
+    score: float
+
+
+@dataclass(frozen=True)
+class FitRanking:
+    """A run's candidates ranked for one robot by the `fit` policy, best first."""
+
+    robot: str
+    run_id: int
+    poses: int
+    steps: int
+    candidates: tuple[FitCandidate, ...]
+
+    def reason(self, c: FitCandidate) -> str:
+        which = f"rank {c.rank}" if c.elite is None else f"elite {c.elite}"
+        return (
+            f"{which} of run {self.run_id}, roaming on {100 * c.roaming:.0f} % of {self.poses} "
+            f"trials of {self.steps} steps in robot {self.robot}'s calibrated world"
+        )
 
 
 class RobotOfflineError(ServerError):
@@ -214,6 +254,9 @@ class RobotService:
         """Per robot: stuck-request tokens left and when they were counted (service thread)."""
         self._entities: list[Any] = []
         self._thread: threading.Thread | None = None
+        self._ranker = ThreadPoolExecutor(1, thread_name_prefix="fit-ranking")
+        """Scores candidates for the `fit` policy off the service thread."""
+        self._fit_rankings: dict[tuple[str, str, int, int], Future[FitRanking]] = {}
         self.traces_received = 0
         """Trace samples stored (duplicates excluded); for benchmarks."""
 
@@ -249,6 +292,7 @@ class RobotService:
             if self._thread.is_alive():
                 raise RuntimeError("robot service thread did not stop")
             self._thread = None
+        self._ranker.shutdown(wait=False, cancel_futures=True)
 
     # ------------------------------------------------------------------ service thread
 
@@ -633,17 +677,142 @@ class RobotService:
         )
         if policy == "archive":
             return self._pick_elite(db, failed.run_id, request.sha256, recent)
-        run = db.get(Run, failed.run_id)
+        if policy == "fit":
+            try:
+                ranking = self._fit_ranking(db, request.robot, failed.run_id, wait=False)
+            except NotFoundError as exc:
+                ranking, pending = None, str(exc)
+            else:
+                pending = "the fit ranking is being computed"
+            if ranking is not None:
+                return self._pick_fit(db, ranking, recent)
+            doc, reason = self._pick_rank(db, failed.run_id, recent)
+            return doc, f"{pending}; meanwhile {reason}"
+        return self._pick_rank(db, failed.run_id, recent)
+
+    def _pick_rank(
+        self, db: Session, run_id: int, recent: set[str | None]
+    ) -> tuple[ControllerDocument | None, str]:
+        """The run's validated champion, else its fittest training rank, not failed recently."""
+        run = db.get(Run, run_id)
         best = None if run is None else crud.champion(db, run=run)
         if best is not None and best.sha256 not in recent:  # chosen on unseen poses, tested
             return ControllerDocument.from_json(best.document), (
-                f"the validated champion of run {failed.run_id}"
+                f"the validated champion of run {run_id}"
             )
-        for rank in range(_population(db, failed.run_id)):
-            doc = ranked_document(db, failed.run_id, rank)
+        for rank in range(_population(db, run_id)):
+            doc = ranked_document(db, run_id, rank)
             if doc.sha256 not in recent:
-                return doc, f"rank {rank} of run {failed.run_id}"
-        return None, f"every individual of run {failed.run_id} failed recently on this robot"
+                return doc, f"rank {rank} of run {run_id}"
+        return None, f"every individual of run {run_id} failed recently on this robot"
+
+    def _pick_fit(
+        self, db: Session, ranking: FitRanking, recent: set[str | None]
+    ) -> tuple[ControllerDocument | None, str]:
+        """The ranking's first candidate that did not fail recently on this robot."""
+        for candidate in ranking.candidates:
+            if candidate.sha256 not in recent:
+                return self._fit_document(db, ranking, candidate), ranking.reason(candidate)
+        return None, (
+            f"every candidate of run {ranking.run_id} failed recently on robot {ranking.robot}"
+        )
+
+    def _fit_document(
+        self, db: Session, ranking: FitRanking, candidate: FitCandidate
+    ) -> ControllerDocument:
+        """The candidate's document, stored: the champion's own (with its validation and test)
+        when it is the champion."""
+        run = db.get(Run, ranking.run_id)
+        best = None if run is None else crud.champion(db, run=run)
+        if best is not None and best.sha256 == candidate.sha256:
+            return ControllerDocument.from_json(best.document)
+        if candidate.elite is None:
+            return ranked_document(db, ranking.run_id, candidate.rank or 0)
+        generations, doc = self._elite(ranking.run_id, candidate.elite)
+        if doc.sha256 != candidate.sha256:  # the archive moved on since the ranking
+            raise NotFoundError(f"run {ranking.run_id}'s archive changed: ask again")
+        crud.put_controller(
+            db,
+            sha256=doc.sha256,
+            document=doc.to_json(),
+            run_id=ranking.run_id,
+            generation=generations,
+            fitness=doc.fitness,
+        )
+        return doc
+
+    def _fit_ranking(
+        self, db: Session, robot_id: str, run_id: int, *, wait: bool
+    ) -> FitRanking | None:
+        """The run's candidates ranked in the robot's calibrated world, computed once per
+        calibration and committed generation on the ranking thread; None while it is being
+        computed unless `wait`. NotFoundError: no robot, no calibration, no generation."""
+        robot = db.get(Robot, robot_id)
+        if robot is None:
+            raise NotFoundError(f"no robot with id {robot_id}")
+        if robot.calibration is None or robot.calibrated_at is None:
+            raise NotFoundError(f"robot {robot_id} has no calibration (colony robot calibrate)")
+        run = db.get(Run, run_id)
+        if run is None:
+            raise NotFoundError(f"no run with id {run_id}")
+        latest = crud.latest_generation(db, run_id=run_id)
+        if latest is None:
+            raise NotFoundError(f"run {run_id} has no completed generation yet")
+        key = (robot_id, robot.calibrated_at.isoformat(), run_id, latest.generation)
+        calibration = RobotCalibration.model_validate_json(robot.calibration)
+        with self._lock:
+            future = self._fit_rankings.get(key)
+            if future is None:
+                future = self._ranker.submit(
+                    self._rank_fit, robot_id, run_id, latest.generation, calibration
+                )
+                self._fit_rankings[key] = future
+                while len(self._fit_rankings) > FIT_RANKINGS_KEPT:
+                    self._fit_rankings.pop(next(iter(self._fit_rankings)))
+        if not wait and not future.done():
+            return None
+        return future.result()
+
+    def _rank_fit(
+        self, robot_id: str, run_id: int, generation: int, calibration: RobotCalibration
+    ) -> FitRanking:
+        """Score the run's candidates on its validation poses in the robot's calibrated world
+        (no reality gap): its `validation.candidates` fittest training ranks of `generation`
+        and as many of its archive's fittest elites; best first by roaming, then mean Eq 12,
+        then candidate order."""
+        with self.sessions() as db:
+            run = db.get(Run, run_id)
+            assert run is not None  # checked by the caller; runs are never deleted under it
+            config = RunConfig.model_validate_json(run.config)
+            _, genomes = crud.ranked(db, run_id=run_id, generation=generation)
+        v = config.validation if config.validation.poses else ValidationConfig(test_poses=0)
+        top = np.asarray(genomes[: v.candidates])
+        labels: list[tuple[int | None, int | None]] = [(r, None) for r in range(len(top))]
+        if self._archives is not None:
+            try:
+                _, _, archive = self._archives(run_id)
+            except NotFoundError:
+                pass  # a strategy without an archive
+            else:
+                fittest = np.argsort(-np.nan_to_num(archive.fitness, nan=-np.inf), kind="stable")
+                elites = [int(k) for k in fittest[: v.candidates]]
+                top = np.concatenate([top, archive.genomes[elites]])
+                labels += [(None, k) for k in elites]
+        order, scored = rank_in_world(config, top, calibration.world(config.world))
+        seen: set[str] = set()
+        candidates = []
+        for k in (int(i) for i in order):
+            sha = controller_sha256(config.network_spec, top[k])
+            if sha not in seen:
+                seen.add(sha)
+                rank, elite = labels[k]
+                roaming, score = float(scored.roaming[k]), float(scored.score[k])
+                candidates.append(FitCandidate(sha, rank, elite, roaming, score))
+        log.info(
+            "robot %s: run %d's %d candidates ranked in its calibrated world; best roams %.0f %%",
+            robot_id, run_id, len(candidates), 100 * candidates[0].roaming,
+        )  # fmt: skip
+        return FitRanking(robot_id, run_id, v.poses, v.steps, tuple(candidates))
 
     def _pick_elite(
         self, db: Session, run_id: int, failed: str | None, recent: set[str | None]
@@ -802,12 +971,14 @@ class RobotService:
         run_id: int | None = None,
         rank: int | None = None,
         elite: int | None = None,
+        fit: bool = False,
         timeout: float | None = None,
     ) -> PushOut:
         """Push a stored controller (sha256) or a run's controller; wait for the ack.
 
         A run's `rank` is that training rank of its latest committed generation, its `elite`
-        that entry of its archive (`RunManager.archive`); without either, the run's best: its
+        that entry of its archive (`RunManager.archive`), `fit` its candidate that roams most in
+        the robot's calibrated world (waiting for the ranking); without any, the run's best: its
         validated champion once completed, else training rank 0."""
         if sha256 is not None and run_id is not None:
             raise ValueError("give exactly one of sha256 or run_id")
@@ -824,8 +995,14 @@ class RobotService:
                 run = db.get(Run, run_id)
                 if run is None:
                     raise NotFoundError(f"no run with id {run_id}")
-                best = crud.champion(db, run=run) if rank is None and elite is None else None
-                if chosen_elite is not None:
+                plain = rank is None and elite is None and not fit
+                best = crud.champion(db, run=run) if plain else None
+                if fit:
+                    ranking = self._fit_ranking(db, robot_id, run_id, wait=True)
+                    assert ranking is not None  # waited for
+                    doc = self._fit_document(db, ranking, ranking.candidates[0])
+                    text, sha = doc.to_json(), doc.sha256
+                elif chosen_elite is not None:
                     generation, doc = chosen_elite
                     crud.put_controller(
                         db,

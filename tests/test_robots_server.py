@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 
 from colony.cli import app as cli
 from evorobotics import network
-from evorobotics.document import ControllerDocument
+from evorobotics.document import ControllerDocument, controller_sha256
 from robot_agent.stuck import StuckConfig
 from schemas.network import NetworkSpec
 from schemas.robots import (
@@ -28,6 +28,7 @@ from schemas.robots import (
     ControllerPush,
     PushAck,
     RobotStatus,
+    StuckEventOut,
     TraceBatch,
     ack_key,
     command_key,
@@ -441,7 +442,7 @@ def test_archive_policy_replaces_with_an_elite_and_pushes_reach_archive_entries(
             past = httpx.post(path, json={"run_id": run_id, "elite": len(archive)}, timeout=WAIT)
             assert past.status_code == 404 and f"has {len(archive)} entries" in past.text
             both = httpx.post(path, json={"run_id": run_id, "elite": 0, "rank": 0})
-            assert both.status_code == 422 and "at most one of rank or elite" in both.text
+            assert both.status_code == 422 and "at most one of rank, elite or fit" in both.text
 
 
 def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
@@ -551,3 +552,89 @@ def test_a_robot_flooding_stuck_requests_is_rate_limited_and_its_ledger_trimmed(
         assert answers[:6] == [True] * 6 and not any(answers[7:])  # 0.5 a second refills slowly
         ledger = link.service.stuck_events("r-flood").events
         assert [e.step for e in ledger] == list(range(allowed - 4, allowed))
+
+
+def test_fit_policy_serves_the_candidate_that_roams_most_in_the_robots_calibrated_world(
+    colony: Colony, tmp_path: Path
+) -> None:
+    """Policy `fit`: uncalibrated, a stuck robot gets the `rank` choice, saying why; once
+    calibrated, `colony robot push --run --fit` and its next stuck request get the run's
+    candidate that roams most on the validation poses in the robot's calibrated world (here
+    not the champion, which was chosen in the nominal world)."""
+    from evorobotics.evolution import validate
+    from schemas.robots import RobotCalibration
+    from schemas.run import RunConfig
+
+    fit = {
+        "whisker_range": [0.025, 0.03, 0.03, 0.03, 0.025],  # short whiskers, slow right wheel
+        "motor_gain": [1.0, 0.85],
+        "uncertainty": {"whisker_range": [0.001] * 5, "motor_gain": [0.001, 0.001]},
+        "samples": 500,
+        "residuals": {"moving_steps": 400, "pose_rms_m": 0.0, "whisker_disagreements": [0] * 5},
+    }
+    validation = {"poses": 20, "steps": 400, "candidates": 16, "test_poses": 0}
+    run_id = completed_run(
+        colony.url,
+        {"population": 16, "generations": 6, "steps": 200, "job_size": 8, "validation": validation},
+    )
+    wall = constant_drive(0.87, 0.87, NetworkSpec())  # stored by no other test, so of this run
+    save(tmp_path, wall)
+    stuck = StuckConfig(contact_steps=5)
+    with robot_link(colony, settings=RobotSettings(push_timeout=5.0, replacement="fit")) as link:
+        with link.service.sessions.begin() as db:
+            run = db.get(Run, run_id)
+            assert run is not None and run.champion_sha256 is not None
+            config = RunConfig.model_validate_json(run.config)
+            latest = crud.latest_generation(db, run_id=run_id)
+            assert latest is not None
+            _, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation)
+            crud.put_controller(
+                db,
+                sha256=wall.sha256,
+                document=wall.to_json(),
+                run_id=run_id,
+                generation=None,
+                fitness=None,
+            )
+        world = RobotCalibration.model_validate(fit).world(config.world)
+        calibrated = config.model_copy(update={"world": world, "reality_gap": "off"})
+        scored = validate(calibrated, genomes)  # roaming first, then mean Eq 12
+        key = {controller_sha256(config.network_spec, g): (float(r), float(s))
+               for g, r, s in zip(genomes, scored.roaming, scored.score, strict=True)}  # fmt: skip
+        with virtual_robot("r-fit", link, tmp_path, stuck=stuck):
+            assert eventually(lambda: link.service.is_online("r-fit"))
+            assert eventually(lambda: bool(link.service.stuck_events("r-fit").events), WAIT)
+            first = link.service.stuck_events("r-fit").events[0]
+            assert first.policy == "fit" and first.replacement_sha256 == run.champion_sha256
+            assert first.answer is not None and "has no calibration" in first.answer
+            assert "meanwhile the validated champion" in first.answer
+
+            push = ["robot", "push", "r-fit", "--run", str(run_id), "--fit"]
+            refused = CliRunner().invoke(cli, [*push, "--server", colony.url])
+            assert refused.exit_code != 0 and "has no calibration" in refused.output
+            posted = httpx.post(f"{colony.url}/api/robots/r-fit/calibration", json=fit)
+            assert posted.status_code == 200, posted.text
+            done = CliRunner().invoke(cli, [*push, "--server", colony.url, "--json"])
+            assert done.exit_code == 0, done.output
+            pushed = json.loads(done.stdout)["sha256"]
+            assert key[pushed] == max(key.values()) and pushed != run.champion_sha256
+
+            pushed_wall = httpx.post(
+                f"{colony.url}/api/robots/r-fit/controller", json={"sha256": wall.sha256},
+                timeout=WAIT,
+            ).json()  # fmt: skip
+            assert pushed_wall["accepted"]
+            seen = len(link.service.stuck_events("r-fit").events)
+
+            def stuck_with_wall() -> list[StuckEventOut]:
+                events = link.service.stuck_events("r-fit").events[seen:]
+                return [e for e in events if e.controller_sha256 == wall.sha256]
+
+            assert eventually(lambda: bool(stuck_with_wall()), WAIT)
+        events = link.service.stuck_events("r-fit").events
+    event = stuck_with_wall()[0]
+    before = [e.controller_sha256 for e in events if e.id <= event.id][-5:]
+    allowed = {sha: k for sha, k in key.items() if sha not in before}
+    assert event.answer is not None and "calibrated world" in event.answer, event.answer
+    assert event.replacement_sha256 is not None
+    assert key[event.replacement_sha256] == max(allowed.values())

@@ -62,13 +62,19 @@ def forget_robot(robots: RobotsDep, robot_id: str) -> Response:
 
 @router.post("/{robot_id}/controller", response_model=PushOut)
 def push_controller(robots: RobotsDep, robot_id: str, body: PushBody) -> PushOut:
-    """Push a stored controller (`sha256`) or a run's: its best without `rank` (the validated
-    champion once completed, else training rank 0), or that training rank of its latest
-    generation."""
+    """Push a stored controller (`sha256`) or a run's: its best without `rank`, `elite` or `fit`
+    (the validated champion once completed, else training rank 0), that training rank of its
+    latest generation, that archive entry, or its candidate that roams most in the robot's
+    calibrated world."""
     if (body.sha256 is None) == (body.run_id is None):
         raise HTTPException(422, detail="body: give exactly one of sha256 or run_id")
     return robots.push(
-        robot_id, sha256=body.sha256, run_id=body.run_id, rank=body.rank, elite=body.elite
+        robot_id,
+        sha256=body.sha256,
+        run_id=body.run_id,
+        rank=body.rank,
+        elite=body.elite,
+        fit=body.fit,
     )
 
 

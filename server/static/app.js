@@ -793,7 +793,7 @@ function makeCard(id) {
   });
   const policy = el("select", { "data-testid": `policy-${id}`, "aria-label": "replacement policy" },
     el("option", { value: "", text: "the colony's" }),
-    ...["off", "rank", "archive"].map((p) => el("option", { value: p, text: p })));
+    ...["off", "rank", "archive", "fit"].map((p) => el("option", { value: p, text: p })));
   const policyMessage = el("span", { class: "message", "data-testid": `policy-result-${id}` });
   policy.addEventListener("change", () => setPolicy(id, policy, policyMessage));
   const details = el("button", { "data-testid": `details-${id}`, text: "Timeline" });
