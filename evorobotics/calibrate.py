@@ -91,7 +91,10 @@ def touch_distances(maze: Maze, poses: np.ndarray, world: World) -> np.ndarray:
 
 def _threshold(distance: np.ndarray, bits: np.ndarray) -> tuple[float, float, int]:
     """The range that reads the most bits right (bit 1 iff distance <= range): the middle of
-    the widest gap among the best, half that gap, and the bits it still reads wrong."""
+    the widest gap among the best, and the bits it still reads wrong. Its uncertainty is half
+    that gap, or, when some bits disagree with every range (a bit read a step off its pose),
+    as far as any range reading at most twice as many bits wrong reaches: those bits could
+    as well be the noise."""
     order = np.argsort(distance, kind="stable")
     d, b = distance[order], bits[order].astype(np.int64)
     # a threshold between d[i-1] and d[i] reads the first i as 1: wrong are the 0s among them
@@ -104,7 +107,10 @@ def _threshold(distance: np.ndarray, bits: np.ndarray) -> tuple[float, float, in
     best = np.flatnonzero(wrong == wrong.min())
     i = int(best[np.argmax(gaps[best])])
     low, high = edges[i], min(edges[i + 1], MAX_RANGE)
-    return float((low + high) * 0.5), float((high - low) * 0.5), int(wrong[i])
+    middle = (low + high) * 0.5
+    near = np.flatnonzero(wrong <= 2 * wrong.min())
+    reach = max(middle - edges[near].min(), min(edges[near + 1].max(), MAX_RANGE) - middle)
+    return float(middle), float(reach), int(wrong[i])
 
 
 def calibrate(
