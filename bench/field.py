@@ -1,4 +1,5 @@
-"""The field loop's figures: calibration from traces, and false stuck alarms per robot-hour.
+"""The field loop's figures: calibration from traces, false stuck alarms per robot-hour, and
+what calibrate-then-`fit` does to a colony's stuck events.
 
 Emulated robots run as the agent runs them (robot_agent.agent): the controller at every step,
 the agent's stuck detector (`StuckConfig()`), and on an alarm its scripted escape (8 steps
@@ -15,8 +16,13 @@ refused, as robot_agent.sim_body does. The controller is the default run's champ
 - False alarms: 8 robots in the nominal world for `--hours` (1) hour each: alarms per
   robot-hour, and those raised while the robot was not stuck (it moved more than 0.1 m in the
   40 steps before: docs/stuck-detection.md's truth). Target: at most 1.
+- The loop pays (`loop_pays`): per seed, 8 robots with hidden gap physics run the champion
+  pushed blind for `--minutes` (10), then the `fit` choice after calibrating from those traces.
+  Stuck events per robot-hour before and after, their ratio over `--seeds` (10) with a
+  bootstrap CI over seeds. Target: at most 1/5.
 
     .venv/bin/python bench/field.py [--robots 10] [--horizons 1200 6000] [--hours 1] [--seed 3]
+        [--seeds 10] [--minutes 10] [--candidates 100]
 """
 
 from __future__ import annotations
@@ -141,11 +147,11 @@ def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int
     )
 
 
-def loop_pays(seeds: int, minutes: float, threads: int) -> None:
+def loop_pays(seeds: int, minutes: float, candidates: int, threads: int) -> None:
     """Per seed S: the champion of `colony evolve --seed S` on 8 robots with hidden physics
     (`SimBody.create("paper", seed=100 + S, index=i)`) for `minutes` each, pushed blind; then
     each robot calibrated from those traces and given the `fit` choice among the run's
-    `validation.candidates` fittest (`evolution.rank_in_world` in its calibrated world, as the
+    `candidates` fittest (`evolution.rank_in_world` in its calibrated world, as the
     server ranks them), run again from the same start poses. A robot whose traces do not
     calibrate keeps the champion (the server refuses `push --fit` for it). Replacement is off
     in both: the figures are the pushed controllers' own stuck rates."""
@@ -158,7 +164,7 @@ def loop_pays(seeds: int, minutes: float, threads: int) -> None:
         config = RunConfig(seed=seed)
         result = evolve(config, threads=threads)
         spec, champion = result.best.spec, result.best.weights
-        candidates = result.genomes[rank(result.fitness)[: config.validation.candidates]]
+        top = result.genomes[rank(result.fitness)[:candidates]]
         bodies = [SimBody.create("paper", seed=100 + seed, index=i) for i in range(8)]
         gap = Gap(
             np.concatenate([np.broadcast_to(x.gap.whisker_range, (1, 5)) for x in bodies]),
@@ -175,8 +181,8 @@ def loop_pays(seeds: int, minutes: float, threads: int) -> None:
                 kept += 1
                 continue
             there = RobotCalibration.model_validate(fit.as_dict()).world(world)
-            order, _ = rank_in_world(config, candidates, there, threads=threads)
-            picks.append(candidates[order[0]])
+            order, _ = rank_in_world(config, top, there, threads=threads)
+            picks.append(top[order[0]])
         _, _, _, after = run_colony(spec, np.stack(picks), poses, gap, steps)
         hours = 8 * steps * world.dt / 3600
         blind_rates.append(sum(map(len, blind)) / hours)
@@ -207,13 +213,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--seeds", type=int, default=10, help="runs for the loop-pays figure")
     parser.add_argument("--minutes", type=float, default=10.0)
+    parser.add_argument(
+        "--candidates", type=int, default=RunConfig().validation.candidates, help="fit among"
+    )
     args = parser.parse_args()
     champion = evolve(RunConfig()).best
     print(f"the default run's champion {champion.sha256[:12]}, maze 'paper'")
     for horizon in args.horizons:
         calibration(champion.spec, champion.weights, args.robots, horizon, args.seed)
     false_alarms(champion.spec, champion.weights, args.hours, args.seed)
-    loop_pays(args.seeds, args.minutes, available_cores())
+    loop_pays(args.seeds, args.minutes, args.candidates, available_cores())
 
 
 if __name__ == "__main__":

@@ -251,6 +251,35 @@ def robot_steps(config: RunConfig, individuals: int) -> int:
     return individuals * config.trials * trial_steps(config)
 
 
+def implausible(config: RunConfig, fitness: np.ndarray, components: np.ndarray) -> str | None:
+    """Why a claimed evaluation of n individuals, fitness (n,) and components (n, trials, 4),
+    cannot come from `config`'s trials, or None: every component finite and within what a
+    robot at full speed (the fastest wheel gain the gap allows) reaches in the trial's steps,
+    stuck 0 or 1, and each fitness Eq 12 of its components. A worker cannot forge a
+    fitness beyond physics, only, at most, a plausible one (which spot-checks catch)."""
+    n = fitness.shape[0]
+    if fitness.shape != (n,) or components.shape != (n, config.trials, 4):
+        return f"fitness {fitness.shape} and components {components.shape} do not match"
+    if not (np.isfinite(fitness).all() and np.isfinite(components).all()):
+        return "fitness and components must be finite"
+    world, maze = config.world, load_maze(config.maze)
+    gain = max(world.motor_gain) * (1.0 + world.gap_motor_gain)
+    reach = trial_steps(config) * world.dt * world.max_speed * gain * (1.0 + 1e-9) + 1e-9
+    offset = min(reach, math.hypot(maze.width, maze.height) * (1.0 + 1e-9))
+    curve, net, far, stuck = (components[..., i] for i in range(4))
+    if not ((curve >= 0) & (curve <= reach)).all():
+        return f"a curve length outside [0, {reach:.6g}] m, the trial's reach at full speed"
+    if not ((net >= 0) & (far >= 0) & (net <= offset) & (far <= offset)).all():
+        return f"an offset outside [0, {offset:.6g}] m"
+    if not ((stuck == 0.0) | (stuck == 1.0)).all():
+        return "a stuck component other than 0 or 1"
+    expected = mean_fitness(components, config.fitness)
+    if not np.allclose(fitness, expected, rtol=1e-9, atol=1e-9):
+        k = int(np.argmax(~np.isclose(fitness, expected, rtol=1e-9, atol=1e-9)))
+        return f"fitness {fitness[k]!r} of individual {k} is not Eq 12 of its components"
+    return None
+
+
 def available_cores() -> int:
     """The cores this process may run on (its CPU affinity): `colony evolve`'s default threads."""
     return len(os.sched_getaffinity(0))

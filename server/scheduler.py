@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evorobotics.evaluate import evaluate, robot_steps
+from evorobotics.evaluate import evaluate, implausible, robot_steps
 from evorobotics.evolution import RunLoop, Told, job_slices
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus, genome_digest
@@ -450,6 +450,17 @@ class Scheduler:
             fitness, components, descriptors = result.fitness, result.components, result.descriptors
             if fitness is None or components is None or descriptors is None:  # handled above
                 break
+            run = self._runs.get(key.run_id)
+            forged = (
+                None if run is None else implausible(run.loop.config, fitness[i], components[i])
+            )
+            if run is not None and forged is not None:
+                self._make_pending(run, key.index)
+                self._quarantine(
+                    record, f"worker {result.worker} run {key.run_id} generation "
+                    f"{key.generation}: {forged}"
+                )  # fmt: skip
+                return Ack(key=result.key, accepted=False, reason=f"refused: {forged}")
             self._complete(key, lease, fitness[i], components[i], descriptors[i])
             record.jobs_done += 1
             record.evaluations += lease.stop - lease.start
@@ -746,7 +757,7 @@ class Scheduler:
                     self._make_pending(run, index)
                     discarded += 1
         context(log, worker=record.name).warning(
-            "spot-check failed, worker %s quarantined: %s; %d leases and %d results of it "
+            "forged or mismatched results, worker %s quarantined: %s; %d leases and %d results of it "
             "returned to pending",
             record.name,
             why,

@@ -82,19 +82,45 @@ def dispatch_settings(port: int, **overrides: Any) -> DispatchSettings:
     return DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",), **overrides)
 
 
+def fake_components(genomes: np.ndarray, trials: int = 1) -> np.ndarray:
+    """(n, trials, 4) Eq 12 components that depend on each genome alone, within what any
+    trial's physics allows (offsets under 1 cm, stuck 0 or 1), so the scheduler accepts them."""
+    u = (np.sin(genomes[:, :3]) + 1.0) / 2.0
+    far = 0.01 * u[:, 0]
+    one = np.stack([far, far * u[:, 1], far, (u[:, 2] > 0.5).astype(np.float64)], axis=1)
+    return np.repeat(one[:, None, :], trials, axis=1)
+
+
 def fake_fitness(genomes: np.ndarray) -> np.ndarray:
-    """A deterministic function of each genome alone, as the real fitness is."""
-    return np.asarray(np.sin(genomes).sum(axis=1) + genomes[:, 0] ** 2, dtype=np.float64)
+    """A deterministic function of each genome alone, as the real fitness is: Eq 12 (default
+    weights) of `fake_components`."""
+    from evorobotics.fitness import mean_fitness
+    from schemas.run import FitnessWeights
+
+    return mean_fitness(fake_components(genomes), FitnessWeights())
+
+
+def plausible_forgery(config: RunConfig, components: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What a careful forger claims instead of (..., trials, 4) real components: every trial's
+    stuck flag flipped and the fitness Eq 12 of that, all within physics, so only a spot-check
+    (a re-evaluation) can tell it from the truth."""
+    from evorobotics.fitness import mean_fitness
+
+    forged = np.array(components, dtype=np.float64)
+    forged[..., 3] = 1.0 - forged[..., 3]
+    shape = forged.shape
+    fitness = mean_fitness(forged.reshape(-1, *shape[-2:]), config.fitness).reshape(shape[:-2])
+    return fitness, forged
 
 
 def fake_evaluator(
     config: RunConfig, generation: int, genomes: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A worker's Evaluator, fast: `fake_fitness`, components of the expected shape, and
-    descriptors in [0, 1] that depend on each genome alone."""
-    n = genomes.shape[0]
+    """A worker's Evaluator, fast: `fake_fitness`, its components, and descriptors in [0, 1]
+    that depend on each genome alone."""
     descriptors = (np.sin(genomes[:, :4]) + 1.0) / 2.0
-    return fake_fitness(genomes), np.full((n, config.trials, 4), float(generation)), descriptors
+    components = fake_components(genomes, config.trials)
+    return fake_fitness(genomes), components, descriptors
 
 
 def reference(config: RunConfig) -> list[Told]:

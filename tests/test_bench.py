@@ -25,7 +25,20 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
         ),
         (
             "field.py",
-            ["--robots", "2", "--horizons", "150", "--hours", "0.005"],
+            [
+                "--robots",
+                "2",
+                "--horizons",
+                "150",
+                "--hours",
+                "0.005",
+                "--seeds",
+                "1",
+                "--minutes",
+                "0.2",
+                "--candidates",
+                "4",
+            ],
             "alarms per robot-hour",
         ),
         (

@@ -18,6 +18,7 @@ from evorobotics.evaluate import (
     _cached_start_poses,
     draw_gap,
     evaluate,
+    implausible,
     record_path,
     start_poses,
     trial_steps,
@@ -347,3 +348,32 @@ def test_the_curriculum_trains_nominal_first_then_under_the_gap(
     switch = round(nominal_first * generations)
     assert config.trains_under_gap(generation) == (generation >= switch)
     assert same == (generation < switch)
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    seed=st.integers(0, 2**40),
+    steps=st.integers(1, 400),
+    gap=st.sampled_from(["on", "off"]),
+    gain=st.floats(0.5, 3.0),
+    preset=st.sampled_from(["paper-best", "reactive"]),
+)
+def test_honest_evaluations_are_never_implausible_and_forged_reach_is(
+    seed: int, steps: int, gap: str, gain: float, preset: str
+) -> None:
+    """The physics bound on workers' claims never refuses a real evaluation (any seed, trial
+    length, gap, wheel gain, network), and a curve length beyond full speed is refused."""
+    world = World(motor_gain=(gain, 1.0))
+    config = RunConfig(
+        population=6, trials=2, steps=steps, seed=seed, reality_gap=gap, world=world,
+        network=preset,
+    )  # fmt: skip
+    genomes = rng(seed, 0, Purpose.BODY_GAP).uniform(-3, 3, (6, config.network_spec.weight_count))
+    ev = evaluate(config, 0, genomes)
+    f, c = ev.fitness, ev.components
+    assert implausible(config, f, c) is None
+    far = c.copy()
+    fastest = max(world.motor_gain) * (1 + world.gap_motor_gain)
+    far[0, 0, 0] = steps * world.dt * world.max_speed * fastest * 1.01
+    assert "reach at full speed" in str(implausible(config, f, far))
+    assert "not Eq 12" in str(implausible(config, f + 1e-3, c))

@@ -75,6 +75,8 @@ from tests.helpers import (
     WAIT,
     client_config,
     eventually,
+    fake_evaluator,
+    fake_fitness,
     free_port,
     random_controller,
     router_config,
@@ -121,16 +123,16 @@ def _job() -> Job:
 
 
 def fitted(job: Job, worker: str = "fuzzer", **fields: Any) -> Result:
-    """A result of `job`: fitness the genomes' row sums."""
-    n = job.stop - job.start
+    """A result of `job`, as `fake_evaluator` finds it."""
+    fitness, components, descriptors = fake_evaluator(job.config, job.key.generation, job.genomes)
     return Result(
         key=job.key,
         worker=worker,
         start=job.start,
         stop=job.stop,
-        fitness=job.genomes.sum(axis=1)[np.newaxis],
-        components=np.zeros((1, n, job.config.trials, 4)),
-        descriptors=np.zeros((1, n, 4)),
+        fitness=fitness[np.newaxis],
+        components=components[np.newaxis],
+        descriptors=descriptors[np.newaxis],
         **fields,
     )
 
@@ -423,13 +425,6 @@ def test_bad_robot_liveliness_names_are_ignored(
 # ------------------------------------------------------------------------------------ worker
 
 
-def fake_evaluator(
-    config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    n = genomes.shape[0]
-    return genomes.sum(axis=1), np.zeros((n, config.trials, 4)), np.zeros((n, 4))
-
-
 def _is_a_job(payload: bytes) -> bool:
     """Whether a worker would evaluate `payload` as a reply: a mutation that is still a valid
     job (other genomes, say) is work, not garbage."""
@@ -481,7 +476,7 @@ def test_worker_drops_garbage_replies_and_finishes_its_job(junk: list[bytes]) ->
             res.undeclare()  # type: ignore[no-untyped-call]
     assert result.key == job.key and result.error is None and result.worker == "fuzzed"
     assert result.fitness is not None
-    assert result.fitness.tobytes() == job.genomes.sum(axis=1)[np.newaxis].tobytes()
+    assert result.fitness.tobytes() == fake_fitness(job.genomes)[np.newaxis].tobytes()
 
 
 # ------------------------------------------------------------------------------------- agent

@@ -16,7 +16,13 @@ from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
 from server.executor import run_job
 from server.scheduler import SPEED_MAX, SPEED_MIN, Policy, Scheduler, Written, clamp_speed
-from tests.helpers import fake_evaluator, fake_fitness, reference, same_generations
+from tests.helpers import (
+    fake_evaluator,
+    fake_fitness,
+    plausible_forgery,
+    reference,
+    same_generations,
+)
 
 CONFIG = RunConfig(population=8, generations=4, trials=1, steps=5, job_size=3)
 FAST = 1e9
@@ -698,11 +704,12 @@ def honest(job: Job, worker: str) -> Result:
     return run_job(job, worker)
 
 
-def forged(job: Job, worker: str, value: float = 1e6) -> Result:
-    """An honest result with every fitness replaced by `value`."""
+def forged(job: Job, worker: str) -> Result:
+    """An honest result with every claim replaced by `plausible_forgery`'s."""
     real = honest(job, worker)
-    assert real.fitness is not None
-    return real.model_copy(update={"fitness": np.full_like(real.fitness, value)})
+    assert real.components is not None
+    fitness, components = plausible_forgery(job.config, real.components)
+    return real.model_copy(update={"fitness": fitness, "components": components})
 
 
 def real_span(job: Job, k: int, worker: str, forge_from: int | None = None) -> Result:
@@ -715,7 +722,7 @@ def real_span(job: Job, k: int, worker: str, forge_from: int | None = None) -> R
         genomes = loop.ask()
         f, c, d = evaluate_population(job.config, loop.generation, genomes)
         if forge_from is not None and i >= forge_from:
-            f = np.full_like(f, 1e6)
+            f, c = plausible_forgery(job.config, c)
         fitness.append(f)
         components.append(c)
         descriptors.append(d)
@@ -772,7 +779,7 @@ def test_a_forged_result_quarantines_its_worker_and_requeues_its_generation() ->
     ack = sched.settle(forged(again, "rogue"))
     assert not ack.accepted and "spot-check" in ack.reason
     why = sched.quarantined()["rogue"]
-    assert "run 1 generation 0 individual 6" in why and "claimed fitness 1000000.0" in why
+    assert "run 1 generation 0 individual 6" in why and "claimed fitness" in why
     # its passed result of this generation is discarded too: slices 0:3 and 6:8 pending again
     assert sched.counts() == {"pending": 2, "leased": 1, "done": 0}
     assert sched.lease("rogue") is None  # no more jobs, ever

@@ -1,14 +1,15 @@
-"""A rogue worker returning forged fitness cannot win a run: the server's spot-checks catch it.
+"""A rogue worker returning forged fitness cannot win a run: claims beyond the trial's physics
+are refused on arrival, plausible ones are caught by the server's spot-checks.
 
 A real server (uvicorn, SQLite in a temp dir, its zenoh router on a loopback port), an honest
 worker thread evaluating for real, and a rogue: a plain zenoh client speaking the wire
-protocol that answers its first job honestly, then claims fitness 1e6 for every individual.
+protocol that answers its first job honestly, then forges every result after.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -37,6 +38,7 @@ from tests.helpers import (
     client_config,
     eventually,
     free_port,
+    plausible_forgery,
     serving,
     wait_status,
     worker_thread,
@@ -44,11 +46,36 @@ from tests.helpers import (
 from worker.main import evaluate_slice
 
 CONFIG = {"population": 16, "generations": 6, "steps": 20, "trials": 2, "job_size": 4, "seed": 5}
-FORGED = 1e6
+Forgery = Callable[[RunConfig, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""(config, fitness (n,), components (n, trials, 4)) -> the forged fitness and components."""
+
+
+def beyond_physics(
+    config: RunConfig, f: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Issue 38's attack: two fitness values at 1.7e308."""
+    f = f.copy()
+    f[:2] = 1.7e308
+    return f, c
+
+
+def nan_components(
+    config: RunConfig, f: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    c = c.copy()
+    c[0, 0, 0] = np.nan
+    return f, c
+
+
+def too_far(config: RunConfig, f: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Curve lengths of a kilometre: Eq 12's k1 is 0, so the fitness still matches them."""
+    c = c.copy()
+    c[..., 0] = 1000.0
+    return f, c
 
 
 @contextmanager
-def rogue_worker(port: int, name: str = "rogue") -> Iterator[list[Ack]]:
+def rogue_worker(port: int, forge: Forgery, name: str = "rogue") -> Iterator[list[Ack]]:
     """The rogue in a thread until exit: the Acks its results got, in order."""
     acks: list[Ack] = []
     stop = threading.Event()
@@ -68,7 +95,7 @@ def rogue_worker(port: int, name: str = "rogue") -> Iterator[list[Ack]]:
                 job.config, job.key.generation, job.genomes
             )
             if acks:  # honest once, so a result of it is accepted before it forges
-                fitness = np.full_like(fitness, FORGED)
+                fitness, components = forge(job.config, fitness, components)
             result = Result(
                 key=job.key,
                 worker=name,
@@ -112,7 +139,7 @@ def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
     with (
         serving(settings) as (url, _app),
         httpx.Client(base_url=url, timeout=30) as client,
-        rogue_worker(zenoh_port) as acks,
+        rogue_worker(zenoh_port, lambda config, f, c: plausible_forgery(config, c)) as acks,
         worker_thread(zenoh_port, "honest", evaluate_slice),
     ):
         assert eventually(lambda: len(client.get("/api/workers").json()) == 2, WAIT)
@@ -127,11 +154,55 @@ def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
     rogue = workers["rogue"]
     assert rogue["quarantined"] is True
     reason = rogue["quarantine_reason"]
-    assert f"run {run_id} generation " in reason and f"claimed fitness {FORGED!r}" in reason
+    assert f"run {run_id} generation " in reason and "claimed fitness" in reason
     assert workers["honest"]["quarantined"] is False
     warned = [r.getMessage() for r in caplog.records if r.name == "server.scheduler"]
     assert len(warned) == 1 and "worker rogue quarantined" in warned[0] and reason in warned[0]
     assert "colony_workers_quarantined 1.0" in metrics
     assert "colony_spot_check_mismatches_total 1.0" in metrics
+    assert best["sha256"] == honest.best.sha256
+    assert run["best_fitness"] == honest.history[-1].best
+
+
+@pytest.mark.parametrize(
+    ("forge", "why"),
+    [
+        (beyond_physics, "is not Eq 12 of its components"),
+        (nan_components, "must be finite"),
+        (too_far, "the trial's reach at full speed"),
+    ],
+)
+def test_claims_beyond_the_trials_physics_are_refused_without_a_spot_check(
+    tmp_path: Path, forge: Forgery, why: str
+) -> None:
+    """Issue 38, attack 3: fitness values of 1.7e308 were stored as a generation's best and
+    NaN components accepted. With spot-checks off, such claims are still refused on arrival,
+    the rogue's credential is quarantined, and the run ends as an honest one."""
+    honest = evolve(RunConfig(**CONFIG))
+    zenoh_port = free_port()
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{zenoh_port}"],
+        workers=0,
+        jobs_per_worker=2,
+        span_below_seconds=0.0,
+        housekeeping_seconds=0.2,
+        spot_checks=0,
+    )
+    with (
+        serving(settings) as (url, _app),
+        httpx.Client(base_url=url, timeout=30) as client,
+        rogue_worker(zenoh_port, forge) as acks,
+        worker_thread(zenoh_port, "honest", evaluate_slice),
+    ):
+        assert eventually(lambda: len(client.get("/api/workers").json()) == 2, WAIT)
+        run_id = client.post("/api/runs", json=CONFIG).json()["id"]
+        run = wait_status(client, run_id, {"completed", "failed"})
+        assert run["status"] == "completed", run["error"]
+        workers = {w["name"]: w for w in client.get("/api/workers").json()}
+        best = client.get(f"/api/runs/{run_id}/best").json()
+    assert acks[0].accepted and not acks[1].accepted and why in acks[1].reason
+    assert workers["rogue"]["quarantined"] is True and why in workers["rogue"]["quarantine_reason"]
     assert best["sha256"] == honest.best.sha256
     assert run["best_fitness"] == honest.history[-1].best
