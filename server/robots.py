@@ -6,14 +6,14 @@ resolves push acknowledgements, so the database sees one writer from here.
 
 Replacement (a stuck robot asks on KEY_REPLACE): the failure is recorded against the
 controller, and the robot's policy (its own, else the colony's `RobotSettings.replacement`)
-chooses the reply. `off`: none. `rank`: the fittest individual of the latest generation of the
-same run whose controller this robot has not failed with in its last `recent_failures` stuck
-events (its current one included); a controller that came from no run, or a run whose every
-individual failed recently on this robot, gets none. `archive`: the elite of that run's
-archive farthest in behaviour from the stuck controller's entry (the fittest when it is not an
-elite), skipping recent failures; none when the run keeps no archive. `fit`: the run's
-candidate (validated training ranks and archive elites) that roams most in the robot's
-calibrated world, ranked once per calibration and generation on a thread of its own (`rank`'s
+chooses the reply. `off`: none. `rank`: the run's validated champion, else the best of the
+server's own validated ranking of the run's candidates (`rank_in_world` in the run's world)
+that this robot has not failed with in its last `recent_failures` stuck events (its current
+one included); none while that ranking is computed (on a thread of its own, once per run and
+generation), for a controller that came from no run, or when every candidate failed
+recently. `archive`: the elite of that run's archive farthest in behaviour from the stuck
+controller's entry (the fittest when it is not an elite), skipping recent failures; none when
+the run keeps no archive. `fit`: the same ranking in the robot's calibrated world (`rank`'s
 choice meanwhile, or for an uncalibrated robot). Without a replacement
 the agent's scripted escape carries on and its controller resumes. Each stuck event keeps the policy that served it,
 and the next stuck event of the robot fills in how many steps the previous one's outcome ran.
@@ -97,13 +97,13 @@ log = logging.getLogger(__name__)
 POLICIES: tuple[ReplacementPolicy, ...] = get_args(ReplacementPolicy)
 
 
-FIT_RANKINGS_KEPT = 32
-"""`fit` rankings kept in memory, one per (robot, calibration, run, generation)."""
+RANKINGS_KEPT = 32
+"""Validated rankings kept in memory, one per (robot calibration or none, run, generation)."""
 
 
 @dataclass(frozen=True)
-class FitCandidate:
-    """One of a run's candidates scored in a robot's calibrated world."""
+class Candidate:
+    """One of a run's candidates as the server itself scored it."""
 
     sha256: str
     rank: int | None
@@ -115,20 +115,25 @@ class FitCandidate:
 
 
 @dataclass(frozen=True)
-class FitRanking:
-    """A run's candidates ranked for one robot by the `fit` policy, best first."""
+class Ranking:
+    """A run's candidates ranked by the server's own validation, best first: in a robot's
+    calibrated world (`fit`), or with `robot` None in the run's world (`rank`)."""
 
-    robot: str
+    robot: str | None
     run_id: int
     poses: int
     steps: int
-    candidates: tuple[FitCandidate, ...]
+    candidates: tuple[Candidate, ...]
 
-    def reason(self, c: FitCandidate) -> str:
+    @property
+    def world(self) -> str:
+        return "the run's world" if self.robot is None else f"robot {self.robot}'s calibrated world"
+
+    def reason(self, c: Candidate) -> str:
         which = f"rank {c.rank}" if c.elite is None else f"elite {c.elite}"
         return (
             f"{which} of run {self.run_id}, roaming on {100 * c.roaming:.0f} % of {self.poses} "
-            f"trials of {self.steps} steps in robot {self.robot}'s calibrated world"
+            f"validation trials of {self.steps} steps in {self.world}"
         )
 
 
@@ -255,8 +260,8 @@ class RobotService:
         self._entities: list[Any] = []
         self._thread: threading.Thread | None = None
         self._ranker = ThreadPoolExecutor(1, thread_name_prefix="fit-ranking")
-        """Scores candidates for the `fit` policy off the service thread."""
-        self._fit_rankings: dict[tuple[str, str, int, int], Future[FitRanking]] = {}
+        """Validates candidates for the `rank` and `fit` policies off the service thread."""
+        self._rankings: dict[tuple[str, str, int, int], Future[Ranking]] = {}
         self.traces_received = 0
         """Trace samples stored (duplicates excluded); for benchmarks."""
 
@@ -679,46 +684,47 @@ class RobotService:
             return self._pick_elite(db, failed.run_id, request.sha256, recent)
         if policy == "fit":
             try:
-                ranking = self._fit_ranking(db, request.robot, failed.run_id, wait=False)
+                ranking = self._ranking(db, failed.run_id, request.robot, wait=False)
             except NotFoundError as exc:
-                ranking, pending = None, str(exc)
-            else:
-                pending = "the fit ranking is being computed"
+                doc, reason = self._pick_rank(db, failed.run_id, recent)
+                return doc, f"{exc}; {reason}"
             if ranking is not None:
-                return self._pick_fit(db, ranking, recent)
+                return self._pick_ranked(db, ranking, recent)
             doc, reason = self._pick_rank(db, failed.run_id, recent)
-            return doc, f"{pending}; meanwhile {reason}"
+            return doc, f"the fit ranking is being computed; {reason}"
         return self._pick_rank(db, failed.run_id, recent)
 
     def _pick_rank(
         self, db: Session, run_id: int, recent: set[str | None]
     ) -> tuple[ControllerDocument | None, str]:
-        """The run's validated champion, else its fittest training rank, not failed recently."""
+        """The run's validated champion, else the best of the server's own validated ranking
+        of its candidates that did not fail recently (none while that is being computed):
+        nothing served rests on a worker's claimed fitness alone."""
         run = db.get(Run, run_id)
         best = None if run is None else crud.champion(db, run=run)
         if best is not None and best.sha256 not in recent:  # chosen on unseen poses, tested
             return ControllerDocument.from_json(best.document), (
                 f"the validated champion of run {run_id}"
             )
-        for rank in range(_population(db, run_id)):
-            doc = ranked_document(db, run_id, rank)
-            if doc.sha256 not in recent:
-                return doc, f"rank {rank} of run {run_id}"
-        return None, f"every individual of run {run_id} failed recently on this robot"
+        try:
+            ranking = self._ranking(db, run_id, None, wait=False)
+        except NotFoundError as exc:
+            return None, str(exc)
+        if ranking is None:
+            return None, f"run {run_id}'s candidates are being validated: ask again"
+        return self._pick_ranked(db, ranking, recent)
 
-    def _pick_fit(
-        self, db: Session, ranking: FitRanking, recent: set[str | None]
+    def _pick_ranked(
+        self, db: Session, ranking: Ranking, recent: set[str | None]
     ) -> tuple[ControllerDocument | None, str]:
         """The ranking's first candidate that did not fail recently on this robot."""
         for candidate in ranking.candidates:
             if candidate.sha256 not in recent:
-                return self._fit_document(db, ranking, candidate), ranking.reason(candidate)
-        return None, (
-            f"every candidate of run {ranking.run_id} failed recently on robot {ranking.robot}"
-        )
+                return self._ranked_document(db, ranking, candidate), ranking.reason(candidate)
+        return None, f"every candidate of run {ranking.run_id} failed recently on this robot"
 
-    def _fit_document(
-        self, db: Session, ranking: FitRanking, candidate: FitCandidate
+    def _ranked_document(
+        self, db: Session, ranking: Ranking, candidate: Candidate
     ) -> ControllerDocument:
         """The candidate's document, stored: the champion's own (with its validation and test)
         when it is the champion."""
@@ -741,45 +747,52 @@ class RobotService:
         )
         return doc
 
-    def _fit_ranking(
-        self, db: Session, robot_id: str, run_id: int, *, wait: bool
-    ) -> FitRanking | None:
-        """The run's candidates ranked in the robot's calibrated world, computed once per
-        calibration and committed generation on the ranking thread; None while it is being
-        computed unless `wait`. NotFoundError: no robot, no calibration, no generation."""
-        robot = db.get(Robot, robot_id)
-        if robot is None:
-            raise NotFoundError(f"no robot with id {robot_id}")
-        if robot.calibration is None or robot.calibrated_at is None:
-            raise NotFoundError(f"robot {robot_id} has no calibration (colony robot calibrate)")
-        run = db.get(Run, run_id)
-        if run is None:
+    def _ranking(
+        self, db: Session, run_id: int, robot_id: str | None, *, wait: bool
+    ) -> Ranking | None:
+        """The run's candidates ranked by the server's validation, in the robot's calibrated
+        world or (robot None) the run's, computed once per calibration and committed
+        generation on the ranking thread; None while it is being computed unless `wait`.
+        NotFoundError: no robot, no calibration, no run, no generation."""
+        calibration, calibrated = None, ""
+        if robot_id is not None:
+            robot = db.get(Robot, robot_id)
+            if robot is None:
+                raise NotFoundError(f"no robot with id {robot_id}")
+            if robot.calibration is None or robot.calibrated_at is None:
+                raise NotFoundError(f"robot {robot_id} has no calibration (colony robot calibrate)")
+            calibration = RobotCalibration.model_validate_json(robot.calibration)
+            calibrated = robot.calibrated_at.isoformat()
+        if db.get(Run, run_id) is None:
             raise NotFoundError(f"no run with id {run_id}")
         latest = crud.latest_generation(db, run_id=run_id)
         if latest is None:
             raise NotFoundError(f"run {run_id} has no completed generation yet")
-        key = (robot_id, robot.calibrated_at.isoformat(), run_id, latest.generation)
-        calibration = RobotCalibration.model_validate_json(robot.calibration)
+        key = (robot_id or "", calibrated, run_id, latest.generation)
         with self._lock:
-            future = self._fit_rankings.get(key)
+            future = self._rankings.get(key)
             if future is None:
                 future = self._ranker.submit(
-                    self._rank_fit, robot_id, run_id, latest.generation, calibration
+                    self._rank, robot_id, run_id, latest.generation, calibration
                 )
-                self._fit_rankings[key] = future
-                while len(self._fit_rankings) > FIT_RANKINGS_KEPT:
-                    self._fit_rankings.pop(next(iter(self._fit_rankings)))
+                self._rankings[key] = future
+                while len(self._rankings) > RANKINGS_KEPT:
+                    self._rankings.pop(next(iter(self._rankings)))
         if not wait and not future.done():
             return None
         return future.result()
 
-    def _rank_fit(
-        self, robot_id: str, run_id: int, generation: int, calibration: RobotCalibration
-    ) -> FitRanking:
-        """Score the run's candidates on its validation poses in the robot's calibrated world
-        (no reality gap): its `validation.candidates` fittest training ranks of `generation`
-        and as many of its archive's fittest elites; best first by roaming, then mean Eq 12,
-        then candidate order."""
+    def _rank(
+        self,
+        robot_id: str | None,
+        run_id: int,
+        generation: int,
+        calibration: RobotCalibration | None,
+    ) -> Ranking:
+        """Score the run's candidates on its validation poses in the robot's calibrated world,
+        or without one the run's world (no reality gap either way): its `validation.candidates`
+        fittest training ranks of `generation` and as many of its archive's fittest elites;
+        best first by roaming, then mean Eq 12, then candidate order."""
         with self.sessions() as db:
             run = db.get(Run, run_id)
             assert run is not None  # checked by the caller; runs are never deleted under it
@@ -798,7 +811,8 @@ class RobotService:
                 elites = [int(k) for k in fittest[: v.candidates]]
                 top = np.concatenate([top, archive.genomes[elites]])
                 labels += [(None, k) for k in elites]
-        order, scored = rank_in_world(config, top, calibration.world(config.world))
+        world = config.world if calibration is None else calibration.world(config.world)
+        order, scored = rank_in_world(config, top, world)
         seen: set[str] = set()
         candidates = []
         for k in (int(i) for i in order):
@@ -807,12 +821,13 @@ class RobotService:
                 seen.add(sha)
                 rank, elite = labels[k]
                 roaming, score = float(scored.roaming[k]), float(scored.score[k])
-                candidates.append(FitCandidate(sha, rank, elite, roaming, score))
+                candidates.append(Candidate(sha, rank, elite, roaming, score))
+        ranking = Ranking(robot_id, run_id, v.poses, v.steps, tuple(candidates))
         log.info(
-            "robot %s: run %d's %d candidates ranked in its calibrated world; best roams %.0f %%",
-            robot_id, run_id, len(candidates), 100 * candidates[0].roaming,
+            "run %d's %d candidates validated in %s; the best roams %.0f %%",
+            run_id, len(candidates), ranking.world, 100 * candidates[0].roaming,
         )  # fmt: skip
-        return FitRanking(robot_id, run_id, v.poses, v.steps, tuple(candidates))
+        return ranking
 
     def _pick_elite(
         self, db: Session, run_id: int, failed: str | None, recent: set[str | None]
@@ -998,9 +1013,9 @@ class RobotService:
                 plain = rank is None and elite is None and not fit
                 best = crud.champion(db, run=run) if plain else None
                 if fit:
-                    ranking = self._fit_ranking(db, robot_id, run_id, wait=True)
+                    ranking = self._ranking(db, run_id, robot_id, wait=True)
                     assert ranking is not None  # waited for
-                    doc = self._fit_document(db, ranking, ranking.candidates[0])
+                    doc = self._ranked_document(db, ranking, ranking.candidates[0])
                     text, sha = doc.to_json(), doc.sha256
                 elif chosen_elite is not None:
                     generation, doc = chosen_elite

@@ -8,6 +8,7 @@ import queue
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -21,6 +22,7 @@ from typer.testing import CliRunner
 from colony.cli import app as cli
 from evorobotics import network
 from evorobotics.document import ControllerDocument, controller_sha256
+from evorobotics.evolution import validate
 from robot_agent.stuck import StuckConfig
 from schemas.network import NetworkSpec
 from schemas.robots import (
@@ -37,7 +39,9 @@ from schemas.robots import (
     encode_trace,
 )
 from schemas.robots import encode_message as encode_robot_message
+from schemas.run import RunConfig
 from schemas.wire import WireError
+from schemas.world import World
 from server import crud
 from server.models import Robot, Run
 from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
@@ -554,6 +558,70 @@ def test_a_robot_flooding_stuck_requests_is_rate_limited_and_its_ledger_trimmed(
         assert [e.step for e in ledger] == list(range(allowed - 4, allowed))
 
 
+RANKED_RUN = {
+    "population": 16,
+    "generations": 6,
+    "steps": 200,
+    "job_size": 8,
+    "validation": {"poses": 20, "steps": 400, "candidates": 16, "test_poses": 0},
+}
+"""A run of a second whose candidates the server's validation tells apart."""
+
+
+def validated_order(config: RunConfig, genomes: np.ndarray, world: World) -> dict[str, Any]:
+    """Each candidate's (roaming, mean Eq 12) on the run's validation poses in `world`."""
+    there = config.model_copy(update={"world": world, "reality_gap": "off"})
+    scored = validate(there, genomes)
+    return {
+        controller_sha256(config.network_spec, g): (float(r), float(s))
+        for g, r, s in zip(genomes, scored.roaming, scored.score, strict=True)
+    }
+
+
+def test_rank_policy_past_the_champion_serves_the_servers_own_validated_order(
+    colony: Colony,
+) -> None:
+    """Issue 38, attack 3: a genome crowned by forged training fitness became training rank 0
+    and `rank` served it. Once a robot failed with the champion, `rank` serves the candidate
+    the server's own validation ranks first, never a training rank as claimed."""
+    from schemas.robots import StuckRequest, replace_key
+
+    run_id = completed_run(colony.url, RANKED_RUN)
+    with robot_link(colony, settings=RobotSettings(push_timeout=5.0, replacement="rank")) as link:
+        with link.service.sessions.begin() as db:
+            db.add(Robot(id="r-rank", status="online"))
+            run = db.get(Run, run_id)
+            assert run is not None and run.champion_sha256 is not None
+            config = RunConfig.model_validate_json(run.config)
+            latest = crud.latest_generation(db, run_id=run_id)
+            assert latest is not None
+            _, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation)
+        key = validated_order(config, genomes, config.world)
+        session = zenoh.open(client_config(link.port))
+
+        def stuck_with_the_champion() -> bool:
+            request = StuckRequest(
+                robot="r-rank", sha256=run.champion_sha256, reason="x", step=1,
+                nonce=uuid.uuid4().hex,
+            )  # fmt: skip
+            list(session.get(replace_key("r-rank"), payload=encode_robot_message(request)))
+            answer = link.service.stuck_events("r-rank").events[-1].answer or ""
+            return "validation trials" in answer
+
+        try:
+            assert eventually(stuck_with_the_champion, WAIT)
+        finally:
+            session.close()  # type: ignore[no-untyped-call]
+        events = link.service.stuck_events("r-rank").events
+    assert all(
+        e.replacement_sha256 is None and "being validated" in (e.answer or "") for e in events[:-1]
+    )
+    served = events[-1].replacement_sha256
+    assert served is not None and served != run.champion_sha256
+    others = {sha: k for sha, k in key.items() if sha != run.champion_sha256}
+    assert key[served] == max(others.values()), events[-1].answer
+
+
 def test_fit_policy_serves_the_candidate_that_roams_most_in_the_robots_calibrated_world(
     colony: Colony, tmp_path: Path
 ) -> None:
@@ -561,9 +629,7 @@ def test_fit_policy_serves_the_candidate_that_roams_most_in_the_robots_calibrate
     calibrated, `colony robot push --run --fit` and its next stuck request get the run's
     candidate that roams most on the validation poses in the robot's calibrated world (here
     not the champion, which was chosen in the nominal world)."""
-    from evorobotics.evolution import validate
     from schemas.robots import RobotCalibration
-    from schemas.run import RunConfig
 
     fit = {
         "whisker_range": [0.025, 0.03, 0.03, 0.03, 0.025],  # short whiskers, slow right wheel
@@ -572,11 +638,7 @@ def test_fit_policy_serves_the_candidate_that_roams_most_in_the_robots_calibrate
         "samples": 500,
         "residuals": {"moving_steps": 400, "pose_rms_m": 0.0, "whisker_disagreements": [0] * 5},
     }
-    validation = {"poses": 20, "steps": 400, "candidates": 16, "test_poses": 0}
-    run_id = completed_run(
-        colony.url,
-        {"population": 16, "generations": 6, "steps": 200, "job_size": 8, "validation": validation},
-    )
+    run_id = completed_run(colony.url, RANKED_RUN)
     wall = constant_drive(0.87, 0.87, NetworkSpec())  # stored by no other test, so of this run
     save(tmp_path, wall)
     stuck = StuckConfig(contact_steps=5)
@@ -596,18 +658,16 @@ def test_fit_policy_serves_the_candidate_that_roams_most_in_the_robots_calibrate
                 generation=None,
                 fitness=None,
             )
-        world = RobotCalibration.model_validate(fit).world(config.world)
-        calibrated = config.model_copy(update={"world": world, "reality_gap": "off"})
-        scored = validate(calibrated, genomes)  # roaming first, then mean Eq 12
-        key = {controller_sha256(config.network_spec, g): (float(r), float(s))
-               for g, r, s in zip(genomes, scored.roaming, scored.score, strict=True)}  # fmt: skip
+        key = validated_order(
+            config, genomes, RobotCalibration.model_validate(fit).world(config.world)
+        )
         with virtual_robot("r-fit", link, tmp_path, stuck=stuck):
             assert eventually(lambda: link.service.is_online("r-fit"))
             assert eventually(lambda: bool(link.service.stuck_events("r-fit").events), WAIT)
             first = link.service.stuck_events("r-fit").events[0]
             assert first.policy == "fit" and first.replacement_sha256 == run.champion_sha256
             assert first.answer is not None and "has no calibration" in first.answer
-            assert "meanwhile the validated champion" in first.answer
+            assert "; the validated champion of run" in first.answer
 
             push = ["robot", "push", "r-fit", "--run", str(run_id), "--fit"]
             refused = CliRunner().invoke(cli, [*push, "--server", colony.url])
