@@ -60,9 +60,10 @@ class Policy:
     """Lease, span and retry policy; the defaults serve a lab network."""
 
     lease_min_s: float = 10.0
-    lease_max_s: float = 3600.0
+    lease_max_s: float = 300.0
     lease_factor: float = 10.0
-    """lease = lease_factor x the job's robot-steps / the worker's speed, clamped to the range."""
+    """lease = lease_factor x the job's robot-steps / the worker's speed as the scheduler
+    measured it (never as the worker claims it), clamped to the range."""
     lease_unknown_s: float = 120.0
     """Lease for a worker with no measured speed yet (its first job compiles the kernels)."""
     jobs_per_worker: int = 1
@@ -105,7 +106,8 @@ class Policy:
             raise ValueError(f"store_lag_s must be > 0, got {self.store_lag_s}")
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
-        """The lease of a job of `robot_steps` for a worker of `speed` robot-steps/s."""
+        """The lease of a job of `robot_steps` for a worker measured at `speed` robot-steps/s
+        (None: not measured yet)."""
         if speed is None:
             return self.lease_unknown_s
         wanted = self.lease_factor * robot_steps / clamp_speed(speed)
@@ -181,6 +183,8 @@ class _Lease:
     deadline: float
     start: int
     stop: int
+    leased_at: float = 0.0
+    """When it was leased, on the scheduler's clock: its result measures the worker's speed."""
     span_left: int = 0
     """Generations of a span after this one."""
     asked_by_worker: bool = False
@@ -192,6 +196,10 @@ class _Worker:
     name: str
     host: str = ""
     speed: float | None = None
+    """Robot-steps/s as it claims (clamped): spans and job sizes, which it can only waste."""
+    measured: float | None = None
+    """Robot-steps/s of its last accepted job, lease to result on the scheduler's clock: its
+    leases, which a slow claim must not stretch."""
     jobs_done: int = 0
     evaluations: int = 0
     late: int = 0
@@ -461,6 +469,10 @@ class Scheduler:
                     f"{key.generation}: {forged}"
                 )  # fmt: skip
                 return Ack(key=result.key, accepted=False, reason=f"refused: {forged}")
+            if run is not None:  # before a span's lease moves on at this speed
+                took = max(self._clock() - lease.leased_at, 1e-6)
+                steps = robot_steps(run.loop.config, lease.stop - lease.start)
+                record.measured = clamp_speed(steps / took)
             self._complete(key, lease, fitness[i], components[i], descriptors[i])
             record.jobs_done += 1
             record.evaluations += lease.stop - lease.start
@@ -612,15 +624,16 @@ class Scheduler:
         slot = run.slots[index]
         config = run.loop.config
         lease_s = self.policy.lease_seconds(
-            robot_steps(config, slot.stop - slot.start), self._workers[worker].speed
+            robot_steps(config, slot.stop - slot.start), self._workers[worker].measured
         )
         slot.status = "leased"
         slot.attempts += 1
         self._sequence += 1
         run.served = self._sequence
         key = JobKey(run_id=run.run_id, generation=run.loop.generation, index=index)
+        now = self._clock()
         self._leases[key] = _Lease(
-            key, worker, self._clock() + lease_s, slot.start, slot.stop, span_left, asked_by_worker
+            key, worker, now + lease_s, slot.start, slot.stop, now, span_left, asked_by_worker
         )
         self._totals["leased"] += 1
         return lease_s

@@ -123,7 +123,7 @@ class Settings(BaseSettings):
     lease_min_seconds: float = Field(
         10.0, gt=0.0, description="shortest lease (lease = 10 x the job's time, clamped)"
     )
-    lease_max_seconds: float = Field(3600.0, gt=0.0, description="longest lease")
+    lease_max_seconds: float = Field(300.0, gt=0.0, description="longest lease")
     lease_unknown_seconds: float = Field(
         120.0, gt=0.0, description="lease before a worker's speed is known (compiling)"
     )

@@ -188,15 +188,25 @@ def test_a_lease_expires_exactly_at_its_deadline_and_the_job_is_leased_again() -
     assert sched.totals() == {"leased": 2, "done": 1, "requeued": 1, "duplicates_dropped": 1}
 
 
-def test_a_known_speed_sets_the_lease() -> None:
+def test_the_measured_speed_sets_the_lease_never_the_claimed_one() -> None:
+    """Issue 38, attack 2: a claimed speed of 1e-300 got the longest lease. A worker's first
+    lease is `lease_unknown_s` whatever it claims; later ones follow the time its last job
+    took, lease to result, on the scheduler's clock."""
     policy = Policy(lease_min_s=1.0, lease_factor=10.0)
-    sched, _ = make(policy)
-    sched.join("a", speed=SLOW)
+    sched, clock = make(policy)
+    sched.join("a", speed=1e-300)
     sched.add(1, RunLoop(CONFIG), running=True)
+    first = sched.lease("a")
+    assert first is not None and first.lease_s == policy.lease_unknown_s
+    clock.t += 0.5
+    claims = result(first, "a").model_copy(update={"robot_steps_per_s": 1e-300})
+    assert sched.settle(claims).accepted
     job = sched.lease("a")
     assert job is not None
-    robot_steps = (job.stop - job.start) * CONFIG.trials * 5
-    assert job.lease_s == 10.0 * robot_steps / SLOW == policy.lease_seconds(40, SLOW)
+    steps = (first.stop - first.start) * CONFIG.trials * 5
+    measured = steps / 0.5
+    want = 10.0 * (job.stop - job.start) * CONFIG.trials * 5 / measured
+    assert job.lease_s == pytest.approx(max(want, 1.0))
 
 
 def test_duplicate_results_are_dropped_and_counted() -> None:
