@@ -90,15 +90,20 @@ def run_colony(
     return p[:, :-1], whiskers, motors, alarms
 
 
-def calibration(
-    spec: NetworkSpec, weights: np.ndarray, robots: int, horizon: int, seed: int
-) -> None:
+def hidden_colony(seed: int, robots: int) -> tuple[np.ndarray, Gap]:
+    """Start poses (robots, 3) and hidden gap physics of `SimBody.create("paper", seed, i)`."""
     bodies = [SimBody.create("paper", seed=seed, index=i) for i in range(robots)]
     gap = Gap(
         np.concatenate([np.broadcast_to(x.gap.whisker_range, (1, 5)) for x in bodies]),
         np.concatenate([x.gap.motor_gain for x in bodies]),
     )
-    poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
+    return np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies]), gap
+
+
+def calibration(
+    spec: NetworkSpec, weights: np.ndarray, robots: int, horizon: int, seed: int
+) -> None:
+    poses, gap = hidden_colony(seed, robots)
     began = time.perf_counter()
     p, w, m, _ = run_colony(spec, weights, poses, gap, horizon)
     traced = time.perf_counter() - began
@@ -165,12 +170,7 @@ def loop_pays(seeds: int, minutes: float, candidates: int, threads: int) -> None
         result = evolve(config, threads=threads)
         spec, champion = result.best.spec, result.best.weights
         top = result.genomes[rank(result.fitness)[:candidates]]
-        bodies = [SimBody.create("paper", seed=100 + seed, index=i) for i in range(8)]
-        gap = Gap(
-            np.concatenate([np.broadcast_to(x.gap.whisker_range, (1, 5)) for x in bodies]),
-            np.concatenate([x.gap.motor_gain for x in bodies]),
-        )
-        poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
+        poses, gap = hidden_colony(100 + seed, 8)
         p, w, m, blind = run_colony(spec, champion, poses, gap, steps)
         picks, kept = [], 0
         for i in range(8):

@@ -185,15 +185,20 @@ def validate(config: RunConfig, genomes: np.ndarray, *, threads: int = 1) -> Val
     return Validated(score, stuck, roaming)
 
 
+def ranking_validation(config: RunConfig) -> ValidationConfig:
+    """The validation `rank_in_world` runs: the run's, or the default one without it."""
+    return config.validation if config.validation.poses else ValidationConfig(test_poses=0)
+
+
 def rank_in_world(
     config: RunConfig, genomes: np.ndarray, world: World, *, threads: int = 1
 ) -> tuple[np.ndarray, Validated]:
     """A run's candidates (k, n_weights) ranked for one robot, best first, with their scores:
     run from the run's validation poses in `world` (a robot's calibrated world, no reality gap
     drawn on top), most roaming trials first, ties to the higher mean Eq 12, then to candidate
-    order. The `fit` replacement policy's order (docs/robots.md); a run without validation
-    uses the default validation set."""
-    v = config.validation if config.validation.poses else ValidationConfig(test_poses=0)
+    order, on `ranking_validation`'s set: the `rank` and `fit` replacement policies' order
+    (docs/robots.md)."""
+    v = ranking_validation(config)
     there = config.model_copy(update={"world": world, "reality_gap": "off", "validation": v})
     scored = validate(there, genomes, threads=threads)
     return np.lexsort((np.arange(len(scored.score)), -scored.score, -scored.roaming)), scored

@@ -47,7 +47,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from evorobotics import network
 from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.errors import ControllerDocumentError
-from evorobotics.evolution import rank_in_world
+from evorobotics.evolution import rank_in_world, ranking_validation
 from evorobotics.strategies import Archive
 from schemas.robots import (
     DEFAULT_REPLACEMENT,
@@ -82,7 +82,7 @@ from schemas.robots import (
     encode_message,
     robot_from_key,
 )
-from schemas.run import RunConfig, ValidationConfig
+from schemas.run import RunConfig
 from schemas.wire import WireError
 from schemas.world import World
 from server import crud
@@ -737,15 +737,7 @@ class RobotService:
         generations, doc = self._elite(ranking.run_id, candidate.elite)
         if doc.sha256 != candidate.sha256:  # the archive moved on since the ranking
             raise NotFoundError(f"run {ranking.run_id}'s archive changed: ask again")
-        crud.put_controller(
-            db,
-            sha256=doc.sha256,
-            document=doc.to_json(),
-            run_id=ranking.run_id,
-            generation=generations,
-            fitness=doc.fitness,
-        )
-        return doc
+        return _stored(db, ranking.run_id, generations, doc)
 
     def _ranking(
         self, db: Session, run_id: int, robot_id: str | None, *, wait: bool
@@ -798,7 +790,7 @@ class RobotService:
             assert run is not None  # checked by the caller; runs are never deleted under it
             config = RunConfig.model_validate_json(run.config)
             _, genomes = crud.ranked(db, run_id=run_id, generation=generation)
-        v = config.validation if config.validation.poses else ValidationConfig(test_poses=0)
+        v = ranking_validation(config)
         top = np.asarray(genomes[: v.candidates])
         labels: list[tuple[int | None, int | None]] = [(r, None) for r in range(len(top))]
         if self._archives is not None:
@@ -853,15 +845,9 @@ class RobotService:
         for k in (int(i) for i in order):
             if shas[k] not in recent:
                 doc = _elite_document(run_id, generations, config, archive, k)
-                crud.put_controller(
-                    db,
-                    sha256=doc.sha256,
-                    document=doc.to_json(),
-                    run_id=run_id,
-                    generation=generations - 1,
-                    fitness=doc.fitness,
-                )
-                return doc, f"elite {k} of run {run_id}'s archive, {why}"
+                return _stored(
+                    db, run_id, generations - 1, doc
+                ), f"elite {k} of run {run_id}'s archive, {why}"
         return None, f"every elite of run {run_id}'s archive failed recently on this robot"
 
     # ------------------------------------------------------------------ API operations
@@ -1018,15 +1004,7 @@ class RobotService:
                     doc = self._ranked_document(db, ranking, ranking.candidates[0])
                     text, sha = doc.to_json(), doc.sha256
                 elif chosen_elite is not None:
-                    generation, doc = chosen_elite
-                    crud.put_controller(
-                        db,
-                        sha256=doc.sha256,
-                        document=doc.to_json(),
-                        run_id=run_id,
-                        generation=generation,
-                        fitness=doc.fitness,
-                    )
+                    doc = _stored(db, run_id, *chosen_elite)
                     text, sha = doc.to_json(), doc.sha256
                 elif best is not None:
                     text, sha = best.document, best.sha256
@@ -1193,12 +1171,19 @@ def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
         },
         world=config.world,
     )
+    return _stored(db, run_id, latest.generation, doc)
+
+
+def _stored(
+    db: Session, run_id: int, generation: int, doc: ControllerDocument
+) -> ControllerDocument:
+    """`doc`, a controller of the run's `generation`, stored in `controllers` (once)."""
     crud.put_controller(
         db,
         sha256=doc.sha256,
         document=doc.to_json(),
         run_id=run_id,
-        generation=latest.generation,
+        generation=generation,
         fitness=doc.fitness,
     )
     return doc

@@ -51,6 +51,7 @@ from tests.helpers import (
     QUICK,
     WAIT,
     Colony,
+    Link,
     client_config,
     completed_run,
     constant_drive,
@@ -568,6 +569,18 @@ RANKED_RUN = {
 """A run of a second whose candidates the server's validation tells apart."""
 
 
+def latest_candidates(link: Link, run_id: int) -> tuple[Run, RunConfig, np.ndarray]:
+    """A completed run's row (with its champion), config, and latest generation's genomes in
+    training-rank order, as the server stored them."""
+    with link.service.sessions() as db:
+        run = db.get(Run, run_id)
+        assert run is not None and run.champion_sha256 is not None
+        latest = crud.latest_generation(db, run_id=run_id)
+        assert latest is not None
+        _, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation)
+    return run, RunConfig.model_validate_json(run.config), genomes
+
+
 def validated_order(config: RunConfig, genomes: np.ndarray, world: World) -> dict[str, Any]:
     """Each candidate's (roaming, mean Eq 12) on the run's validation poses in `world`."""
     there = config.model_copy(update={"world": world, "reality_gap": "off"})
@@ -590,12 +603,7 @@ def test_rank_policy_past_the_champion_serves_the_servers_own_validated_order(
     with robot_link(colony, settings=RobotSettings(push_timeout=5.0, replacement="rank")) as link:
         with link.service.sessions.begin() as db:
             db.add(Robot(id="r-rank", status="online"))
-            run = db.get(Run, run_id)
-            assert run is not None and run.champion_sha256 is not None
-            config = RunConfig.model_validate_json(run.config)
-            latest = crud.latest_generation(db, run_id=run_id)
-            assert latest is not None
-            _, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation)
+        run, config, genomes = latest_candidates(link, run_id)
         key = validated_order(config, genomes, config.world)
         session = zenoh.open(client_config(link.port))
 
@@ -643,13 +651,8 @@ def test_fit_policy_serves_the_candidate_that_roams_most_in_the_robots_calibrate
     save(tmp_path, wall)
     stuck = StuckConfig(contact_steps=5)
     with robot_link(colony, settings=RobotSettings(push_timeout=5.0, replacement="fit")) as link:
+        run, config, genomes = latest_candidates(link, run_id)
         with link.service.sessions.begin() as db:
-            run = db.get(Run, run_id)
-            assert run is not None and run.champion_sha256 is not None
-            config = RunConfig.model_validate_json(run.config)
-            latest = crud.latest_generation(db, run_id=run_id)
-            assert latest is not None
-            _, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation)
             crud.put_controller(
                 db,
                 sha256=wall.sha256,

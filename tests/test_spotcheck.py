@@ -11,7 +11,9 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -121,47 +123,71 @@ def rogue_worker(port: int, forge: Forgery, name: str = "rogue") -> Iterator[lis
     assert not thread.is_alive()
 
 
-def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    honest = evolve(RunConfig(**CONFIG))
+@dataclass(frozen=True)
+class RogueRun:
+    """A run of CONFIG served beside the rogue and an honest worker, as the API then shows it."""
+
+    run_id: int
+    run: dict[str, Any]
+    workers: dict[str, Any]
+    metrics: str
+    best: dict[str, Any]
+    acks: list[Ack]
+
+
+def rogue_run(tmp_path: Path, forge: Forgery, **settings: Any) -> RogueRun:
+    """CONFIG on a real server with zenoh on loopback, the rogue forging with `forge` and an
+    honest worker thread; parallel slices (the rogue gets jobs of every generation)."""
     zenoh_port = free_port()
-    settings = Settings(
+    served = Settings(
         db_url=f"sqlite:///{tmp_path / 'colony.db'}",
         port=free_port(),
         zenoh_listen=[f"tcp/127.0.0.1:{zenoh_port}"],
         workers=0,
         jobs_per_worker=2,
-        span_below_seconds=0.0,  # parallel slices: the rogue gets jobs of every generation
+        span_below_seconds=0.0,
         housekeeping_seconds=0.2,
+        **settings,
     )
-    assert settings.spot_checks == 1  # the default
     with (
-        serving(settings) as (url, _app),
+        serving(served) as (url, _app),
         httpx.Client(base_url=url, timeout=30) as client,
-        rogue_worker(zenoh_port, lambda config, f, c: plausible_forgery(config, c)) as acks,
+        rogue_worker(zenoh_port, forge) as acks,
         worker_thread(zenoh_port, "honest", evaluate_slice),
     ):
         assert eventually(lambda: len(client.get("/api/workers").json()) == 2, WAIT)
         run_id = client.post("/api/runs", json=CONFIG).json()["id"]
         run = wait_status(client, run_id, {"completed", "failed"})
         assert run["status"] == "completed", run["error"]
-        workers = {w["name"]: w for w in client.get("/api/workers").json()}
-        metrics = client.get("/metrics").text
-        best = client.get(f"/api/runs/{run_id}/best").json()
-    assert acks[0].accepted  # its honest result passed its spot-check
-    assert not acks[1].accepted and "spot-check" in acks[1].reason
-    rogue = workers["rogue"]
+        return RogueRun(
+            run_id,
+            run,
+            {w["name"]: w for w in client.get("/api/workers").json()},
+            client.get("/metrics").text,
+            client.get(f"/api/runs/{run_id}/best").json(),
+            list(acks),
+        )
+
+
+def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    honest = evolve(RunConfig(**CONFIG))
+    done = rogue_run(tmp_path, lambda config, f, c: plausible_forgery(config, c))
+    assert Settings(db_url="unused").spot_checks == 1  # the default, which rogue_run keeps
+    assert done.acks[0].accepted  # its honest result passed its spot-check
+    assert not done.acks[1].accepted and "spot-check" in done.acks[1].reason
+    rogue = done.workers["rogue"]
     assert rogue["quarantined"] is True
     reason = rogue["quarantine_reason"]
-    assert f"run {run_id} generation " in reason and "claimed fitness" in reason
-    assert workers["honest"]["quarantined"] is False
+    assert f"run {done.run_id} generation " in reason and "claimed fitness" in reason
+    assert done.workers["honest"]["quarantined"] is False
     warned = [r.getMessage() for r in caplog.records if r.name == "server.scheduler"]
     assert len(warned) == 1 and "worker rogue quarantined" in warned[0] and reason in warned[0]
-    assert "colony_workers_quarantined 1.0" in metrics
-    assert "colony_spot_check_mismatches_total 1.0" in metrics
-    assert best["sha256"] == honest.best.sha256
-    assert run["best_fitness"] == honest.history[-1].best
+    assert "colony_workers_quarantined 1.0" in done.metrics
+    assert "colony_spot_check_mismatches_total 1.0" in done.metrics
+    assert done.best["sha256"] == honest.best.sha256
+    assert done.run["best_fitness"] == honest.history[-1].best
 
 
 @pytest.mark.parametrize(
@@ -179,30 +205,11 @@ def test_claims_beyond_the_trials_physics_are_refused_without_a_spot_check(
     NaN components accepted. With spot-checks off, such claims are still refused on arrival,
     the rogue's credential is quarantined, and the run ends as an honest one."""
     honest = evolve(RunConfig(**CONFIG))
-    zenoh_port = free_port()
-    settings = Settings(
-        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
-        port=free_port(),
-        zenoh_listen=[f"tcp/127.0.0.1:{zenoh_port}"],
-        workers=0,
-        jobs_per_worker=2,
-        span_below_seconds=0.0,
-        housekeeping_seconds=0.2,
-        spot_checks=0,
+    done = rogue_run(tmp_path, forge, spot_checks=0)
+    assert done.acks[0].accepted and not done.acks[1].accepted and why in done.acks[1].reason
+    assert (
+        done.workers["rogue"]["quarantined"] is True
+        and why in done.workers["rogue"]["quarantine_reason"]
     )
-    with (
-        serving(settings) as (url, _app),
-        httpx.Client(base_url=url, timeout=30) as client,
-        rogue_worker(zenoh_port, forge) as acks,
-        worker_thread(zenoh_port, "honest", evaluate_slice),
-    ):
-        assert eventually(lambda: len(client.get("/api/workers").json()) == 2, WAIT)
-        run_id = client.post("/api/runs", json=CONFIG).json()["id"]
-        run = wait_status(client, run_id, {"completed", "failed"})
-        assert run["status"] == "completed", run["error"]
-        workers = {w["name"]: w for w in client.get("/api/workers").json()}
-        best = client.get(f"/api/runs/{run_id}/best").json()
-    assert acks[0].accepted and not acks[1].accepted and why in acks[1].reason
-    assert workers["rogue"]["quarantined"] is True and why in workers["rogue"]["quarantine_reason"]
-    assert best["sha256"] == honest.best.sha256
-    assert run["best_fitness"] == honest.history[-1].best
+    assert done.best["sha256"] == honest.best.sha256
+    assert done.run["best_fitness"] == honest.history[-1].best
