@@ -19,8 +19,8 @@ from pathlib import Path
 from schemas.run import RunConfig
 from schemas.wire import Job
 from server.db import make_engine, upgrade
-from server.executor import run_job
 from server.manager import RunManager
+from server.scheduler import run_job
 from server.settings import Settings
 
 GENERATIONS = 60

@@ -658,7 +658,7 @@ def run_pause(
 def run_resume(
     ctx: typer.Context, run_id: int, server: ServerOpt = DEFAULT_SERVER, token: TokenOpt = None
 ) -> None:
-    """Continue a paused run."""
+    """Continue a paused run, or a failed one from its last stored generation."""
     _steer(ctx, server, token, run_id, "resume")
 
 

@@ -4,44 +4,8 @@ settle their results, as a remote worker does through the zenoh dispatcher (neve
 from __future__ import annotations
 
 import threading
-import time
 
-import numpy as np
-
-from evorobotics.evaluate import evaluate, robot_steps
-from schemas.wire import Job, Result
-from server.scheduler import Scheduler
-
-
-def run_job(job: Job, worker: str) -> Result:
-    """Evaluate `job` (one generation of its slice) as a Result; an error becomes one."""
-    began = time.perf_counter()
-    try:
-        evaluation = evaluate(job.config, job.key.generation, job.genomes)
-        if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
-            raise ValueError("evaluation returned non-finite fitness")
-    except Exception as exc:  # an evaluation error is the run's problem, not the thread's
-        return Result(
-            key=job.key,
-            worker=worker,
-            start=job.start,
-            stop=job.stop,
-            error=f"{type(exc).__name__}: {exc}",
-        )
-    seconds = time.perf_counter() - began
-    return Result(
-        key=job.key,
-        worker=worker,
-        start=job.start,
-        stop=job.stop,
-        robot_steps_per_s=(
-            robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else 0.0
-        ),
-        seconds=seconds,
-        fitness=evaluation.fitness[None],
-        components=evaluation.components[None],
-        descriptors=evaluation.descriptors[None],
-    )
+from server.scheduler import Scheduler, run_job
 
 
 class InProcessExecutor:

@@ -13,7 +13,8 @@ told generations first. A generation is one row, its individuals one frame
 a copy stores no bytes but the (generation, row) of the genome bytes it repeats.
 
 Lifecycle: queued -> running <-> paused; queued/running/paused -> cancelled;
-running -> completed | failed. Terminal: completed, failed, cancelled.
+running -> completed | failed; failed -> queued (resumed from its last stored generation).
+Terminal: completed, cancelled, and failed until resumed.
 
 A run completes with its validated champion (`evorobotics.evolution.champion`: the final
 population's best on the run's validation set), stored in `controllers` and named by
@@ -255,6 +256,7 @@ class RunManager:
         """Stop the thread and write the generations told but not yet written (a restart
         would recompute them, bit for bit, but need not)."""
         self._stop.set()
+        self.scheduler.close()
         if self._thread is not None:
             self._thread.join(timeout=10.0)
             self._thread = None
@@ -536,6 +538,10 @@ class RunManager:
                     with session.begin_nested():
                         run.status = "running"
                         run.started_at = run.started_at or utcnow()
+                        config = RunConfig.model_validate_json(run.config)
+                        if run.generation >= config.generations:  # failed in validation
+                            self._finish(session, run, config)
+                            continue
                         self._serve(session, run)
                     context(log, run=run.id).info(
                         "run %d running from generation %d", run.id, run.generation
@@ -550,18 +556,23 @@ class RunManager:
         context(log, run=run_id).info("run %d paused", run_id)
 
     def resume(self, run_id: int) -> None:
-        """paused -> running. A run stopped by a refused write is written first (the store's
-        error propagates while it still refuses), so it resumes from a stored generation."""
+        """paused -> running; failed -> queued, to go on from its last stored generation. A
+        run stopped by a refused write is written first (the store's error propagates while it
+        still refuses), so it resumes from a stored generation."""
         with self._lock:
             self._flush()
             with self.sessions.begin() as session:
                 run = self._get(session, run_id)
-                if run.status != "paused":
+                if run.status not in ("paused", "failed"):
                     raise TransitionError(
-                        f"run {run_id} is {run.status}; only a paused run resumes"
+                        f"run {run_id} is {run.status}; only a paused or failed run resumes"
                     )
-                run.status = "running" if run.started_at is not None else "queued"
-                run.error = None  # e.g. a refused write that paused it
+                if run.status == "failed":
+                    run.status, run.finished_at = "queued", None
+                    crud.settle_study(session, study_id=run.study_id)
+                else:
+                    run.status = "running" if run.started_at is not None else "queued"
+                run.error = None  # e.g. a refused write that paused it, or why it failed
                 status = run.status
             self.scheduler.set_running(run_id, status == "running")
         context(log, run=run_id).info("run %d resumed (%s)", run_id, status)

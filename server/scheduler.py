@@ -20,18 +20,26 @@ stream), and compares them bit for bit. A mismatch quarantines the worker's cred
 life of the process: every worker named USER or USER.* (the names zenoh's roles let one
 credential use) gets no more jobs and its results in the generations in flight return to
 pending, so honest workers evaluate them (docs/reliability.md, "Spot-checks").
+
+Errors: a worker's error result says nothing about the run, only about that worker. Its job
+returns to pending for other credentials; once `Policy.max_attempts` credentials erred on it, or
+none other is live to take it, the server evaluates it itself (the referee's thread). Only the
+server's own evaluation failing (the referee's, or an in-process executor's) fails a run. A
+credential whose results err `Policy.errors_quarantine` times in a row is quarantined.
 """
 
 from __future__ import annotations
 
 import heapq
 import logging
+import math
 import secrets
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -51,6 +59,8 @@ TOTALS = ("leased", "done", "requeued", "duplicates_dropped")
 """Keys of `Scheduler.totals()`."""
 SPOT_TOTALS = ("results_checked", "individuals_checked", "robot_steps_checked", "mismatches")
 """Keys of `Scheduler.spot_totals()`."""
+REFEREE = "(server)"
+"""The lease holder while the server evaluates a job itself (not a valid worker name)."""
 _CHOOSE = secrets.SystemRandom()
 """Picks the individuals to re-evaluate: a worker cannot predict them from the run's seed."""
 
@@ -77,7 +87,10 @@ class Policy:
     span_s: float = 5.0
     """A span covers about this much evaluation time, then its worker asks again."""
     max_attempts: int = 3
-    """Leases of a job whose evaluation failed before its run fails."""
+    """Credentials whose evaluation of a job may err before the server evaluates it itself
+    (whose error alone fails the run)."""
+    errors_quarantine: int = 3
+    """Error results in a row, with none accepted between, that quarantine a credential."""
     gone_keep_s: float = 600.0
     """How long a departed worker stays listed as gone."""
     store_lag_s: float = 0.25
@@ -100,8 +113,10 @@ class Policy:
             raise ValueError(f"lease_max_s must be >= lease_min_s, got {self.lease_max_s}")
         if self.span_below_s < 0 or self.gone_keep_s < 0 or self.spot_checks < 0:
             raise ValueError("span_below_s, gone_keep_s and spot_checks must be >= 0")
-        if self.jobs_per_worker < 1 or self.max_attempts < 1 or self.write_now < 1:
-            raise ValueError("jobs_per_worker, max_attempts and write_now must be >= 1")
+        if min(self.jobs_per_worker, self.max_attempts, self.errors_quarantine, self.write_now) < 1:
+            raise ValueError(
+                "jobs_per_worker, max_attempts, errors_quarantine and write_now must be >= 1"
+            )
         if not self.store_lag_s > 0:
             raise ValueError(f"store_lag_s must be > 0, got {self.store_lag_s}")
 
@@ -122,6 +137,37 @@ class Policy:
         if seconds >= self.span_below_s and not crowded:
             return 1
         return max(1, int(self.span_s / seconds))
+
+
+def run_job(job: Job, worker: str) -> Result:
+    """Evaluate `job` (one generation of its slice) as a Result; an error becomes one."""
+    began = time.perf_counter()
+    try:
+        evaluation = evaluate(job.config, job.key.generation, job.genomes)
+        if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
+            raise ValueError("evaluation returned non-finite fitness")
+    except Exception as exc:  # an evaluation error is the run's problem, not the thread's
+        return Result(
+            key=job.key,
+            worker=worker,
+            start=job.start,
+            stop=job.stop,
+            error=f"{type(exc).__name__}: {exc}",
+        )
+    seconds = time.perf_counter() - began
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=job.start,
+        stop=job.stop,
+        robot_steps_per_s=(
+            robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else 0.0
+        ),
+        seconds=seconds,
+        fitness=evaluation.fitness[None],
+        components=evaluation.components[None],
+        descriptors=evaluation.descriptors[None],
+    )
 
 
 def credential(worker: str) -> str:
@@ -155,7 +201,8 @@ class _Slot:
     stop: int
     status: str = "pending"
     """pending, leased or done."""
-    attempts: int = 0
+    erred: set[str] = field(default_factory=set)
+    """Credentials whose evaluation of it erred: it is never leased to them again."""
     worker: str | None = None
     """Whose result filled it (done): discarded if that worker fails a spot-check."""
 
@@ -174,6 +221,8 @@ class _Run:
     remaining: int
     served: int = 0
     """Sequence number of its last lease: the run served least recently goes first."""
+    erred: bool = False
+    """Some slot of this generation erred: leases skip the slots a credential erred on."""
 
 
 @dataclass
@@ -236,6 +285,10 @@ class Scheduler:
         self._workers: dict[str, _Worker] = {}
         self._banned: dict[str, str] = {}
         """Quarantined credentials (`credential(name)`) and why: a new name under one is too."""
+        self._errors: dict[str, int] = {}
+        """Credential -> its error results since its last accepted one."""
+        self._referee = ThreadPoolExecutor(1, thread_name_prefix="colony-referee")
+        """Evaluates the jobs no worker could (`REFEREE` holds their leases meanwhile)."""
         self._told: list[Written] = []
         self._unwritten: dict[int, deque[float]] = {}
         """run id -> when each generation told and not yet written was told, oldest first."""
@@ -250,6 +303,10 @@ class Scheduler:
     def now(self) -> float:
         """The scheduler's clock (leases and deadlines are on it)."""
         return self._clock()
+
+    def close(self) -> None:
+        """Finish the server's own evaluation in hand; no more after."""
+        self._referee.shutdown(wait=True, cancel_futures=True)
 
     # runs ------------------------------------------------------------------------------------
 
@@ -306,8 +363,8 @@ class Scheduler:
             self._told[:0] = told
 
     def take_failed(self) -> dict[int, str]:
-        """Runs (id -> why) a job failed past `max_attempts` since the last call: the store
-        fails them (after writing their told generations)."""
+        """Runs (id -> why) whose job failed in the server's own evaluation since the last
+        call: the store fails them (after writing their told generations)."""
         with self._lock:
             failed, self._failed = self._failed, {}
             return failed
@@ -385,15 +442,22 @@ class Scheduler:
             self._release_where(lambda lease: lease.worker == worker)
             if record.quarantine is not None:
                 return None
+            self._referee_stranded()
+            excluded = credential(worker) if record.listed else None
             chosen: _Run | None = None
+            index = 0
             for run in self._runs.values():
-                if self._leasable(run) and (
-                    chosen is None or (run.served, run.run_id) < (chosen.served, chosen.run_id)
+                if not self._leasable(run) or (
+                    chosen is not None
+                    and (run.served, run.run_id) >= (chosen.served, chosen.run_id)
                 ):
-                    chosen = run
+                    continue
+                pick = self._pick(run, excluded)
+                if pick is not None:
+                    chosen, index = run, pick
             if chosen is None:
                 return None
-            index = heapq.heappop(chosen.pending)
+            self._unpend(chosen, index)
             slot = chosen.slots[index]
             loop = chosen.loop
             key = JobKey(run_id=chosen.run_id, generation=loop.generation, index=index)
@@ -430,6 +494,7 @@ class Scheduler:
             record.speed = clamp_speed(result.robot_steps_per_s)
         mismatch = self._spot_check(result, record)
         if mismatch is not None:
+            self._spot["mismatches"] += 1
             self._quarantine(record, mismatch)
             return Ack(key=result.key, accepted=False, reason="spot-check failed: quarantined")
         ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
@@ -450,9 +515,16 @@ class Scheduler:
                     record.late += (result.generations - i) * result.fitness.shape[1]
                 break
             del self._leases[key]
-            error = result.error or self._digest_error(result, i, lease, record)
-            if error is not None:
-                self._fail_job(key, f"{result.worker}: {error}")
+            if result.error is not None:
+                self._erred(key, record, result.error)
+                ack = Ack(key=result.key, accepted=True, reason="error recorded")
+                break
+            wrong = self._digest_error(result, i, lease, record)
+            if wrong is not None:
+                context(log, worker=result.worker).warning(
+                    "worker %s: %s; no more spans for it", result.worker, wrong
+                )
+                self._make_pending(self._runs[key.run_id], key.index)  # asked here next time
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
             fitness, components, descriptors = result.fitness, result.components, result.descriptors
@@ -464,6 +536,7 @@ class Scheduler:
             )
             if run is not None and forged is not None:
                 self._make_pending(run, key.index)
+                self._spot["mismatches"] += 1
                 self._quarantine(
                     record, f"worker {result.worker} run {key.run_id} generation "
                     f"{key.generation}: {forged}"
@@ -474,6 +547,7 @@ class Scheduler:
                 steps = robot_steps(run.loop.config, lease.stop - lease.start)
                 record.measured = clamp_speed(steps / took)
             self._complete(key, lease, fitness[i], components[i], descriptors[i])
+            self._errors.pop(credential(result.worker), None)
             record.jobs_done += 1
             record.evaluations += lease.stop - lease.start
             ack = Ack(key=result.key, accepted=True)
@@ -501,9 +575,10 @@ class Scheduler:
         return len(released)
 
     def next_deadline(self) -> float | None:
-        """The clock time of the next lease deadline, if any."""
+        """The clock time of the next lease deadline, if any (the referee's have none)."""
         with self._lock:
-            return min((lease.deadline for lease in self._leases.values()), default=None)
+            deadlines = (lease.deadline for lease in self._leases.values())
+            return min((d for d in deadlines if d < math.inf), default=None)
 
     def totals(self) -> dict[str, int]:
         """Since construction: jobs `leased`, results accepted (`done`), leases returned
@@ -627,7 +702,6 @@ class Scheduler:
             robot_steps(config, slot.stop - slot.start), self._workers[worker].measured
         )
         slot.status = "leased"
-        slot.attempts += 1
         self._sequence += 1
         run.served = self._sequence
         key = JobKey(run_id=run.run_id, generation=run.loop.generation, index=index)
@@ -754,7 +828,6 @@ class Scheduler:
         of them in the generations in flight return to pending."""
         banned = credential(record.name)
         self._banned[banned] = why
-        self._spot["mismatches"] += 1
         for other in self._workers.values():
             if credential(other.name) == banned:
                 other.quarantine = why
@@ -770,23 +843,132 @@ class Scheduler:
                     self._make_pending(run, index)
                     discarded += 1
         context(log, worker=record.name).warning(
-            "forged or mismatched results, worker %s quarantined: %s; %d leases and %d results of it "
-            "returned to pending",
+            "worker %s quarantined: %s; %d leases and %d results of it returned to pending",
             record.name,
             why,
             len(released),
             discarded,
         )
 
-    def _fail_job(self, key: JobKey, message: str) -> None:
+    def _erred(self, key: JobKey, record: _Worker, error: str) -> None:
+        """`record`'s evaluation of the job `key` erred: the run fails if it is the server's
+        own; else the job goes to another credential, or to the referee when none is left."""
         run = self._runs.get(key.run_id)
         if run is None:
             return
-        if run.slots[key.index].attempts >= self.policy.max_attempts:
-            self._failed[key.run_id] = f"job {key.generation}/{key.index} failed: {message}"
-            self._drop_run(key.run_id)
+        if not record.listed:  # an in-process executor: this process's own evaluation
+            self._fail_run(key, error)
             return
+        banned = credential(record.name)
+        slot = run.slots[key.index]
+        slot.erred.add(banned)
+        run.erred = True
         self._make_pending(run, key.index)
+        errors = self._errors[banned] = self._errors.get(banned, 0) + 1
+        context(log, run=key.run_id, worker=record.name).warning(
+            "worker %s: error result %d in a row, run %d job %d/%d returns to other workers: %s",
+            record.name,
+            errors,
+            key.run_id,
+            key.generation,
+            key.index,
+            error,
+        )
+        if errors >= self.policy.errors_quarantine:
+            self._quarantine(
+                record,
+                f"worker {record.name}: {errors} error results in a row, the last of run "
+                f"{key.run_id} job {key.generation}/{key.index}: {error}",
+            )
+        self._referee_stranded()
+
+    def _fail_run(self, key: JobKey, error: str) -> None:
+        self._failed[key.run_id] = (
+            f"job {key.generation}/{key.index} failed in the server's own evaluation: {error}"
+        )
+        self._drop_run(key.run_id)
+
+    def _pick(self, run: _Run, excluded: str | None) -> int | None:
+        """The lowest pending slot of `run` not erred on by the credential `excluded`."""
+        if not run.erred or excluded is None:
+            return run.pending[0] if run.pending else None
+        return min((i for i in run.pending if excluded not in run.slots[i].erred), default=None)
+
+    @staticmethod
+    def _unpend(run: _Run, index: int) -> None:
+        if run.pending[0] == index:
+            heapq.heappop(run.pending)
+        else:
+            run.pending.remove(index)
+            heapq.heapify(run.pending)
+
+    def _referee_stranded(self) -> None:
+        """Lease to the referee every pending job that erred on `max_attempts` credentials or
+        that no live worker may take (each live credential erred on it)."""
+        live = self._live()
+        # an in-process executor takes any job
+        takers = None if any(not w.listed for w in live) else {credential(w.name) for w in live}
+        for run in self._runs.values():
+            if not run.erred or not run.running:
+                continue
+            for index in list(run.pending):
+                erred = run.slots[index].erred
+                if erred and (
+                    len(erred) >= self.policy.max_attempts
+                    or (takers is not None and not takers - erred)
+                ):
+                    self._unpend(run, index)
+                    self._refer(run, index)
+
+    def _refer(self, run: _Run, index: int) -> None:
+        """Lease slot `index` to the referee, whose thread evaluates it here."""
+        slot = run.slots[index]
+        loop = run.loop
+        key = JobKey(run_id=run.run_id, generation=loop.generation, index=index)
+        slot.status = "leased"
+        self._leases[key] = _Lease(key, REFEREE, math.inf, slot.start, slot.stop, self._clock())
+        job = Job(
+            key=key,
+            start=slot.start,
+            stop=slot.stop,
+            config=loop.config,
+            genomes=loop.ask()[slot.start : slot.stop],
+            lease_s=self.policy.lease_max_s,
+        )
+        context(log, run=run.run_id).info(
+            "run %d job %d/%d erred on %s: the server evaluates it",
+            run.run_id,
+            key.generation,
+            index,
+            ", ".join(sorted(slot.erred)),
+        )
+        self._referee.submit(self._judge, job)
+
+    def _judge(self, job: Job) -> None:
+        """The referee's thread: evaluate `job` and settle it, or fail its run."""
+        try:
+            result = run_job(job, "server")  # the lease stays REFEREE's, no worker's name
+            with self._lock:
+                lease = self._leases.get(job.key)
+                if lease is None or lease.worker != REFEREE:
+                    return  # its run was dropped or replaced meanwhile
+                del self._leases[job.key]
+                if result.error is not None:
+                    self._fail_run(job.key, result.error)
+                elif (
+                    result.fitness is not None
+                    and result.components is not None
+                    and result.descriptors is not None
+                ):
+                    self._complete(
+                        job.key, lease, result.fitness[0], result.components[0],
+                        result.descriptors[0],
+                    )  # fmt: skip
+            self._announce()
+        except Exception:  # a bug here must not end the thread's later jobs silently
+            log.exception(
+                "the server's evaluation of run %d job %s failed", job.key.run_id, job.key
+            )
 
     def _drop_run(self, run_id: int) -> None:
         self._runs.pop(run_id, None)

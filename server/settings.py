@@ -127,7 +127,15 @@ class Settings(BaseSettings):
     lease_unknown_seconds: float = Field(
         120.0, gt=0.0, description="lease before a worker's speed is known (compiling)"
     )
-    max_attempts: int = Field(3, ge=1, description="failed evaluations before a run fails")
+    max_attempts: int = Field(
+        3,
+        ge=1,
+        description="worker credentials that may err on a job before the server evaluates it "
+        "itself (only the server's own evaluation failing fails a run)",
+    )
+    errors_quarantine: int = Field(
+        3, ge=1, description="error results in a row that quarantine a worker credential"
+    )
     spot_checks: int = Field(
         1,
         ge=0,
@@ -206,5 +214,6 @@ class Settings(BaseSettings):
             span_below_s=self.span_below_seconds,
             span_s=self.span_seconds,
             max_attempts=self.max_attempts,
+            errors_quarantine=self.errors_quarantine,
             spot_checks=self.spot_checks,
         )

@@ -317,7 +317,7 @@ def check_small_run(base_url: str) -> None:
 
 def evaluated(manager: RunManager, worker: str) -> Result | None:
     """`worker` leases a job and evaluates it (not yet settled); None when none is leasable."""
-    from server.executor import run_job
+    from server.scheduler import run_job
 
     job = manager.scheduler.lease(worker)
     return None if job is None else run_job(job, worker)

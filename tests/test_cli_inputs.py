@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 
 from colony.cli import app
 from colony.server_cli import ago
+from evorobotics.evolution import evolve
 from schemas.network import PRESETS
 from schemas.run import RunConfig
 from server import crud
@@ -36,8 +37,9 @@ from tests.helpers import (
     serving,
     virtual_robot,
     wait_status,
+    worker_thread,
 )
-from worker.main import WorkerSettings, WorkerStats, run_worker
+from worker.main import WorkerSettings, WorkerStats, evaluate_slice, run_worker
 
 NO_ROOM = "#####\n#...#\n#####\n"
 """A maze with free cells but none the robot's body fits in."""
@@ -210,14 +212,16 @@ def broken(config: RunConfig, generation: int, genomes: np.ndarray) -> tuple[np.
     raise RuntimeError("simulated evaluator crash")
 
 
-def test_follow_prints_why_a_run_failed(tmp_path: Path) -> None:
+def test_follow_prints_why_a_run_failed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker's error fails nothing; the server's own evaluation failing fails the run (its
+    physics broken here by hand: nothing else makes it fail)."""
+    monkeypatch.setattr("server.scheduler.evaluate", broken)
     zport = free_port()
     settings = Settings(
         db_url=f"sqlite:///{tmp_path / 'colony.db'}",
         port=free_port(),
         zenoh_listen=[f"tcp/127.0.0.1:{zport}"],
         workers=0,
-        max_attempts=1,
     )
     with serving(settings) as (url, _), httpx.Client(base_url=url, timeout=30) as client:
         stop = threading.Event()
@@ -238,13 +242,19 @@ def test_follow_prints_why_a_run_failed(tmp_path: Path) -> None:
         wait_status(client, run_id, {"failed"})
         again = colony("run", "follow", str(run_id), "--server", url)
         shown = colony("run", "show", str(run_id), "--server", url)
+        monkeypatch.undo()  # the physics mended: resumed, the run goes on where it stopped
+        with worker_thread(zport, "honest", evaluate_slice):
+            resumed = colony("run", "resume", str(run_id), "--server", url)
+            done = wait_status(client, run_id, {"completed", "failed"})
+    assert resumed[0] == 0, resumed[1]
+    assert (done["status"], done["error"]) == ("completed", None)
+    assert done["best_fitness"] == evolve(RunConfig(**SMALL)).history[-1].best
+    why = "job 0/0 failed in the server's own evaluation: RuntimeError: simulated"
     for code, out in (started, again):
         assert code == 1, out
-        assert f"run {run_id} failed: job 0/0 failed: crashy: RuntimeError: simulated" in out
-    assert shown[0] == 0 and "failed: job 0/0 failed: crashy: RuntimeError" in shown[1]
-    assert (
-        study[0] == 1 and f"run {study_run} (s/base/0) failed: job 0/0 failed: crashy" in study[1]
-    )
+        assert f"run {run_id} failed: {why}" in out
+    assert shown[0] == 0 and f"failed: {why}" in shown[1]
+    assert study[0] == 1 and f"run {study_run} (s/base/0) failed: {why}" in study[1]
 
 
 class _Interrupted(httpx.HTTPTransport):

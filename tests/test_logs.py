@@ -16,9 +16,9 @@ import pytest
 
 from schemas.run import RunConfig
 from server.db import make_engine, upgrade
-from server.executor import run_job
 from server.logs import as_format, configure, context
 from server.manager import LOG_EVERY_S, RunManager
+from server.scheduler import run_job
 from server.settings import Settings
 from tests.helpers import free_port
 

@@ -14,9 +14,18 @@ from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
-from server.executor import run_job
-from server.scheduler import SPEED_MAX, SPEED_MIN, Policy, Scheduler, Written, clamp_speed
+from server.scheduler import (
+    SPEED_MAX,
+    SPEED_MIN,
+    Policy,
+    Scheduler,
+    Written,
+    clamp_speed,
+    run_job,
+)
 from tests.helpers import (
+    WAIT,
+    eventually,
     fake_evaluator,
     fake_fitness,
     plausible_forgery,
@@ -264,24 +273,85 @@ def test_leave_releases_at_once() -> None:
     assert [w.state for w in sched.workers()] == ["idle", "busy"]
 
 
-def test_error_results_are_retried_then_the_run_fails() -> None:
+def lease_key(sched: Scheduler, worker: str, key: object) -> Job | None:
+    """Lease as `worker` until it gets the job `key` (or nothing more)."""
+    while (job := sched.lease(worker)) is not None and job.key != key:
+        sched.settle(result(job, worker))
+    return job
+
+
+def test_an_error_result_sends_its_job_to_another_credential_then_to_the_server() -> None:
+    """Issue 38, attack 1: a worker's error fails no run. Its job is never leased to that
+    credential again; once `max_attempts` credentials erred on it, the server evaluates it."""
     sched, _ = make(Policy(max_attempts=2))
+    for name in ("a", "a.pc-2", "b", "c"):
+        sched.join(name)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("a")
+    assert job is not None
+    assert sched.settle(error_result(job, "a")).reason == "error recorded"
+    again = sched.lease("a.pc-2")  # the same credential: another job
+    assert again is not None and again.key != job.key
+    retry = lease_key(sched, "b", job.key)
+    assert retry is not None and sched.settle(error_result(retry, "b")).accepted
+    assert lease_key(sched, "c", job.key) is None  # the server holds it now
+    assert eventually(lambda: sched.counts()["done"] == 2, WAIT)  # c's and the server's
+    assert sched.settle(result(again, "a.pc-2")).accepted
+    (told,) = sched.take_told()
+    evaluated = run_job(job, "x").fitness
+    assert evaluated is not None
+    np.testing.assert_array_equal(told.told.fitness[job.start : job.stop], evaluated[0])
+    assert sched.take_failed() == {} and sched.quarantined() == {}
+    sched.close()
+
+
+def test_a_credential_whose_results_err_in_a_row_is_quarantined() -> None:
+    sched, _ = make(Policy(errors_quarantine=3, jobs_per_worker=5))
+    sched.join("b")
+    sched.join("rogue")
+    sched.add(1, RunLoop(CONFIG.model_copy(update={"population": 30})), running=True)
+    for honest in (False, True, False, False):  # an accepted result starts the count again
+        job = sched.lease("rogue")
+        assert job is not None
+        sent = result(job, "rogue") if honest else error_result(job, "rogue")
+        assert sched.settle(sent).accepted and sched.quarantined() == {}
+    job = sched.lease("rogue")
+    assert job is not None and sched.settle(error_result(job, "rogue")).accepted
+    why = sched.quarantined()["rogue"]
+    assert "3 error results in a row" in why and "boom" in why
+    assert sched.lease("rogue") is None and sched.lease("rogue.other") is None
+    assert sched.lease("b") is not None and sched.take_failed() == {}
+    sched.close()
+
+
+def test_a_run_fails_only_when_the_servers_own_evaluation_fails(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With no other credential live, the server evaluates the job: a failure there fails the
+    run, saying why; an in-process executor's error is the server's own at once."""
+
+    def broken(config: RunConfig, generation: int, genomes: np.ndarray) -> None:
+        raise RuntimeError("the physics broke")
+
+    monkeypatch.setattr("server.scheduler.evaluate", broken)
+    sched, _ = make(Policy())
     sched.add(1, RunLoop(CONFIG), running=True)
     sched.add(2, RunLoop(CONFIG), running=True)
     job = sched.lease("a")
     assert job is not None and job.key.run_id == 1
-    ack = sched.settle(error_result(job, "a"))
-    assert ack.accepted and ack.reason == "error recorded"
-    assert sched.take_failed() == {}
-    while (retry := sched.lease("a")) is not None and retry.key != job.key:
-        pass
-    assert retry is not None
-    assert sched.settle(error_result(retry, "a")).accepted
-    failed = sched.take_failed()
-    assert list(failed) == [1] and "boom" in failed[1] and "a:" in failed[1]
-    assert sched.take_failed() == {}
-    leased = [sched.lease(f"x{i}") for i in range(10)]
-    assert {j.key.run_id for j in leased if j} == {2}  # run 1 is no longer served
+    assert sched.settle(error_result(job, "a")).accepted
+    failed: dict[int, str] = {}
+    assert eventually(lambda: failed.update(sched.take_failed()) or 1 in failed, WAIT)
+    assert failed == {
+        1: "job 0/0 failed in the server's own evaluation: RuntimeError: the physics broke"
+    }
+    sched.join("local-0", listed=False)
+    local = sched.lease("local-0")
+    assert local is not None and local.key.run_id == 2
+    assert sched.settle(error_result(local, "local-0")).accepted
+    assert sched.take_failed() == {2: "job 0/0 failed in the server's own evaluation: boom"}
+    assert sched.lease("b") is None  # neither run is served any more
+    sched.close()
 
 
 def test_worker_statuses_and_gone_workers_are_kept_until_gone_keep_s() -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,10 +12,20 @@ import pytest
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
+from evorobotics.evolution import evolve
 from schemas.run import RunConfig
 from server.settings import Settings
-from tests.helpers import SMALL, check_small_run, free_port, serving, wait_status
-from worker.main import WorkerSettings, run_worker
+from tests.helpers import (
+    SMALL,
+    WAIT,
+    check_small_run,
+    eventually,
+    free_port,
+    serving,
+    wait_status,
+    worker_thread,
+)
+from worker.main import evaluate_slice
 
 
 @pytest.fixture(scope="module")
@@ -96,37 +105,36 @@ def broken(
     raise RuntimeError("simulated evaluator crash")
 
 
-def test_zenoh_worker_errors_are_retried_then_fail_the_run(tmp_path: Path) -> None:
+def test_a_zenoh_workers_errors_fail_no_run_the_server_evaluates_its_jobs(
+    tmp_path: Path,
+) -> None:
+    """The only worker errs on every job: the server evaluates each job it erred on (three
+    generations), the worker is quarantined at its third error in a row, and the run waits
+    for an honest worker, then completes as an undisturbed run."""
     zport = free_port()
     settings = Settings(
         db_url=f"sqlite:///{tmp_path / 'colony.db'}",
         port=free_port(),
         zenoh_listen=[f"tcp/127.0.0.1:{zport}"],
         workers=0,
-        max_attempts=2,
     )
     with serving(settings) as (url, app), httpx.Client(base_url=url, timeout=30) as client:
         assert app.state.zenoh is not None and app.state.dispatcher is not None
         assert client.get("/api/workers").json() == []
-        stop = threading.Event()
-        worker = WorkerSettings(connect=(f"tcp/127.0.0.1:{zport}",), name="crashy")
-        thread = threading.Thread(
-            target=run_worker, args=(worker, stop), kwargs={"evaluator": broken}
-        )
-        thread.start()
-        try:
+        with worker_thread(zport, "crashy", broken):
+            assert eventually(lambda: len(client.get("/api/workers").json()) == 1, WAIT)
             run_id = client.post("/api/runs", json=SMALL).json()["id"]
-            run = wait_status(client, run_id, {"completed", "failed"})
-            [listed] = client.get("/api/workers").json()
-            colony = client.get("/api/colony").json()
-        finally:
-            stop.set()
-            thread.join(timeout=30)
-    assert run["status"] == "failed"
-    assert "crashy: RuntimeError: simulated evaluator crash" in run["error"]
-    assert listed["name"] == "crashy" and listed["jobs_done"] == 0
-    assert listed["state"] in ("idle", "busy")
-    assert [w["name"] for w in colony["workers"]] == ["crashy"]
+            assert eventually(lambda: client.get("/api/workers").json()[0]["quarantined"], WAIT)
+            generation = lambda: client.get(f"/api/runs/{run_id}").json()["generation"]  # noqa: E731
+            assert eventually(lambda: generation() == 3, WAIT)
+            with worker_thread(zport, "honest", evaluate_slice):  # the run waited for it
+                run = wait_status(client, run_id, {"completed", "failed"})
+            listed = {w["name"]: w for w in client.get("/api/workers").json()}
+    assert (run["status"], run["error"]) == ("completed", None)
+    assert run["best_fitness"] == evolve(RunConfig(**SMALL)).history[-1].best
+    crashy = listed["crashy"]
+    assert crashy["jobs_done"] == 0 and crashy["quarantined"] is True
+    assert "3 error results in a row" in crashy["quarantine_reason"]
 
 
 def test_healthz_reports_a_stopped_loop(tmp_path: Path) -> None:

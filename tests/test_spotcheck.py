@@ -48,8 +48,9 @@ from tests.helpers import (
 from worker.main import evaluate_slice
 
 CONFIG = {"population": 16, "generations": 6, "steps": 20, "trials": 2, "job_size": 4, "seed": 5}
-Forgery = Callable[[RunConfig, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-"""(config, fitness (n,), components (n, trials, 4)) -> the forged fitness and components."""
+Forgery = Callable[[RunConfig, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray] | str]
+"""(config, fitness (n,), components (n, trials, 4)) -> the forged fitness and components, or
+an error message to send instead."""
 
 
 def beyond_physics(
@@ -96,16 +97,20 @@ def rogue_worker(port: int, forge: Forgery, name: str = "rogue") -> Iterator[lis
             fitness, components, descriptors = evaluate_slice(
                 job.config, job.key.generation, job.genomes
             )
-            if acks:  # honest once, so a result of it is accepted before it forges
-                fitness, components = forge(job.config, fitness, components)
-            result = Result(
-                key=job.key,
-                worker=name,
-                start=job.start,
-                stop=job.stop,
-                fitness=fitness[None],
-                components=components[None],
-                descriptors=descriptors[None],
+            forged = forge(job.config, fitness, components) if acks else (fitness, components)
+            # honest once, so a result of it is accepted before it forges
+            result = (
+                Result(key=job.key, worker=name, start=job.start, stop=job.stop, error=forged)
+                if isinstance(forged, str)
+                else Result(
+                    key=job.key,
+                    worker=name,
+                    start=job.start,
+                    stop=job.stop,
+                    fitness=forged[0][None],
+                    components=forged[1][None],
+                    descriptors=descriptors[None],
+                )
             )
             replies = list(session.get(result_key(name), payload=encode(result), timeout=WAIT))
             if replies and replies[0].ok is not None:
@@ -213,5 +218,27 @@ def test_claims_beyond_the_trials_physics_are_refused_without_a_spot_check(
         done.workers["rogue"]["quarantined"] is True
         and why in done.workers["rogue"]["quarantine_reason"]
     )
+    assert done.best["sha256"] == honest.best.sha256
+    assert done.run["best_fitness"] == honest.history[-1].best
+
+
+def test_a_workers_error_results_fail_no_run_and_repeated_ones_quarantine_it(
+    tmp_path: Path,
+) -> None:
+    """Issue 38, attack 1: three error results from one credential failed a run. Now each job
+    it erred on goes to the honest worker, the credential is quarantined at its third error in
+    a row, and the run ends as an honest one."""
+    honest = evolve(RunConfig(**CONFIG))
+    done = rogue_run(tmp_path, lambda config, f, c: "RuntimeError: not today")
+    assert done.acks[0].accepted
+    assert [a.reason for a in done.acks[1:4]] == ["error recorded"] * 3
+    rogue = done.workers["rogue"]
+    assert rogue["quarantined"] is True
+    assert "3 error results in a row" in rogue["quarantine_reason"]
+    assert "RuntimeError: not today" in rogue["quarantine_reason"]
+    assert done.workers["honest"]["quarantined"] is False
+    assert "colony_workers_quarantined 1.0" in done.metrics
+    assert "colony_spot_check_mismatches_total 0.0" in done.metrics
+    assert done.run["error"] is None
     assert done.best["sha256"] == honest.best.sha256
     assert done.run["best_fitness"] == honest.history[-1].best

@@ -263,8 +263,12 @@ def broken(
     raise RuntimeError("simulated evaluator crash")
 
 
-def test_a_study_whose_runs_fail_ends_failed(tmp_path: Path) -> None:
-    """Every evaluation fails on a zenoh worker: the runs fail, and the study with them."""
+def test_a_study_whose_runs_fail_ends_failed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every evaluation fails, on a zenoh worker and in the server (its physics broken by
+    hand): the runs fail, and the study with them."""
+    monkeypatch.setattr("server.scheduler.evaluate", broken)
     zport = free_port()
     settings = Settings(
         db_url=f"sqlite:///{tmp_path / 'colony.db'}",
@@ -272,7 +276,6 @@ def test_a_study_whose_runs_fail_ends_failed(tmp_path: Path) -> None:
         zenoh_listen=[f"tcp/127.0.0.1:{zport}"],
         workers=0,
         executors=0,
-        max_attempts=1,
     )
     with (
         serving(settings) as (base, _),
