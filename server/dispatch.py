@@ -37,6 +37,7 @@ from schemas.wire import (
     check_worker_name,
     decode,
     encode,
+    worker_key,
 )
 from server.auth import is_loopback
 from server.logs import context
@@ -115,10 +116,14 @@ def _json_list(items: tuple[str, ...]) -> str:
 @dataclass
 class _Held:
     query: zenoh.Query
-    worker: str
+    request: JobRequest
     until: float
     served: bool = True
     """False for a worker of another protocol: answered idle at `until`, never served."""
+
+    @property
+    def worker(self) -> str:
+        return self.request.worker
 
 
 _WAKE = object()
@@ -140,6 +145,9 @@ class Dispatcher:
         self._clock = scheduler.now
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._held: list[_Held] = []
+        self._tokens: set[str] = set()
+        """Worker names whose liveliness token is declared: only they are leased jobs, and
+        only they enter the scheduler's worker table (a name without one would never leave)."""
         self._stopping = threading.Event()
         self.malformed = 0
         """Messages dropped as malformed (a metric)."""
@@ -243,13 +251,19 @@ class Dispatcher:
         except WireError as exc:
             self._reject(query, exc)
             return
-        served = request.protocol == PROTOCOL
-        self._scheduler.join(
-            request.worker, host=request.host, speed=request.robot_steps_per_s, serving=served
+        held = _Held(
+            query, request, self._clock() + self.settings.long_poll_s, request.protocol == PROTOCOL
         )
-        held = _Held(query, request.worker, self._clock() + self.settings.long_poll_s, served)
-        if not (served and self._try_serve(held)):
-            self._held.append(held)
+        if request.worker in self._tokens:
+            self._join(held)
+        if not (held.served and self._try_serve(held)):
+            self._held.append(held)  # a name without a token waits for it, or its long-poll
+
+    def _join(self, held: _Held) -> None:
+        request = held.request
+        self._scheduler.join(
+            request.worker, host=request.host, speed=request.robot_steps_per_s, serving=held.served
+        )
 
     def _on_result(self, query: zenoh.Query) -> None:
         try:
@@ -257,6 +271,10 @@ class Dispatcher:
             _check_sender(result.worker, query)
         except WireError as exc:
             self._reject(query, exc)
+            return
+        if result.worker not in self._tokens:  # it holds no lease: it never had one
+            ack = Ack(key=result.key, accepted=False, reason="no liveliness token: no lease held")
+            query.reply(query.key_expr, encode(ack))
             return
         ack = self._scheduler.settle(result)
         if result.error is not None:
@@ -280,9 +298,15 @@ class Dispatcher:
             log.warning("ignoring liveliness token with a bad worker name %r", name)
             return
         if sample.kind == zenoh.SampleKind.PUT:
+            self._tokens.add(name)
             self._scheduler.join(name)
+            for held in self._held:
+                if held.worker == name:
+                    self._join(held)
             context(log, worker=name).info("worker %s joined", name)
+            self._serve_held()  # its requests held until its token came
             return
+        self._tokens.discard(name)
         context(log, worker=name).info("worker %s gone", name)
         for held in [h for h in self._held if h.worker == name]:
             self._answer_idle(held, "worker gone")  # it must not take a job
@@ -296,17 +320,25 @@ class Dispatcher:
         waiting: list[_Held] = []
         exhausted = False
         for held in self._held:
-            if held.served and not exhausted and self._try_serve(held):
+            servable = held.served and held.worker in self._tokens
+            if servable and not exhausted and self._try_serve(held):
                 continue
-            exhausted = exhausted or held.served
+            exhausted = exhausted or servable
             if held.until <= now:
-                reason = "no job" if held.served else f"server speaks protocol {PROTOCOL}"
+                if not held.served:
+                    reason = f"server speaks protocol {PROTOCOL}"
+                elif held.worker not in self._tokens:
+                    reason = f"no liveliness token: declare {worker_key(held.worker)} first"
+                else:
+                    reason = "no job"
                 self._answer_idle(held, reason)
             else:
                 waiting.append(held)
         self._held = waiting
 
     def _try_serve(self, held: _Held) -> bool:
+        if held.worker not in self._tokens:
+            return False
         job = self._scheduler.lease(held.worker)
         if job is None:
             return False

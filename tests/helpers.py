@@ -167,6 +167,39 @@ def client_config(port: int) -> zenoh.Config:
     return conf
 
 
+_TOKENS: dict[int, dict[str, Any]] = {}
+"""id of a `zenoh_client` session -> the worker tokens `as_worker` declared on it."""
+
+
+@contextmanager
+def zenoh_client(port: int) -> Iterator[zenoh.Session]:
+    """A client session of the router on 127.0.0.1:`port`, closed on exit."""
+    import zenoh
+
+    session = zenoh.open(client_config(port))
+    _TOKENS[id(session)] = {}
+    try:
+        yield session
+    finally:
+        _TOKENS.pop(id(session))
+        session.close()  # type: ignore[no-untyped-call]
+
+
+def as_worker(session: zenoh.Session, name: str) -> None:
+    """Declare the worker `name`'s liveliness token on a `zenoh_client` session, once, as a
+    worker does before it asks for jobs: the server leases only to names with a token."""
+    from schemas.wire import worker_key
+
+    tokens = _TOKENS[id(session)]
+    if name not in tokens:
+        tokens[name] = session.liveliness().declare_token(worker_key(name))
+
+
+def gone_worker(session: zenoh.Session, name: str) -> None:
+    """Undeclare the token `as_worker` declared for `name` (the worker leaves)."""
+    _TOKENS[id(session)].pop(name).undeclare()
+
+
 @contextmanager
 def worker_thread(port: int, name: str, evaluator: Evaluator) -> Iterator[WorkerStats]:
     """A real worker (its own client session) in a thread; stopped and joined on exit. The

@@ -73,6 +73,7 @@ from server.robots import RobotService, RobotSettings
 from server.scheduler import Policy, Scheduler
 from tests.helpers import (
     WAIT,
+    as_worker,
     client_config,
     eventually,
     fake_evaluator,
@@ -81,6 +82,7 @@ from tests.helpers import (
     random_controller,
     router_config,
     worker_thread,
+    zenoh_client,
 )
 
 FUZZ = settings(
@@ -249,7 +251,7 @@ def job_server() -> Iterator[tuple[Dispatcher, Scheduler, zenoh.Session]]:
     try:
         with (
             Dispatcher(settings, scheduler) as disp,
-            zenoh.open(client_config(port)) as session,
+            zenoh_client(port) as session,
         ):
             yield disp, scheduler, session
             assert disp.alive()
@@ -265,7 +267,9 @@ def dispatcher() -> Iterator[tuple[Dispatcher, Scheduler, zenoh.Session]]:
 
 
 def lease(session: zenoh.Session, worker: str = "fuzzer", speed: float | None = None) -> Job:
-    """A valid request: a job of the run (asking again releases what the worker held)."""
+    """A valid request, the worker's token declared: a job of the run (asking again releases
+    what the worker held)."""
+    as_worker(session, worker)
     request = JobRequest(worker=worker, robot_steps_per_s=speed)
     reply = ask(session, next_key(worker), encode(request))
     assert reply.ok is not None, reply.err and reply.err.payload.to_bytes()
