@@ -101,7 +101,7 @@ def test_cli_drives_a_run(base_url: str, tmp_path: Path) -> None:
 
 def broken(
     config: RunConfig, generation: int, genomes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     raise RuntimeError("simulated evaluator crash")
 
 
@@ -125,8 +125,9 @@ def test_a_zenoh_workers_errors_fail_no_run_the_server_evaluates_its_jobs(
             assert eventually(lambda: len(client.get("/api/workers").json()) == 1, WAIT)
             run_id = client.post("/api/runs", json=SMALL).json()["id"]
             assert eventually(lambda: client.get("/api/workers").json()[0]["quarantined"], WAIT)
-            generation = lambda: client.get(f"/api/runs/{run_id}").json()["generation"]  # noqa: E731
-            assert eventually(lambda: generation() == 3, WAIT)
+            assert eventually(
+                lambda: client.get(f"/api/runs/{run_id}").json()["generation"] == 3, WAIT
+            )
             with worker_thread(zport, "honest", evaluate_slice):  # the run waited for it
                 run = wait_status(client, run_id, {"completed", "failed"})
             listed = {w["name"]: w for w in client.get("/api/workers").json()}
