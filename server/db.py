@@ -183,10 +183,14 @@ PG_LOCK_KEY = (0x436F6C6F, 0x6E790001)
 
 
 class ServerLock:
-    """Held for the life of one server so that a second on the same database is refused: an
-    exclusive `flock` on `FILE.lock` beside an SQLite file (the kernel drops it when the process
-    dies, even by kill -9), a session advisory lock on PostgreSQL (dropped with the session).
-    Other databases get no lock."""
+    """Held for the life of one server so that a second on the same database is refused: on
+    an SQLite file, an exclusive `flock` on `FILE.lock` beside it (which holds the holder's
+    pid, for the refusal's message) and one on the file itself, so on its inode whatever path
+    or hard link names it (SQLite's own locks are POSIX record locks, which flock does not
+    touch); the kernel drops both when the process dies, even by kill -9. On PostgreSQL, a
+    session advisory lock (dropped with the session). Other databases get no lock. Released
+    after the engine is disposed: closing a descriptor of the file drops the process's POSIX
+    locks on it."""
 
     def __init__(self, release: Callable[[], None]) -> None:
         self._release: Callable[[], None] | None = release
@@ -230,7 +234,31 @@ class ServerLock:
             ) from None
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
-        return cls(lambda: os.close(fd))
+        try:
+            if not database.exists():  # a new store: a valid empty one, so its inode is locked
+                with contextlib.closing(sqlite3.connect(database)) as new:
+                    new.execute("PRAGMA journal_mode=WAL")  # writes the header
+            held = os.open(database, os.O_RDWR)
+            fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(held)
+            os.close(fd)
+            raise StoreUnusableError(
+                f"database {database} is in use by another colony server that opened it under "
+                "another path (a hard link to the same file)"
+            ) from None
+        except (OSError, sqlite3.Error) as exc:
+            os.close(fd)
+            reason = exc.strerror if isinstance(exc, OSError) else None
+            raise StoreUnusableError(
+                f"cannot open the database {database}: {reason or exc}"
+            ) from None
+
+        def release() -> None:
+            os.close(held)
+            os.close(fd)
+
+        return cls(release)
 
     @classmethod
     def _advisory(cls, url: str) -> ServerLock:

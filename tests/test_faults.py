@@ -204,14 +204,22 @@ def test_a_damaged_database_file_is_refused_in_one_line(tmp_path: Path) -> None:
 
 
 def test_a_second_server_on_the_same_database_is_refused(tmp_path: Path) -> None:
-    """The first creates the missing file; a second is refused naming the first's pid; once the
-    first dies (kill -9) the lock is gone and a new server starts on the same colony."""
+    """The first creates the missing file; a second is refused naming the first's pid, and one
+    on a hard link to the file too; once the first dies (kill -9) the lock is gone and a new
+    server starts on the same colony."""
     db = tmp_path / "new" / "colony.db"
     url = f"sqlite:///{db}"
     with running_server(url) as first:
         assert db.exists()
         assert refusal(url) == (
             f"error: database {db} is in use by another colony server (pid {first.pid})\n"
+        )
+        linked = tmp_path / "elsewhere" / "same.db"  # issue 38: a hard link ran a second server
+        linked.parent.mkdir()
+        os.link(db, linked)
+        assert refusal(f"sqlite:///{linked}") == (
+            f"error: database {linked} is in use by another colony server that opened it under "
+            "another path (a hard link to the same file)\n"
         )
         first.send_signal(signal.SIGKILL)
         first.wait(timeout=30)
