@@ -249,10 +249,8 @@ class ServerLock:
             ) from None
         except (OSError, sqlite3.Error) as exc:
             os.close(fd)
-            reason = exc.strerror if isinstance(exc, OSError) else None
-            raise StoreUnusableError(
-                f"cannot open the database {database}: {reason or exc}"
-            ) from None
+            why = (exc.strerror if isinstance(exc, OSError) else None) or str(exc)
+            raise StoreUnusableError(f"cannot open the database {database}: {why}") from None
 
         def release() -> None:
             os.close(held)
