@@ -133,3 +133,6 @@ class Robot(Base):
     calibration: Mapped[str | None] = mapped_column(Text, nullable=True)
     """Its physics fitted from its traces (`schemas.robots.RobotCalibration` JSON); None: never."""
     calibrated_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    served: Mapped[str | None] = mapped_column(Text, nullable=True)
+    """JSON list of the sha256s the server gave it (acknowledged pushes, replacements sent),
+    oldest first, the newest `SERVED_KEPT`: only these count in field statistics."""

@@ -34,7 +34,7 @@ import uuid
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from typing import Any, get_args
 
 import numpy as np
@@ -154,7 +154,10 @@ class RobotSettings:
     """Retention and timing of the robot side."""
 
     retention_samples: int = 36_000
-    """Trace samples kept per robot (one hour at 10 Hz)."""
+    """Trace samples kept per robot (one hour at 10 Hz), beyond those of `retention_window_s`."""
+    retention_window_s: float = 3600.0
+    """Samples that arrived within this long are never evicted: no burst of a robot's
+    credential evicts what it had acknowledged (its arrivals are bounded by its clock)."""
     push_timeout: float = 3.0
     """Seconds a push waits for the robot's acknowledgement (it applies at a step boundary)."""
     recent_failures: int = 5
@@ -179,6 +182,8 @@ class RobotSettings:
             raise ValueError(f"replacement must be one of {POLICIES}, got {self.replacement!r}")
         if min(self.retention_samples, self.recent_failures, self.max_backlog) < 1:
             raise ValueError("retention_samples, recent_failures and max_backlog must be >= 1")
+        if not self.retention_window_s >= 0:
+            raise ValueError(f"retention_window_s must be >= 0, got {self.retention_window_s}")
         if not self.push_timeout > 0 or not self.dt > 0 or not self.request_slack >= 0:
             raise ValueError("push_timeout and dt must be > 0, request_slack >= 0")
         if min(self.stuck_burst, self.stuck_retention) < 1 or not self.stuck_per_s > 0:
@@ -220,7 +225,9 @@ class _Boot:
 
 
 class _Waiter:
-    def __init__(self) -> None:
+    def __init__(self, sha: str | None) -> None:
+        self.sha = sha
+        """What was pushed (None: a stop): an acknowledgement of it makes it served."""
         self.done = threading.Event()
         self.ack: PushAck | None = None
 
@@ -252,6 +259,10 @@ class RobotService:
         self._online: set[str] = set()
         self._waiters: dict[str, _Waiter] = {}
         self._stored: dict[str, int] = {}
+        self._allowance: dict[str, tuple[float, float]] = {}
+        """robot -> (new samples it may send at once, when): every boot together runs at most
+        one step per dt (a token bucket of `max_backlog` samples), so new boots in a burst
+        cannot add samples faster than one robot's clock."""
         """Samples stored per robot, as committed."""
         self._boots: dict[tuple[str, int], _Boot] = {}
         """Per (robot, boot), as committed."""
@@ -361,6 +372,8 @@ class RobotService:
                 row = db.get(Robot, ack.robot)
                 if row is not None:
                     row.controller_sha256 = ack.sha256
+                    if waiter is not None and waiter.sha is not None and waiter.sha == ack.sha256:
+                        _serve(row, waiter.sha)
         if waiter is not None:
             waiter.ack = ack
             waiter.done.set()
@@ -443,6 +456,7 @@ class RobotService:
                 boot = self._boots.get(key) or self._load_boot(db, batch, now)
                 self._check_plausible(batch, boot, now)
                 new = batch.steps > boot.last
+                allowance = self._spend(robot, int(new.sum()), now)
                 self._report(db, batch)
                 steps = batch.steps[new]
                 if steps.shape[0] == 0:  # all seen before (a lost ack): acknowledged again
@@ -459,6 +473,7 @@ class RobotService:
         if steps.shape[0] > 0:
             boot = replace(boot, last=int(steps[-1]), at=time.monotonic())
             self.traces_received += int(steps.shape[0])
+        self._allowance[robot] = (allowance, now)
         self._boots[key] = boot
         if stored is not None:
             self._stored[robot] = stored
@@ -485,8 +500,9 @@ class RobotService:
                 pose_source=batch.pose_source,
             )
         )
+        served = _served(db.get(Robot, batch.robot))
         for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
-            if index != ESCAPE:
+            if index != ESCAPE and batch.controllers[int(index)] in served:
                 _field_row(db, batch.controllers[int(index)]).steps += int(count)
 
     def _forget_cache(self, robot: str) -> None:
@@ -543,6 +559,20 @@ class RobotService:
             )
         return _Boot(-1, heard, 0, heard, 0)
 
+    def _spend(self, robot: str, samples: int, now: float) -> float:
+        """The robot's allowance after `samples` new ones at `now` (committed by the caller);
+        TraceRefusedError if its clock cannot have made that many."""
+        rate = STEP_RATE_MARGIN / self.settings.dt
+        full = float(self.settings.max_backlog + SLACK_STEPS)
+        left, at = self._allowance.get(robot, (full, now))
+        left = min(full, left + (now - at) * rate)
+        if samples > left:
+            raise TraceRefusedError(
+                f"{samples} new samples, more than the robot's clock allows now ({int(left)}): "
+                f"all its boots together run at most {rate:g} steps a second"
+            )
+        return left - samples
+
     def _check_plausible(self, batch: TraceBatch, boot: _Boot, now: float) -> None:
         """TraceRefusedError unless the agent could have sent `batch` (docs/robots.md)."""
         if np.any(np.diff(batch.steps) != 1):
@@ -588,21 +618,25 @@ class RobotService:
         robot.controller_sha256, robot.last_seen = status.sha256, utcnow()
 
     def _retain(self, db: Session, robot: str, added: int) -> int:
-        """Delete the robot's oldest batches beyond `retention_samples` (newest batch kept);
-        the samples it then has stored."""
+        """Delete the robot's oldest batches beyond `retention_samples` (newest batch kept, and
+        every batch that arrived within `retention_window_s`); the samples it then has stored."""
         if robot in self._stored:
             stored = self._stored[robot] + added
         else:  # autoflush puts the new batch in the sum
             total = db.scalar(select(func.sum(TraceRow.count)).where(TraceRow.robot_id == robot))
             stored = int(total or 0)
+        recent = utcnow() - timedelta(seconds=self.settings.retention_window_s)
         while stored > self.settings.retention_samples:
             oldest = db.execute(
-                select(TraceRow.boot, TraceRow.first, TraceRow.count)
+                select(TraceRow.boot, TraceRow.first, TraceRow.count, TraceRow.received_at)
                 .where(TraceRow.robot_id == robot)
                 .order_by(TraceRow.boot, TraceRow.first)
                 .limit(1)
             ).first()
             if oldest is None or stored - int(oldest[2]) < 1:
+                break
+            arrived = aware(oldest[3])
+            if arrived is not None and arrived > recent:
                 break
             db.execute(
                 delete(TraceRow).where(
@@ -645,12 +679,14 @@ class RobotService:
             db.add(event)
             _trim_events(db, request.robot, self.settings.stuck_retention)
             state.stuck_events += 1
-            if request.sha256 is not None:
+            if request.sha256 is not None and request.sha256 in _served(robot):
                 _field_row(db, request.sha256).stuck_events += 1
             db.flush()
             doc, reason = self._pick(db, request, policy)
             event.replacement_sha256 = doc.sha256 if doc else None
             event.answer = reason
+            if doc is not None and robot is not None:
+                _serve(robot, doc.sha256)
         context(log, robot=request.robot).info(
             "robot %s stuck at step %d (%s) with %s; policy %s, replacement %s: %s",
             request.robot,
@@ -1042,7 +1078,7 @@ class RobotService:
     ) -> PushOut:
         if not self.is_online(robot):
             raise RobotOfflineError(f"robot {robot} is offline")
-        waiter = _Waiter()
+        waiter = _Waiter(sha)
         with self._lock:
             self._waiters[push_id] = waiter
         try:
@@ -1238,6 +1274,22 @@ def _event_out(row: StuckEventRow) -> StuckEventOut:
         answer=row.answer,
         steps_run=row.steps_run,
     )
+
+
+SERVED_KEPT = 64
+"""Controllers a robot's `served` list remembers: far more than it runs between reports."""
+
+
+def _served(robot: Robot | None) -> list[str]:
+    """The controllers the server gave `robot` (oldest first): only their steps and stuck
+    events count in field statistics, whatever a robot names."""
+    return [] if robot is None or not robot.served else list(json.loads(robot.served))
+
+
+def _serve(robot: Robot, sha256: str) -> None:
+    """Note that the server gave `robot` the controller `sha256`."""
+    served = [s for s in _served(robot) if s != sha256] + [sha256]
+    robot.served = json.dumps(served[-SERVED_KEPT:])
 
 
 def _field_row(db: Session, sha256: str) -> FieldStatsRow:

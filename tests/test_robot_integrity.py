@@ -49,6 +49,7 @@ from schemas.robots import (
 from schemas.wire import decode_frame, encode_frame
 from server import crud
 from server.db import make_engine, upgrade
+from server.models import Robot
 from server.robot_store import FieldStatsRow, RobotStateRow, TraceRow
 from server.robots import RobotService, RobotSettings
 from server.settings import Settings
@@ -258,6 +259,42 @@ def test_fake_trace_batches_are_refused_and_the_real_ones_stored(
         assert link.service.replay("r-fake").identical
 
 
+@pytest.mark.parametrize("window", [3600.0, 0.0])
+def test_a_burst_of_new_boots_evicts_no_acknowledged_sample(
+    colony: Colony, tmp_path: Path, window: float
+) -> None:
+    """Issue 38, attack 4: 420 batches, each one boot higher, were acknowledged in 5.4 s and
+    evicted every real sample. All boots of a robot together now add samples no faster than its
+    clock (the rest is refused), and samples that arrived within `retention_window_s` are never
+    evicted; with a window of 0 the newest `retention_samples` are kept, as before."""
+    settings = RobotSettings(
+        push_timeout=5.0, retention_samples=120, retention_window_s=window, max_backlog=400
+    )
+    doc = random_controller(33, NetworkSpec())
+    save(tmp_path, doc)
+    with robot_link(colony, settings=settings) as link:
+        with virtual_robot("r-evict", link, tmp_path, period=0.01) as (agent, _):
+            assert agent.wait_for(lambda: agent.delivered >= 150, WAIT)
+            boot = agent.boot
+            real = _stored_steps(link.service, "r-evict", boot)
+            refusals = []
+            with zenoh.open(client_config(link.port)) as rogue:
+                for k in range(1, 60):
+                    reply = _ask(rogue, traces_key("r-evict"), encode_trace(
+                        _batch("r-evict", boot + k, 0, 100)
+                    ))  # fmt: skip
+                    if reply.err is not None:
+                        refusals.append(reply.err.payload.to_bytes().decode())
+            kept = _stored_steps(link.service, "r-evict", boot)
+        assert any("more than the robot's clock allows" in r for r in refusals)
+        if window:
+            assert set(real.tolist()) <= set(kept.tolist())  # every acknowledged sample stays
+        else:
+            with link.service.sessions() as db:
+                counts = db.scalars(select(TraceRow.count).where(TraceRow.robot_id == "r-evict"))
+                assert sum(counts) <= 120 + 100  # the newest, to within the newest batch
+
+
 def test_a_failed_commit_is_never_acknowledged(tmp_path: Path) -> None:
     """The disk fills up under the trace store (SQLite's max_page_count): the agent keeps its
     samples, and once space is back they all land, with no gap."""
@@ -429,7 +466,6 @@ def test_a_stop_with_a_stale_seq_stops_and_never_opens_a_replay(
 
 def test_forget_a_stale_robot(colony: Colony, tmp_path: Path) -> None:
     doc = random_controller(29, NetworkSpec())
-    save(tmp_path, doc)
     auth = {"Authorization": f"Bearer {TOKEN}"}
     with (
         robot_link(colony) as link,
@@ -437,7 +473,10 @@ def test_forget_a_stale_robot(colony: Colony, tmp_path: Path) -> None:
     ):
         _store_controller(link, doc)
         with virtual_robot("r-gone", link, tmp_path) as (agent, _):
-            assert agent.wait_for(lambda: agent.delivered >= 20, WAIT)
+            assert eventually(lambda: link.service.is_online("r-gone"), WAIT)
+            assert link.service.push("r-gone", sha256=doc.sha256).accepted  # it counts
+            pushed = agent.delivered
+            assert agent.wait_for(lambda: agent.delivered >= pushed + 30, WAIT)
             busy = client.delete("/api/robots/r-gone", headers=auth)
             assert busy.status_code == 409 and "online" in busy.json()["detail"]
         assert eventually(lambda: not online(client, "r-gone"), WAIT)
@@ -464,6 +503,33 @@ def test_forget_a_stale_robot(colony: Colony, tmp_path: Path) -> None:
         assert done.exit_code == 0 and "forgotten" in done.output, done.output
         missing = runner.invoke(cli, args, env={"COLONY_API_TOKEN": TOKEN})
         assert missing.exit_code == 1 and "404" in missing.output
+
+
+def test_a_robot_naming_a_controller_it_was_never_given_raises_no_field_statistics(
+    colony: Colony,
+) -> None:
+    """Issue 38, attack 5: any robot raised any controller's field statistics by naming it (50
+    stuck events in seconds). Its stuck requests and trace batches are still its own record,
+    but only a controller the server gave the robot counts for the controller."""
+    doc = random_controller(31, NetworkSpec())
+    with robot_link(colony) as link, zenoh.open(client_config(link.port)) as rogue:
+        _store_controller(link, doc)
+        with link.service.sessions.begin() as db:  # known to the colony, as its agent made it
+            db.add(Robot(id="r-claim", status="online"))
+        for k in range(5):
+            request = StuckRequest(
+                robot="r-claim", sha256=doc.sha256, reason="x", step=k, nonce=secrets.token_hex(16)
+            )
+            assert _ask(rogue, replace_key("r-claim"), encode_message(request)).ok is not None
+        claimed = _batch(
+            "r-claim", 0, 0, 50, controllers=(doc.sha256,), controller=np.zeros(50, np.int32)
+        )
+        assert _ask(rogue, traces_key("r-claim"), encode_trace(claimed)).ok is not None
+        assert [e.controller_sha256 for e in link.service.stuck_events("r-claim").events] == [
+            doc.sha256
+        ] * 5
+        assert _stored_steps(link.service, "r-claim", 0).shape[0] == 50
+        assert link.service.field_stats(doc.sha256) is None
 
 
 def test_a_stuck_request_carries_its_nonce() -> None:

@@ -169,8 +169,9 @@ def test_bad_push_is_rejected_and_the_old_controller_kept(colony: Colony, tmp_pa
 
 
 def test_stuck_robot_gets_a_replacement_from_the_run(colony: Colony, tmp_path: Path) -> None:
+    """Pushed a controller that drives into the first wall, the robot gets the run's champion;
+    the stuck event counts in the pushed controller's field statistics (the server gave it)."""
     wall = constant_drive(0.9, 0.9, NetworkSpec())  # paper-best shape, drives straight on
-    save(tmp_path, wall)
     with robot_link(colony) as link:
         with link.service.sessions.begin() as db:
             crud.put_controller(
@@ -188,6 +189,8 @@ def test_stuck_robot_gets_a_replacement_from_the_run(colony: Colony, tmp_path: P
             best = ControllerDocument.from_json(champion.document)
         stuck = StuckConfig(contact_steps=5)
         with virtual_robot("r-stuck", link, tmp_path, stuck=stuck) as (agent, _):
+            assert eventually(lambda: link.service.is_online("r-stuck"))
+            assert link.service.push("r-stuck", sha256=wall.sha256).accepted
             assert agent.wait_for(
                 lambda: agent.controller is not None and agent.controller.sha256 != wall.sha256,
                 WAIT,
