@@ -6,6 +6,7 @@ import typer
 
 from colony.agent_cli import register as register_agent_commands
 from colony.analyze_cli import analyze_command
+from colony.db_cli import db_app
 from colony.demo import demo_command
 from colony.evaluate_cli import evaluate_command
 from colony.evolve import evolve_command
@@ -45,6 +46,7 @@ app.command(name="worker")(worker_command)
 register_agent_commands(app)
 app.command(name="analyze")(analyze_command)
 app.command(name="evaluate")(evaluate_command)
+app.add_typer(db_app, name="db")
 app.add_typer(lab_app, name="lab")
 app.add_typer(study_app, name="study")
 

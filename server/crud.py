@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy import delete, func, select, update
@@ -14,8 +15,9 @@ from sqlalchemy.orm import Session
 
 from evorobotics.evolution import StrategyHistory
 from schemas.api import TERMINAL
-from server import population
+from server import integrity, population
 from server.errors import InvalidInputError, NotFoundError, ServerError
+from server.integrity import unseal
 from server.models import Controller, Generation, Run, Study, utcnow
 from server.population import Population
 from server.scheduler import Scheduler
@@ -71,7 +73,7 @@ def populations(
     found = {}
     for g, data in session.execute(query):
         try:
-            found[g] = population.decode(data)
+            found[g] = population.decode(unseal(data, f"run {run_id} generation {g} population"))
         except population.PopulationError as exc:
             raise ServerError(f"run {run_id} generation {g}: stored population: {exc}") from exc
     return found
@@ -254,3 +256,49 @@ def job_counts(session: Session) -> dict[str, int]:
     if isinstance(scheduler, Scheduler):
         return scheduler.counts()
     return {"pending": 0, "leased": 0, "done": 0}
+
+
+@dataclass(frozen=True)
+class StoreCheck:
+    """What `check_store` read: rows verified against their checksums, rows stored before
+    checksums (only decoded), and why each damaged row is."""
+
+    generations: int
+    generations_sealed: int
+    traces: int
+    traces_sealed: int
+    damaged: list[str]
+
+
+def check_store(session: Session) -> StoreCheck:
+    """Read every generation (GA state, population) and trace batch, verify its checksum and
+    decode it: `colony db check`."""
+    from schemas.wire import WireError, decode_frame
+    from server.robot_store import TraceRow, check_trace
+
+    damaged: list[str] = []
+    generations = sealed_generations = 0
+    query = select(
+        Generation.run_id, Generation.generation, Generation.state, Generation.population
+    )
+    for run_id, g, state, stored in session.execute(query.execution_options(yield_per=64)):
+        generations += 1
+        sealed_generations += integrity.sealed(state) and integrity.sealed(stored)
+        for what, blob in (("GA state", state), ("population", stored)):
+            where = f"run {run_id} generation {g} {what}"
+            try:
+                data = unseal(blob, where)
+                population.decode(data) if what == "population" else decode_frame(data)
+            except integrity.DamagedRowError as exc:
+                damaged.append(str(exc))
+            except (WireError, population.PopulationError) as exc:
+                damaged.append(f"{where}: cannot be decoded: {exc}")
+    traces = sealed_traces = 0
+    for row in session.scalars(select(TraceRow).execution_options(yield_per=256)):
+        traces += 1
+        sealed_traces += row.checksum is not None
+        try:
+            check_trace(row)
+        except integrity.DamagedRowError as exc:
+            damaged.append(str(exc))
+    return StoreCheck(generations, sealed_generations, traces, sealed_traces, damaged)

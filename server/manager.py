@@ -52,6 +52,7 @@ from schemas.wire import decode_frame, encode_frame
 from server import crud, population
 from server.db import session_factory
 from server.errors import NotFoundError, TransitionError
+from server.integrity import seal, unseal
 from server.logs import context
 from server.models import Generation, Run, Study, utcnow
 from server.population import Population
@@ -432,7 +433,7 @@ class RunManager:
             if previous is None:
                 raise NotFoundError(f"run {run.id} has no committed generation {g - 1} to resume")
             state = decode_state(
-                previous.state,
+                unseal(previous.state, f"run {run.id} generation {g - 1} GA state"),
                 ranked=lambda: stored_ranked(session, run_id=run.id, generation=g - 1),
             )
         self.scheduler.add(run.id, RunLoop(config, state), running=run.status == "running")
@@ -721,8 +722,8 @@ class RunManager:
                 "mean": metrics.mean,
                 "worst": metrics.worst,
                 "nan_count": metrics.nan_count,
-                "state": encode_state(told.after, with_ranked=False),
-                "population": population.encode(ranked),
+                "state": seal(encode_state(told.after, with_ranked=False)),
+                "population": seal(population.encode(ranked)),
                 "committed_at": utcnow(),
             },
         )

@@ -12,6 +12,7 @@ from datetime import datetime
 from sqlalchemy import BigInteger, Boolean, DateTime, Index, Integer, LargeBinary, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
+from server.integrity import DamagedRowError, checksum
 from server.models import Base, utcnow
 
 
@@ -44,6 +45,25 @@ class TraceRow(Base):
     pose_source: Mapped[str | None] = mapped_column(String(16), nullable=True)
     """sim (an emulated robot's true pose) or odometry (integrated from its motor commands)."""
     received_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    checksum: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    """CRC-32 of its arrays (`trace_checksum`), verified on every read; None: stored before."""
+
+
+TRACE_ARRAYS = ("steps", "whiskers", "motors", "controller", "fresh", "times", "poses")
+"""The blob columns a trace batch's checksum covers, in order."""
+
+
+def trace_checksum(row: TraceRow) -> int:
+    return checksum(getattr(row, name) for name in TRACE_ARRAYS)
+
+
+def check_trace(row: TraceRow) -> None:
+    """DamagedRowError naming the batch if its arrays changed since they were stored."""
+    if row.checksum is not None and trace_checksum(row) != row.checksum:
+        raise DamagedRowError(
+            f"robot {row.robot_id} boot {row.boot} trace batch from step {row.first}: stored "
+            "bytes are damaged (checksum mismatch)"
+        )
 
 
 class RobotStateRow(Base):

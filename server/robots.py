@@ -89,7 +89,14 @@ from server import crud
 from server.errors import NotFoundError, ServerError
 from server.logs import context
 from server.models import Controller, Robot, Run, aware, utcnow
-from server.robot_store import FieldStatsRow, RobotStateRow, StuckEventRow, TraceRow
+from server.robot_store import (
+    FieldStatsRow,
+    RobotStateRow,
+    StuckEventRow,
+    TraceRow,
+    check_trace,
+    trace_checksum,
+)
 from server.signing import Signer
 
 log = logging.getLogger(__name__)
@@ -482,24 +489,24 @@ class RobotService:
     def _add(self, db: Session, batch: TraceBatch, new: np.ndarray) -> None:
         """The `new` samples of `batch` as a row, and their steps in the field statistics."""
         steps, controller = batch.steps[new], batch.controller[new]
-        db.add(
-            TraceRow(
-                robot_id=batch.robot,
-                boot=batch.boot,
-                first=int(steps[0]),
-                last=int(steps[-1]),
-                count=int(steps.shape[0]),
-                controllers=json.dumps(list(batch.controllers)),
-                steps=steps.astype("<i8").tobytes(),
-                whiskers=batch.whiskers[new].tobytes(),
-                motors=batch.motors[new].astype("<f8").tobytes(),
-                controller=controller.astype("<i4").tobytes(),
-                fresh=batch.fresh[new].tobytes(),
-                times=batch.times[new].astype("<f8").tobytes(),
-                poses=batch.poses[new].astype("<f8").tobytes(),
-                pose_source=batch.pose_source,
-            )
+        row = TraceRow(
+            robot_id=batch.robot,
+            boot=batch.boot,
+            first=int(steps[0]),
+            last=int(steps[-1]),
+            count=int(steps.shape[0]),
+            controllers=json.dumps(list(batch.controllers)),
+            steps=steps.astype("<i8").tobytes(),
+            whiskers=batch.whiskers[new].tobytes(),
+            motors=batch.motors[new].astype("<f8").tobytes(),
+            controller=controller.astype("<i4").tobytes(),
+            fresh=batch.fresh[new].tobytes(),
+            times=batch.times[new].astype("<f8").tobytes(),
+            poses=batch.poses[new].astype("<f8").tobytes(),
+            pose_source=batch.pose_source,
         )
+        row.checksum = trace_checksum(row)
+        db.add(row)
         served = _served(db.get(Robot, batch.robot))
         for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
             if index != ESCAPE and batch.controllers[int(index)] in served:
@@ -1340,6 +1347,7 @@ def _document(text: str) -> ControllerDocument | None:
 
 
 def _arrays(row: TraceRow) -> tuple[np.ndarray, ...]:
+    check_trace(row)
     n = row.count
     return (
         np.frombuffer(row.steps, "<i8"),
@@ -1354,6 +1362,7 @@ def trace_poses(row: TraceRow) -> tuple[np.ndarray, np.ndarray] | None:
     """The batch's sample times (n,) and poses (n, 3); None for a batch stored without."""
     if row.times is None or row.poses is None:
         return None
+    check_trace(row)
     return np.frombuffer(row.times, "<f8"), np.frombuffer(row.poses, "<f8").reshape(row.count, 3)
 
 

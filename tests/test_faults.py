@@ -28,7 +28,15 @@ from typer.testing import CliRunner
 from colony.cli import app as cli
 from server.db import ServerLock, StoreUnusableError, make_engine, upgrade
 from server.settings import Settings
-from tests.helpers import SERVER_START_S, eventually, free_port, serve, serving
+from tests.helpers import (
+    SERVER_START_S,
+    TINY,
+    completed_run,
+    eventually,
+    free_port,
+    serve,
+    serving,
+)
 
 JSON = {"content-type": "application/json"}
 COLONY = Path(sys.executable).parent / "colony"
@@ -201,6 +209,49 @@ def test_a_damaged_database_file_is_refused_in_one_line(tmp_path: Path) -> None:
         f"error: database {db} is damaged: Page 3: btreeInitPage() returns error code 11; "
         "restore it from a backup\n"
     )
+
+
+def test_a_damaged_row_is_an_error_naming_it_and_colony_db_check_finds_it(
+    tmp_path: Path,
+) -> None:
+    """Issue 38: stored blobs carry a checksum verified on read. One flipped bit in a
+    generation's population is a 500 naming the run and the generation, never silently served,
+    and `colony db check` names the row and exits 1."""
+    db = tmp_path / "colony.db"
+    url = f"sqlite:///{db}"
+    settings = Settings(db_url=url, port=free_port(), zenoh=False)
+    with serving(settings) as (base, _):
+        run_id = completed_run(base, TINY.model_dump())
+    check = ["db", "check", "--db", url]
+    clean = CliRunner().invoke(cli, check)
+    assert clean.exit_code == 0, clean.output
+    assert f"checked {TINY.generations} generations ({TINY.generations} with checksums)" in (
+        clean.output
+    ) and clean.output.endswith("no damage\n")
+    with sqlite3.connect(db) as conn:
+        (blob,) = conn.execute(
+            "SELECT population FROM generations WHERE run_id = ? AND generation = 1", (run_id,)
+        ).fetchone()
+        flipped = blob[:-1] + bytes([blob[-1] ^ 1])  # one bit of the last genome weight
+        conn.execute(
+            "UPDATE generations SET population = ? WHERE run_id = ? AND generation = 1",
+            (flipped, run_id),
+        )
+    why = f"run {run_id} generation 1 population: stored bytes are damaged (checksum mismatch)"
+    found = CliRunner().invoke(cli, check)
+    assert found.exit_code == 1
+    assert found.output.splitlines() == [
+        f"damaged: {why}",
+        f"checked {TINY.generations} generations ({TINY.generations} with checksums) "
+        "and 0 trace batches (0 with checksums): 1 damaged",
+    ]
+    with serving(Settings(db_url=url, port=free_port(), zenoh=False)) as (base, _):
+        served = httpx.get(f"{base}/api/runs/{run_id}/individuals", params={"generation": 1})
+        fine = httpx.get(f"{base}/api/runs/{run_id}/individuals", params={"generation": 0})
+    assert served.status_code == 500 and served.json()["detail"] == why
+    assert fine.status_code == 200
+    missing = CliRunner().invoke(cli, ["db", "check", "--db", f"sqlite:///{tmp_path / 'no.db'}"])
+    assert missing.exit_code == 1 and "no database at" in missing.output
 
 
 def test_a_second_server_on_the_same_database_is_refused(tmp_path: Path) -> None:

@@ -44,7 +44,7 @@ from schemas.wire import WireError
 from schemas.world import World
 from server import crud
 from server.models import Robot, Run
-from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow
+from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow, trace_checksum
 from server.robots import RobotSettings, replay_trace
 from server.settings import Settings
 from tests.helpers import (
@@ -123,6 +123,16 @@ def test_push_ack_run_replay_and_tamper(colony: Colony, tmp_path: Path) -> None:
             motors = np.frombuffer(row.motors, "<f8").copy()
             motors[-1] = np.nextafter(motors[-1], 2.0)
             row.motors = motors.tobytes()
+        damaged = client.get("/api/robots/r-push/replay")  # the bytes no longer match
+        assert damaged.status_code == 500
+        assert damaged.json()["detail"] == (
+            f"robot r-push boot {row.boot} trace batch from step {row.first}: stored bytes are "
+            "damaged (checksum mismatch)"
+        )
+        with link.service.sessions.begin() as db:  # a command the robot really sent, say
+            row = db.get(TraceRow, (row.robot_id, row.boot, row.first))
+            assert row is not None
+            row.checksum = trace_checksum(row)
         tampered = client.get("/api/robots/r-push/replay").json()
         assert not tampered["identical"] and tampered["mismatches"] == 1
         assert tampered["first_mismatch"]["step"] == row.last
