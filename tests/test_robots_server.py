@@ -130,9 +130,9 @@ def test_push_ack_run_replay_and_tamper(colony: Colony, tmp_path: Path) -> None:
             "damaged (checksum mismatch)"
         )
         with link.service.sessions.begin() as db:  # a command the robot really sent, say
-            row = db.get(TraceRow, (row.robot_id, row.boot, row.first))
-            assert row is not None
-            row.checksum = trace_checksum(row)
+            again = db.get(TraceRow, (row.robot_id, row.boot, row.first))
+            assert again is not None
+            again.checksum = trace_checksum(again)
         tampered = client.get("/api/robots/r-push/replay").json()
         assert not tampered["identical"] and tampered["mismatches"] == 1
         assert tampered["first_mismatch"]["step"] == row.last
