@@ -108,7 +108,7 @@ def calibration(
     p, w, m, _ = run_colony(spec, weights, poses, gap, horizon)
     traced = time.perf_counter() - began
     maze, world = load_maze("paper"), World()
-    within = 0
+    within = untouched = 0
     print(f"calibration from {horizon} steps ({horizon * world.dt:.0f} s) of traces per robot:")
     for i in range(robots):
         try:
@@ -116,18 +116,25 @@ def calibration(
         except CalibrationError as exc:
             print(f"  robot {i}: not calibrated: {exc}")
             continue
-        r_err = float(np.abs(np.array(fit.whisker_range) - gap.whisker_range[i]).max())
+        touched = [k for k in range(5) if k not in fit.untouched]
+        errors = np.abs(np.array(fit.whisker_range) - gap.whisker_range[i])[touched]
+        r_err = float(errors.max(initial=0.0))
         g_err = float(np.abs(np.array(fit.motor_gain) - gap.motor_gain[i]).max())
-        ok = r_err <= 0.003 and g_err <= 0.02
+        bounds = np.array(fit.whisker_range) + np.array(fit.whisker_range_uncertainty)
+        bounded = all(gap.whisker_range[i][k] <= bounds[k] for k in fit.untouched)
+        ok = r_err <= 0.003 and g_err <= 0.02 and bounded
         within += ok
+        untouched += bool(fit.untouched)
         hidden = ", ".join(f"{1000 * r:.0f}" for r in gap.whisker_range[i])
+        below = "".join(f"; whisker {k} below {1000 * bounds[k]:.0f} mm" for k in fit.untouched)
         print(
             f"  robot {i}: hidden whiskers [{hidden}] mm, gains {gap.motor_gain[i].round(3)}; "
-            f"largest error {1000 * r_err:.2f} mm and {g_err:.2e}"
+            f"largest error {1000 * r_err:.2f} mm and {g_err:.2e}{below}"
             f"{'' if ok else '  (outside the target)'}"
         )
     print(
-        f"  within 3 mm and 0.02: {within} of {robots} robots (target 9 of 10); "
+        f"  within 3 mm and 0.02 (a never-touched whisker: hidden below its bound): {within} of "
+        f"{robots} robots (target 9 of 10), {untouched} with a never-touched whisker; "
         f"{traced:.1f} s to trace"
     )
 

@@ -957,6 +957,9 @@ def robot_calibrate(
     table.add_row("whisker range, mm", *ranges)
     table.add_row("uncertainty, mm", *errs)
     Console().print(table)
+    for k in c.get("untouched", []):
+        bound = 1000 * (c["whisker_range"][k] + c["uncertainty"]["whisker_range"][k])
+        typer.echo(f"whisker {k} never touched a wall: its range is below {bound:.1f} mm")
     gains, gain_errs = c["motor_gain"], c["uncertainty"]["motor_gain"]
     typer.echo(
         f"wheel gains: left {gains[0]:.4f} +- {gain_errs[0]:.1g}, right {gains[1]:.4f} +- "

@@ -38,7 +38,7 @@ BISECTIONS = 40
 
 
 class CalibrationError(EvoError):
-    """The traces cannot calibrate the robot: too few, no poses, or a whisker never touched."""
+    """The traces cannot calibrate the robot: too few, no poses, or a robot that never moved."""
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,10 @@ class Calibration:
     """RMS distance between each recorded next pose and the one the fitted gains predict."""
     whisker_disagreements: tuple[int, ...]
     """Recorded bits per whisker that the fitted range would have read otherwise."""
+    untouched: tuple[int, ...] = ()
+    """Whiskers that never read a wall: the traces bound their range only from above (below
+    the nearest wall they passed), so their range is the middle of [0, that bound] and their
+    uncertainty half of it."""
 
     def as_dict(self) -> dict[str, object]:
         """`colony robot calibrate --json`: the fit, its uncertainty and its residuals."""
@@ -71,6 +75,7 @@ class Calibration:
                 "pose_rms_m": self.pose_residual_m,
                 "whisker_disagreements": list(self.whisker_disagreements),
             },
+            "untouched": list(self.untouched),
         }
 
 
@@ -124,8 +129,8 @@ def calibrate(
     """Fit from recorded steps: poses (N, 3) each sensed at, whiskers (N, 5) read there,
     motors (N, 2) sent then; `follows` (N - 1,) says where step t's move ends at pose t + 1
     (False between two agent starts or across a gap in the traces; default: everywhere).
-    CalibrationError on too few steps, a robot that never moved, or a whisker that never
-    touched a wall."""
+    CalibrationError on too few steps or a robot that never moved. A whisker that never
+    touched a wall is bounded from above (`Calibration.untouched`)."""
     poses = np.asarray(poses, dtype=np.float64)
     whiskers = np.asarray(whiskers)
     motors = np.asarray(motors, dtype=np.float64)
@@ -145,9 +150,7 @@ def calibrate(
     gains, gain_err, moving, residual = _fit_gains(poses, motors, world, linked.astype(bool))
     distance = touch_distances(maze, poses, world)
     ranges, range_err, wrong = [], [], []
-    for k in range(N_WHISKERS):
-        if not whiskers[:, k].any():
-            raise CalibrationError(f"whisker {k} never touched a wall in {n} samples")
+    for k in range(N_WHISKERS):  # all 0s: the threshold below the nearest wall, [0, nearest]
         r, err, bad = _threshold(distance[:, k], whiskers[:, k])
         ranges.append(r)
         range_err.append(err)
@@ -161,6 +164,7 @@ def calibrate(
         moving_steps=moving,
         pose_residual_m=residual,
         whisker_disagreements=tuple(wrong),
+        untouched=tuple(k for k in range(N_WHISKERS) if not whiskers[:, k].any()),
     )
 
 

@@ -14,8 +14,8 @@ from collections.abc import Iterable
 
 from server.errors import ServerError
 
-SEAL = b"EVC1"
-"""Starts a sealed blob; a frame (`schemas.wire.MAGIC`) never does."""
+SEAL = b"CRC1"
+"""Starts a sealed blob; a bare frame starts with `schemas.wire.MAGIC` instead."""
 
 
 class DamagedRowError(ServerError):

@@ -482,11 +482,7 @@ def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
         done = CliRunner().invoke(
             cli, ["robot", "calibrate", "r-cal", "--server", colony.url, "--json"]
         )
-        if "never touched" in done.stderr:  # a whisker the escapes never brought to a wall
-            assert done.exit_code == 2 and "nothing stored" in done.stderr
-            assert httpx.get(f"{colony.url}/api/robots/r-cal/calibration").status_code == 404
-            return
-        assert done.exit_code == 0, done.stderr
+        assert done.exit_code == 0, done.stderr  # a whisker never at a wall: bounded above
         fit = json.loads(done.stdout)["calibration"]
         stored = httpx.get(f"{colony.url}/api/robots/r-cal/calibration").json()
         bad = {**fit, "motor_gain": [0.0, 1.0]}

@@ -32,6 +32,7 @@ from schemas.wire import Job, JobKey, Result, decode_frame, encode_frame, genome
 from server import crud
 from server.db import Checkpointer, alembic_config, make_engine, upgrade
 from server.errors import NotFoundError, ServerError
+from server.integrity import unseal
 from server.manager import (
     RunManager,
     _lineage,
@@ -499,7 +500,7 @@ def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(
     with manager.sessions() as session:
         stored = crud.get_generation(session, run_id=run_id, generation=0)
         assert stored is not None
-        arrays = decode_frame(stored.state)[1]
+        arrays = decode_frame(unseal(stored.state, "its GA state"))[1]
         assert "ranked" not in arrays and "ranked_fitness" in arrays
         ranked = stored_ranked(session, run_id=run_id, generation=0)
     params = GAParams.from_config(SMALL)
