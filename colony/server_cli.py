@@ -957,9 +957,12 @@ def robot_calibrate(
     table.add_row("whisker range, mm", *ranges)
     table.add_row("uncertainty, mm", *errs)
     Console().print(table)
-    for k in c.get("untouched", []):
-        bound = 1000 * (c["whisker_range"][k] + c["uncertainty"]["whisker_range"][k])
-        typer.echo(f"whisker {k} never touched a wall: its range is below {bound:.1f} mm")
+    for k in c.get("bounded", []):
+        middle, half = c["whisker_range"][k], c["uncertainty"]["whisker_range"][k]
+        typer.echo(
+            f"whisker {k} read the same bit throughout: its range lies in "
+            f"[{1000 * (middle - half):.1f}, {1000 * (middle + half):.1f}] mm"
+        )
     gains, gain_errs = c["motor_gain"], c["uncertainty"]["motor_gain"]
     typer.echo(
         f"wheel gains: left {gains[0]:.4f} +- {gain_errs[0]:.1g}, right {gains[1]:.4f} +- "

@@ -55,10 +55,10 @@ class Calibration:
     """RMS distance between each recorded next pose and the one the fitted gains predict."""
     whisker_disagreements: tuple[int, ...]
     """Recorded bits per whisker that the fitted range would have read otherwise."""
-    untouched: tuple[int, ...] = ()
-    """Whiskers that never read a wall: the traces bound their range only from above (below
-    the nearest wall they passed), so their range is the middle of [0, that bound] and their
-    uncertainty half of it."""
+    bounded: tuple[int, ...] = ()
+    """Whiskers whose bit never changed: the traces give their range only as an interval (never
+    a wall: below the nearest wall passed; always one: above the farthest), so their range is
+    its middle and their uncertainty half of it."""
 
     def as_dict(self) -> dict[str, object]:
         """`colony robot calibrate --json`: the fit, its uncertainty and its residuals."""
@@ -75,7 +75,7 @@ class Calibration:
                 "pose_rms_m": self.pose_residual_m,
                 "whisker_disagreements": list(self.whisker_disagreements),
             },
-            "untouched": list(self.untouched),
+            "bounded": list(self.bounded),
         }
 
 
@@ -107,14 +107,13 @@ def _threshold(distance: np.ndarray, bits: np.ndarray) -> tuple[float, float, in
     zeros_before = np.concatenate([[0], np.cumsum(1 - b)])
     ones_after = np.concatenate([np.cumsum(b[::-1])[::-1], [0]])
     wrong = zeros_before + ones_after
-    edges = np.concatenate([[0.0], d, [MAX_RANGE]])
-    gaps = np.minimum(edges[1:], MAX_RANGE) - np.minimum(edges[:-1], MAX_RANGE)
+    edges = np.minimum(np.concatenate([[0.0], d, [MAX_RANGE]]), MAX_RANGE)  # inf: no wall near
+    gaps = edges[1:] - edges[:-1]
     best = np.flatnonzero(wrong == wrong.min())
     i = int(best[np.argmax(gaps[best])])
-    low, high = edges[i], min(edges[i + 1], MAX_RANGE)
-    middle = (low + high) * 0.5
+    middle = (edges[i] + edges[i + 1]) * 0.5
     near = np.flatnonzero(wrong <= 2 * wrong.min())
-    reach = max(middle - edges[near].min(), min(edges[near + 1].max(), MAX_RANGE) - middle)
+    reach = max(middle - edges[near].min(), edges[near + 1].max() - middle)
     return float(middle), float(reach), int(wrong[i])
 
 
@@ -129,8 +128,8 @@ def calibrate(
     """Fit from recorded steps: poses (N, 3) each sensed at, whiskers (N, 5) read there,
     motors (N, 2) sent then; `follows` (N - 1,) says where step t's move ends at pose t + 1
     (False between two agent starts or across a gap in the traces; default: everywhere).
-    CalibrationError on too few steps or a robot that never moved. A whisker that never
-    touched a wall is bounded from above (`Calibration.untouched`)."""
+    CalibrationError on too few steps or a robot that never moved. A whisker whose bit never
+    changed is known only within an interval (`Calibration.bounded`)."""
     poses = np.asarray(poses, dtype=np.float64)
     whiskers = np.asarray(whiskers)
     motors = np.asarray(motors, dtype=np.float64)
@@ -150,7 +149,7 @@ def calibrate(
     gains, gain_err, moving, residual = _fit_gains(poses, motors, world, linked.astype(bool))
     distance = touch_distances(maze, poses, world)
     ranges, range_err, wrong = [], [], []
-    for k in range(N_WHISKERS):  # all 0s: the threshold below the nearest wall, [0, nearest]
+    for k in range(N_WHISKERS):  # one bit throughout: [0, nearest wall] or [farthest, MAX_RANGE]
         r, err, bad = _threshold(distance[:, k], whiskers[:, k])
         ranges.append(r)
         range_err.append(err)
@@ -164,7 +163,7 @@ def calibrate(
         moving_steps=moving,
         pose_residual_m=residual,
         whisker_disagreements=tuple(wrong),
-        untouched=tuple(k for k in range(N_WHISKERS) if not whiskers[:, k].any()),
+        bounded=tuple(k for k in range(N_WHISKERS) if len(np.unique(whiskers[:, k])) == 1),
     )
 
 

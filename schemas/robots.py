@@ -621,11 +621,11 @@ class RobotCalibration(_Model):
     uncertainty: CalibrationUncertainty
     samples: int = Field(ge=100, le=10**8)
     residuals: CalibrationResiduals
-    untouched: tuple[Annotated[int, Field(ge=0, le=4)], ...] = Field(
+    bounded: tuple[Annotated[int, Field(ge=0, le=4)], ...] = Field(
         (),
         max_length=5,
-        description="whiskers that never read a wall: their range is only bounded from above "
-        "(range + uncertainty)",
+        description="whiskers whose bit never changed: their range is only known to lie in "
+        "range +- uncertainty",
     )
 
     def world(self, base: World) -> World:

@@ -7,7 +7,13 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from evorobotics.calibrate import MIN_SAMPLES, CalibrationError, calibrate, touch_distances
+from evorobotics.calibrate import (
+    MAX_RANGE,
+    MIN_SAMPLES,
+    CalibrationError,
+    calibrate,
+    touch_distances,
+)
 from evorobotics.maze import load_maze
 from evorobotics.sim import Gap
 from robot_agent.sim_body import SimBody
@@ -54,9 +60,9 @@ def test_hidden_physics_lie_within_the_fit_and_its_uncertainty(
     body = SimBody(MAZE, start[0], Gap(np.array([ranges]), np.array([gains])), world)
     poses, bits, motors = drive(body, 1500, seed)
     # a short whisker beside long ones may never be the first to touch: bounded from above
-    untouched = tuple(k for k in range(5) if not bits[:, k].any())
+    bounded = tuple(k for k in range(5) if len(np.unique(bits[:, k])) == 1)
     fit = calibrate(MAZE, poses, bits, motors, world)
-    assert fit.untouched == untouched
+    assert fit.bounded == bounded
     assert fit.motor_gain == pytest.approx(gains, abs=1e-9)
     assert fit.pose_residual_m < 1e-9
     for got, err, hidden in zip(
@@ -67,7 +73,7 @@ def test_hidden_physics_lie_within_the_fit_and_its_uncertainty(
     assert fit.samples == 1500 and set(fit.as_dict()) >= {"whisker_range", "uncertainty"}
 
 
-def test_a_whisker_that_never_touched_is_bounded_by_the_nearest_wall_it_passed() -> None:
+def test_a_whisker_whose_bit_never_changed_is_bounded_by_the_walls_it_passed() -> None:
     world = World()
     body = SimBody(MAZE, np.array([1.0, 1.0, 0.0]), Gap(np.full((1, 5), 0.05), np.ones((1, 2))))
     poses, bits, motors = drive(body, 400, 1)
@@ -75,10 +81,16 @@ def test_a_whisker_that_never_touched_is_bounded_by_the_nearest_wall_it_passed()
     bits[:, 2] = 0  # as if its range were shorter than any wall it came near
     fit = calibrate(MAZE, poses, bits, motors, world)
     nearest = float(touch_distances(MAZE, poses, world)[:, 2].min())
-    assert fit.untouched == (2,) and fit.whisker_disagreements[2] == 0
+    assert fit.bounded == (2,) and fit.whisker_disagreements[2] == 0
     assert fit.whisker_range[2] == pytest.approx(nearest / 2)
     assert fit.whisker_range[2] + fit.whisker_range_uncertainty[2] == pytest.approx(nearest)
-    assert fit.as_dict()["untouched"] == [2]
+    assert fit.as_dict()["bounded"] == [2]
+    bits[:, 2] = 1  # as if it reached beyond every wall it passed: bounded from below
+    above = calibrate(MAZE, poses, bits, motors, world)
+    farthest = float(np.minimum(touch_distances(MAZE, poses, world)[:, 2], MAX_RANGE).max())
+    assert above.bounded == (2,)
+    assert above.whisker_range[2] - above.whisker_range_uncertainty[2] == pytest.approx(farthest)
+    assert above.whisker_range[2] + above.whisker_range_uncertainty[2] == pytest.approx(MAX_RANGE)
 
 
 def test_steps_across_a_break_in_the_traces_are_not_fitted() -> None:
