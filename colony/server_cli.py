@@ -876,6 +876,18 @@ def robot_stuck(
             _fmt(e["steps_run"]),
         )
     Console().print(table)
+    runs = Table(title=f"controllers in these events of {robot}")
+    for column in ("controller", "time run", "stuck events", "stuck per hour"):
+        runs.add_column(column)
+    for c in ledger.get("controllers", []):
+        hours = c["seconds_run"] / 3600
+        runs.add_row(
+            c["sha256"][:SHORT_SHA],
+            f"{c['seconds_run']:.0f} s",
+            str(c["stuck_events"]),
+            f"{c['stuck_events'] / hours:.0f}" if hours > 0 else "-",
+        )
+    Console().print(runs)
 
 
 CALIBRATION_POSES = ("sim", "tracker")

@@ -494,9 +494,22 @@ class StuckEventOut(_Model):
     )
 
 
+class LedgerController(_Model):
+    """A controller of the field ledger: how long the robot ran it after a stuck event left it
+    with it, and how often it stuck."""
+
+    sha256: str
+    steps_run: int = Field(description="the `steps_run` of the events that left the robot with it")
+    seconds_run: float = Field(description="steps_run x dt")
+    stuck_events: int = Field(description="the events in which it was the controller that stuck")
+
+
 class StuckEventsOut(_Model):
     robot: str
     events: list[StuckEventOut] = Field(description="newest last")
+    controllers: list[LedgerController] = Field(
+        default_factory=list, description="per controller of these events, longest run first"
+    )
 
 
 class PushOut(_Model):

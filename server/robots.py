@@ -59,6 +59,7 @@ from schemas.robots import (
     CalibrationOut,
     ControllerPush,
     FieldStats,
+    LedgerController,
     PolicySource,
     PushAck,
     PushOut,
@@ -960,7 +961,10 @@ class RobotService:
                     .limit(limit)
                 )
             )
-        return StuckEventsOut(robot=robot_id, events=[_event_out(r) for r in reversed(rows)])
+        events = [_event_out(r) for r in reversed(rows)]
+        return StuckEventsOut(
+            robot=robot_id, events=events, controllers=_ledger(events, self.settings.dt)
+        )
 
     def calibration(self, robot_id: str) -> CalibrationOut:
         """The robot's stored calibration; NotFoundError for an unknown or uncalibrated robot."""
@@ -1265,6 +1269,29 @@ def _close_previous(db: Session, request: StuckRequest, boot: int) -> None:
     ran = previous.replacement_sha256 or previous.controller_sha256
     if ran is not None and ran == request.sha256 and request.step > previous.step:
         previous.steps_run = request.step - previous.step
+
+
+def _ledger(events: list[StuckEventOut], dt: float) -> list[LedgerController]:
+    """Per controller of `events`: the steps run after the events that left the robot with
+    it, and the events in which it stuck; longest run first."""
+    steps: dict[str, int] = {}
+    stuck: dict[str, int] = {}
+    for e in events:
+        ran = e.replacement_sha256 or e.controller_sha256
+        if ran is not None and e.steps_run is not None:
+            steps[ran] = steps.get(ran, 0) + e.steps_run
+        if e.controller_sha256 is not None:
+            stuck[e.controller_sha256] = stuck.get(e.controller_sha256, 0) + 1
+    shas = sorted(steps.keys() | stuck.keys(), key=lambda s: (-steps.get(s, 0), s))
+    return [
+        LedgerController(
+            sha256=s,
+            steps_run=steps.get(s, 0),
+            seconds_run=steps.get(s, 0) * dt,
+            stuck_events=stuck.get(s, 0),
+        )
+        for s in shas
+    ]
 
 
 def _event_out(row: StuckEventRow) -> StuckEventOut:

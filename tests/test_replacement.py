@@ -118,6 +118,14 @@ def test_colony_off_keeps_the_controller_and_the_ledger_counts_its_steps(
             assert event["answer"] == "replacement is off for this robot"
         # the robot resumed the wall controller after its escape: the next event closes it
         assert first["steps_run"] == second["step"] - first["step"] > 0
+        body = client.get("/api/robots/r-off/stuck").json()
+        [wall] = body["controllers"]  # which controller ran for how long, and how often it stuck
+        closed = [e["steps_run"] for e in body["events"] if e["steps_run"] is not None]
+        assert wall["sha256"] == server.wall.sha256 and wall["steps_run"] == sum(closed)
+        assert wall["stuck_events"] == len(body["events"])
+        assert wall["seconds_run"] == pytest.approx(sum(closed) * 0.1)
+        shown = CliRunner().invoke(cli, ["robot", "stuck", "r-off", "--server", server.url])
+        assert shown.exit_code == 0 and "controllers in these events of r-off" in shown.output
         detail = client.get("/api/robots/r-off").json()
         assert (detail["replacement"], detail["replacement_source"]) == ("off", "colony")
     assert (tmp_path / "controller.json").read_text() == server.wall.to_json()
