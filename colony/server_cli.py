@@ -170,6 +170,10 @@ def serve(
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
+    try:  # every setting checked before the store is opened or a port bound
+        app = create_app(settings)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     taken = _taken_ports(settings)
     if taken:
         typer.echo(f"error: {taken}", err=True)
@@ -189,10 +193,6 @@ def serve(
         raise typer.Exit(1) from exc
     try:
         check_sqlite_file(settings.db_url)
-        try:
-            app = create_app(settings)
-        except ValueError as exc:
-            raise typer.BadParameter(str(exc)) from exc
         key_path = settings.server_key_path() or "an in-memory key"
         typer.echo(f"robot pushes are signed with {key_path}")
         from server.logs import configure

@@ -88,6 +88,7 @@ def create_app(
     `services` run on the server's zenoh session; by default the robot service.
     """
     settings = settings or Settings()
+    settings.policy()  # a ValueError now, before the lifespan opens the store or binds a port
     services = (robot_service(),) if services is None else tuple(services)
     dispatch = DispatchSettings.from_settings(settings) if settings.zenoh else None
     endpoint = (

@@ -150,7 +150,7 @@ def start_server(db: str, port: int) -> subprocess.Popen[str]:
 
 def refusal(db: str) -> str:
     """`colony server` on `db` exits with status 1 at once: its stderr. In this process, through
-    the CLI's entry point: the refusal comes before the app is built, so a process of its own
+    the CLI's entry point: the refusal comes before the server runs, so a process of its own
     would only add seconds of imports."""
     argv = ["server", "--db", db, "--port", str(free_port()), "--no-zenoh", "--executors", "0"]
     result = CliRunner().invoke(cli, argv)
@@ -252,6 +252,19 @@ def test_a_damaged_row_is_an_error_naming_it_and_colony_db_check_finds_it(
     assert fine.status_code == 200
     missing = CliRunner().invoke(cli, ["db", "check", "--db", f"sqlite:///{tmp_path / 'no.db'}"])
     assert missing.exit_code == 1 and "no database at" in missing.output
+
+
+def test_inconsistent_settings_are_refused_before_the_store_or_a_port_is_touched(
+    tmp_path: Path,
+) -> None:
+    """Issue 38: a lease minimum above the maximum was a traceback from the server's start-up,
+    after it had opened the store. It is one usage error, and nothing is touched."""
+    db = tmp_path / "colony.db"
+    argv = ["server", "--db", f"sqlite:///{db}", "--port", str(free_port()), "--no-zenoh"]
+    result = CliRunner().invoke(cli, argv, env={"COLONY_LEASE_MIN_SECONDS": "500"})
+    assert result.exit_code == 2, (result.output, result.exception)
+    assert "lease_max_s must be >= lease_min_s, got 300.0" in result.output
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_second_server_on_the_same_database_is_refused(tmp_path: Path) -> None:
