@@ -323,7 +323,9 @@ class Dispatcher:
             servable = held.served and held.worker in self._tokens
             if servable and not exhausted and self._try_serve(held):
                 continue
-            exhausted = exhausted or servable
+            # nothing for this one: for none at all unless jobs wait that its credential may
+            # not take (a job it erred on)
+            exhausted = exhausted or (servable and not self._scheduler.has_pending())
             if held.until <= now:
                 if not held.served:
                     reason = f"server speaks protocol {PROTOCOL}"

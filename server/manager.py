@@ -51,7 +51,7 @@ from schemas.run import RunConfig
 from schemas.wire import decode_frame, encode_frame
 from server import crud, population
 from server.db import session_factory
-from server.errors import NotFoundError, TransitionError
+from server.errors import NotFoundError, ServerError, TransitionError
 from server.integrity import seal, unseal
 from server.logs import context
 from server.models import Generation, Run, Study, utcnow
@@ -413,10 +413,14 @@ class RunManager:
             runs = session.scalars(select(Run).where(Run.status.in_(("running", "paused"))))
             for run in runs:
                 config = RunConfig.model_validate_json(run.config)
-                if run.generation >= config.generations:
-                    self._finish(session, run, config)
-                else:
-                    self._serve(session, run)
+                try:
+                    with session.begin_nested():
+                        if run.generation >= config.generations:
+                            self._finish(session, run, config)
+                        else:
+                            self._serve(session, run)
+                except ServerError as exc:  # a damaged row fails its run, not the server
+                    self._fail(session, run, f"cannot resume: {exc}")
         self.promote()
 
     def _serve(self, session: Session, run: Run) -> None:

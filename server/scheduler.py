@@ -140,12 +140,27 @@ class Policy:
 
 
 def run_job(job: Job, worker: str) -> Result:
-    """Evaluate `job` (one generation of its slice) as a Result; an error becomes one."""
+    """Evaluate `job` (one generation of its slice) as a Result; an error, or an evaluation
+    no Result can carry (non-finite fitness, descriptors outside [0, 1]), becomes one."""
     began = time.perf_counter()
     try:
         evaluation = evaluate(job.config, job.key.generation, job.genomes)
         if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
             raise ValueError("evaluation returned non-finite fitness")
+        seconds = time.perf_counter() - began
+        return Result(
+            key=job.key,
+            worker=worker,
+            start=job.start,
+            stop=job.stop,
+            robot_steps_per_s=(
+                robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else 0.0
+            ),
+            seconds=seconds,
+            fitness=evaluation.fitness[None],
+            components=evaluation.components[None],
+            descriptors=evaluation.descriptors[None],
+        )
     except Exception as exc:  # an evaluation error is the run's problem, not the thread's
         return Result(
             key=job.key,
@@ -154,20 +169,6 @@ def run_job(job: Job, worker: str) -> Result:
             stop=job.stop,
             error=f"{type(exc).__name__}: {exc}",
         )
-    seconds = time.perf_counter() - began
-    return Result(
-        key=job.key,
-        worker=worker,
-        start=job.start,
-        stop=job.stop,
-        robot_steps_per_s=(
-            robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else 0.0
-        ),
-        seconds=seconds,
-        fitness=evaluation.fitness[None],
-        components=evaluation.components[None],
-        descriptors=evaluation.descriptors[None],
-    )
 
 
 def credential(worker: str) -> str:
@@ -201,8 +202,9 @@ class _Slot:
     stop: int
     status: str = "pending"
     """pending, leased or done."""
-    erred: set[str] = field(default_factory=set)
-    """Credentials whose evaluation of it erred: it is never leased to them again."""
+    erred: dict[str, tuple[str, str]] = field(default_factory=dict)
+    """Credential -> (worker, error) of each whose evaluation of it erred: it is never leased
+    to them again, and once it is done (so the job was fine) each error counts against them."""
     worker: str | None = None
     """Whose result filled it (done): discarded if that worker fails a spot-check."""
 
@@ -495,7 +497,7 @@ class Scheduler:
         mismatch = self._spot_check(result, record)
         if mismatch is not None:
             self._spot["mismatches"] += 1
-            self._quarantine(record, mismatch)
+            self._quarantine(record.name, mismatch)
             return Ack(key=result.key, accepted=False, reason="spot-check failed: quarantined")
         ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
         following = result.key
@@ -538,7 +540,7 @@ class Scheduler:
                 self._make_pending(run, key.index)
                 self._spot["mismatches"] += 1
                 self._quarantine(
-                    record, f"worker {result.worker} run {key.run_id} generation "
+                    record.name, f"worker {result.worker} run {key.run_id} generation "
                     f"{key.generation}: {forged}"
                 )  # fmt: skip
                 return Ack(key=result.key, accepted=False, reason=f"refused: {forged}")
@@ -554,7 +556,9 @@ class Scheduler:
             following = key.at(key.generation + 1)
         if ack.accepted and self._store_lags(result.key.run_id):
             # a span ends with the message that took its run too far ahead of the store
-            self._release_where(lambda lease: lease.key == following)
+            self._release_where(
+                lambda lease: lease.key == following and lease.worker == result.worker
+            )
         return ack
 
     def expire(self) -> int:
@@ -737,6 +741,7 @@ class Scheduler:
     ) -> None:
         run = self._runs[key.run_id]
         slot = run.slots[key.index]
+        self._count_errors(slot)
         run.fitness[slot.start : slot.stop] = fitness
         run.components[slot.start : slot.stop] = components
         run.descriptors[slot.start : slot.stop] = descriptors
@@ -823,10 +828,10 @@ class Scheduler:
                         )
         return None
 
-    def _quarantine(self, record: _Worker, why: str) -> None:
-        """No more jobs for any worker of `record`'s credential; their leases and every result
+    def _quarantine(self, name: str, why: str) -> None:
+        """No more jobs for any worker of `name`'s credential; their leases and every result
         of them in the generations in flight return to pending."""
-        banned = credential(record.name)
+        banned = credential(name)
         self._banned[banned] = why
         for other in self._workers.values():
             if credential(other.name) == banned:
@@ -842,9 +847,9 @@ class Scheduler:
                     slot.worker = None
                     self._make_pending(run, index)
                     discarded += 1
-        context(log, worker=record.name).warning(
+        context(log, worker=name).warning(
             "worker %s quarantined: %s; %d leases and %d results of it returned to pending",
-            record.name,
+            name,
             why,
             len(released),
             discarded,
@@ -852,35 +857,40 @@ class Scheduler:
 
     def _erred(self, key: JobKey, record: _Worker, error: str) -> None:
         """`record`'s evaluation of the job `key` erred: the run fails if it is the server's
-        own; else the job goes to another credential, or to the referee when none is left."""
+        own; else the job goes to another credential, or to the referee when none is left. The
+        error counts against the credential once someone evaluates the job without one."""
         run = self._runs.get(key.run_id)
         if run is None:
             return
         if not record.listed:  # an in-process executor: this process's own evaluation
             self._fail_run(key, error)
             return
-        banned = credential(record.name)
         slot = run.slots[key.index]
-        slot.erred.add(banned)
+        slot.erred[credential(record.name)] = (record.name, error)
         run.erred = True
         self._make_pending(run, key.index)
-        errors = self._errors[banned] = self._errors.get(banned, 0) + 1
         context(log, run=key.run_id, worker=record.name).warning(
-            "worker %s: error result %d in a row, run %d job %d/%d returns to other workers: %s",
+            "worker %s: error result for run %d job %d/%d, which returns to other workers: %s",
             record.name,
-            errors,
             key.run_id,
             key.generation,
             key.index,
             error,
         )
-        if errors >= self.policy.errors_quarantine:
-            self._quarantine(
-                record,
-                f"worker {record.name}: {errors} error results in a row, the last of run "
-                f"{key.run_id} job {key.generation}/{key.index}: {error}",
-            )
         self._referee_stranded()
+
+    def _count_errors(self, slot: _Slot) -> None:
+        """The slot's job is evaluated without an error: each credential that erred on it
+        erred on its own account, and `errors_quarantine` such errors in a row quarantine it."""
+        for banned, (name, error) in slot.erred.items():
+            errors = self._errors[banned] = self._errors.get(banned, 0) + 1
+            if errors >= self.policy.errors_quarantine and banned not in self._banned:
+                self._quarantine(
+                    name,
+                    f"worker {name}: {errors} error results in a row on jobs evaluated "
+                    f"without one, the last: {error}",
+                )
+        slot.erred = {}
 
     def _fail_run(self, key: JobKey, error: str) -> None:
         self._failed[key.run_id] = (
@@ -905,7 +915,8 @@ class Scheduler:
     def _referee_stranded(self) -> None:
         """Lease to the referee every pending job that erred on `max_attempts` credentials or
         that no live worker may take (each live credential erred on it)."""
-        live = self._live()
+        now = self._wall()  # a credential takes jobs if one of its workers asked lately
+        live = [w for w in self._live() if now - w.last_seen <= self.policy.lease_max_s]
         # an in-process executor takes any job
         takers = None if any(not w.listed for w in live) else {credential(w.name) for w in live}
         for run in self._runs.values():
@@ -915,18 +926,16 @@ class Scheduler:
                 erred = run.slots[index].erred
                 if erred and (
                     len(erred) >= self.policy.max_attempts
-                    or (takers is not None and not takers - erred)
+                    or (takers is not None and not takers - erred.keys())
                 ):
-                    self._unpend(run, index)
                     self._refer(run, index)
 
     def _refer(self, run: _Run, index: int) -> None:
-        """Lease slot `index` to the referee, whose thread evaluates it here."""
+        """Lease pending slot `index` to the referee, whose thread evaluates it here (it
+        stays pending if the referee has stopped: the scheduler is closing)."""
         slot = run.slots[index]
         loop = run.loop
         key = JobKey(run_id=run.run_id, generation=loop.generation, index=index)
-        slot.status = "leased"
-        self._leases[key] = _Lease(key, REFEREE, math.inf, slot.start, slot.stop, self._clock())
         job = Job(
             key=key,
             start=slot.start,
@@ -935,6 +944,14 @@ class Scheduler:
             genomes=loop.ask()[slot.start : slot.stop],
             lease_s=self.policy.lease_max_s,
         )
+        lease = _Lease(key, REFEREE, math.inf, slot.start, slot.stop, self._clock())
+        try:
+            self._referee.submit(self._judge, job, lease)  # it waits for this lock
+        except RuntimeError:
+            return
+        self._unpend(run, index)
+        slot.status = "leased"
+        self._leases[key] = lease
         context(log, run=run.run_id).info(
             "run %d job %d/%d erred on %s: the server evaluates it",
             run.run_id,
@@ -942,33 +959,36 @@ class Scheduler:
             index,
             ", ".join(sorted(slot.erred)),
         )
-        self._referee.submit(self._judge, job)
 
-    def _judge(self, job: Job) -> None:
-        """The referee's thread: evaluate `job` and settle it, or fail its run."""
+    def _judge(self, job: Job, lease: _Lease) -> None:
+        """The referee's thread: evaluate `job` and settle it, or fail its run; nothing if
+        `lease` ended meanwhile (its run dropped, replaced or resumed anew)."""
+        with self._lock:
+            if self._leases.get(job.key) is not lease:
+                return
+        result = run_job(job, "server")  # the lease stays REFEREE's, no worker's name
         try:
-            result = run_job(job, "server")  # the lease stays REFEREE's, no worker's name
             with self._lock:
-                lease = self._leases.get(job.key)
-                if lease is None or lease.worker != REFEREE:
-                    return  # its run was dropped or replaced meanwhile
+                if self._leases.get(job.key) is not lease:
+                    return
                 del self._leases[job.key]
-                if result.error is not None:
-                    self._fail_run(job.key, result.error)
-                elif (
-                    result.fitness is not None
-                    and result.components is not None
-                    and result.descriptors is not None
+                if (
+                    result.fitness is None
+                    or result.components is None
+                    or result.descriptors is None
                 ):
+                    self._fail_run(job.key, result.error or "no evaluation")
+                else:
                     self._complete(
                         job.key, lease, result.fitness[0], result.components[0],
                         result.descriptors[0],
                     )  # fmt: skip
-            self._announce()
-        except Exception:  # a bug here must not end the thread's later jobs silently
-            log.exception(
-                "the server's evaluation of run %d job %s failed", job.key.run_id, job.key
-            )
+        except Exception as exc:  # a bug here must fail the run, not leave its job held
+            log.exception("the server's evaluation of run %d could not be recorded", job.key.run_id)
+            with self._lock:
+                if job.key.run_id in self._runs:
+                    self._fail_run(job.key, f"the server's evaluation could not be recorded: {exc}")
+        self._announce()
 
     def _drop_run(self, run_id: int) -> None:
         self._runs.pop(run_id, None)

@@ -306,21 +306,41 @@ def test_an_error_result_sends_its_job_to_another_credential_then_to_the_server(
 
 
 def test_a_credential_whose_results_err_in_a_row_is_quarantined() -> None:
+    """An error counts against its credential once another evaluates the job without one
+    (the run's own failure counts against nobody); three in a row quarantine it."""
     sched, _ = make(Policy(errors_quarantine=3, jobs_per_worker=5))
     sched.join("b")
     sched.join("rogue")
     sched.add(1, RunLoop(CONFIG.model_copy(update={"population": 30})), running=True)
-    for honest in (False, True, False, False):  # an accepted result starts the count again
+    for honest in (False, True, False, False, False):  # an accepted result starts the count again
         job = sched.lease("rogue")
-        assert job is not None
+        assert job is not None and sched.quarantined() == {}
         sent = result(job, "rogue") if honest else error_result(job, "rogue")
-        assert sched.settle(sent).accepted and sched.quarantined() == {}
-    job = sched.lease("rogue")
-    assert job is not None and sched.settle(error_result(job, "rogue")).accepted
+        assert sched.settle(sent).accepted
+        if not honest:  # the honest worker evaluates what the rogue erred on
+            again = lease_key(sched, "b", job.key)
+            assert again is not None and sched.settle(result(again, "b")).accepted
     why = sched.quarantined()["rogue"]
     assert "3 error results in a row" in why and "boom" in why
     assert sched.lease("rogue") is None and sched.lease("rogue.other") is None
     assert sched.lease("b") is not None and sched.take_failed() == {}
+    sched.close()
+
+
+def test_a_job_erred_on_goes_to_the_server_when_the_other_workers_fell_silent() -> None:
+    """A worker whose token lives on but that asks nothing (wedged) takes no job: once it was
+    silent for `lease_max_s`, a job the others erred on goes to the server."""
+    sched, clock = make(Policy(lease_max_s=60.0))
+    sched.join("alice")
+    sched.join("bob")
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("alice")
+    assert job is not None and sched.settle(error_result(job, "alice")).accepted
+    assert sched.counts()["leased"] == 0  # bob may take it
+    clock.t += 61.0
+    other = sched.lease("alice")  # bob has been silent since
+    assert other is None or other.key != job.key
+    assert eventually(lambda: sched.counts()["done"] >= 1, WAIT)  # the server's result
     sched.close()
 
 
@@ -345,6 +365,7 @@ def test_a_run_fails_only_when_the_servers_own_evaluation_fails(
     assert failed == {
         1: "job 0/0 failed in the server's own evaluation: RuntimeError: the physics broke"
     }
+    assert sched.quarantined() == {}  # the run's own failure counts against no worker
     sched.join("local-0", listed=False)
     local = sched.lease("local-0")
     assert local is not None and local.key.run_id == 2
