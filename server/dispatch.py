@@ -339,9 +339,19 @@ class Dispatcher:
         self._held = waiting
 
     def _try_serve(self, held: _Held) -> bool:
+        """Whether `held` is answered: with a job, or an error if leasing it failed (a failing
+        request must not stay held, holding up the others behind it for good)."""
         if held.worker not in self._tokens:
             return False
-        job = self._scheduler.lease(held.worker)
+        try:
+            job = self._scheduler.lease(held.worker)
+        except Exception:
+            log.exception(
+                "leasing to %s failed; its request is answered with an error", held.worker
+            )
+            with contextlib.suppress(zenoh.ZError), held.query as query:
+                query.reply_err(b"server error")
+            return True
         if job is None:
             return False
         with held.query as query:

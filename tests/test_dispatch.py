@@ -360,8 +360,13 @@ def test_the_dispatcher_thread_survives_a_failing_scheduler_call() -> None:
         Dispatcher(dispatch_settings(port, long_poll_s=LONG_POLL_S), scheduler) as dispatcher,
         zenoh_client(port) as session,
     ):
-        as_worker(session, "crash")
-        session.get(next_key("crash"), payload=encode(JobRequest(worker="crash")), timeout=1.0)
+        request = encode(JobRequest(worker="crash"))
+        pending = session.get(next_key("crash"), payload=request, timeout=WAIT)  # held: no token
+        as_worker(session, "crash")  # served at its token, and the scheduler call fails
+        answers = list(pending)
+        assert len(answers) == 1 and answers[0].err is not None
+        assert answers[0].err.payload.to_bytes() == b"server error"
+        session.get(next_key("crash"), payload=request, timeout=1.0)  # asked again: fails at once
         job = ask_next(session, "fine")
         assert isinstance(job, Job)
         assert dispatcher.alive()
