@@ -14,8 +14,10 @@ refused, as robot_agent.sim_body does. The controller is the default run's champ
   whisker-range and wheel-gain errors, and how many robots are within 3 mm and 0.02
   (the target: 9 of 10 at 1,200 steps).
 - False alarms: 8 robots in the nominal world for `--hours` (1) hour each: alarms per
-  robot-hour, and those raised while the robot was not stuck (it moved more than 0.1 m in the
-  40 steps before: docs/stuck-detection.md's truth). Target: at most 1.
+  robot-hour, and those raised while the robot was not stuck: its controller moved it more
+  than 0.1 m in the 40 steps before, counted from where it last resumed after an escape (the
+  escape's own backing and turning is the agent's move, not the robot getting anywhere).
+  Target: at most 1. The figure that counts the escape's moves too is printed beside it.
 - The loop pays (`loop_pays`): per seed, 8 robots with hidden gap physics run the champion
   pushed blind for `--minutes` (10), then the `fit` choice after calibrating from those traces.
   Stuck events per robot-hour before and after, their ratio over `--seeds` (10) with a
@@ -149,17 +151,26 @@ def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int
     bodies = [SimBody.create("paper", seed=seed, index=i, gap=False) for i in range(8)]
     poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
     p, _, _, alarms = run_colony(spec, weights, poses, Gap.nominal(8, world), steps)
-    false = total = 0
+    agent = AgentSettings(robot_id="bench")
+    escape = agent.escape_back_steps + agent.escape_turn_steps
+    false = with_escapes = total = 0
     for i, fired in enumerate(alarms):
+        resumed = 0  # the step its controller drives from: the start, or after an escape
         for t in fired:
             total += 1
-            start = max(t - TRUTH_STEPS, 0)
-            travelled = np.linalg.norm(p[i, start : t + 1, :2] - p[i, start, :2], axis=1).max()
-            false += travelled > TRUTH_RADIUS
+            for start, counts_escape in ((max(t - TRUTH_STEPS, resumed), False),
+                                         (max(t - TRUTH_STEPS, 0), True)):  # fmt: skip
+                track = p[i, start : t + 1, :2] - p[i, start, :2]
+                moved = bool(np.linalg.norm(track, axis=1).max() > TRUTH_RADIUS)
+                with_escapes += moved and counts_escape
+                false += moved and not counts_escape
+            resumed = t + escape + 1
     robot_hours = 8 * steps * world.dt / 3600
     print(
         f"nominal colony, 8 robots x {hours:g} h: {total / robot_hours:.1f} alarms per "
-        f"robot-hour, {false / robot_hours:.2f} false ({false} of {total}; target <= 1)"
+        f"robot-hour, {false / robot_hours:.2f} false ({false} of {total}; target <= 1), "
+        f"{with_escapes / robot_hours:.2f} ({with_escapes}) if the previous escape's own "
+        "moves counted as the robot moving"
     )
 
 
