@@ -307,7 +307,13 @@ def refuse_writes(lab: Lab, run_id: int, seconds: float) -> dict[str, Any]:
     print(f"  store writable: run paused at generation {run['generation']}, {run['error']!r}")
     if not str(run["error"] or "").startswith("database write failed"):
         raise RuntimeError(f"paused without the write error: {run['error']!r}")
-    lab.client.post(f"/api/runs/{run_id}/resume").raise_for_status()
+    resumed = lab.client.post(f"/api/runs/{run_id}/resume")
+    if resumed.status_code == 409 and lab.run(run_id)["status"] == "completed":
+        # the generations told before the pause took effect (a span's last message may carry
+        # the run's end) were written with the paused one: nothing is left to resume
+        print(f"  completed from generations told before the pause: {resumed.json()['detail']}")
+        return refused
+    resumed.raise_for_status()
     print(f"  resumed: status {lab.run(run_id)['status']}")
     return refused
 
