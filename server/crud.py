@@ -17,7 +17,6 @@ from evorobotics.evolution import StrategyHistory
 from schemas.api import TERMINAL
 from server import integrity, population
 from server.errors import InvalidInputError, NotFoundError, ServerError
-from server.integrity import unseal
 from server.models import Controller, Generation, Run, Study, utcnow
 from server.population import Population
 from server.scheduler import Scheduler
@@ -73,7 +72,9 @@ def populations(
     found = {}
     for g, data in session.execute(query):
         try:
-            found[g] = population.decode(unseal(data, f"run {run_id} generation {g} population"))
+            found[g] = population.decode(
+                integrity.unseal(data, f"run {run_id} generation {g} population")
+            )
         except population.PopulationError as exc:
             raise ServerError(f"run {run_id} generation {g}: stored population: {exc}") from exc
     return found
@@ -287,7 +288,7 @@ def check_store(session: Session) -> StoreCheck:
         for what, blob in (("GA state", state), ("population", stored)):
             where = f"run {run_id} generation {g} {what}"
             try:
-                data = unseal(blob, where)
+                data = integrity.unseal(blob, where)
                 population.decode(data) if what == "population" else decode_frame(data)
             except integrity.DamagedRowError as exc:
                 damaged.append(str(exc))

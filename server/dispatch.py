@@ -276,11 +276,7 @@ class Dispatcher:
             ack = Ack(key=result.key, accepted=False, reason="no liveliness token: no lease held")
             query.reply(query.key_expr, encode(ack))
             return
-        ack = self._scheduler.settle(result)
-        if result.error is not None:
-            _log(result).warning(
-                "%s failed %s: %s", result.worker, result.key.label(), result.error
-            )
+        ack = self._scheduler.settle(result)  # it logs the error results it takes
         if result.want_next:
             self._serve_held()  # requests held waited longer: they go first
             job = None if self._held else self._scheduler.lease(result.worker)
@@ -381,12 +377,6 @@ class Dispatcher:
         log.warning("dropping malformed message on %s: %s", query.key_expr, exc)
         with contextlib.suppress(zenoh.ZError), query:
             query.reply_err(f"malformed: {exc}".encode())
-
-
-def _log(result: Result) -> logging.LoggerAdapter[logging.Logger]:
-    key = result.key
-    job = f"{key.run_id}/{key.generation}/{key.index}"
-    return context(log, run=key.run_id, job=job, worker=result.worker)
 
 
 def _check_sender(worker: str, query: zenoh.Query) -> None:
