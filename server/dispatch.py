@@ -295,7 +295,7 @@ class Dispatcher:
             return
         if sample.kind == zenoh.SampleKind.PUT:
             self._tokens.add(name)
-            self._scheduler.join(name)
+            self._scheduler.join(name, asked=False)  # a token alone: it counts once it asks
             for held in self._held:
                 if held.worker == name:
                     self._join(held)

@@ -256,6 +256,9 @@ class _Worker:
     late: int = 0
     last_seen: float = 0.0
     """Unix time (for display only)."""
+    asked_at: float | None = None
+    """When it last asked for a job, on the scheduler's clock: only a name that asks counts
+    as a worker (a credential can declare tokens for any number of names)."""
     gone_at: float | None = None
     serving: bool = True
     """False while it speaks another protocol: it is answered idle, never counted."""
@@ -386,11 +389,15 @@ class Scheduler:
         serving: bool = True,
         spans: bool = True,
         listed: bool = True,
+        asked: bool = True,
     ) -> None:
-        """`worker` is alive (a token, a request): noted with what it says of itself. An
-        unlisted one (an in-process evaluator) leases like any other but is not in `workers`."""
+        """`worker` is alive (a request, or only a token: `asked` False): noted with what it
+        says of itself. An unlisted one (an in-process evaluator) leases like any other but is
+        not in `workers`."""
         with self._lock:
             record = self._touch(worker)
+            if asked:
+                record.asked_at = self._clock()
             record.serving = serving
             record.spans = record.spans and spans
             record.listed = record.listed and listed
@@ -441,6 +448,7 @@ class Scheduler:
         hands, so any lease it still holds lost its reply: that job returns first."""
         with self._lock:
             record = self._touch(worker)
+            record.asked_at = self._clock()
             self._release_where(lambda lease: lease.worker == worker)
             if record.quarantine is not None:
                 return None
@@ -654,10 +662,17 @@ class Scheduler:
         )
 
     def _live(self) -> list[_Worker]:
+        """Workers that take jobs: a token, and a lease held or asked for within
+        `lease_max_s` (no lease lasts longer)."""
+        since = self._clock() - self.policy.lease_max_s
+        busy = {lease.worker for lease in self._leases.values()}
         return [
             w
             for w in self._workers.values()
-            if w.gone_at is None and w.serving and w.quarantine is None
+            if w.gone_at is None
+            and w.serving
+            and w.quarantine is None
+            and (w.name in busy or (w.asked_at is not None and w.asked_at >= since))
         ]
 
     def _crowded(self, run_id: int | None = None) -> bool:
@@ -915,9 +930,7 @@ class Scheduler:
     def _referee_stranded(self) -> None:
         """Lease to the referee every pending job that erred on `max_attempts` credentials or
         that no live worker may take (each live credential erred on it)."""
-        now = self._wall()  # a credential takes jobs if one of its workers asked lately
-        live = [w for w in self._live() if now - w.last_seen <= self.policy.lease_max_s]
-        # an in-process executor takes any job
+        live = self._live()  # an in-process executor takes any job
         takers = None if any(not w.listed for w in live) else {credential(w.name) for w in live}
         for run in self._runs.values():
             if not run.erred or not run.running:

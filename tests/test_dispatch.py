@@ -249,6 +249,19 @@ def test_names_without_a_liveliness_token_are_leased_nothing_and_never_listed() 
         assert [w.name for w in served.scheduler.workers()] == ["honest"]
 
 
+def test_names_that_hold_a_token_but_never_ask_do_not_cut_generations() -> None:
+    """Issue 38, attack 2: one credential declaring tokens for 40 names it never asks with
+    made every generation 40 jobs for the one worker that works. Only names that ask count."""
+    with serve() as served, zenoh_client(served.port) as session:
+        assert isinstance(ask_next(session, "honest"), Idle)  # it asks: it works here
+        for i in range(40):
+            as_worker(session, f"rogue.p-{i}")
+        assert eventually(lambda: len(served.scheduler.workers()) == 41)
+        served.scheduler.add(1, RunLoop(CONFIG), running=True)
+        job = ask_next(session, "honest")
+        assert isinstance(job, Job) and (job.start, job.stop) == (0, CONFIG.population)
+
+
 def test_an_idle_request_is_answered_at_the_end_of_the_long_poll() -> None:
     with serve(long_poll_s=0.5) as served, zenoh_client(served.port) as session:
         began = time.monotonic()
