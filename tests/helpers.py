@@ -123,14 +123,19 @@ def fake_evaluator(
     return fake_fitness(genomes), components, descriptors
 
 
-def reference(config: RunConfig) -> list[Told]:
-    """The run undisturbed, each generation evaluated whole by `fake_evaluator`."""
+def reference(
+    config: RunConfig,
+    evaluator: Callable[
+        [RunConfig, int, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]
+    ] = fake_evaluator,
+) -> list[Told]:
+    """The run undisturbed, each generation evaluated whole by `evaluator`."""
     from evorobotics.evolution import RunLoop
 
     loop = RunLoop(config)
     told = []
     while not loop.done:
-        told.append(loop.tell(*fake_evaluator(config, loop.generation, loop.ask())))
+        told.append(loop.tell(*evaluator(config, loop.generation, loop.ask())))
     return told
 
 

@@ -748,6 +748,55 @@ def test_any_interleaving_tells_the_same_generations_bit_for_bit(
     assert sched.take_failed() == {}
 
 
+ERROR_ACTIONS = st.lists(
+    st.tuples(st.sampled_from(["ask", "report", "error", "leave", "tick"]), st.integers(0, 3)),
+    max_size=40,
+)
+
+
+@settings(deadline=None)
+@given(actions=ERROR_ACTIONS)
+def test_any_interleaving_with_error_results_tells_what_evolve_tells(
+    actions: list[tuple[str, int]],
+) -> None:
+    """Issue 38, attack 1, as a property: whichever of four credentials err on whichever
+    jobs, leave or let time pass, no run fails and it tells `evolve`'s generations (the jobs
+    every live credential erred on are evaluated by the server's referee)."""
+    sched, clock = make(Policy(span_below_s=0, errors_quarantine=3))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    held: dict[int, Job | None] = dict.fromkeys(range(4))
+    written: list[Written] = []
+    for kind, i in actions:
+        name, job = f"w{i}", held[i]
+        if kind == "ask":
+            held[i] = sched.lease(name)
+        elif kind in ("report", "error") and job is not None:
+            sched.settle(run_job(job, name) if kind == "report" else error_result(job, name))
+            held[i] = None
+        elif kind == "leave":
+            sched.leave(name)
+            held[i] = None
+        elif kind == "tick":
+            clock.t += 7.0
+            sched.expire()
+        written += store(sched)
+
+    def drained() -> bool:
+        nonlocal written
+        while (job := sched.lease("drain")) is not None:
+            assert sched.settle(run_job(job, "drain")).accepted
+            written += store(sched)
+        clock.t += 1e4  # whatever the others hold expires; the referee's lease never does
+        sched.expire()
+        written += store(sched)
+        return bool(written) and written[-1].last
+
+    assert eventually(drained, WAIT)
+    same_generations(written, reference(CONFIG, evaluate_population))
+    assert sched.take_failed() == {}
+    sched.close()
+
+
 def test_a_run_whose_store_lags_leases_nothing_until_the_writes_are_in() -> None:
     """A store that blocks or refuses writes (or a writer that stopped) stops its runs: once
     a told generation has waited `store_lag_s` nothing is leased, and `written` lets the run
