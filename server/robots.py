@@ -31,6 +31,7 @@ import queue
 import threading
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -253,9 +254,9 @@ class RobotService:
     ) -> None:
         self.settings = settings or RobotSettings()
         self.signer = signer
+        """Signs pushes, stops and replacements (docs/security.md); None sends them unsigned."""
         self._archives = archives
         """run id -> (generations, config, archive) of a QD run (`RunManager.archive`)."""
-        """Signs pushes, stops and replacements (docs/security.md); None sends them unsigned."""
         self._zenoh = session
         self.sessions = (
             engine_or_sessionmaker
@@ -265,7 +266,9 @@ class RobotService:
         self._inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._online: set[str] = set()
-        self._waiters: dict[str, _Waiter] = {}
+        self._waiters: OrderedDict[str, _Waiter] = OrderedDict()
+        """push id -> its waiter, kept after its caller stops waiting (the last `WAITERS_KEPT`):
+        an acknowledgement that comes late still makes its controller served."""
         self._stored: dict[str, int] = {}
         self._allowance: dict[str, tuple[float, float]] = {}
         """robot -> (new samples it may send at once, when): every boot together runs at most
@@ -374,7 +377,7 @@ class RobotService:
         else:
             robot_log.warning("robot %s rejected push %s: %s", ack.robot, ack.push_id, ack.reason)
         with self._lock:
-            waiter = self._waiters.get(ack.push_id)
+            waiter = self._waiters.pop(ack.push_id, None)
         if ack.accepted:
             with self.sessions.begin() as db:
                 row = db.get(Robot, ack.robot)
@@ -1092,14 +1095,12 @@ class RobotService:
         waiter = _Waiter(sha)
         with self._lock:
             self._waiters[push_id] = waiter
-        try:
-            self._zenoh.put(
-                command_key(robot), payload, congestion_control=zenoh.CongestionControl.BLOCK
-            )
-            waiter.done.wait(self.settings.push_timeout if timeout is None else timeout)
-        finally:
-            with self._lock:
-                self._waiters.pop(push_id, None)
+            while len(self._waiters) > WAITERS_KEPT:
+                self._waiters.popitem(last=False)
+        self._zenoh.put(
+            command_key(robot), payload, congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        waiter.done.wait(self.settings.push_timeout if timeout is None else timeout)
         ack = waiter.ack
         if ack is None:
             return PushOut(
@@ -1311,6 +1312,9 @@ def _event_out(row: StuckEventRow) -> StuckEventOut:
 
 
 SERVED_KEPT = 64
+WAITERS_KEPT = 256
+"""Pushes remembered for their acknowledgement, answered or not (a few minutes of a colony's
+pushes: a robot acknowledges within a step)."""
 """Controllers a robot's `served` list remembers: far more than it runs between reports."""
 
 

@@ -533,6 +533,30 @@ def test_a_robot_naming_a_controller_it_was_never_given_raises_no_field_statisti
         assert link.service.field_stats(doc.sha256) is None
 
 
+def test_a_push_acknowledged_after_its_timeout_still_counts_for_its_controller(
+    colony: Colony, tmp_path: Path
+) -> None:
+    """A push whose acknowledgement comes after the caller stopped waiting (it applies at a
+    step boundary) still ran on the robot: its steps count for the controller it pushed."""
+    doc = random_controller(37, NetworkSpec())
+    with robot_link(colony) as link, virtual_robot("r-late", link, tmp_path) as (agent, _):
+        _store_controller(link, doc)
+        assert eventually(lambda: link.service.is_online("r-late"), WAIT)
+        out = link.service.push("r-late", sha256=doc.sha256, timeout=1e-4)
+        assert not out.acknowledged  # the caller gave up first
+        assert agent.wait_for(
+            lambda: agent.controller is not None and agent.controller.sha256 == doc.sha256, WAIT
+        )
+        delivered = agent.delivered
+        assert agent.wait_for(lambda: agent.delivered >= delivered + 20, WAIT)
+
+        def counted() -> bool:
+            stats = link.service.field_stats(doc.sha256)
+            return stats is not None and stats.robot_hours > 0
+
+        assert eventually(counted, WAIT)
+
+
 def test_a_stuck_request_carries_its_nonce() -> None:
     request = StuckRequest(robot="r", sha256=None, reason="x", step=3, nonce="a" * 32)
     assert decode_message(encode_message(request)) == request
