@@ -54,6 +54,22 @@ def agent_command(
             help="--emulate: the body's world, a JSON world or a run's config.json / best.json"
         ),
     ] = None,
+    tracker: Annotated[
+        bool,
+        typer.Option(
+            "--tracker",
+            help="--emulate: the firmware has no pose request, as a real BasicX, and an "
+            "emulated overhead tracker publishes the body's true poses on evocolony/tracker/ID",
+        ),
+    ] = False,
+    tracker_user: Annotated[
+        str | None,
+        typer.Option(envvar="COLONY_TRACKER_USER", help="--tracker: the tracker's zenoh user"),
+    ] = None,
+    tracker_password: Annotated[
+        str | None,
+        typer.Option(envvar="COLONY_TRACKER_PASSWORD", help="its password (prefer the env var)"),
+    ] = None,
     baud: Annotated[int, typer.Option(help="serial baud rate")] = 115_200,
     return_after: Annotated[
         int,
@@ -88,12 +104,17 @@ def agent_command(
     log_format: LogFormatOpt = "text",
 ) -> None:
     """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck."""
+    from dataclasses import replace
+
+    import zenoh
+
     from evorobotics.sim import DEFAULT_WORLD
     from robot_agent.agent import Agent, AgentSettings
     from robot_agent.driver import BasicXDriver
-    from robot_agent.emulator import BasicXEmulator
+    from robot_agent.emulator import BasicXEmulator, FirmwareConfig
     from robot_agent.errors import AgentError
     from robot_agent.sim_body import SimBody
+    from robot_agent.tracker import EmulatedTracker
     from schemas.security import ZenohClientAuth
     from schemas.world import world_from_json
     from server.logs import as_format, configure
@@ -104,6 +125,8 @@ def agent_command(
         raise typer.BadParameter(str(exc)) from exc
     if (serial is None) == (not emulate):
         raise typer.BadParameter("give exactly one of --serial PORT or --emulate")
+    if tracker and not emulate:
+        raise typer.BadParameter("--tracker emulates a tracker of the --emulate body")
     if zenoh_user is not None and zenoh_user != robot_id:
         raise typer.BadParameter(
             f"the zenoh user {zenoh_user} may only act as robot {zenoh_user}, not {robot_id}"
@@ -122,6 +145,9 @@ def agent_command(
             start_pose=_pose(start_pose),
             return_after_steps=return_after,
         )
+        tracker_auth = ZenohClientAuth(
+            user=tracker_user, password=tracker_password, root_ca=zenoh_root_ca
+        )
         emulator = (
             BasicXEmulator(
                 SimBody.create(
@@ -129,7 +155,8 @@ def agent_command(
                     seed=seed,
                     index=index,
                     world=DEFAULT_WORLD if world is None else world_from_json(world.read_bytes()),
-                )
+                ),
+                FirmwareConfig(pose_request=not tracker),
             ).start()
             if emulate
             else None
@@ -145,7 +172,14 @@ def agent_command(
     signal.signal(signal.SIGTERM, on_signal)
     port = emulator.port_path if emulator else str(serial)
     try:
-        with BasicXDriver.open(port, baud) as driver, Agent(settings, driver) as agent:
+        with contextlib.ExitStack() as stack:
+            if tracker and emulator is not None:  # its own session: the robot's may not say
+                session = stack.enter_context(
+                    zenoh.open(replace(settings, auth=tracker_auth).zenoh_config())
+                )
+                stack.enter_context(EmulatedTracker(session, robot_id, emulator))
+            driver = stack.enter_context(BasicXDriver.open(port, baud))
+            agent = stack.enter_context(Agent(settings, driver))
             typer.echo(f"agent {robot_id} on {port}, server {' '.join(connect)}")
             while not stop.wait(1.0):
                 pass
@@ -154,7 +188,7 @@ def agent_command(
             f"agent {robot_id}: {status.steps} steps, {agent.delivered} samples delivered, "
             f"{status.stuck_events} stuck events"
         )
-    except (AgentError, OSError) as exc:
+    except (AgentError, OSError, zenoh.ZError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(1) from exc
     finally:

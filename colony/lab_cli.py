@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 lab_app = typer.Typer(
-    help="Set up a lab: credentials per worker and robot, keys, TLS.", no_args_is_help=True
+    help="Set up a lab: credentials per worker, robot and tracker, keys, TLS.", no_args_is_help=True
 )
 
 
@@ -28,6 +28,10 @@ def init_command(
         typer.Option("--worker", help="a worker host's name, repeatable (default worker-1..N)"),
     ] = None,
     workers: Annotated[int, typer.Option(min=0, max=1000, help="workers without --worker")] = 2,
+    tracker: Annotated[
+        list[str] | None,
+        typer.Option("--tracker", help="an overhead tracker's name, repeatable (default tracker)"),
+    ] = None,
     tls: Annotated[
         bool, typer.Option("--tls", help="zenoh over TLS: a CA and a certificate")
     ] = False,
@@ -45,6 +49,7 @@ def init_command(
             directory,
             workers=worker or [f"worker-{i}" for i in range(1, workers + 1)],
             robots=robot or [f"evbot-{i}" for i in range(1, robots + 1)],
+            trackers=tracker or ["tracker"],
             server_host=server_host,
             tls=tls,
             port=port,
@@ -60,3 +65,5 @@ def init_command(
         typer.echo(f"  a worker:   env $(cat {path}) colony worker")
     for path in lab.robot_envs.values():
         typer.echo(f"  a robot:    env $(cat {path}) colony agent --serial /dev/ttyS0")
+    for path in lab.tracker_envs.values():
+        typer.echo(f"  a tracker:  env $(cat {path}) (your tracker's bridge; docs/robots.md)")

@@ -79,6 +79,9 @@ class FirmwareConfig:
     watchdog: float = 0.5
     """Seconds without a valid request after which the motors stop (command T changes it)."""
     version: str = FIRMWARE_VERSION
+    pose_request: bool = True
+    """Answer `P` with a posed body's pose; False answers ERR as a real BasicX does (its pose
+    then reaches the server only through a tracker, `robot_agent.tracker`)."""
 
     def __post_init__(self) -> None:
         if not 0.001 <= self.watchdog <= 60:
@@ -100,6 +103,8 @@ class BasicXEmulator:
         self._last_request: float | None = None
         self._stopped_at: float | None = None
         self._steps = 0
+        self._pose: tuple[float, tuple[float, float, float]] | None = None
+        """Wall time of the last physics step, and a posed body's pose after it."""
         self._mute = False
         self._corrupt = 0
         self._pending_noise = bytearray()
@@ -175,6 +180,16 @@ class BasicXEmulator:
         with self._stepped:
             return self._stepped.wait_for(lambda: self._steps >= count, timeout)
 
+    def wait_pose(
+        self, count: int, timeout: float
+    ) -> tuple[int, float, tuple[float, float, float]] | None:
+        """Once `count` physics steps were taken: (steps, wall time of the last, the posed
+        body's pose after it), as an overhead camera sees it; None on timeout or no pose."""
+        with self._stepped:
+            if not self._stepped.wait_for(lambda: self._steps >= count, timeout):
+                return None
+            return None if self._pose is None else (self._steps, *self._pose)
+
     # ------------------------------------------------------------------ fault injection
 
     def set_mute(self, mute: bool) -> None:
@@ -220,8 +235,11 @@ class BasicXEmulator:
                 with self._lock:
                     left, right = self._motors
                 self.body.step(left / MOTOR_FULL_SCALE, right / MOTOR_FULL_SCALE)
+                pose = self.body.position() if isinstance(self.body, PosedBody) else None
                 with self._lock:
                     self._steps += 1
+                    if pose is not None:
+                        self._pose = (time.time(), pose)
                     self._stepped.notify_all()
                 next_step += self.body.dt
 
@@ -270,7 +288,7 @@ class BasicXEmulator:
             return f"{Command.WHISKERS} {whisker_bits(self.body.whiskers())}"
         if verb == Command.POSE:
             body = self.body
-            if not isinstance(body, PosedBody):
+            if not isinstance(body, PosedBody) or not self.config.pose_request:
                 return f"ERR {ErrorCode.COMMAND}"  # as a real BasicX: it has no such request
             if args:
                 return f"ERR {ErrorCode.ARGUMENT}"

@@ -12,9 +12,11 @@ compares them bit for bit with what the same controller computes from the same w
 | `evocolony/robots/{id}/ack` | publication (push acknowledgements) | agent |
 | `evocolony/robots/{id}/traces` | queryable `*` (trace batches, acknowledged) | server |
 | `evocolony/robots/{id}/replace` | queryable `*` (a stuck robot asks for a controller) | server |
+| `evocolony/tracker/{id}` | publication (an overhead tracker's poses of robot `id`) | tracker |
 
 Every key carries the robot id, so zenoh's access control can confine robot `id`'s credentials
 to `evocolony/robots/{id}/**`; the server refuses a message whose robot differs from its key's.
+Tracker poses sit outside that tree: a robot's credential cannot report where it is.
 
 Traces go by `get` rather than `put` so the agent knows what arrived: a `put` while the router is
 down is lost silently, an unacknowledged batch stays in the agent's bounded buffer.
@@ -22,6 +24,7 @@ down is lost silently, an unacknowledged batch stays in the agent's bounded buff
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated, Literal
@@ -41,13 +44,16 @@ KEY_REPLACE = "evocolony/robots/*/replace"
 """Queryable (server): a stuck robot's `get` carries a StuckRequest; the reply a Replacement."""
 KEY_ACKS = "evocolony/robots/*/ack"
 """Key expression the server subscribes to for every robot's push acknowledgements."""
+KEY_TRACKER = "evocolony/tracker/*"
+"""Key expression the server subscribes to for an overhead tracker's TrackerPose of each robot."""
 
 WHISKERS = 5
 POSE_LIMIT = 1000.0
 """Metres: a pose coordinate beyond +/-POSE_LIMIT is clamped to it (no lab maze is a km wide)."""
-PoseSource = Literal["sim", "odometry"]
-"""Where a sample's pose comes from: the emulated robot's simulator (its true pose), or odometry
-integrated by the agent from its motor commands with the simulator's body model (a real EvBot)."""
+PoseSource = Literal["sim", "tracker", "odometry"]
+"""Where a sample's pose comes from: the emulated robot's simulator (its true pose), an overhead
+tracker (`TrackerPose`, matched to the sample by the server), or odometry integrated by the
+agent from its motor commands with the simulator's body model (a real EvBot without a tracker)."""
 ESCAPE = -1
 """Controller index of a sample driven by the scripted escape or a stop, not by a controller."""
 
@@ -77,6 +83,11 @@ def command_key(robot_id: str) -> str:
 
 def ack_key(robot_id: str) -> str:
     return f"evocolony/robots/{check_robot_id(robot_id)}/ack"
+
+
+def tracker_key(robot_id: str) -> str:
+    """Where an overhead tracker publishes the robot's poses (its own role, not the robot's)."""
+    return f"evocolony/tracker/{check_robot_id(robot_id)}"
 
 
 ROBOT_KEY_KINDS = frozenset({"alive", "command", "ack", "traces", "replace"})
@@ -351,7 +362,20 @@ class Replacement(_RobotMessage):
     )
 
 
-RobotMessage = ControllerPush | StopCommand | PushAck | TraceAck | StuckRequest | Replacement
+class TrackerPose(_RobotMessage):
+    """Tracker -> server on `tracker_key`: where the robot was at wall time `at` (Unix seconds,
+    the clock the agents stamp their samples with: NTP-synchronised hosts)."""
+
+    kind: Literal["pose"] = "pose"
+    at: float = Field(gt=0, allow_inf_nan=False)
+    x: float = Field(ge=-POSE_LIMIT, le=POSE_LIMIT, allow_inf_nan=False)
+    y: float = Field(ge=-POSE_LIMIT, le=POSE_LIMIT, allow_inf_nan=False)
+    theta: float = Field(ge=-math.pi, le=math.pi, allow_inf_nan=False)
+
+
+RobotMessage = (
+    ControllerPush | StopCommand | PushAck | TraceAck | StuckRequest | Replacement | TrackerPose
+)
 _KINDS: dict[str, type[_Model]] = {
     "push": ControllerPush,
     "stop": StopCommand,
@@ -359,6 +383,7 @@ _KINDS: dict[str, type[_Model]] = {
     "trace-ack": TraceAck,
     "stuck": StuckRequest,
     "replacement": Replacement,
+    "pose": TrackerPose,
 }
 
 
@@ -533,7 +558,8 @@ class TraceSample(_Model):
         description="x, y (m), heading (rad) then (null: not recorded)"
     )
     pose_source: PoseSource | None = Field(
-        description="sim: the emulator's true pose; odometry: integrated from motor commands"
+        description="sim: the emulator's true pose; tracker: an overhead tracker's (the newest "
+        "at or before `at`); odometry: integrated from motor commands"
     )
 
 

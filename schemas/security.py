@@ -87,6 +87,10 @@ def _allow(rule: str, messages: list[str], flow: str, keys: list[str]) -> dict[s
     }
 
 
+ROLES = ("workers", "robots", "trackers")
+"""The keys of a zenoh roles file, in `ZenohRoles`' field order."""
+
+
 @dataclass(frozen=True)
 class ZenohRoles:
     """Which zenoh users are workers and which are robots: the router's access control.
@@ -94,15 +98,17 @@ class ZenohRoles:
     Everything not allowed here is denied, so an authenticated client can only do its role's
     part: worker `W` (and its processes `W.anything`) asks on its own job keys and declares its
     own liveliness token; robot `R` declares `evocolony/robots/R/alive`, subscribes to its own
-    commands, publishes its own acks and asks on its own trace and replace keys. Only the
-    server, inside the router, declares queryables and subscribers on others' keys.
+    commands, publishes its own acks and asks on its own trace and replace keys; a tracker
+    publishes robots' poses (`evocolony/tracker/*`) and nothing else. Only the server, inside
+    the router, declares queryables and subscribers on others' keys.
     """
 
     workers: tuple[str, ...] = ()
     robots: tuple[str, ...] = ()
+    trackers: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        names = [*self.workers, *self.robots]
+        names = [*self.workers, *self.robots, *self.trackers]
         for name in names:
             if not _NAME.match(name):
                 raise ValueError(f"zenoh user {name!r} must match {_NAME.pattern}")
@@ -117,12 +123,12 @@ class ZenohRoles:
         """ValueError, naming the file, unless it is JSON {"workers": [...], "robots": [...]}."""
         try:
             data = json.loads(path.read_text())
-            if not isinstance(data, dict) or set(data) - {"workers", "robots"}:
-                raise ValueError('expected {"workers": [...], "robots": [...]}')
-            lists = [data.get(role, []) for role in ("workers", "robots")]
+            if not isinstance(data, dict) or set(data) - set(ROLES):
+                raise ValueError('expected {"workers": [...], "robots": [...], "trackers": [...]}')
+            lists = [data.get(role, []) for role in ROLES]
             if not all(isinstance(v, list) and all(isinstance(n, str) for n in v) for v in lists):
-                raise ValueError("workers and robots must be lists of names")
-            return cls(workers=tuple(lists[0]), robots=tuple(lists[1]))
+                raise ValueError("workers, robots and trackers must be lists of names")
+            return cls(*(tuple(names) for names in lists))
         except (OSError, ValueError) as exc:
             raise ValueError(f"zenoh roles file {path}: {exc}") from exc
 
@@ -160,6 +166,10 @@ class ZenohRoles:
             ]
             subjects.append({"id": f"r{n}", "usernames": [robot]})
             policies.append({"id": f"r{n}", "rules": ids, "subjects": [f"r{n}"]})
+        if self.trackers:
+            rules.append(_allow("t-pose", ["put"], "ingress", ["evocolony/tracker/*"]))
+            subjects.append({"id": "t", "usernames": list(self.trackers)})
+            policies.append({"id": "t", "rules": ["t-pose"], "subjects": ["t"]})
         return {
             "enabled": True,
             "default_permission": "deny",

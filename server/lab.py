@@ -39,6 +39,7 @@ class Lab:
     server_env: Path
     worker_envs: dict[str, Path]
     robot_envs: dict[str, Path]
+    tracker_envs: dict[str, Path]
 
 
 def _write(path: Path, text: str, *, secret: bool) -> None:
@@ -112,6 +113,7 @@ def init_lab(
     workers: Sequence[str],
     robots: Sequence[str],
     server_host: str,
+    trackers: Sequence[str] = ("tracker",),
     tls: bool = False,
     port: int = 7447,
     paths_as: Path | None = None,
@@ -125,14 +127,21 @@ def init_lab(
     processes (a container's mount point), used in the env files instead of `root`.
     ValueError for a bad name or a non-empty `root`.
     """
-    roles = ZenohRoles(workers=(LOCAL_WORKERS, *workers), robots=tuple(robots))
+    roles = ZenohRoles(
+        workers=(LOCAL_WORKERS, *workers), robots=tuple(robots), trackers=tuple(trackers)
+    )
     if root.exists() and any(root.iterdir()):
         raise ValueError(f"{root} is not empty: lab credentials are written once")
     root.mkdir(parents=True, exist_ok=True)
     seen = (paths_as or root.resolve()).as_posix()
-    passwords = {user: secrets.token_urlsafe(24) for user in (*roles.workers, *roles.robots)}
+    users = (*roles.workers, *roles.robots, *roles.trackers)
+    passwords = {user: secrets.token_urlsafe(24) for user in users}
     _write(root / "zenoh-users", "".join(f"{u}:{p}\n" for u, p in passwords.items()), secret=True)
-    roles_json = {"workers": list(roles.workers), "robots": list(roles.robots)}
+    roles_json = {
+        "workers": list(roles.workers),
+        "robots": list(roles.robots),
+        "trackers": list(roles.trackers),
+    }
     _write(root / "zenoh-roles.json", json.dumps(roles_json, indent=2) + "\n", secret=False)
     key = load_or_create_key(root / "server-key.pem")
     _write(root / "server-key.pub.pem", public_pem(key), secret=False)
@@ -173,4 +182,8 @@ def init_lab(
     for name, path in robot_envs.items():
         pinned = {"COLONY_ROBOT_ID": name, "COLONY_SERVER_PUBLIC_KEY": f"{seen}/server-key.pub.pem"}
         _write(path, user_env(name, pinned), secret=True)
-    return Lab(root, root / "server.env", worker_envs, robot_envs)
+    tracker_envs = {t: root / "trackers" / f"{t}.env" for t in trackers}
+    for name, path in tracker_envs.items():  # its own names: it runs beside a robot's agent
+        tracker = {"COLONY_TRACKER_USER": name, "COLONY_TRACKER_PASSWORD": passwords[name]}
+        _write(path, _env({**tracker, **client}), secret=True)
+    return Lab(root, root / "server.env", worker_envs, robot_envs, tracker_envs)

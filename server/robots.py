@@ -31,7 +31,7 @@ import queue
 import threading
 import time
 import uuid
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -57,6 +57,7 @@ from schemas.robots import (
     KEY_REPLACE,
     KEY_ROBOTS_ALIVE,
     KEY_TRACES,
+    KEY_TRACKER,
     CalibrationOut,
     ControllerPush,
     FieldStats,
@@ -78,11 +79,13 @@ from schemas.robots import (
     TraceBatch,
     TraceSample,
     TracesOut,
+    TrackerPose,
     command_key,
     decode_message,
     decode_trace,
     encode_message,
     robot_from_key,
+    tracker_key,
 )
 from schemas.run import RunConfig
 from schemas.wire import WireError
@@ -208,6 +211,13 @@ SLACK_STEPS = 100
 """Steps of slack on every time bound (transit, a step due at the instant of a batch)."""
 MIN_BOOT_SECONDS = 0.1
 """An agent start takes longer than this: boot numbers cannot rise faster."""
+TRACKED_POSES = 3000
+"""Tracker poses kept per robot (5 min at 10 Hz): a trace batch arrives seconds after its
+samples, so they are matched while the tracker's poses of that time are still here."""
+TRACKED_ROBOTS = 64
+"""Robots whose tracker poses are kept (online robots only): the memory of a lab's tracker."""
+TRACKER_MAX_AGE_S = 0.5
+"""A sample takes the tracker's newest pose at or before it, if that is at most this old."""
 MAX_CLOCK_AHEAD = 300.0
 """Seconds a robot's clock may run ahead of the server's: a sample time beyond is refused."""
 
@@ -266,6 +276,10 @@ class RobotService:
         self._inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._online: set[str] = set()
+        self._tracked: dict[str, deque[tuple[float, float, float, float]]] = {}
+        """robot -> its tracker poses (at, x, y, theta), oldest first (service thread only)."""
+        self.poses_dropped = 0
+        """Tracker poses dropped: malformed, out of order, or of a robot not online."""
         self._waiters: OrderedDict[str, _Waiter] = OrderedDict()
         """push id -> its waiter, kept after its caller stops waiting (the last `WAITERS_KEPT`):
         an acknowledgement that comes late still makes its controller served."""
@@ -300,6 +314,7 @@ class RobotService:
             z.declare_queryable(KEY_TRACES, lambda q: self._inbox.put(("trace", q))),
             z.declare_queryable(KEY_REPLACE, lambda q: self._inbox.put(("replace", q))),
             z.declare_subscriber(KEY_ACKS, lambda s: self._inbox.put(("ack", s))),
+            z.declare_subscriber(KEY_TRACKER, lambda s: self._inbox.put(("pose", s))),
             z.liveliness().declare_subscriber(
                 KEY_ROBOTS_ALIVE, lambda s: self._inbox.put(("alive", s)), history=True
             ),
@@ -335,6 +350,8 @@ class RobotService:
                     self._on_replace(item)
                 elif kind == "ack":
                     self._on_ack(item)
+                elif kind == "pose":
+                    self._on_pose(item)
                 else:
                     self._on_alive(item)
             except Exception:  # one bad message must not stop the robot side
@@ -359,6 +376,41 @@ class RobotService:
             (self._online.add if online else self._online.discard)(robot)
         if online != was_online:
             context(log, robot=robot).info("robot %s %s", robot, "online" if online else "offline")
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        """Keep a tracker's pose of an online robot (service thread: `_add` reads them)."""
+        try:
+            pose = decode_message(sample.payload.to_bytes())
+            if not isinstance(pose, TrackerPose) or str(sample.key_expr) != tracker_key(pose.robot):
+                raise WireError(f"not a TrackerPose of the robot its key names ({sample.key_expr})")
+        except (WireError, ValueError) as exc:
+            self.poses_dropped += 1
+            log.debug("dropping a tracker pose: %s", exc)
+            return
+        track = self._tracked.get(pose.robot)
+        if track is None:
+            with self._lock:
+                online = pose.robot in self._online
+            if not online or len(self._tracked) >= TRACKED_ROBOTS:
+                self.poses_dropped += 1
+                return
+            track = self._tracked[pose.robot] = deque(maxlen=TRACKED_POSES)
+        if track and pose.at <= track[-1][0]:  # out of order, or a replay
+            self.poses_dropped += 1
+            return
+        track.append((pose.at, pose.x, pose.y, pose.theta))
+
+    def _tracker_poses(self, robot: str, times: np.ndarray) -> np.ndarray | None:
+        """The tracker's pose of `robot` at each sample time (the newest at or before it), or
+        None unless every sample has one at most TRACKER_MAX_AGE_S old."""
+        track = self._tracked.get(robot)
+        if not track:
+            return None
+        poses = np.array(track, dtype=np.float64)
+        index = np.searchsorted(poses[:, 0], times, side="right") - 1
+        if index[0] < 0 or not (times - poses[index, 0] <= TRACKER_MAX_AGE_S).all():
+            return None
+        return poses[index, 1:]
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         try:
@@ -493,6 +545,10 @@ class RobotService:
     def _add(self, db: Session, batch: TraceBatch, new: np.ndarray) -> None:
         """The `new` samples of `batch` as a row, and their steps in the field statistics."""
         steps, controller = batch.steps[new], batch.controller[new]
+        poses, source = batch.poses[new], batch.pose_source
+        tracked = self._tracker_poses(batch.robot, batch.times[new])
+        if tracked is not None:  # from outside the robot: what calibration trusts
+            poses, source = tracked, "tracker"
         row = TraceRow(
             robot_id=batch.robot,
             boot=batch.boot,
@@ -506,8 +562,8 @@ class RobotService:
             controller=controller.astype("<i4").tobytes(),
             fresh=batch.fresh[new].tobytes(),
             times=batch.times[new].astype("<f8").tobytes(),
-            poses=batch.poses[new].astype("<f8").tobytes(),
-            pose_source=batch.pose_source,
+            poses=poses.astype("<f8").tobytes(),
+            pose_source=source,
         )
         row.checksum = trace_checksum(row)
         db.add(row)

@@ -13,7 +13,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -484,15 +484,27 @@ def robot_link(
 
 @contextmanager
 def virtual_robot(
-    robot: str, link: Link, state_dir: Path, seed: int = 0, **kwargs: Any
+    robot: str, link: Link, state_dir: Path, seed: int = 0, *, tracker: bool = False, **kwargs: Any
 ) -> Iterator[tuple[Agent, BasicXEmulator]]:
-    """An agent over a BasicX emulator pty (the paper's maze), connected to `link`'s router."""
+    """An agent over a BasicX emulator pty (the paper's maze), connected to `link`'s router.
+    `tracker`: the firmware has no pose request (a real BasicX) and an overhead tracker
+    publishes the body's true poses from a session of its own."""
+    import zenoh
+
     from robot_agent.agent import Agent, AgentSettings
     from robot_agent.driver import BasicXDriver
-    from robot_agent.emulator import BasicXEmulator
+    from robot_agent.emulator import BasicXEmulator, FirmwareConfig
     from robot_agent.sim_body import SimBody
+    from robot_agent.tracker import EmulatedTracker
 
-    with BasicXEmulator(SimBody.create("paper", seed=seed)) as emulator:
+    firmware = FirmwareConfig(pose_request=not tracker)
+    with (
+        BasicXEmulator(SimBody.create("paper", seed=seed), firmware) as emulator,
+        ExitStack() as stack,
+    ):
+        if tracker:
+            session = stack.enter_context(zenoh.open(client_config(link.port)))
+            stack.enter_context(EmulatedTracker(session, robot, emulator))
         settings = AgentSettings(
             robot_id=robot,
             connect=(link.endpoint,),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -18,10 +19,20 @@ from typer.testing import CliRunner
 from colony.cli import app as cli
 from robot_agent.agent import Agent, AgentSettings
 from robot_agent.driver import BasicXDriver
-from robot_agent.emulator import BasicXEmulator
+from robot_agent.emulator import BasicXEmulator, FirmwareConfig
 from robot_agent.sim_body import SimBody
+from robot_agent.tracker import EmulatedTracker
 from schemas.answer import CONSOLIDATION, TARGET, one_answer
-from schemas.robots import ack_key, alive_key, traces_key
+from schemas.network import NetworkSpec
+from schemas.robots import (
+    POSE_LIMIT,
+    TrackerPose,
+    ack_key,
+    alive_key,
+    encode_message,
+    traces_key,
+    tracker_key,
+)
 from schemas.security import ZenohClientAuth, ZenohRoles
 from schemas.wire import KEY_JOB_NEXT, JobRequest, encode, next_key
 from server.lab import init_lab
@@ -31,7 +42,9 @@ from tests.helpers import (
     eventually,
     free_port,
     online,
+    random_controller,
     router_config,
+    save,
     serving,
     wait_status,
 )
@@ -47,7 +60,7 @@ class LabServer:
     token: str
     endpoint: str
     env: dict[str, dict[str, str]]
-    """Each process's env file as a dict: "server", "wk", "bot1", "bot2"."""
+    """Each process's env file as a dict: "server", "wk", "bot1", "bot2", "tracker"."""
 
 
 def read_env(path: Path) -> dict[str, str]:
@@ -63,7 +76,8 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LabServer]:
     tmp = tmp_path_factory.mktemp("lab")
     made = init_lab(tmp / "lab", workers=["wk"], robots=["bot1", "bot2"], server_host="127.0.0.1")
     env = {"server": read_env(made.server_env)}
-    env |= {name: read_env(path) for name, path in {**made.worker_envs, **made.robot_envs}.items()}
+    envs = {**made.worker_envs, **made.robot_envs, **made.tracker_envs}
+    env |= {name: read_env(path) for name, path in envs.items()}
     server = env["server"]
     zport = free_port()
     settings = Settings(
@@ -105,7 +119,9 @@ def worker(lab: LabServer) -> Iterator[None]:
 
 
 @contextmanager
-def robot(lab: LabServer, name: str, state: Path) -> Iterator[Agent]:
+def robot(
+    lab: LabServer, name: str, state: Path, firmware: FirmwareConfig | None = None
+) -> Iterator[tuple[Agent, BasicXEmulator]]:
     key = Path(lab.env[name]["COLONY_SERVER_PUBLIC_KEY"]).read_bytes()
     settings = AgentSettings(
         robot_id=name,
@@ -117,11 +133,11 @@ def robot(lab: LabServer, name: str, state: Path) -> Iterator[Agent]:
         auth=auth(lab.env[name]),
     )
     with (
-        BasicXEmulator(SimBody.create("paper", seed=1)) as emulator,
+        BasicXEmulator(SimBody.create("paper", seed=1), firmware) as emulator,
         BasicXDriver.open(emulator.port_path) as driver,
         Agent(settings, driver) as agent,
     ):
-        yield agent
+        yield agent, emulator
 
 
 def client(lab: LabServer) -> httpx.Client:
@@ -178,6 +194,44 @@ def test_roles_let_each_credential_do_its_part_and_nothing_else(
     assert heard == []
 
 
+def test_only_the_tracker_credential_gives_a_robot_its_poses(
+    lab: LabServer, tmp_path: Path
+) -> None:
+    """Issue 37: an overhead tracker publishes each robot's pose on its tracker key under its
+    own role; the server stores them with the robot's samples as `pose_source: "tracker"`. A
+    robot's credential cannot report where it (or another robot) is."""
+    save(tmp_path / "bot1", random_controller(23, NetworkSpec()))  # it moves
+    tracker_env = lab.env["tracker"]
+    as_tracker = WorkerSettings(
+        connect=(lab.endpoint,),
+        name="tracker",
+        auth=ZenohClientAuth(
+            tracker_env["COLONY_TRACKER_USER"], tracker_env["COLONY_TRACKER_PASSWORD"]
+        ),
+    )
+    with (
+        robot(lab, "bot1", tmp_path / "bot1", FirmwareConfig(pose_request=False)) as (agent, body),
+        session_of(lab, lab.env["bot2"]) as rogue_robot,
+        zenoh.open(as_tracker.zenoh_config()) as tracker_session,
+        client(lab) as http,
+    ):
+        assert eventually(lambda: online(http, "bot1"), timeout=WAIT)
+        with EmulatedTracker(tracker_session, "bot1", body) as tracker:
+            assert eventually(lambda: tracker.published >= 5, timeout=WAIT)
+            began = agent.delivered
+            for _ in range(10):  # a far-off pose between each of the tracker's
+                lie = TrackerPose(robot="bot1", at=time.time(), x=POSE_LIMIT, y=0, theta=0)
+                rogue_robot.put(tracker_key("bot1"), encode_message(lie))
+                delivered = agent.delivered
+                assert agent.wait_for(lambda: agent.delivered > delivered, WAIT)  # noqa: B023
+            assert agent.wait_for(lambda: agent.delivered >= began + 40, WAIT)
+        samples = http.get("/api/robots/bot1/traces", params={"limit": 30}).json()["samples"]
+    assert agent.pose_source == "odometry"  # the robot itself cannot tell
+    assert {s["pose_source"] for s in samples} == {"tracker"}
+    assert all(s["pose"][0] != POSE_LIMIT for s in samples)
+    assert len({tuple(s["pose"]) for s in samples}) > 10  # it moves, and the poses follow
+
+
 def test_a_public_zenoh_listen_needs_a_lab(tmp_path: Path) -> None:
     public = Settings(db_url=f"sqlite:///{tmp_path / 'c.db'}", zenoh_listen=["tcp/0.0.0.0:7447"])
     from server.app import create_app
@@ -213,7 +267,9 @@ def test_lab_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: 
     assert result.exit_code == 0, result.output
     lab = tmp_path / "lab"
     roles = ZenohRoles.from_file(lab / "zenoh-roles.json")
-    assert roles == ZenohRoles(workers=("local", "worker-1"), robots=("evbot-1", "evbot-2"))
+    assert roles == ZenohRoles(
+        workers=("local", "worker-1"), robots=("evbot-1", "evbot-2"), trackers=("tracker",)
+    )
     for secret in [
         "zenoh-users",
         "server.env",
@@ -221,13 +277,17 @@ def test_lab_init_writes_private_credentials_and_refuses_to_overwrite(tmp_path: 
         "server-key.pem",
         "robots/evbot-1.env",
         "workers/worker-1.env",
+        "trackers/tracker.env",
     ]:
         assert (lab / secret).stat().st_mode & 0o077 == 0, secret
     robot_env = read_env(lab / "robots" / "evbot-1.env")
     assert robot_env["COLONY_CONNECT"] == "tls/10.0.0.1:7447"
     assert robot_env["COLONY_ROBOT_ID"] == robot_env["COLONY_ZENOH_USER"] == "evbot-1"
     passwords = [line.split(":", 1)[1] for line in (lab / "zenoh-users").read_text().splitlines()]
-    assert len(set(passwords)) == len(passwords) == 4
+    assert len(set(passwords)) == len(passwords) == 5
+    tracker_env = read_env(lab / "trackers" / "tracker.env")
+    assert tracker_env["COLONY_TRACKER_USER"] == "tracker"
+    assert tracker_env["COLONY_CONNECT"] == robot_env["COLONY_CONNECT"]
     assert not (lab / "ca-key.pem").exists()  # nothing may mint more certificates
     with pytest.raises(ValueError, match=r"must not contain '\.'"):
         ZenohRoles(workers=("lab.pc",))

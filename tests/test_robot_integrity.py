@@ -37,6 +37,7 @@ from schemas.robots import (
     StopCommand,
     StuckRequest,
     TraceBatch,
+    TrackerPose,
     ack_key,
     alive_key,
     command_key,
@@ -45,6 +46,7 @@ from schemas.robots import (
     encode_trace,
     replace_key,
     traces_key,
+    tracker_key,
 )
 from schemas.wire import decode_frame, encode_frame
 from server import crud
@@ -555,6 +557,50 @@ def test_a_push_acknowledged_after_its_timeout_still_counts_for_its_controller(
             return stats is not None and stats.robot_hours > 0
 
         assert eventually(counted, WAIT)
+
+
+def test_each_sample_takes_the_trackers_newest_pose_and_bad_poses_are_dropped(
+    colony: Colony,
+) -> None:
+    """Issue 37: a sample stores the tracker's newest pose at or before its time, if at most
+    0.5 s old (else the batch keeps the robot's own poses). A malformed pose, one whose key
+    names another robot, one of a robot not online and one out of order are dropped."""
+    t0 = time.time()
+    with (
+        robot_link(colony) as link,
+        zenoh.open(client_config(link.port)) as robot,
+        zenoh.open(client_config(link.port)) as tracker,
+    ):
+        token = robot.liveliness().declare_token(alive_key("r-trk"))
+        assert eventually(lambda: link.service.is_online("r-trk"), WAIT)
+
+        def pose(robot: str, at: float, x: float) -> bytes:
+            return encode_message(TrackerPose(robot=robot, at=at, x=x, y=0, theta=0))
+
+        hostile = [
+            (tracker_key("r-trk"), b"garbage"),
+            (tracker_key("r-trk"), pose("r-else", t0, 9)),
+            (tracker_key("r-off"), pose("r-off", t0, 9)),
+        ]
+        good = [(tracker_key("r-trk"), pose("r-trk", t0 + k / 10, k)) for k in range(10)]
+        late = (tracker_key("r-trk"), pose("r-trk", t0 + 0.45, 9))
+        for key, payload in [*hostile, *good, late]:
+            tracker.put(key, payload)
+        assert eventually(lambda: link.service.poses_dropped == 4, WAIT)
+        times = t0 + 0.05 + np.arange(10) / 10  # each between two of the tracker's poses
+        for first, at in ((0, times), (10, np.full(3, t0 + 1.5))):  # the newest is 0.6 s old
+            batch = _batch(
+                "r-trk", 0, first, at.shape[0], times=at, poses=np.full((at.shape[0], 3), 0.5)
+            )
+            assert _ask(robot, traces_key("r-trk"), encode_trace(batch)).ok is not None
+        with link.service.sessions() as db:
+            rows = db.scalars(select(TraceRow).order_by(TraceRow.first)).all()
+        token.undeclare()  # type: ignore[no-untyped-call]
+    assert [r.pose_source for r in rows] == ["tracker", "odometry"]
+    assert rows[0].poses is not None and rows[1].poses is not None
+    tracked = np.frombuffer(rows[0].poses, "<f8").reshape(-1, 3)
+    assert tracked[:, 0].tolist() == list(range(10))
+    assert (np.frombuffer(rows[1].poses, "<f8") == 0.5).all()
 
 
 def test_a_stuck_request_carries_its_nonce() -> None:

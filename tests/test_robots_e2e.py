@@ -34,11 +34,14 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str,
         yield url, endpoint, completed_run(url, QUICK)
 
 
-def agent_process(robot: str, endpoint: str, state_dir: Path, url: str) -> subprocess.Popen[str]:
+def agent_process(
+    robot: str, endpoint: str, state_dir: Path, url: str, *more: str
+) -> subprocess.Popen[str]:
     """A real agent; it pins the server's signing key from `url` on first start."""
     colony = str(Path(sys.executable).with_name("colony"))
     args = ["--robot-id", robot, "--emulate", "--maze", "paper", "--seed", "1", "--server", url]
     args += ["--connect", endpoint, "--state-dir", str(state_dir), "--log-level", "WARNING"]
+    args += more
     return subprocess.Popen(
         [colony, "agent", *args],
         stdout=subprocess.PIPE,
@@ -90,6 +93,30 @@ def test_emulated_agent_process_end_to_end(server: tuple[str, str, int], tmp_pat
             assert detail is not None and detail["online"]
             assert detail["controller_sha256"] == pushed["sha256"]
             assert detail["state"] == "running"
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=WAIT)
+
+
+def test_an_emulated_agent_with_a_tracker_stores_the_trackers_poses(
+    server: tuple[str, str, int], tmp_path: Path
+) -> None:
+    """`colony agent --emulate --tracker`: the firmware cannot tell the agent its pose (as a
+    real BasicX), the emulated tracker publishes it, and the server stores it with the traces."""
+    url, endpoint, run_id = server
+    proc = agent_process("e2e-t", endpoint, tmp_path, url, "--tracker")
+    try:
+        with httpx.Client(base_url=url, timeout=30) as client:
+            assert eventually(lambda: (robot(client, "e2e-t") or {}).get("online") is True)
+            pushed = client.post("/api/robots/e2e-t/controller", json={"run_id": run_id}).json()
+            assert pushed["accepted"], pushed
+
+            def sources() -> set[str]:
+                traces = client.get("/api/robots/e2e-t/traces", params={"limit": 20}).json()
+                samples = traces["samples"]
+                return {s["pose_source"] for s in samples} if len(samples) == 20 else set()
+
+            assert eventually(lambda: sources() == {"tracker"})
     finally:
         proc.terminate()
         proc.communicate(timeout=WAIT)

@@ -466,8 +466,10 @@ def test_archive_policy_replaces_with_an_elite_and_pushes_reach_archive_entries(
 def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
     colony: Colony, tmp_path: Path
 ) -> None:
-    """Traces with the emulator's true poses, `colony robot calibrate` over REST, the fit
-    stored with the robot: the hidden whisker ranges and wheel gains within its uncertainty."""
+    """Traces with an overhead tracker's poses (the emulator's true ones, published on the
+    tracker key; the agent itself has only odometry), `colony robot calibrate` over REST, the
+    fit stored with the robot: the hidden whisker ranges and wheel gains within its
+    uncertainty."""
     from evorobotics.evaluate import draw_gap
 
     save(tmp_path, constant_drive(0.8, 0.8, NetworkSpec()))  # ahead until a wall, escape, again
@@ -475,9 +477,13 @@ def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
     stuck = StuckConfig(contact_steps=2, odometry_window=20)
     with (
         robot_link(colony) as link,
-        virtual_robot("r-cal", link, tmp_path, seed=5, stuck=stuck, period=0.005) as (agent, _),
+        virtual_robot("r-cal", link, tmp_path, seed=5, tracker=True, stuck=stuck, period=0.005) as (
+            agent,
+            _,
+        ),
     ):
         assert agent.wait_for(lambda: agent.delivered >= 3000, WAIT * 2)
+        assert agent.pose_source == "odometry"
         assert httpx.get(f"{colony.url}/api/robots/r-cal/calibration").status_code == 404
         done = CliRunner().invoke(
             cli, ["robot", "calibrate", "r-cal", "--server", colony.url, "--json"]
