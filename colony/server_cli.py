@@ -428,6 +428,14 @@ def run_start(
         ),
     ] = None,
     nominal: NominalOpt = False,
+    for_colony: Annotated[
+        bool,
+        typer.Option(
+            "--for-colony",
+            help="train for the colony you have: each trial's robot drawn from the server's "
+            "calibrated robots (reality_gap colony) instead of the paper's gap",
+        ),
+    ] = False,
     job_size: Annotated[int | None, typer.Option("--job-size")] = None,
     strategy: Annotated[
         str | None,
@@ -445,6 +453,9 @@ def run_start(
     With --follow, exit status 1 unless the run completes."""
     from colony.run_inputs import ConfigError, maze_value, network_value
 
+    if nominal and for_colony:
+        typer.echo("error: --nominal and --for-colony choose opposite worlds: give one", err=True)
+        raise typer.Exit(2)
     body: dict[str, Any] = {}
     if config_file is not None:
         try:
@@ -469,7 +480,7 @@ def run_start(
         "seed": seed,
         "maze": maze_text,
         "network": spec if spec is None or isinstance(spec, str) else spec.model_dump(mode="json"),
-        "reality_gap": "off" if nominal else None,
+        "reality_gap": "off" if nominal else "colony" if for_colony else None,
         "job_size": job_size,
         "strategy": strategy,
     }

@@ -187,11 +187,20 @@ def trial_gap(
     """One trial's robot under the reality gap, from `gen`: each whisker's trigger distance
     (5,) uniform in `world.gap_whisker_range`, then each wheel's gain (2,), `world.motor_gain`
     times uniform 1 +- `world.gap_motor_gain`; with `steps` (the step model) every step's five
-    distances after them, (steps, 5), in place of the trial's."""
-    lo, hi = world.gap_whisker_range
-    ranges = gen.uniform(lo, hi, N_WHISKERS)
-    g = world.gap_motor_gain
-    gains = np.array(world.motor_gain) * gen.uniform(1.0 - g, 1.0 + g, 2)
+    distances after them, (steps, 5), in place of the trial's. A world with `gap_robots` (the
+    colony gap) first draws which of them, then each value uniform within its uncertainty."""
+    lo: np.ndarray | float
+    hi: np.ndarray | float
+    if world.gap_robots:
+        robot = world.gap_robots[int(gen.integers(len(world.gap_robots)))]
+        lo, hi = (np.array(b) for b in robot.whisker_bounds())
+        ranges = gen.uniform(lo, hi)
+        gains = gen.uniform(*(np.array(b) for b in robot.gain_bounds()))
+    else:
+        lo, hi = world.gap_whisker_range
+        ranges = gen.uniform(lo, hi, N_WHISKERS)
+        g = world.gap_motor_gain
+        gains = np.array(world.motor_gain) * gen.uniform(1.0 - g, 1.0 + g, 2)
     if steps is not None:
         ranges = gen.uniform(lo, hi, (steps, N_WHISKERS))
     return ranges, gains
@@ -244,6 +253,7 @@ def check_config(config: RunConfig, *, files: bool = True) -> None:
         )
     start_poses(load_maze(config.maze), config.seed, 0, config.trials, config.world)
     trial_steps(config)
+    config.training_world  # noqa: B018 - raises for a colony gap without its robots
 
 
 def robot_steps(config: RunConfig, individuals: int) -> int:

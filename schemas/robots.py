@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES, MAX_TRACE_SAMPLES
 from schemas.wire import NAME_PATTERN, PROTOCOL, WireError, decode_frame, encode_frame
-from schemas.world import World
+from schemas.world import GapRobot, World
 
 KEY_ROBOTS_ALIVE = "evocolony/robots/*/alive"
 """Liveliness key expression matching every robot's token."""
@@ -666,6 +666,16 @@ class RobotCalibration(_Model):
         description="whiskers whose bit never changed: their range is only known to lie in "
         "range +- uncertainty",
     )
+
+    def gap_robot(self, robot: str) -> GapRobot:
+        """This fit as one robot of a colony gap (`reality_gap: "colony"`)."""
+        return GapRobot(
+            robot=robot,
+            whisker_range=self.whisker_range,
+            whisker_uncertainty=self.uncertainty.whisker_range,
+            motor_gain=self.motor_gain,
+            motor_gain_uncertainty=self.uncertainty.motor_gain,
+        )
 
     def world(self, base: World) -> World:
         """`base` with this robot's whisker ranges and wheel gains."""

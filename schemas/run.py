@@ -204,6 +204,12 @@ def _with_gap_range(world: World, whisker_range: tuple[float, float]) -> World:
     return world.model_copy(update={"gap_whisker_range": whisker_range})
 
 
+NO_GAP_ROBOTS = (
+    "reality_gap 'colony' needs the calibrated robots in world.gap_robots (POST /api/runs fills "
+    "them from the colony's calibrations: colony robot calibrate ROBOT)"
+)
+
+
 class RunConfig(BaseModel):
     """One evolutionary experiment; defaults are the paper's (section 4)."""
 
@@ -229,11 +235,13 @@ class RunConfig(BaseModel):
     maze: str = Field("paper", min_length=1, max_length=4096, description="maze name or text")
     network: str | NetworkSpec = Field("paper-best", description="preset name or a spec")
     fitness: FitnessWeights = FitnessWeights()
-    reality_gap: Literal["on", "off"] = Field(
+    reality_gap: Literal["on", "off", "colony"] = Field(
         "on",
         description="'on': every trial's robot is drawn from the paper's reality gap (each "
         "whisker 25-100 mm, each wheel +-15 %: `world`'s gap fields), in training after "
-        "`nominal_first`, in validation and in the champion's test; 'off': the ideal world of "
+        "`nominal_first`, in validation and in the champion's test; 'colony': drawn from the "
+        "calibrated robots of `world.gap_robots` instead (POST /api/runs fills them from the "
+        "colony's calibrations), `train_whisker_range` unused; 'off': the ideal world of "
         "`world`'s nominal values",
     )
     world: World = World()
@@ -287,6 +295,11 @@ class RunConfig(BaseModel):
                 raise ValueError(
                     f"train_whisker_range must be 0 <= low <= high <= 1 m, got {lo} and {hi}"
                 )
+        if self.world.gap_robots and self.reality_gap != "colony":
+            raise ValueError(
+                "world.gap_robots are drawn from only under reality_gap 'colony', got "
+                f"{self.reality_gap!r}"
+            )
         m = self.replacement_count
         if 2 * m + 1 > self.population:
             raise ValueError(
@@ -321,8 +334,8 @@ class RunConfig(BaseModel):
 
     @property
     def gap(self) -> bool:
-        """Whether trials draw their robot from the reality gap."""
-        return self.reality_gap == "on"
+        """Whether trials draw their robot from a reality gap (the paper's or the colony's)."""
+        return self.reality_gap != "off"
 
     def trains_under_gap(self, generation: int) -> bool:
         """Whether generation `generation`'s training trials draw their robot from the gap."""
@@ -332,6 +345,10 @@ class RunConfig(BaseModel):
     def training_world(self) -> World:
         """The world training and validation trials draw their gap from: `world` with
         `train_whisker_range` as its gap range."""
+        if self.reality_gap == "colony":
+            if not self.world.gap_robots:
+                raise ValueError(NO_GAP_ROBOTS)
+            return self.world
         if self.train_whisker_range is None:
             return self.world
         return _with_gap_range(self.world, self.train_whisker_range)

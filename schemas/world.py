@@ -15,6 +15,47 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 N_WHISKERS = 5
 """The EvBot's five binary whiskers: the controller's five inputs."""
+MAX_GAP_ROBOTS = 256
+"""Calibrated robots a world's colony gap may hold (a config stays small)."""
+
+
+class GapRobot(BaseModel):
+    """One calibrated robot of a colony (`colony robot calibrate`): under `reality_gap:
+    "colony"` a trial's robot has each whisker's range and each wheel's gain drawn uniformly
+    within value +- uncertainty."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    robot: str = Field("", max_length=64, description="whose calibration (for the record)")
+    whisker_range: tuple[float, float, float, float, float] = Field(
+        description="each whisker's fitted trigger distance, left to right, m"
+    )
+    whisker_uncertainty: tuple[float, float, float, float, float] = Field(
+        description="half-width of each whisker's interval, m"
+    )
+    motor_gain: tuple[float, float] = Field(description="the wheels' fitted gains [left, right]")
+    motor_gain_uncertainty: tuple[float, float] = Field(description="half-width of each gain's")
+
+    @model_validator(mode="after")
+    def _check(self) -> GapRobot:
+        if not all(0.0 <= r <= 1.0 for r in self.whisker_range):
+            raise ValueError(f"whisker_range must be within 0-1 m, got {self.whisker_range}")
+        if not all(0.0 < g <= 10.0 for g in self.motor_gain):
+            raise ValueError(f"motor_gain must be within (0, 10], got {self.motor_gain}")
+        spreads = (*self.whisker_uncertainty, *self.motor_gain_uncertainty)
+        if not all(0.0 <= u <= 1.0 for u in spreads):
+            raise ValueError(f"uncertainties must be within 0-1, got {spreads}")
+        return self
+
+    def whisker_bounds(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Each whisker's interval, clipped to 0-1 m."""
+        pairs = list(zip(self.whisker_range, self.whisker_uncertainty, strict=True))
+        return tuple(max(0.0, r - u) for r, u in pairs), tuple(min(1.0, r + u) for r, u in pairs)
+
+    def gain_bounds(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Each wheel's interval, kept above 0 (a wheel that turns)."""
+        pairs = list(zip(self.motor_gain, self.motor_gain_uncertainty, strict=True))
+        return tuple(max(1e-3, g - u) for g, u in pairs), tuple(g + u for g, u in pairs)
 
 
 class World(BaseModel):
@@ -76,6 +117,14 @@ class World(BaseModel):
             "'step' draws each whisker's anew every step (noisy switches); wheel gains are "
             "per trial either way"
         ),
+    )
+
+    gap_robots: tuple[GapRobot, ...] = Field(
+        (),
+        max_length=MAX_GAP_ROBOTS,
+        description="reality gap 'colony': each trial's robot is one of these calibrated robots "
+        "(drawn uniformly), its whiskers and wheels drawn within their uncertainty in place of "
+        "gap_whisker_range and gap_motor_gain",
     )
 
     @model_validator(mode="after")

@@ -89,7 +89,7 @@ from schemas.robots import (
 )
 from schemas.run import RunConfig
 from schemas.wire import WireError
-from schemas.world import World
+from schemas.world import MAX_GAP_ROBOTS, World
 from server import crud
 from server.errors import NotFoundError, ServerError
 from server.logs import context
@@ -1378,6 +1378,29 @@ def _served(robot: Robot | None) -> list[str]:
     """The controllers the server gave `robot` (oldest first): only their steps and stuck
     events count in field statistics, whatever a robot names."""
     return [] if robot is None or not robot.served else list(json.loads(robot.served))
+
+
+def with_colony_gap(db: Session, config: RunConfig) -> RunConfig:
+    """`config` with the colony's calibrated robots as its gap when it asks for `reality_gap:
+    "colony"` and names none (stored with the run: it stays a function of its config);
+    NotFoundError when no robot is calibrated."""
+    if config.reality_gap != "colony" or config.world.gap_robots:
+        return config
+    rows = db.scalars(
+        select(Robot).where(Robot.calibration.is_not(None)).order_by(Robot.id).limit(MAX_GAP_ROBOTS)
+    ).all()
+    robots = tuple(
+        RobotCalibration.model_validate_json(r.calibration).gap_robot(r.id)
+        for r in rows
+        if r.calibration is not None
+    )
+    if not robots:
+        raise NotFoundError(
+            "reality_gap 'colony' draws from the calibrated robots, and no robot is calibrated: "
+            "colony robot calibrate ROBOT"
+        )
+    world = config.world.model_copy(update={"gap_robots": robots})
+    return RunConfig.model_validate({**config.model_dump(), "world": world.model_dump()})
 
 
 def _serve(robot: Robot, sha256: str) -> None:

@@ -16,6 +16,7 @@ from evorobotics.evaluate import (
     PATH_TRIALS,
     START_CACHE,
     _cached_start_poses,
+    check_config,
     draw_gap,
     evaluate,
     implausible,
@@ -33,7 +34,7 @@ from evorobotics.seeds import Purpose, rng
 from evorobotics.sim import DEFAULT_WORLD, body_hits_wall, whisker_bits
 from schemas.network import PRESETS
 from schemas.run import FitnessWeights, RunConfig, ValidationConfig
-from schemas.world import World
+from schemas.world import GapRobot, World
 
 
 def test_eq12_with_paper_weights() -> None:
@@ -262,6 +263,59 @@ def test_the_trial_gap_model_draws_as_documented() -> None:
         gains = np.array([0.9, 1.1]) * gen.uniform(0.85, 1.15, 2)
         assert gap.motor_gain[t].tobytes() == gains.tobytes()
     assert draw_gap(8, 2, 3, world).whisker_range.tobytes() == gap.whisker_range.tobytes()
+
+
+GAP_ROBOT = st.builds(
+    GapRobot,
+    whisker_range=st.tuples(*[st.floats(0.0, 0.3)] * 5),
+    whisker_uncertainty=st.tuples(*[st.floats(0.0, 0.05)] * 5),
+    motor_gain=st.tuples(st.floats(0.5, 1.5), st.floats(0.5, 1.5)),
+    motor_gain_uncertainty=st.tuples(st.floats(0.0, 0.1), st.floats(0.0, 0.1)),
+)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    robots=st.lists(GAP_ROBOT, min_size=1, max_size=4),
+    seed=st.integers(0, 2**40),
+    model=st.sampled_from(["trial", "step"]),
+)
+def test_the_colony_gap_draws_each_trial_within_one_calibrated_robot(
+    robots: list[GapRobot], seed: int, model: str
+) -> None:
+    """`reality_gap: "colony"`: a trial's robot is one of the calibrated robots, every
+    whisker range and gain inside that robot's value +- uncertainty (every step's too)."""
+    world = World(gap_robots=tuple(robots), gap_model=model)
+    gap = draw_gap(seed, 3, 12, world, steps=7)
+
+    def inside(robot: GapRobot, ranges: np.ndarray, gains: np.ndarray) -> bool:
+        (wlo, whi), (glo, ghi) = robot.whisker_bounds(), robot.gain_bounds()
+        return bool(
+            ((np.array(wlo) <= ranges) & (ranges <= np.array(whi))).all()
+            and ((np.array(glo) <= gains) & (gains <= np.array(ghi))).all()
+        )
+
+    for t in range(12):
+        ranges = gap.whisker_range[t].reshape(-1, 5)
+        assert any(inside(r, ranges, gap.motor_gain[t]) for r in robots)
+    again = draw_gap(seed, 3, 12, world, steps=7)
+    assert again.whisker_range.tobytes() == gap.whisker_range.tobytes()
+
+
+def test_a_colony_gap_needs_its_robots_and_only_it_takes_them() -> None:
+    robot = GapRobot(
+        whisker_range=(0.05,) * 5,
+        whisker_uncertainty=(0.001,) * 5,
+        motor_gain=(1.0, 0.9),
+        motor_gain_uncertainty=(0.01, 0.01),
+    )
+    with pytest.raises(ValueError, match="only under reality_gap 'colony'"):
+        RunConfig(world=World(gap_robots=(robot,)))
+    with pytest.raises(ValueError, match="needs the calibrated robots"):
+        check_config(RunConfig(reality_gap="colony"))
+    colony = RunConfig(reality_gap="colony", world=World(gap_robots=(robot,)), trials=4)
+    check_config(colony)
+    assert colony.gap and colony.training_world == colony.world  # train_whisker_range unused
 
 
 @settings(max_examples=20, deadline=None)

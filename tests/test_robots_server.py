@@ -540,6 +540,45 @@ def test_evaluate_in_a_robots_calibrated_world(colony: Colony, tmp_path: Path) -
     assert want != explore(doc.spec, doc.weights, poses=20, steps=60, world=World())
 
 
+def test_a_run_for_the_colony_trains_on_the_calibrated_robots(tmp_path: Path) -> None:
+    """Issue 37: `colony run start --for-colony` (`reality_gap: "colony"`): refused while no
+    robot is calibrated; then the server stores the calibrated robots in the run's config,
+    and the run is `evolve` of that config."""
+    from evorobotics.evolution import evolve
+    from schemas.run import RunConfig
+
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{free_port()}"],
+        workers=0,
+        executors=1,
+    )
+    fit = {
+        "whisker_range": [0.03, 0.04, 0.05, 0.06, 0.07],
+        "motor_gain": [0.9, 1.1],
+        "uncertainty": {"whisker_range": [0.002] * 5, "motor_gain": [0.01, 0.01]},
+        "samples": 500,
+        "residuals": {"moving_steps": 400, "pose_rms_m": 0.0, "whisker_disagreements": [0] * 5},
+    }
+    args = ["run", "start", "--for-colony", "--population", "8", "--generations", "3"]
+    args += ["--steps", "20", "--follow", "--json"]
+    with serving(settings) as (url, app):
+        refused = CliRunner().invoke(cli, [*args, "--server", url])
+        assert refused.exit_code == 1 and "no robot is calibrated" in refused.output
+        with app.state.robots.sessions.begin() as db:
+            db.add(Robot(id="r-col", status="offline"))
+        assert httpx.post(f"{url}/api/robots/r-col/calibration", json=fit).status_code == 200
+        done = CliRunner().invoke(cli, [*args, "--server", url])
+        assert done.exit_code == 0, done.output
+        run = httpx.get(f"{url}/api/runs").json()[0]
+    config = RunConfig.model_validate(run["config"])
+    (robot,) = config.world.gap_robots
+    assert robot.robot == "r-col" and robot.whisker_range == (0.03, 0.04, 0.05, 0.06, 0.07)
+    assert robot.motor_gain_uncertainty == (0.01, 0.01)
+    assert run["best_fitness"] == float(evolve(config).fitness.max())
+
+
 def test_a_robot_flooding_stuck_requests_is_rate_limited_and_its_ledger_trimmed(
     colony: Colony,
 ) -> None:

@@ -24,7 +24,9 @@ from schemas.run import RunConfig
 from server import crud
 from server.auth import run_limit_error
 from server.deps import ManagerDep, SessionDep
+from server.errors import NotFoundError
 from server.models import Run, aware
+from server.robots import with_colony_gap
 
 RunId = Annotated[int, Path(ge=0, le=2**63 - 1, description="a run id (64-bit)")]
 """Bounded so an id beyond the database's integers is a 422, not an overflow."""
@@ -79,7 +81,10 @@ def create_run(
     """Start a run; every config field is optional and defaults to the paper's experiment;
     `name` and `tags` label it."""
     body = body or RunCreate()
-    config = body.run_config()
+    try:
+        config = with_colony_gap(session, body.run_config())
+    except NotFoundError as exc:
+        raise HTTPException(422, str(exc)) from exc
     refused = run_limit_error(
         config,
         max_population_weights=manager.settings.max_population_weights,
