@@ -440,8 +440,17 @@ class RobotOut(_Model):
     )
 
 
+class FieldWindow(_Model):
+    """A robot's time and stuck events over a span of its retained traces."""
+
+    robot_hours: float
+    stuck_events: int
+    stuck_per_hour: float | None = Field(description="null: no time in the span")
+
+
 class RobotDetail(RobotOut):
-    """GET /api/robots/{id}: the summary plus the controller's origin, whiskers and link."""
+    """GET /api/robots/{id}: the summary plus the controller's origin, whiskers, link and
+    calibration."""
 
     controller_run: int | None
     controller_rank: int | None
@@ -449,6 +458,14 @@ class RobotDetail(RobotOut):
     whiskers: str = Field(description="last whisker bits, left to right")
     boot: int
     link: dict[str, object] = Field(description="zenoh link and the agent's last RobotStatus")
+    calibration: RobotCalibration | None = Field(
+        None, description="its stored fit (colony robot calibrate); null: not calibrated"
+    )
+    calibrated_at: datetime | None = None
+    before_calibration: FieldWindow | None = Field(
+        None, description="its retained traces and stuck events from before the fit was stored"
+    )
+    since_calibration: FieldWindow | None = Field(None, description="and from then on")
 
 
 class PushBody(_Model):

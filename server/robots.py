@@ -61,6 +61,7 @@ from schemas.robots import (
     CalibrationOut,
     ControllerPush,
     FieldStats,
+    FieldWindow,
     LedgerController,
     PolicySource,
     PushAck,
@@ -978,6 +979,15 @@ class RobotService:
                     origin["run"] = ctrl.run_id
                     origin["generation"] = ctrl.generation
             status = json.loads(state.status) if state else {}
+            calibrated: dict[str, Any] = {}
+            if row.calibration is not None and row.calibrated_at is not None:
+                at = row.calibrated_at
+                calibrated = {
+                    "calibration": RobotCalibration.model_validate_json(row.calibration),
+                    "calibrated_at": aware(at),
+                    "before_calibration": self._window(db, robot_id, None, at),
+                    "since_calibration": self._window(db, robot_id, at, None),
+                }
             return RobotDetail(
                 **summary.model_dump(),
                 controller_run=_int_or_none(origin.get("run")),
@@ -986,7 +996,28 @@ class RobotService:
                 whiskers=state.whiskers if state else "00000",
                 boot=state.boot if state else 0,
                 link={"zenoh": "online" if summary.online else "offline", **status},
+                **calibrated,
             )
+
+    def _window(
+        self, db: Session, robot_id: str, since: datetime | None, until: datetime | None
+    ) -> FieldWindow:
+        """The robot's retained samples and stuck events that arrived in [since, until)."""
+        samples = select(func.coalesce(func.sum(TraceRow.count), 0)).where(
+            TraceRow.robot_id == robot_id
+        )
+        events = select(func.count(StuckEventRow.id)).where(StuckEventRow.robot_id == robot_id)
+        if since is not None:
+            samples = samples.where(TraceRow.received_at >= since)
+            events = events.where(StuckEventRow.at >= since)
+        if until is not None:
+            samples = samples.where(TraceRow.received_at < until)
+            events = events.where(StuckEventRow.at < until)
+        hours = int(db.scalar(samples) or 0) * self.settings.dt / 3600.0
+        stuck = int(db.scalar(events) or 0)
+        return FieldWindow(
+            robot_hours=hours, stuck_events=stuck, stuck_per_hour=stuck / hours if hours else None
+        )
 
     def _summary(self, row: Robot, state: RobotStateRow | None) -> RobotOut:
         return _summary(row, state, self.is_online(row.id), self.settings.replacement)

@@ -167,6 +167,25 @@ def test_push_best_controller_to_a_robot_with_a_click(
                 """Number(document.querySelector('[data-robot="virt-1"] [data-field="steps"]')
                     .textContent) > 0"""
             )
+            assert card.locator('[data-field="physics"]').inner_text() == "not calibrated"
+            fit = {
+                "whisker_range": [0.03, 0.04, 0.05, 0.06, 0.07],
+                "motor_gain": [0.9, 1.1],
+                "uncertainty": {"whisker_range": [0.001] * 4 + [0.02], "motor_gain": [0.01] * 2},
+                "samples": 500,
+                "residuals": {
+                    "moving_steps": 400, "pose_rms_m": 0.0, "whisker_disagreements": [0] * 5
+                },
+                "bounded": [4],
+            }  # fmt: skip
+            posted = client.post("/api/robots/virt-1/calibration", json=fit)
+            assert posted.status_code == 200, posted.text
+            card.locator('[data-field="physics"]').filter(
+                has_text="whiskers 30 40 50 60 50–90 mm, gains 0.900 / 1.100"
+            ).wait_for()
+            card.locator('[data-field="calibrated"]').filter(
+                has_text="before calibration"
+            ).wait_for()
 
 
 def positions(page: Any) -> dict[str, list[float]]:

@@ -491,6 +491,13 @@ def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
         assert done.exit_code == 0, done.stderr  # a whisker never at a wall: bounded above
         fit = json.loads(done.stdout)["calibration"]
         stored = httpx.get(f"{colony.url}/api/robots/r-cal/calibration").json()
+        delivered = agent.delivered
+        assert agent.wait_for(lambda: agent.delivered >= delivered + 200, WAIT)
+        detail = httpx.get(f"{colony.url}/api/robots/r-cal").json()  # what the Colony page shows
+        assert detail["calibration"] == fit
+        before, since = detail["before_calibration"], detail["since_calibration"]
+        assert before["robot_hours"] >= 3000 * 0.1 / 3600 and since["robot_hours"] > 0
+        assert before["stuck_events"] > 0  # ahead until a wall, again and again
         bad = {**fit, "motor_gain": [0.0, 1.0]}
         refused = httpx.post(f"{colony.url}/api/robots/r-cal/calibration", json=bad)
         assert refused.status_code == 422 and "motor_gain" in refused.text

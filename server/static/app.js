@@ -773,6 +773,8 @@ function makeCard(id) {
     ["steps", "steps"],
     ["stuck events", "stuck"],
     ["field", "field"],
+    ["physics", "physics"],
+    ["stuck / h", "calibrated"],
     ["last seen", "seen"],
   ]) {
     dl.append(el("dt", { text: label }), field(name));
@@ -1071,6 +1073,25 @@ function whiskerBits(bits) {
     ...[...bits].map((b) => el("span", { class: b === "1" ? "hit" : "" })));
 }
 
+function physics(fit) {
+  // The robot's fitted physics (colony robot calibrate): whisker ranges in mm, wheel gains.
+  if (fit === null) return "not calibrated";
+  const mm = fit.whisker_range.map((r, i) => {
+    const u = fit.uncertainty.whisker_range[i];
+    // a whisker whose bit never changed is only known within an interval
+    return fit.bounded.includes(i)
+      ? `${Math.round(1000 * Math.max(0, r - u))}–${Math.round(1000 * (r + u))}`
+      : String(Math.round(1000 * r));
+  });
+  return `whiskers ${mm.join(" ")} mm, gains ${fit.motor_gain.map((g) => fmt(g, 3)).join(" / ")}`;
+}
+
+function perHour(window) {
+  return window.stuck_per_hour === null
+    ? "no time"
+    : `${fmt(window.stuck_per_hour, 1)} (${window.stuck_events} in ${fmt(window.robot_hours, 2)} robot-h)`;
+}
+
 function renderRobots(snapshot) {
   const empty = $("#robots-empty");
   const container = $("#robot-cards");
@@ -1112,6 +1133,11 @@ function renderRobots(snapshot) {
       ? "not run yet"
       : `${fmt(f.robot_hours, 3)} robot-h, ${f.stuck_events} stuck` +
         (f.stuck_per_hour === null ? "" : ` (${fmt(f.stuck_per_hour, 1)}/h)`));
+    set("physics", physics(robot.calibration));
+    set("calibrated", robot.calibration === null
+      ? "–"
+      : `${perHour(robot.before_calibration)} before calibration, ` +
+        `${perHour(robot.since_calibration)} since`);
     set("seen", ago(robot.last_seen === null ? null : Date.parse(robot.last_seen) / 1000));
   }
   for (const [id, entry] of state.cards) {
