@@ -138,25 +138,40 @@ def champion_traces(
     return w, m, p[:, :, :2]
 
 
-def alarms(whiskers: np.ndarray, motors: np.ndarray, cfg: StuckConfig) -> list[int]:
-    """Steps at which the agent would raise a stuck alarm; each alarm resets the detector."""
+def alarms(
+    whiskers: np.ndarray, motors: np.ndarray, cfg: StuckConfig, poses: np.ndarray | None = None
+) -> list[int]:
+    """Steps at which the agent would raise a stuck alarm (with a tracker's `poses` (T, 2), if
+    given); each alarm resets the detector."""
     detector = StuckDetector(cfg)
     out = []
     for t in range(whiskers.shape[0]):
-        if detector.update(tuple(bool(b) for b in whiskers[t]), motors[t]) is not None:
+        pose = None if poses is None else poses[t]
+        if detector.update(tuple(bool(b) for b in whiskers[t]), motors[t], pose) is not None:
             out.append(t)
             detector.reset()
     return out
 
 
-def field_figures(label: str, w: np.ndarray, m: np.ndarray, real: np.ndarray, window: int) -> None:
-    """Alarms per robot-hour, false ones apart, and the share of truly stuck robots alarmed."""
+def field_figures(
+    label: str,
+    w: np.ndarray,
+    m: np.ndarray,
+    real: np.ndarray,
+    window: int,
+    xy: np.ndarray | None = None,
+) -> None:
+    """Alarms per robot-hour, false ones apart, and the share of truly stuck robots alarmed;
+    with `xy` (B, T+1, 2) the detector also has a tracker's poses (where each step sensed)."""
     cfg = StuckConfig()
     true_alarms = false_alarms = 0
     caught = stuck_robots = 0
     for b in range(w.shape[0]):
-        fired = [t for t in alarms(w[b], m[b], cfg) if t >= window]
-        hits = [t for t in fired if real[b, t]]
+        tracked = None if xy is None else xy[b, :-1]
+        # an alarm at step t is scored on the 40 steps up to the pose the robot sensed at t
+        # (truth[t - 1]): truth[t] ends with step t's own move, which nothing sensed yet
+        fired = [t for t in alarms(w[b], m[b], cfg, tracked) if t > window]
+        hits = [t for t in fired if real[b, t - 1]]
         true_alarms += len(hits)
         false_alarms += len(fired) - len(hits)
         if real[b, window:].any():
@@ -237,6 +252,7 @@ def main() -> None:
         real = truth(xy, args.window, args.radius)
         label = "under the gap" if gap_on else "nominal"
         field_figures(f"champions, {label}", w, m, real, args.window)
+        field_figures(f"  with a tracker, {label}", w, m, real, args.window, xy)
 
 
 if __name__ == "__main__":

@@ -49,6 +49,7 @@ from robot_agent.verify import Verifier, pin_key, pinned_key
 from schemas.answer import CONSOLIDATION, TARGET, one_answer
 from schemas.robots import (
     ESCAPE,
+    TRACKER_MAX_AGE_S,
     WHISKERS,
     AgentState,
     ControllerPush,
@@ -60,6 +61,7 @@ from schemas.robots import (
     StuckRequest,
     TraceAck,
     TraceBatch,
+    TrackerPose,
     ack_key,
     alive_key,
     check_robot_id,
@@ -70,6 +72,7 @@ from schemas.robots import (
     encode_trace,
     replace_key,
     traces_key,
+    tracker_key,
 )
 from schemas.security import ZenohClientAuth
 from schemas.wire import WireError
@@ -266,6 +269,9 @@ class Agent:
         self._escape: list[tuple[float, float]] = []
         self._detector = StuckDetector(settings.stuck, World(dt=settings.period))
         self._lateness: deque[float] = deque(maxlen=1000)
+        self._tracked: tuple[float, tuple[float, float]] | None = None
+        """An overhead tracker's newest (time, position) of this robot: the stuck detector's
+        view from outside (`evocolony/tracker/{id}`, docs/robots.md)."""
         self.pose_source: PoseSource | None = None
         """sim: the robot reports its pose (the emulator); odometry: it cannot (a real BasicX),
         so `_odometry` integrates the motor commands. None until the first step asks."""
@@ -442,7 +448,12 @@ class Agent:
                 self._outbox.put(self._home)  # persisted by the link thread
                 self._wake.set()
             elif sha is not None and self._state == "running":
-                reason = self._detector.update([b == 1 for b in bits], motors)
+                tracked = self._tracked
+                fresh_pose = (
+                    tracked[1] if tracked is not None and at - tracked[0] <= TRACKER_MAX_AGE_S
+                    else None
+                )  # fmt: skip
+                reason = self._detector.update([b == 1 for b in bits], motors, fresh_pose)
                 if reason is not None:
                     self.stuck_events += 1
                     self._begin_escape()
@@ -596,8 +607,19 @@ class Agent:
             inbox.put(sample.payload.to_bytes())
             self._wake.set()
 
+        def on_pose(sample: zenoh.Sample) -> None:  # an overhead tracker's, if the lab has one
+            try:
+                pose = decode_message(sample.payload.to_bytes())
+            except WireError:
+                return  # the server counts bad poses; the detector only misses one
+            if isinstance(pose, TrackerPose) and pose.robot == robot:
+                with self._lock:
+                    if self._tracked is None or pose.at > self._tracked[0]:
+                        self._tracked = (pose.at, (pose.x, pose.y))
+
         token = session.liveliness().declare_token(alive_key(robot))
         subscriber = session.declare_subscriber(command_key(robot), on_command)
+        poses = session.declare_subscriber(tracker_key(robot), on_pose)
         self.connected.set()
         backoff = _Backoff(self.settings.backoff_initial, self.settings.backoff_max)
         retry_at = 0.0
@@ -624,6 +646,7 @@ class Agent:
                 self._wake.wait(self.settings.period)
                 self._wake.clear()
         finally:
+            poses.undeclare()  # type: ignore[no-untyped-call]
             subscriber.undeclare()  # type: ignore[no-untyped-call]
             token.undeclare()  # type: ignore[no-untyped-call]
 

@@ -46,6 +46,9 @@ KEY_ACKS = "evocolony/robots/*/ack"
 """Key expression the server subscribes to for every robot's push acknowledgements."""
 KEY_TRACKER = "evocolony/tracker/*"
 """Key expression the server subscribes to for an overhead tracker's TrackerPose of each robot."""
+TRACKER_MAX_AGE_S = 0.5
+"""A tracker pose describes a moment at most this much after it: a stored sample takes the
+newest at or before it, the agent's stuck detector the newest it has, if no older."""
 
 WHISKERS = 5
 POSE_LIMIT = 1000.0

@@ -98,7 +98,8 @@ class ZenohRoles:
     Everything not allowed here is denied, so an authenticated client can only do its role's
     part: worker `W` (and its processes `W.anything`) asks on its own job keys and declares its
     own liveliness token; robot `R` declares `evocolony/robots/R/alive`, subscribes to its own
-    commands, publishes its own acks and asks on its own trace and replace keys; a tracker
+    commands and its own tracker poses, publishes its own acks and asks on its own trace and
+    replace keys; a tracker
     publishes robots' poses (`evocolony/tracker/*`) and nothing else. Only the server, inside
     the router, declares queryables and subscribers on others' keys.
     """
@@ -154,7 +155,8 @@ class ZenohRoles:
         for n, robot in enumerate(self.robots):
             key = {kind: f"evocolony/robots/{robot}/{kind}" for kind in _ROBOT_KEYS}
             asks = [key["traces"], key["replace"]]
-            ids = [f"r{n}-{part}" for part in ("alive", "sub", "cmd", "ack", "ask", "reply", "see")]
+            parts = ("alive", "sub", "cmd", "ack", "ask", "reply", "see", "where", "seen")
+            ids = [f"r{n}-{part}" for part in parts]
             rules += [
                 _allow(ids[0], ["liveliness_token"], "ingress", [key["alive"]]),
                 _allow(ids[1], ["declare_subscriber"], "ingress", [key["command"]]),
@@ -163,6 +165,8 @@ class ZenohRoles:
                 _allow(ids[4], ["query"], "ingress", asks),
                 _allow(ids[5], ["reply"], "egress", asks),
                 _allow(ids[6], ["declare_queryable"], "egress", list(_SERVER_ROBOT_QUERYABLES)),
+                _allow(ids[7], ["declare_subscriber"], "ingress", [f"evocolony/tracker/{robot}"]),
+                _allow(ids[8], ["put"], "egress", [f"evocolony/tracker/{robot}"]),
             ]
             subjects.append({"id": f"r{n}", "usernames": [robot]})
             policies.append({"id": f"r{n}", "rules": ids, "subjects": [f"r{n}"]})

@@ -58,6 +58,7 @@ from schemas.robots import (
     KEY_ROBOTS_ALIVE,
     KEY_TRACES,
     KEY_TRACKER,
+    TRACKER_MAX_AGE_S,
     CalibrationOut,
     ControllerPush,
     FieldStats,
@@ -217,8 +218,6 @@ TRACKED_POSES = 3000
 samples, so they are matched while the tracker's poses of that time are still here."""
 TRACKED_ROBOTS = 64
 """Robots whose tracker poses are kept (online robots only): the memory of a lab's tracker."""
-TRACKER_MAX_AGE_S = 0.5
-"""A sample takes the tracker's newest pose at or before it, if that is at most this old."""
 MAX_CLOCK_AHEAD = 300.0
 """Seconds a robot's clock may run ahead of the server's: a sample time beyond is refused."""
 

@@ -547,6 +547,62 @@ def test_evaluate_in_a_robots_calibrated_world(colony: Colony, tmp_path: Path) -
     assert want != explore(doc.spec, doc.weights, poses=20, steps=60, world=World())
 
 
+class PinnedBody:
+    """A robot held in place with every whisker clear of the wall, its wheels free to turn:
+    neither whiskers nor commands can tell it from one that drives."""
+
+    dt = 0.1
+
+    def step(self, left: float, right: float) -> None:
+        pass
+
+    def whiskers(self) -> tuple[bool, ...]:
+        return (False,) * 5
+
+    def position(self) -> tuple[float, float, float]:
+        return (1.0, 1.0, 0.5)
+
+
+def test_a_tracker_lets_the_agent_see_a_robot_pinned_with_its_whiskers_clear(
+    colony: Colony, tmp_path: Path
+) -> None:
+    """Issue 37, stuck recall: a body pinned with its whiskers clear while its controller
+    drives forward raises no alarm from whiskers and commands; once an overhead tracker
+    publishes its poses the agent sees it stay put and asks for another controller."""
+    from robot_agent.agent import Agent, AgentSettings
+    from robot_agent.driver import BasicXDriver
+    from robot_agent.emulator import BasicXEmulator, FirmwareConfig
+    from robot_agent.tracker import EmulatedTracker
+
+    save(tmp_path, constant_drive(0.8, 0.8, NetworkSpec()))
+    with (
+        robot_link(colony) as link,
+        BasicXEmulator(PinnedBody(), FirmwareConfig(pose_request=False)) as emulator,
+        BasicXDriver.open(emulator.port_path) as driver,
+        Agent(
+            AgentSettings(
+                robot_id="r-pin",
+                connect=(link.endpoint,),
+                state_dir=tmp_path,
+                request_timeout=1.0,
+                period=0.02,
+            ),
+            driver,
+        ) as agent,
+        zenoh.open(client_config(link.port)) as tracker_session,
+    ):
+        assert agent.wait_for(lambda: agent.steps >= 300, WAIT)  # 6 s driving "forward"
+        assert agent.stuck_events == 0
+        with EmulatedTracker(tracker_session, "r-pin", emulator):
+            assert agent.wait_for(lambda: agent.stuck_events >= 1, WAIT)
+
+        def recorded() -> list[str]:
+            return [e.reason for e in link.service.stuck_events("r-pin").events]
+
+        assert eventually(lambda: recorded() != [], WAIT)
+    assert recorded()[0] == "tracked-still"
+
+
 def test_a_run_for_the_colony_trains_on_the_calibrated_robots(tmp_path: Path) -> None:
     """Issue 37: `colony run start --for-colony` (`reality_gap: "colony"`): refused while no
     robot is calibrated; then the server stores the calibrated robots in the run's config,

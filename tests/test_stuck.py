@@ -73,6 +73,30 @@ def test_detect_matches_streaming_and_never_fires_on_a_clear_straight_run(seed: 
     assert set(clear) == {None}
 
 
+@given(
+    drift=st.floats(0.0, 0.2),
+    gap_at=st.one_of(st.none(), st.integers(0, 39)),
+)
+def test_a_tracker_sees_a_robot_pinned_with_its_whiskers_clear(
+    drift: float, gap_at: int | None
+) -> None:
+    """Whiskers clear, wheels forward: no sign from them. With tracked poses over 40 steps
+    (41 poses) staying within 0.1 m it is stuck; a moving robot, or a window with a missing
+    pose, is not (yet)."""
+    config = StuckConfig()
+    clear, forward = (False,) * 5, (0.8, 0.8)
+    blind = StuckDetector(config)
+    assert all(blind.update(clear, forward) is None for _ in range(200))
+    detector = StuckDetector(config)
+    seen = []
+    for t in range(41):
+        pose = None if t == gap_at else (1.0 + drift * t / 40, 2.0, 0.0)
+        seen.append(detector.update(clear, forward, pose))
+    pinned = drift < config.tracker_radius and gap_at is None
+    assert seen[:-1] == [None] * 40
+    assert seen[-1] == (StuckReason.TRACKED_STILL if pinned else None)
+
+
 def test_arguments_are_checked() -> None:
     for kwargs in ({"contact_steps": 0}, {"odometry_radius": 0.0}, {"drive_min": 2.0}):
         with pytest.raises(ValueError):
