@@ -21,10 +21,12 @@ refused, as robot_agent.sim_body does. The controller is the default run's champ
 - The loop pays (`loop_pays`): per seed, 8 robots with hidden gap physics run the champion
   pushed blind for `--minutes` (10), then the `fit` choice after calibrating from those traces.
   Stuck events per robot-hour before and after, their ratio over `--seeds` (10) with a
-  bootstrap CI over seeds. Target: at most 1/5.
+  bootstrap CI over seeds, and the same for the champion of a run trained for the colony
+  (`reality_gap: "colony"` on the 8 calibrations, `colony run start --for-colony`). Target: at
+  most 1/5.
 
     .venv/bin/python bench/field.py [--robots 10] [--horizons 1200 6000] [--hours 1] [--seed 3]
-        [--seeds 10] [--minutes 10] [--candidates 100]
+        [--seeds 10] [--minutes 10] [--candidates 100] [--figure docs/img/field-loop.png]
 """
 
 from __future__ import annotations
@@ -102,15 +104,21 @@ def hidden_colony(seed: int, robots: int) -> tuple[np.ndarray, Gap]:
     return np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies]), gap
 
 
+Fitted = tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, ...]]
+"""One robot's hidden whisker ranges (5,), fitted ranges (5,), their half-widths (5,), and the
+whiskers known only within an interval."""
+
+
 def calibration(
     spec: NetworkSpec, weights: np.ndarray, robots: int, horizon: int, seed: int
-) -> None:
+) -> list[Fitted]:
     poses, gap = hidden_colony(seed, robots)
     began = time.perf_counter()
     p, w, m, _ = run_colony(spec, weights, poses, gap, horizon)
     traced = time.perf_counter() - began
     maze, world = load_maze("paper"), World()
     within = bounded = strict = 0
+    fitted: list[Fitted] = []
     print(f"calibration from {horizon} steps ({horizon * world.dt:.0f} s) of traces per robot:")
     for i in range(robots):
         try:
@@ -123,6 +131,7 @@ def calibration(
         r_err = float(errors[changed].max(initial=0.0))
         g_err = float(np.abs(np.array(fit.motor_gain) - gap.motor_gain[i]).max())
         half = np.array(fit.whisker_range_uncertainty)
+        fitted.append((gap.whisker_range[i], np.array(fit.whisker_range), half, fit.bounded))
         inside = all(errors[k] <= half[k] + 1e-9 for k in fit.bounded)
         ok = r_err <= 0.003 and g_err <= 0.02 and inside
         within += ok
@@ -143,6 +152,7 @@ def calibration(
         f"whisker; every whisker within 3 mm: {strict} of {robots}; "
         f"{traced:.1f} s to trace"
     )
+    return fitted
 
 
 def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int) -> None:
@@ -174,7 +184,7 @@ def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int
     )
 
 
-def loop_pays(seeds: int, minutes: float, candidates: int, threads: int) -> None:
+def loop_pays(seeds: int, minutes: float, candidates: int, threads: int) -> dict[str, list[float]]:
     """Per seed S: the champion of `colony evolve --seed S` on 8 robots with hidden physics
     (`SimBody.create("paper", seed=100 + S, index=i)`) for `minutes` each, pushed blind; then
     each robot calibrated from those traces and given the `fit` choice among the run's
@@ -237,6 +247,45 @@ def loop_pays(seeds: int, minutes: float, candidates: int, threads: int) -> None
             f"<= 0.20); better on {int((f < b).sum())}, worse on {int((f > b).sum())} seeds; "
             f"A12 {a12(blind_rates, rates):.2f}"
         )
+    return {"blind": blind_rates, "fit": fit_rates, "for-colony": colony_rates}
+
+
+def figure(path: str, fitted: list[Fitted], rates: dict[str, list[float]]) -> None:
+    """docs/robots.md's figure: hidden against fitted whisker ranges, and each seed's stuck
+    events per robot-hour pushed blind, after `fit`, and trained for the colony."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.6))
+    for hidden, fit, half, bounded in fitted:
+        exact = [k for k in range(5) if k not in bounded]
+        left.plot(1000 * hidden[exact], 1000 * fit[exact], "o", color="tab:blue", ms=5)
+        for k in bounded:
+            left.errorbar(
+                1000 * hidden[k], 1000 * fit[k], yerr=1000 * half[k], fmt="s", color="tab:orange",
+                ms=4, capsize=3,
+            )  # fmt: skip
+    left.plot([20, 105], [20, 105], color="0.6", lw=1, zorder=0)
+    left.plot([], [], "o", color="tab:blue", label="fitted range")
+    left.errorbar([], [], yerr=[], fmt="s", color="tab:orange", label="bit never changed: interval")
+    left.set(
+        xlabel="hidden whisker range (mm)", ylabel="fitted (mm)", xlim=(20, 105), ylim=(0, 260),
+        title=f"{len(fitted)} robots, 10 min of traces each",
+    )  # fmt: skip
+    left.legend(loc="upper left")
+    arms = list(rates)
+    for s in range(len(rates["blind"])):
+        right.plot(range(len(arms)), [rates[a][s] for a in arms], "-o", color="0.6", lw=1, ms=4)
+    means = [float(np.mean(rates[a])) for a in arms]
+    right.plot(range(len(arms)), means, "-D", color="tab:red", lw=2, label="mean over seeds")
+    right.set_xticks(range(len(arms)), ["champion, blind", "calibrate, fit", "trained for colony"])
+    right.set(ylabel="stuck events per robot-hour", title="8 robots x 10 min, per seed")
+    right.legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"figure written to {path}")
 
 
 def main() -> None:
@@ -250,13 +299,17 @@ def main() -> None:
     parser.add_argument(
         "--candidates", type=int, default=RunConfig().validation.candidates, help="fit among"
     )
+    parser.add_argument("--figure", help="also draw docs/robots.md's figure (a PNG path)")
     args = parser.parse_args()
     champion = evolve(RunConfig()).best
     print(f"the default run's champion {champion.sha256[:12]}, maze 'paper'")
+    fitted: list[Fitted] = []
     for horizon in args.horizons:
-        calibration(champion.spec, champion.weights, args.robots, horizon, args.seed)
+        fitted = calibration(champion.spec, champion.weights, args.robots, horizon, args.seed)
     false_alarms(champion.spec, champion.weights, args.hours, args.seed)
-    loop_pays(args.seeds, args.minutes, args.candidates, available_cores())
+    rates = loop_pays(args.seeds, args.minutes, args.candidates, available_cores())
+    if args.figure:
+        figure(args.figure, fitted, rates)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 Starts `colony server` (embedded SQLite in the demo dir, local workers) as a subprocess,
 evolves the paper's experiment over the REST API with a live progress bar, starts virtual
-EvBots (`colony agent --emulate`: the BasicX emulator on a pty, the real serial path), pushes
+EvBots (`colony agent --emulate --tracker`: the BasicX emulator on a pty, the real serial path,
+and an emulated overhead tracker publishing their poses), pushes
 the run's best to them, lets them explore, then prints a colony summary and writes the plots.
 Every child runs in its own session, so Ctrl-C reaches only this process, which stops the
 robots first and the server (with its workers) last; nothing is left running.
@@ -302,6 +303,7 @@ def _demo(
                 [
                     "agent",
                     "--emulate",
+                    "--tracker",  # an overhead tracker's poses: calibration, stuck alarms
                     "--robot-id",
                     robot,
                     "--connect",
