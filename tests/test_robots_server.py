@@ -818,3 +818,55 @@ def test_fit_policy_serves_the_candidate_that_roams_most_in_the_robots_calibrate
     assert event.answer is not None and "calibrated world" in event.answer, event.answer
     assert event.replacement_sha256 is not None
     assert key[event.replacement_sha256] == max(allowed.values())
+
+
+def test_the_field_loop_end_to_end(colony: Colony, tmp_path: Path) -> None:
+    """Issue 37, done when: an emulated robot with hidden physics, traced with an overhead
+    tracker's poses through zenoh; `colony robot calibrate` fits them; `colony robot push
+    --fit` sends the run's candidate that roams most in the fitted world; the field ledger
+    and the controller's field statistics show it running there."""
+    from evorobotics.evaluate import draw_gap
+    from schemas.robots import RobotCalibration
+
+    run_id = completed_run(colony.url, RANKED_RUN)
+    driver = constant_drive(0.8, 0.8, NetworkSpec())  # ahead until a wall, escape, again
+    save(tmp_path, driver)
+    hidden = draw_gap(5, 0, 1)  # SimBody.create("paper", seed=5): robot 0's gap
+    stuck = StuckConfig(contact_steps=2, odometry_window=20)
+    with (
+        robot_link(colony, settings=RobotSettings(push_timeout=5.0, replacement="off")) as link,
+        virtual_robot(
+            "r-loop", link, tmp_path, seed=5, tracker=True, stuck=stuck, period=0.005
+        ) as (agent, _),
+    ):
+        assert agent.wait_for(lambda: agent.delivered >= 3000, WAIT * 2)
+        calibrated = CliRunner().invoke(
+            cli, ["robot", "calibrate", "r-loop", "--server", colony.url, "--json"]
+        )
+        assert calibrated.exit_code == 0, calibrated.stderr
+        fit = RobotCalibration.model_validate(json.loads(calibrated.stdout)["calibration"])
+        assert np.allclose(fit.motor_gain, hidden.motor_gain[0], atol=0.005)
+        _, config, genomes = latest_candidates(link, run_id)
+        key = validated_order(config, genomes, fit.world(config.world))
+        push = ["robot", "push", "r-loop", "--run", str(run_id), "--fit", "--json"]
+        done = CliRunner().invoke(cli, [*push, "--server", colony.url])
+        assert done.exit_code == 0, done.output
+        pushed = json.loads(done.stdout)["sha256"]
+        assert key[pushed] == max(key.values())
+        assert agent.controller is not None and agent.controller.sha256 == pushed
+        delivered = agent.delivered
+        assert agent.wait_for(lambda: agent.delivered >= delivered + 500, WAIT)
+
+        def ran() -> bool:
+            stats = link.service.field_stats(pushed)
+            return stats is not None and stats.robot_hours > 0
+
+        assert eventually(ran, WAIT)
+        args = ["robot", "stuck", "r-loop", "--limit", "1000", "--server", colony.url, "--json"]
+        ledger = CliRunner().invoke(cli, args)
+        assert ledger.exit_code == 0, ledger.output
+        rows = {c["sha256"]: c for c in json.loads(ledger.stdout)["controllers"]}
+        assert rows[driver.sha256]["stuck_events"] > 0  # the wall-driver, as the field saw it
+        detail = httpx.get(f"{colony.url}/api/robots/r-loop").json()  # the Colony page's
+    assert detail["calibration"] == fit.model_dump(mode="json")
+    assert detail["before_calibration"]["stuck_events"] > 0  # the wall-driver's
