@@ -594,7 +594,9 @@ def test_each_sample_takes_the_trackers_newest_pose_and_bad_poses_are_dropped(
             )
             assert _ask(robot, traces_key("r-trk"), encode_trace(batch)).ok is not None
         with link.service.sessions() as db:
-            rows = db.scalars(select(TraceRow).order_by(TraceRow.first)).all()
+            rows = db.scalars(
+                select(TraceRow).where(TraceRow.robot_id == "r-trk").order_by(TraceRow.first)
+            ).all()
         token.undeclare()  # type: ignore[no-untyped-call]
     assert [r.pose_source for r in rows] == ["tracker", "odometry"]
     assert rows[0].poses is not None and rows[1].poses is not None
