@@ -41,6 +41,26 @@ FAILED_FITNESS = -1e9
 """What pycma and pyribs are told for a failed evaluation (NaN fitness)."""
 
 
+@dataclass(frozen=True)
+class Traits:
+    """What a strategy can do, for the roles that drive it (the server never compares names)."""
+
+    in_state: bool
+    """Its GAState is the whole loop (the paper's GA): a stored state resumes it, a worker
+    evolves spans from it, its genomes have parents, and its champion comes from the ranked
+    final generation without a replay. Otherwise the loop is replayed (`RunLoop.resume`)."""
+    archive: bool
+    """It keeps an archive of elites (`RunLoop.archive`)."""
+
+
+def traits(config: RunConfig) -> Traits:
+    """The traits of `config`'s strategy."""
+    return Traits(
+        in_state=config.strategy == "paper-ga",
+        archive=config.strategy in ("map-elites", "cma-me", "novelty"),
+    )
+
+
 @cache
 def _blas() -> Any:
     from threadpoolctl import ThreadpoolController

@@ -57,6 +57,9 @@ class RunOut(BaseModel):
     tags: list[str] = Field(default_factory=list)
     study_id: int | None = Field(None, description="the study it belongs to, if any")
     condition: str | None = Field(None, description="its condition in that study")
+    keeps_archive: bool = Field(
+        False, description="its strategy keeps an archive of elites (GET /api/runs/{id}/archive)"
+    )
 
 
 class GenerationOut(BaseModel):

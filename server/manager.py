@@ -45,7 +45,7 @@ from sqlalchemy.orm import Session
 from evorobotics.document import ControllerDocument
 from evorobotics.evolution import RunLoop, best_document, champion
 from evorobotics.ga import GAParams, GAState, lineage, rank
-from evorobotics.strategies import Archive
+from evorobotics.strategies import Archive, traits
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from schemas.wire import decode_frame, encode_frame
@@ -428,7 +428,7 @@ class RunManager:
         config = RunConfig.model_validate_json(run.config)
         g = run.generation
         state = None
-        if g > 0 and config.strategy != "paper-ga":  # its state is what it was told
+        if g > 0 and not traits(config).in_state:  # its state is what it was told
             loop = RunLoop.resume(config, crud.history(session, run_id=run.id, generations=g))
             self.scheduler.add(run.id, loop, running=run.status == "running")
             return
@@ -707,7 +707,7 @@ class RunManager:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
         kin = _lineage(params, min(g, 2))  # every generation from 2 on has the same
         genome_at = self._genome_at(session, run_id, g, kin, genomes, told.before, order)
-        parents = kin.parents if config.strategy == "paper-ga" else np.full(len(genomes), -1)
+        parents = kin.parents if traits(config).in_state else np.full(len(genomes), -1)
         ranked = Population(
             index=order,
             parent=parents[order],
@@ -847,7 +847,7 @@ class RunManager:
                 return None
             last = latest.generation
             found, genomes = crud.ranked(session, run_id=run.id, generation=last)
-            if config.strategy == "paper-ga":
+            if traits(config).in_state:
                 order = np.arange(len(found))
                 document = champion(
                     config, genomes, found.fitness, order, generation=last, run=run.id
@@ -897,7 +897,7 @@ class RunManager:
         with self.sessions() as session:
             run = self._get(session, run_id)
             config = RunConfig.model_validate_json(run.config)
-            if config.strategy not in ("map-elites", "cma-me", "novelty"):
+            if not traits(config).archive:
                 raise NotFoundError(f"run {run_id}'s strategy {config.strategy} keeps no archive")
             g = run.generation
             if g == 0:

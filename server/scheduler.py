@@ -45,6 +45,7 @@ import numpy as np
 
 from evorobotics.evaluate import evaluate, implausible, robot_steps
 from evorobotics.evolution import RunLoop, Told, job_slices
+from evorobotics.strategies import traits
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus, genome_digest
 from server.logs import context
@@ -473,7 +474,7 @@ class Scheduler:
             key = JobKey(run_id=chosen.run_id, generation=loop.generation, index=index)
             config = loop.config
             span = 1
-            if record.spans and len(chosen.slots) == 1 and config.strategy == "paper-ga":
+            if record.spans and len(chosen.slots) == 1 and traits(config).in_state:
                 wanted = self.policy.span_generations(config, record.speed, crowded=self._crowded())
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._lease(chosen, index, worker, span_left=span - 1)
@@ -695,7 +696,7 @@ class Scheduler:
         speeds = [w.speed if w.spans else None for w in live]
         if (
             generation + 1 < config.generations
-            and config.strategy == "paper-ga"  # a worker evolves only the paper's GA itself
+            and traits(config).in_state  # a worker evolves only the paper's GA itself
             and all(s is not None for s in speeds)
         ):
             slowest = min(s for s in speeds if s is not None)

@@ -10,6 +10,7 @@ import numpy as np
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
 
 from evorobotics.document import controller_sha256
+from evorobotics.strategies import traits
 from schemas.api import (
     ArchiveCell,
     ArchiveOut,
@@ -62,6 +63,7 @@ def run_out(run: Run, refused: Mapping[int, str] | None = None) -> RunOut:
         tags=json.loads(run.tags or "[]"),
         study_id=run.study_id,
         condition=run.condition,
+        keeps_archive=traits(config).archive,
     )
 
 

@@ -33,7 +33,6 @@ const ROBOT_POLL_MS = 2000;
 const TIMELINE_SAMPLES = 600; // one minute at 10 Hz
 
 // Strategies whose runs keep an archive (docs/strategies.md).
-const ARCHIVED = new Set(["map-elites", "cma-me", "novelty"]);
 const ARCHIVE_ROWS = 12; // the fittest elites listed beside the map
 
 // Colours of the overlaid curves (a condition or a run each), cycled.
@@ -260,7 +259,7 @@ function renderRunDetail() {
 
 async function showArchive(run) {
   const panel = $("#archive");
-  if (!ARCHIVED.has(run.config.strategy) || run.generation < 1) {
+  if (!run.keeps_archive || run.generation < 1) {
     panel.hidden = true;
     return;
   }
