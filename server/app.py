@@ -39,6 +39,7 @@ from server.routes import (
     studies,
     workers,
 )
+from server.scheduler import Policy
 from server.settings import Settings
 from server.signing import Signer
 from worker.local import LocalWorkers, local_endpoint
@@ -88,7 +89,9 @@ def create_app(
     `services` run on the server's zenoh session; by default the robot service.
     """
     settings = settings or Settings()
-    settings.policy()  # a ValueError now, before the lifespan opens the store or binds a port
+    Policy.from_settings(
+        settings
+    )  # a ValueError now, before the lifespan opens the store or binds a port
     services = (robot_service(),) if services is None else tuple(services)
     dispatch = DispatchSettings.from_settings(settings) if settings.zenoh else None
     endpoint = (

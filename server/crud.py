@@ -19,7 +19,6 @@ from server import integrity, population
 from server.errors import InvalidInputError, NotFoundError, ServerError
 from server.models import Controller, Generation, Run, Study, utcnow
 from server.population import Population
-from server.scheduler import Scheduler
 
 
 def get_run(session: Session, *, run_id: int) -> Run | None:
@@ -244,19 +243,6 @@ def delete_runs(session: Session, *, run_ids: Sequence[int]) -> None:
     session.execute(delete(Generation).where(Generation.run_id.in_(ids)))
     session.execute(update(Controller).where(Controller.run_id.in_(ids)).values(run_id=None))
     session.execute(delete(Run).where(Run.id.in_(ids)))
-
-
-def job_counts(session: Session) -> dict[str, int]:
-    """Jobs of the generations in flight by status (pending, leased, done).
-
-    Jobs live in the scheduler's memory (`server.scheduler`), not in a table; the manager's
-    sessions carry it as `session.info["scheduler"]`. A session without one (e.g. a read-only
-    tool on the database file) sees no jobs.
-    """
-    scheduler = session.info.get("scheduler")
-    if isinstance(scheduler, Scheduler):
-        return scheduler.counts()
-    return {"pending": 0, "leased": 0, "done": 0}
 
 
 @dataclass(frozen=True)

@@ -56,7 +56,7 @@ from server.integrity import seal, unseal
 from server.logs import context
 from server.models import Generation, Run, Study, utcnow
 from server.population import Population
-from server.scheduler import Scheduler, Written
+from server.scheduler import Policy, Scheduler, Written
 from server.settings import Settings
 from server.tracking import Tracker
 
@@ -208,8 +208,7 @@ class RunManager:
         self.sessions = session_factory(engine)
         self._lock = threading.RLock()
         """Held by lifecycle changes and writes (never by the scheduler's callers)."""
-        self.scheduler = Scheduler(settings.policy())
-        self.sessions.configure(info={"scheduler": self.scheduler})  # read by crud.job_counts
+        self.scheduler = Scheduler(Policy.from_settings(settings))
         self._write_failures: dict[int, str] = {}
         """run id -> why its generation could not be written: stopped until it is."""
         self._logged_at: dict[int, float] = {}

@@ -19,7 +19,6 @@ from sqlalchemy import func, select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.models import Run
-from server.robot_store import RobotStateRow
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
@@ -47,7 +46,6 @@ class ColonyCollector(Collector):
                     func.coalesce(func.sum(Run.evaluations), 0),
                 )
             ).one()
-            stuck = db.scalar(select(func.coalesce(func.sum(RobotStateRow.stuck_events), 0)))
         runs = GaugeMetricFamily("colony_runs", "Runs by status", labels=["status"])
         for status, count in by_status.items():
             runs.add_metric([status], count)
@@ -106,10 +104,13 @@ class ColonyCollector(Collector):
             alive.add_metric([worker_state], sum(w.state == worker_state for w in workers))
         yield alive
         robots = getattr(state, "robots", None)
-        online = sum(r.online for r in robots.robots()) if robots is not None else 0
+        listed = robots.robots() if robots is not None else []
+        online = sum(r.online for r in listed)
         yield GaugeMetricFamily("colony_robots_online", "Robots with a live zenoh token", online)
         yield CounterMetricFamily(
-            "colony_stuck_events", "Stuck requests received from robots", value=int(stuck or 0)
+            "colony_stuck_events",
+            "Stuck requests received from robots",
+            value=sum(r.stuck_events for r in listed),
         )
         yield CounterMetricFamily(
             "colony_trace_samples",

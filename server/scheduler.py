@@ -49,6 +49,7 @@ from evorobotics.strategies import traits
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus, genome_digest
 from server.logs import context
+from server.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +121,22 @@ class Policy:
             )
         if not self.store_lag_s > 0:
             raise ValueError(f"store_lag_s must be > 0, got {self.store_lag_s}")
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> Policy:
+        """The server's policy from its settings (COLONY_LEASE_*, ...). ValueError if
+        inconsistent."""
+        return cls(
+            lease_min_s=settings.lease_min_seconds,
+            lease_max_s=settings.lease_max_seconds,
+            lease_unknown_s=settings.lease_unknown_seconds,
+            jobs_per_worker=settings.jobs_per_worker,
+            span_below_s=settings.span_below_seconds,
+            span_s=settings.span_seconds,
+            max_attempts=settings.max_attempts,
+            errors_quarantine=settings.errors_quarantine,
+            spot_checks=settings.spot_checks,
+        )
 
     def lease_seconds(self, robot_steps: int, speed: float | None) -> float:
         """The lease of a job of `robot_steps` for a worker measured at `speed` robot-steps/s

@@ -21,7 +21,6 @@ from schemas.security import (
     ZenohRoles,
     ZenohRouterAuth,
 )
-from server.scheduler import Policy
 
 
 class Settings(BaseSettings):
@@ -203,17 +202,3 @@ class Settings(BaseSettings):
         if self.executors is not None:
             return self.executors
         return 0 if self.zenoh else 1
-
-    def policy(self) -> Policy:
-        """The scheduler's lease, span and retry policy. ValueError if inconsistent."""
-        return Policy(
-            lease_min_s=self.lease_min_seconds,
-            lease_max_s=self.lease_max_seconds,
-            lease_unknown_s=self.lease_unknown_seconds,
-            jobs_per_worker=self.jobs_per_worker,
-            span_below_s=self.span_below_seconds,
-            span_s=self.span_seconds,
-            max_attempts=self.max_attempts,
-            errors_quarantine=self.errors_quarantine,
-            spot_checks=self.spot_checks,
-        )

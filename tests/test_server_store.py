@@ -456,13 +456,11 @@ def test_leases_return_when_a_worker_leaves_or_asks_again_and_counts_follow(
     second = _lease(manager, "w")
     again = _lease(manager, "w")  # asking again: its reply was lost, the same job comes back
     assert again.key == second.key
-    with manager.sessions() as session:
-        assert crud.job_counts(session) == {"pending": 1, "leased": 2, "done": 0}
+    assert manager.scheduler.counts() == {"pending": 1, "leased": 2, "done": 0}
     assert manager.scheduler.settle(run_job(again, "w")).accepted is True
     assert manager.scheduler.leave("gone") == [first.key]
     assert manager.scheduler.leave("gone") == []
-    with manager.sessions() as session:
-        assert crud.job_counts(session) == {"pending": 2, "leased": 0, "done": 1}
+    assert manager.scheduler.counts() == {"pending": 2, "leased": 0, "done": 1}
     assert _lease(manager, "w").key == first.key
     assert manager.scheduler.totals()["requeued"] == 2
 
@@ -489,8 +487,7 @@ def test_results_after_cancel_are_dropped(manager: RunManager) -> None:
     manager.cancel(run_id)
     assert manager.scheduler.settle(result).accepted is False
     assert manager.scheduler.lease("w") is None
-    with manager.sessions() as session:
-        assert crud.job_counts(session) == {"pending": 0, "leased": 0, "done": 0}
+    assert manager.scheduler.counts() == {"pending": 0, "leased": 0, "done": 0}
 
 
 def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(

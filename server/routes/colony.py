@@ -64,7 +64,7 @@ def colony(request: Request, session: SessionDep, workers: WorkersDep) -> Colony
     return ColonyOut(
         runs=crud.count_runs_by_status(session),
         active=[run_out(r, refused) for r in active],
-        jobs=JobCounts(**crud.job_counts(session)),
+        jobs=JobCounts(**request.app.state.manager.scheduler.counts()),
         workers=workers,
         robots=robot_summaries(
             session,
