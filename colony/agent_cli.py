@@ -13,8 +13,8 @@ from typing import Annotated
 import httpx
 import typer
 
+from colony.client import DEFAULT_SERVER, ServerOpt, TokenOpt, call_server
 from colony.options import LogFormatOpt, LogLevelOpt, ZenohPasswordOpt, ZenohRootCaOpt, ZenohUserOpt
-from colony.server_cli import DEFAULT_SERVER, ServerOpt, TokenOpt, call_server
 
 
 def agent_command(

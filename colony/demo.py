@@ -30,7 +30,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from colony.server_cli import follow_run, robots_table, workers_table
+from colony.robot_cli import robots_table, workers_table
+from colony.run_cli import follow_run
 
 STOP_TIMEOUT_S = 30.0
 START_TIMEOUT_S = 120.0

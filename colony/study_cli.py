@@ -19,17 +19,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from colony.client import DEFAULT_SERVER, JsonOpt, ServerOpt, TokenOpt, fetching, request
 from colony.export import METRIC_ORDER, export_study
-from colony.server_cli import (
-    DEFAULT_SERVER,
-    FINAL,
-    JsonOpt,
-    ServerOpt,
-    TokenOpt,
-    fetching,
-    request,
-    stopped_following,
-)
+from colony.run_cli import FINAL, stopped_following
 
 if TYPE_CHECKING:
     from pydantic import ValidationError

@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session
 from typer.testing import CliRunner
 
 from colony.cli import app
-from colony.server_cli import ago
+from colony.robot_cli import ago
 from evorobotics.evolution import evolve
 from schemas.network import PRESETS
 from schemas.run import RunConfig
