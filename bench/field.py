@@ -17,7 +17,8 @@ refused, as robot_agent.sim_body does. The controller is the default run's champ
   robot-hour, and those raised while the robot was not stuck: its controller moved it more
   than 0.1 m in the 40 steps before, counted from where it last resumed after an escape (the
   escape's own backing and turning is the agent's move, not the robot getting anywhere).
-  Target: at most 1. The figure that counts the escape's moves too is printed beside it.
+  Target: at most 1. The figure that counts the escape's moves too is printed beside it. Then
+  the same with a tracker: the detector is given each step's true position.
 - The loop pays (`loop_pays`): per seed, 8 robots with hidden gap physics run the champion
   pushed blind for `--minutes` (10), then the `fit` choice after calibrating from those traces.
   Stuck events per robot-hour before and after, their ratio over `--seeds` (10) with a
@@ -58,10 +59,17 @@ TRUTH_RADIUS = 0.1
 
 
 def run_colony(
-    spec: NetworkSpec, weights: np.ndarray, poses: np.ndarray, gap: Gap, steps: int
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    poses: np.ndarray,
+    gap: Gap,
+    steps: int,
+    *,
+    tracker: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[list[int]]]:
-    """Robots (B,) under the agent's loop, running `weights` (n,) or each its own (B, n):
-    poses (B, T, 3) sensed at, whiskers (B, T, 5), motors (B, T, 2), each robot's alarm steps."""
+    """Robots (B,) under the agent's loop, running `weights` (n,) or each its own (B, n), the
+    detector given each step's true position with `tracker` (an overhead tracker's): poses
+    (B, T, 3) sensed at, whiskers (B, T, 5), motors (B, T, 2), each robot's alarm steps."""
     agent = AgentSettings(robot_id="bench")
     escape = [(-agent.escape_speed, -agent.escape_speed)] * agent.escape_back_steps + [
         (agent.escape_speed, -agent.escape_speed)
@@ -74,7 +82,7 @@ def run_colony(
     alarms: list[list[int]] = [[] for _ in range(b)]
     step = 0
 
-    def control(bits: np.ndarray) -> np.ndarray:
+    def control(bits: np.ndarray, pose: np.ndarray) -> np.ndarray:
         nonlocal state, step
         out, state = network.step(spec, w, bits.astype(np.float64), state)
         motors = network.motor_commands(spec, out)
@@ -84,7 +92,12 @@ def run_colony(
                 if not plans[i]:  # the controller resumes from fresh state
                     state[i] = 0.0
                     detectors[i].reset()
-            elif detectors[i].update([bool(x) for x in bits[i]], motors[i]) is not None:
+            elif (
+                detectors[i].update(
+                    [bool(x) for x in bits[i]], motors[i], tuple(pose[i, :2]) if tracker else None
+                )
+                is not None
+            ):
                 alarms[i].append(step)
                 plans[i] = list(escape)
         step += 1
@@ -155,12 +168,15 @@ def calibration(
     return fitted
 
 
-def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int) -> None:
+def false_alarms(
+    spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int, *, tracker: bool
+) -> None:
     world = World()
     steps = round(hours * 3600 / world.dt)
     bodies = [SimBody.create("paper", seed=seed, index=i, gap=False) for i in range(8)]
     poses = np.stack([np.asarray(x.pose, dtype=np.float64).reshape(3) for x in bodies])
-    p, _, _, alarms = run_colony(spec, weights, poses, Gap.nominal(8, world), steps)
+    gap = Gap.nominal(8, world)
+    p, _, _, alarms = run_colony(spec, weights, poses, gap, steps, tracker=tracker)
     agent = AgentSettings(robot_id="bench")
     escape = agent.escape_back_steps + agent.escape_turn_steps
     false = with_escapes = total = 0
@@ -177,7 +193,8 @@ def false_alarms(spec: NetworkSpec, weights: np.ndarray, hours: float, seed: int
             resumed = t + escape + 1
     robot_hours = 8 * steps * world.dt / 3600
     print(
-        f"nominal colony, 8 robots x {hours:g} h: {total / robot_hours:.1f} alarms per "
+        f"nominal colony{', with a tracker' if tracker else ''}, 8 robots x {hours:g} h: "
+        f"{total / robot_hours:.1f} alarms per "
         f"robot-hour, {false / robot_hours:.2f} false ({false} of {total}; target <= 1), "
         f"{with_escapes / robot_hours:.2f} ({with_escapes}) if the previous escape's own "
         "moves counted as the robot moving"
@@ -306,7 +323,8 @@ def main() -> None:
     fitted: list[Fitted] = []
     for horizon in args.horizons:
         fitted = calibration(champion.spec, champion.weights, args.robots, horizon, args.seed)
-    false_alarms(champion.spec, champion.weights, args.hours, args.seed)
+    for tracker in (False, True):
+        false_alarms(champion.spec, champion.weights, args.hours, args.seed, tracker=tracker)
     rates = loop_pays(args.seeds, args.minutes, args.candidates, available_cores())
     if args.figure:
         figure(args.figure, fitted, rates)

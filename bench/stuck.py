@@ -57,7 +57,9 @@ def evolved_like(whiskers: np.ndarray, memory: np.ndarray, traits: np.ndarray) -
     return motors
 
 
-Control = Callable[[np.ndarray], np.ndarray]
+Control = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""Motors (B, 2) from the step's whisker bits (B, 5) and the poses (B, 3) they were sensed at
+(what an overhead tracker sees; a controller ignores them)."""
 """A batch's controller step: whisker bits (B, 5) in, wheel commands (B, 2) out."""
 
 
@@ -76,7 +78,7 @@ def lockstep(
     p_all[:, 0] = pose
     for t in range(steps):
         bits = whisker_bits(maze, pose, params, gap.whisker_range)
-        motors = control(bits)
+        motors = control(bits, pose)
         moved = move(pose, motors, gap.motor_gain, params)
         ok = ~body_hits_wall(maze, moved, params)
         pose[ok] = moved[ok]
@@ -88,7 +90,7 @@ def network_control(spec: NetworkSpec, weights: np.ndarray) -> Control:
     """Networks of `weights` (B, n) stepping on the bits, from fresh state."""
     state = network.reset(spec, weights.shape[0])
 
-    def control(bits: np.ndarray) -> np.ndarray:
+    def control(bits: np.ndarray, _pose: np.ndarray) -> np.ndarray:
         nonlocal state
         out, state = network.step(spec, weights, bits.astype(np.float64), state)
         return network.motor_commands(spec, out)
@@ -115,9 +117,9 @@ def traces(
     )
     memory = np.zeros((robots - n_random, 2))
 
-    def control(bits: np.ndarray) -> np.ndarray:
+    def control(bits: np.ndarray, pose: np.ndarray) -> np.ndarray:
         motors = np.empty((robots, 2))
-        motors[:n_random] = randoms(bits[:n_random])
+        motors[:n_random] = randoms(bits[:n_random], pose[:n_random])
         motors[n_random:] = evolved_like(bits[n_random:], memory, traits)
         return motors
 
