@@ -33,8 +33,8 @@ from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
 from schemas.network import NetworkSpec
 from server.db import make_engine, upgrade
-from server.robot_store import TraceRow
-from server.robots import RobotService
+from server.robots.service import RobotService
+from server.robots.store import TraceRow
 
 
 def free_port() -> int:

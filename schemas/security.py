@@ -2,7 +2,7 @@
 
 One module on purpose: both ends of a signed push must build the very same bytes, and every
 zenoh client (worker, agent) adds the same authentication keys. It depends on the standard
-library alone; the Ed25519 code itself lives in server/signing.py (sign) and
+library alone; the Ed25519 code itself lives in server/robots/signing.py (sign) and
 robot_agent/verify.py (verify), which import `cryptography`.
 """
 

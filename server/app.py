@@ -21,14 +21,16 @@ from fastapi.responses import JSONResponse
 from sqlalchemy.exc import OperationalError
 
 from schemas.api import ErrorOut
-from server import metrics, signing
+from server import metrics
 from server.auth import SecurityMiddleware
 from server.db import Checkpointer, is_sqlite, make_engine, upgrade
 from server.dispatch import Dispatcher, DispatchSettings
 from server.errors import ServerError
 from server.executor import InProcessExecutor
 from server.manager import RunManager
-from server.robots import robot_service
+from server.robots import signing
+from server.robots.service import robot_service
+from server.robots.signing import Signer
 from server.routes import (
     colony,
     controllers,
@@ -41,7 +43,6 @@ from server.routes import (
 )
 from server.scheduler import Policy
 from server.settings import Settings
-from server.signing import Signer
 from worker.local import LocalWorkers, local_endpoint
 
 log = logging.getLogger(__name__)

@@ -261,7 +261,7 @@ def check_store(session: Session) -> StoreCheck:
     """Read every generation (GA state, population) and trace batch, verify its checksum and
     decode it: `colony db check`."""
     from schemas.wire import WireError, decode_frame
-    from server.robot_store import TraceRow, check_trace
+    from server.robots.store import TraceRow, check_trace
 
     damaged: list[str] = []
     generations = sealed_generations = 0

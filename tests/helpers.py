@@ -35,10 +35,10 @@ if TYPE_CHECKING:
     from schemas.wire import Result
     from server.dispatch import DispatchSettings
     from server.manager import RunManager
-    from server.robots import RobotService, RobotSettings
+    from server.robots.service import RobotService, RobotSettings
+    from server.robots.signing import Signer
     from server.scheduler import Written
     from server.settings import Settings
-    from server.signing import Signer
     from worker.main import Evaluator, WorkerStats
 
 SERVER_START_S = 60.0
@@ -462,7 +462,7 @@ def robot_link(
     import zenoh
 
     from server.db import make_engine
-    from server.robots import RobotService, RobotSettings
+    from server.robots.service import RobotService, RobotSettings
 
     port = port or free_port()
     engine = make_engine(colony.db_url)

@@ -17,7 +17,7 @@ from schemas.run import RunConfig, ValidationConfig
 from server import crud
 from server.db import make_engine, upgrade
 from server.manager import RunManager
-from server.robots import ranked_document
+from server.robots.service import ranked_document
 from server.settings import Settings
 from tests.helpers import (
     WAIT,

@@ -25,8 +25,8 @@ from colony.cli import app
 from schemas.security import ZenohRoles
 from server.auth import check_bind
 from server.dispatch import DispatchSettings
+from server.robots.signing import load_or_create_key, public_pem
 from server.settings import Settings
-from server.signing import load_or_create_key, public_pem
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"

@@ -69,7 +69,7 @@ from schemas.wire import (
 )
 from server.db import make_engine, upgrade
 from server.dispatch import Dispatcher, DispatchSettings
-from server.robots import RobotService, RobotSettings
+from server.robots.service import RobotService, RobotSettings
 from server.scheduler import Policy, Scheduler
 from tests.helpers import (
     WAIT,

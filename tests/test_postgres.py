@@ -25,7 +25,7 @@ from server import crud
 from server.db import alembic_config, upgrade
 from server.manager import RunManager
 from server.models import Base
-from server.robot_store import StuckEventRow, TraceRow
+from server.robots.store import StuckEventRow, TraceRow
 from server.settings import Settings
 from tests.helpers import TINY, check_small_run, drain, evaluated, free_port, serving
 

@@ -52,10 +52,10 @@ from schemas.wire import decode_frame, encode_frame
 from server import crud
 from server.db import make_engine, upgrade
 from server.models import Robot
-from server.robot_store import FieldStatsRow, RobotStateRow, TraceRow
-from server.robots import RobotService, RobotSettings
+from server.robots.service import RobotService, RobotSettings
+from server.robots.signing import Signer, load_or_create_key
+from server.robots.store import FieldStatsRow, RobotStateRow, TraceRow
 from server.settings import Settings
-from server.signing import Signer, load_or_create_key
 from tests.helpers import (
     WAIT,
     Colony,

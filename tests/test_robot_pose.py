@@ -28,7 +28,7 @@ from robot_agent.sim_body import SimBody
 from schemas.robots import POSE_LIMIT, RobotStatus, TraceBatch, decode_trace, encode_trace
 from schemas.wire import WireError, decode_frame, encode_frame
 from schemas.world import World
-from server.robot_store import StuckEventRow, TraceRow
+from server.robots.store import StuckEventRow, TraceRow
 from server.settings import Settings
 from tests.helpers import (
     QUICK,
@@ -225,7 +225,7 @@ def load_rows(name: str) -> list[str]:
 def test_the_map_maze_is_a_server_setting_checked_at_start(tmp_path: Path) -> None:
     from pydantic import ValidationError
 
-    from server.colony_map import maze_out
+    from server.robots.map import maze_out
 
     lab = tmp_path / "lab.txt"
     lab.write_text("#####\n#...#\n#.#.#\n#####\n")
@@ -277,8 +277,8 @@ def test_the_map_places_stuck_events_at_their_steps_pose(engine: sa.Engine) -> N
     robots without any give no path."""
     from sqlalchemy.orm import sessionmaker
 
-    from server.colony_map import colony_map
     from server.models import Robot
+    from server.robots.map import colony_map
 
     def line(start: float) -> np.ndarray:
         xs = start + np.arange(10) * 0.01

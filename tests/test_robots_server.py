@@ -44,8 +44,8 @@ from schemas.wire import WireError
 from schemas.world import World
 from server import crud
 from server.models import Robot, Run
-from server.robot_store import FieldStatsRow, StuckEventRow, TraceRow, trace_checksum
-from server.robots import RobotSettings, replay_trace
+from server.robots.service import RobotSettings, replay_trace
+from server.robots.store import FieldStatsRow, StuckEventRow, TraceRow, trace_checksum
 from server.settings import Settings
 from tests.helpers import (
     QUICK,

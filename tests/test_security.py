@@ -23,9 +23,9 @@ from schemas.run import RunConfig
 from schemas.security import ZenohClientAuth, ZenohRoles, ZenohRouterAuth
 from server.dispatch import Dispatcher
 from server.lab import certificates
+from server.robots.signing import Signer, load_or_create_key
 from server.scheduler import Scheduler, Written
 from server.settings import Settings
-from server.signing import Signer, load_or_create_key
 from tests.helpers import dispatch_settings, eventually, fake_evaluator, free_port, serving
 from worker.main import WorkerSettings, WorkerStats, run_worker
 

@@ -43,7 +43,7 @@ from server.manager import (
 )
 from server.models import Generation
 from server.population import Population, PopulationError, decode, encode, resolve
-from server.robots import ranked_document
+from server.robots.service import ranked_document
 from server.scheduler import run_job
 from server.settings import Settings
 from tests.helpers import TINY, WAIT, drain, evaluated, eventually

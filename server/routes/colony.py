@@ -11,10 +11,10 @@ from fastapi.responses import JSONResponse
 from schemas.api import ColonyOut, HealthOut, JobCounts
 from schemas.robots import ColonyMapOut
 from server import crud
-from server.colony_map import PATH_SAMPLES, colony_map
 from server.deps import SessionDep, WorkersDep
 from server.manager import RunManager
-from server.robots import RobotService, robot_summaries
+from server.robots.map import PATH_SAMPLES, colony_map
+from server.robots.service import RobotService, robot_summaries
 from server.routes.runs import run_out
 
 router = APIRouter(tags=["colony"])

@@ -27,7 +27,7 @@ from sqlalchemy import select
 from server.deps import get_workers
 from server.manager import RunManager
 from server.models import Generation, Run
-from server.robots import RobotService
+from server.robots.service import RobotService
 from server.routes.runs import run_out
 
 router = APIRouter(tags=["dashboard"])

@@ -22,7 +22,7 @@ from schemas.robots import (
     StuckEventsOut,
     TracesOut,
 )
-from server.robots import RobotService
+from server.robots.service import RobotService
 
 router = APIRouter(prefix="/api/robots", tags=["robots"])
 

@@ -96,7 +96,8 @@ from server import crud
 from server.errors import NotFoundError, ServerError
 from server.logs import context
 from server.models import Controller, Robot, Run, aware, utcnow
-from server.robot_store import (
+from server.robots.signing import Signer
+from server.robots.store import (
     FieldStatsRow,
     RobotStateRow,
     StuckEventRow,
@@ -104,7 +105,6 @@ from server.robot_store import (
     check_trace,
     trace_checksum,
 )
-from server.signing import Signer
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,3 @@
+"""The robot side of the server: the zenoh service of the robot agents (`service`), their
+tables (`store`), the Colony page's map (`map`) and the signing of what is sent to them
+(`signing`); docs/robots.md."""
