@@ -1,4 +1,6 @@
-"""Server time per generation outside evaluation (store + GA + bookkeeping), population 100.
+"""The store: server time per generation outside evaluation, and a paper run's size on disk.
+
+1. Server time per generation outside evaluation (store + GA + bookkeeping), population 100.
 
 Evaluation is done once per generation outside the clock, so the figure is the server's own
 overhead: lease and complete every job, tell, commit the generation, ask the next. Target < 5 ms.
@@ -6,10 +8,19 @@ Also printed: the part spent in the final `complete` as the zenoh dispatcher cal
 (`defer=True`: tell, ask and install the next generation, the part between the last result and
 the next jobs), the deferred `flush` (the generation's one transaction, while workers already
 evaluate the next), and the machine's load average, since a busy disk or CPU moves these.
+
+2. The default experiment (350 generations) written by the manager, evaluated outside it, at
+   the default checkpoint interval and with every generation a checkpoint: the database's
+   bytes (target at most 2 MB), and the time to rebuild a generation's individuals with their
+   components (`crud.ranked`, as `GET /api/runs/{id}/individuals` reads them; target < 1 s),
+   worst over the generations sampled.
+
+    .venv/bin/python bench/store.py [--only overhead|size]
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import statistics
 import tempfile
@@ -18,10 +29,11 @@ from pathlib import Path
 
 from schemas.run import RunConfig
 from schemas.wire import Job
+from server import crud
 from server.db import make_engine, upgrade
 from server.manager import RunManager
 from server.scheduler import run_job
-from server.settings import Settings
+from server.settings import CHECKPOINT_EVERY, Settings
 
 GENERATIONS = 60
 WARMUP = 5
@@ -32,7 +44,49 @@ def _summary(name: str, seconds: list[float]) -> str:
     return f"{name}: median {statistics.median(ms):.2f} ms, p90 {ms[int(0.9 * len(ms))]:.2f} ms"
 
 
+def size(every: int) -> tuple[int, float, int]:
+    """(database bytes, slowest rebuild in seconds, its generation) of a default paper run
+    stored with a checkpoint every `every` generations."""
+    config = RunConfig()
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "bench.db"
+        engine = make_engine(f"sqlite:///{path}")
+        upgrade(engine)
+        manager = RunManager(engine, Settings(db_url="unused", checkpoint_every=every))
+        run_id = manager.create_run(config)
+        while (job := manager.scheduler.lease("bench")) is not None:
+            manager.scheduler.settle(run_job(job, "bench"))
+            manager.flush()
+        with engine.connect() as conn:
+            conn.exec_driver_sql("VACUUM")
+        slowest = (0.0, -1)
+        with manager.sessions() as session:
+            crud.ranked(session, run_id=run_id, generation=1, components=True)  # warm kernel
+            for g in [*range(0, config.generations, 7), max(every - 2, 0), every - 1]:
+                t0 = time.perf_counter()
+                crud.ranked(session, run_id=run_id, generation=min(g, 349), components=True)
+                slowest = max(slowest, (time.perf_counter() - t0, min(g, 349)))
+        engine.dispose()
+        return path.stat().st_size, slowest[0], slowest[1]
+
+
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--only", choices=("overhead", "size"))
+    args = parser.parse_args()
+    if args.only != "size":
+        overhead()
+    if args.only != "overhead":
+        for every in (CHECKPOINT_EVERY, 1):
+            stored, seconds, g = size(every)
+            print(
+                f"paper run (350 generations) with a checkpoint every {every}: "
+                f"{stored / 1e6:.2f} MB (target at most 2 MB at the default); slowest rebuild "
+                f"{seconds * 1e3:.1f} ms (generation {g}; target < 1 s)"
+            )
+
+
+def overhead() -> None:
     config = RunConfig(generations=GENERATIONS + 1, steps=5, trials=1)
     load = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:

@@ -13,12 +13,16 @@ import numpy as np
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
-from evorobotics.evolution import StrategyHistory
+from evorobotics.evaluate import evaluate
+from evorobotics.evolution import RunLoop, StrategyHistory
+from evorobotics.strategies import traits
 from schemas.api import TERMINAL
+from schemas.run import RunConfig
+from schemas.wire import WireError, decode_frame
 from server import integrity, population
 from server.errors import InvalidInputError, NotFoundError, ServerError
 from server.models import Controller, Generation, Run, Study, utcnow
-from server.population import Population
+from server.population import Population, Stored
 
 
 def get_run(session: Session, *, run_id: int) -> Run | None:
@@ -61,10 +65,8 @@ def latest_generation(session: Session, *, run_id: int) -> Generation | None:
     return session.scalars(query).first()
 
 
-def populations(
-    session: Session, *, run_id: int, generations: Iterable[int]
-) -> dict[int, Population]:
-    """The stored populations of some committed generations, by generation number."""
+def stored(session: Session, *, run_id: int, generations: Iterable[int]) -> dict[int, Stored]:
+    """The stored frames of some committed generations, by generation number."""
     query = select(Generation.generation, Generation.population).where(
         Generation.run_id == run_id, Generation.generation.in_(list(generations))
     )
@@ -82,45 +84,107 @@ def populations(
 def history(session: Session, *, run_id: int, generations: int) -> StrategyHistory:
     """What the run's loop was told in its first `generations` committed generations, in ask
     order: `RunLoop.resume` rebuilds a non-GA strategy from it (no evaluation)."""
-    found = populations(session, run_id=run_id, generations=range(generations))
+    found = stored(session, run_id=run_id, generations=range(generations))
     missing = sorted(set(range(generations)) - found.keys())
     if missing:
         raise ServerError(f"run {run_id} lacks committed generations {missing[:5]} to resume")
-    n = len(found[0]) if generations else 0
-    fitness = np.empty((generations, n))
-    descriptors = np.empty((generations, n, 4))
+    n = len(found[0].fitness) if generations else 0
+    fitness = np.full((generations, n), np.nan)
+    descriptors = np.full((generations, n, 4), np.nan)
     for g in range(generations):
-        stored = found[g]
-        fitness[g, stored.index] = stored.fitness
-        descriptors[g, stored.index] = stored.descriptors
+        told = found[g]
+        if told.fitness.shape != (n,):
+            raise ServerError(f"run {run_id} generation {g} holds {told.fitness.shape} fitness")
+        fitness[g] = told.fitness
+        if told.descriptors is not None:
+            descriptors[g] = told.descriptors
     return StrategyHistory(fitness, descriptors)
 
 
+def replay(session: Session, *, run: Run, config: RunConfig, generation: int) -> RunLoop:
+    """The run's loop at `generation` (its `ask` gives that generation's genomes), rebuilt
+    without evaluating: from the nearest checkpoint before it (GA state and genomes), told
+    the stored fitness of each generation since; a strategy that resumes from its history
+    (pycma, pyribs objects) replays it from generation 0."""
+    if generation > run.generation or generation >= config.generations:
+        raise NotFoundError(f"run {run.id} has committed generations 0..{run.generation - 1} only")
+    if generation == 0:
+        return RunLoop(config)
+    if not traits(config).in_state:
+        return RunLoop.resume(config, history(session, run_id=run.id, generations=generation))
+    where = f"run {run.id} generation"
+    row = session.execute(
+        select(Generation.generation, Generation.state, Generation.population)
+        .where(
+            Generation.run_id == run.id,
+            Generation.generation < generation,
+            Generation.state.is_not(None),
+        )
+        .order_by(Generation.generation.desc())
+        .limit(1)
+    ).first()
+    loop = RunLoop(config)
+    if row is not None:
+        c, blob, frame = row
+        assert blob is not None  # the query's condition
+        try:
+            checkpoint = population.decode(integrity.unseal(frame, f"{where} {c} population"))
+            genomes = checkpoint.genomes
+            if genomes is None:
+                raise ServerError(f"{where} {c} has a GA state but no genomes")
+            state = population.decode_state(
+                integrity.unseal(blob, f"{where} {c} GA state"),
+                ranked=genomes[population.by_rank(config, c, checkpoint.fitness, None).index],
+            )
+            if state.generation != c + 1:
+                raise ValueError(f"a GA state of generation {state.generation}")
+            loop = RunLoop(config, state)
+        except (WireError, ValueError) as exc:
+            raise ServerError(f"{where} {c}: stored checkpoint: {exc}") from exc
+    told = stored(session, run_id=run.id, generations=range(loop.generation, generation))
+    for g in range(loop.generation, generation):
+        if g not in told:
+            raise ServerError(f"run {run.id} lacks committed generation {g} to replay")
+        try:
+            loop.tell(told[g].fitness, None, told[g].descriptors)
+        except ValueError as exc:
+            raise ServerError(f"{where} {g}: stored fitness: {exc}") from exc
+    return loop
+
+
 def ranked(
-    session: Session, *, run_id: int, generation: int, rank: int | None = None
+    session: Session,
+    *,
+    run_id: int,
+    generation: int,
+    rank: int | None = None,
+    components: bool = False,
 ) -> tuple[Population, np.ndarray]:
     """A committed generation by rank, fittest first, with its (n, weights) genomes in rank
-    order (a copy's bytes read from the generation that holds them); with `rank`, (1, weights)
-    that rank's genome only (NotFoundError if the generation has no such rank)."""
-    found = populations(session, run_id=run_id, generations=[generation]).get(generation)
-    if found is None:
+    order; with `rank`, (1, weights) that rank's genome only (NotFoundError if the generation
+    has no such rank). Between checkpoints the genomes are replayed (`replay`) and, with
+    `components`, Eq 12's components simulated again: one generation's trials, the bits its
+    workers reported."""
+    run = get_run(session, run_id=run_id)
+    found = stored(session, run_id=run_id, generations=[generation]).get(generation)
+    if run is None or found is None:
         raise NotFoundError(f"run {run_id} has no committed generation {generation}")
-    if not len(found):
+    n = len(found.fitness)
+    if not n:
         raise NotFoundError(f"run {run_id} generation {generation} has no individuals")
-    if rank is not None and not 0 <= rank < len(found):
+    if rank is not None and not 0 <= rank < n:
         raise NotFoundError(
             f"run {run_id} generation {generation} has no individual of rank {rank}"
         )
-    try:
-        genomes = population.resolve(
-            generation,
-            found,
-            lambda gs: populations(session, run_id=run_id, generations=gs),
-            None if rank is None else [rank],
-        )
-    except population.PopulationError as exc:
-        raise ServerError(f"run {run_id}: {exc}") from exc
-    return found, genomes
+    config = RunConfig.model_validate_json(run.config)
+    asked, told = found.genomes, found.components
+    if asked is None:
+        asked = replay(session, run=run, config=config, generation=generation).ask()
+        if components:
+            told = evaluate(config, generation, asked).components
+    view = population.by_rank(config, generation, found.fitness, told)
+    genomes = asked[view.index if rank is None else view.index[rank : rank + 1]]
+    return view, genomes
 
 
 def get_controller(session: Session, *, sha256: str) -> Controller | None:
@@ -260,7 +324,6 @@ class StoreCheck:
 def check_store(session: Session) -> StoreCheck:
     """Read every generation (GA state, population) and trace batch, verify its checksum and
     decode it: `colony db check`."""
-    from schemas.wire import WireError, decode_frame
     from server.robots.store import TraceRow, check_trace
 
     damaged: list[str] = []
@@ -268,10 +331,12 @@ def check_store(session: Session) -> StoreCheck:
     query = select(
         Generation.run_id, Generation.generation, Generation.state, Generation.population
     )
-    for run_id, g, state, stored in session.execute(query.execution_options(yield_per=64)):
+    for run_id, g, state, frame in session.execute(query.execution_options(yield_per=64)):
         generations += 1
-        sealed_generations += integrity.sealed(state) and integrity.sealed(stored)
-        for what, blob in (("GA state", state), ("population", stored)):
+        sealed_generations += (state is None or integrity.sealed(state)) and integrity.sealed(frame)
+        for what, blob in (("GA state", state), ("population", frame)):
+            if blob is None:  # between checkpoints
+                continue
             where = f"run {run_id} generation {g} {what}"
             try:
                 data = integrity.unseal(blob, where)

@@ -8,9 +8,9 @@ generations go into one transaction, so workers evaluate generation g + 1 while 
 A crash loses at most those, which a restart recomputes bit for bit.
 
 The write path uses SQLAlchemy Core statements; lifecycle changes use the ORM and write the
-told generations first. A generation is one row, its individuals one frame
-(`server.population`). Eq 11 copies three quarters of each generation from the two before it:
-a copy stores no bytes but the (generation, row) of the genome bytes it repeats.
+told generations first. A generation is one row holding its statistics and what it was told
+(`server.population`); every `Settings.checkpoint_every`-th and the last also hold the GA state,
+genomes and components, from which the generations after it are replayed.
 
 Lifecycle: queued -> running <-> paused; queued/running/paused -> cancelled;
 running -> completed | failed; failed -> queued (resumed from its last stored generation).
@@ -26,15 +26,13 @@ wait for it; the last generation joins the write after its champion is known.
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
@@ -44,18 +42,17 @@ from sqlalchemy.orm import Session
 
 from evorobotics.document import ControllerDocument
 from evorobotics.evolution import RunLoop, best_document, champion
-from evorobotics.ga import GAParams, GAState, lineage, rank
+from evorobotics.ga import rank
 from evorobotics.strategies import Archive, traits
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
-from schemas.wire import decode_frame, encode_frame
 from server import crud, population
 from server.db import session_factory
 from server.errors import NotFoundError, ServerError, TransitionError
-from server.integrity import seal, unseal
+from server.integrity import seal
 from server.logs import context
 from server.models import Generation, Run, Study, utcnow
-from server.population import Population
+from server.population import Stored
 from server.scheduler import Policy, Scheduler, Written
 from server.settings import Settings
 from server.tracking import Tracker
@@ -83,32 +80,6 @@ executing it)."""
 _INSERT_GENERATION = insert(_GENERATIONS)
 
 
-def encode_state(state: GAState, *, with_ranked: bool = True) -> bytes:
-    """GAState as a frame of raw arrays (schemas.wire: self-describing dtype and shape, no
-    pickle; a tenth of the time of the .npz that servers before 0.2 wrote).
-
-    The store passes `with_ranked=False`: `ranked` is the generation's genomes in rank order,
-    already stored bit for bit in its population, so keeping it twice would double the bytes
-    each commit writes.
-    """
-    return encode_frame({"kind": "ga-state"}, state.to_arrays(ranked=with_ranked))
-
-
-def decode_state(data: bytes, *, ranked: Callable[[], np.ndarray] | None = None) -> GAState:
-    """Inverse of `encode_state` (WireError on anything but its frame); `ranked` loads the
-    population a compact encoding left out."""
-    arrays = decode_frame(data)[1]
-    if "ranked" not in arrays and "ranked_fitness" in arrays and ranked is not None:
-        arrays["ranked"] = ranked()
-    return GAState.from_arrays(arrays)
-
-
-def stored_ranked(session: Session, *, run_id: int, generation: int) -> np.ndarray:
-    """The committed generation's genomes in rank order (the GA state's `ranked`), a copy's
-    bytes read from the generation that holds them."""
-    return crud.ranked(session, run_id=run_id, generation=generation)[1]
-
-
 WRITE_AFTER_S = 0.05
 """How long told generations wait to be written together (a transaction per generation cost
 more than the rows in it), or at once when a run has `Policy.write_now` unwritten."""
@@ -128,78 +99,6 @@ LOG_EVERY_S = 1.0
 last generation), the others at DEBUG: a span writes hundreds of generations a second."""
 
 
-@dataclass(frozen=True)
-class _Origins:
-    """Where the genome bytes of a run's last written generation are, by rank: the (generation,
-    row of that generation's `genomes`) holding them; -1 when unknown."""
-
-    generation: int
-    generations: np.ndarray
-    """(n,) int64"""
-    rows: np.ndarray
-    """(n,) int64"""
-    elite: tuple[int, int]
-    """The same for rank 0 of `generation - 1` (the next generation's k-2 elite); (-1, -1)
-    when there is none."""
-
-
-_NO_ORIGIN = (-1, -1)
-
-
-@dataclass(frozen=True)
-class _Lineage:
-    """`lineage` of a generation as the write uses it (the same for every generation >= 2)."""
-
-    parents: np.ndarray
-    """(n,) by index: the parent rank in the previous generation, -1 for none."""
-    copies: np.ndarray
-    """Indices of Eq 11's copies of the previous generation (elites and fill)."""
-    copied: np.ndarray
-    """Their parent ranks: each is a copy of that rank of the previous generation."""
-    elite_k2: int
-    """Index of the k-2 elite (a copy of rank 0 two generations back); -1 if none."""
-
-
-@functools.lru_cache(maxsize=64)
-def _lineage(params: GAParams, generation: int) -> _Lineage:
-    kinds = lineage(params, generation)
-    copies = [(i, p) for i, (kind, p) in enumerate(kinds) if kind in ("elite", "fill")]
-    return _Lineage(
-        parents=np.array([max(p, -1) for _, p in kinds], dtype=np.int64),
-        copies=np.array([i for i, _ in copies], dtype=np.int64),
-        copied=np.array([p for _, p in copies], dtype=np.int64),
-        elite_k2=next((i for i, (kind, _) in enumerate(kinds) if kind == "elite_k2"), -1),
-    )
-
-
-def _read_origins(session: Session, run_id: int, generation: int, n: int) -> _Origins:
-    """The origins of a written generation, from the store (one query; after a restart)."""
-    found = crud.populations(session, run_id=run_id, generations=[generation - 1, generation])
-    generations = np.full(n, -1, dtype=np.int64)
-    rows = np.full(n, -1, dtype=np.int64)
-    mine = found.get(generation)
-    if mine is not None and len(mine) == n:
-        generations[:], rows[:] = mine.genome_at[:, 0], mine.genome_at[:, 1]
-    before = found.get(generation - 1)
-    elite = (
-        (int(before.genome_at[0, 0]), int(before.genome_at[0, 1]))
-        if before is not None and len(before)
-        else _NO_ORIGIN
-    )
-    return _Origins(generation, generations, rows, elite)
-
-
-def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(k,) whether row i of `a` and of `b` hold the same bytes (NaN payloads and -0.0 too)."""
-    if a.shape != b.shape or a.dtype != b.dtype or a.ndim != 2:
-        return np.zeros(len(a), dtype=bool)
-    word = np.dtype(f"u{a.itemsize}") if a.itemsize in (1, 2, 4, 8) else np.dtype(np.uint8)
-    bits_a = np.ascontiguousarray(a).view(word).reshape(len(a), -1)  # whole items at once
-    bits_b = np.ascontiguousarray(b).view(word).reshape(len(b), -1)
-    same: np.ndarray = (bits_a == bits_b).all(axis=1)
-    return same
-
-
 class RunManager:
     """Owns the store's writes: runs, generations and individuals; feeds the scheduler."""
 
@@ -213,7 +112,6 @@ class RunManager:
         """run id -> why its generation could not be written: stopped until it is."""
         self._logged_at: dict[int, float] = {}
         """run id -> when a "generation written" line last went out at INFO (LOG_EVERY_S)."""
-        self._origins: dict[int, _Origins] = {}
         """run id -> where the genome bytes of its last written generation are: saves a query
         per generation (see `_genome_at`)."""
         self._stop = threading.Event()
@@ -423,23 +321,10 @@ class RunManager:
         self.promote()
 
     def _serve(self, session: Session, run: Run) -> None:
-        """Hand the run's loop, from its last committed state, to the scheduler."""
+        """Hand the run's loop, from its last committed generation, to the scheduler."""
         config = RunConfig.model_validate_json(run.config)
-        g = run.generation
-        state = None
-        if g > 0 and not traits(config).in_state:  # its state is what it was told
-            loop = RunLoop.resume(config, crud.history(session, run_id=run.id, generations=g))
-            self.scheduler.add(run.id, loop, running=run.status == "running")
-            return
-        if g > 0:
-            previous = crud.get_generation(session, run_id=run.id, generation=g - 1)
-            if previous is None:
-                raise NotFoundError(f"run {run.id} has no committed generation {g - 1} to resume")
-            state = decode_state(
-                unseal(previous.state, f"run {run.id} generation {g - 1} GA state"),
-                ranked=lambda: stored_ranked(session, run_id=run.id, generation=g - 1),
-            )
-        self.scheduler.add(run.id, RunLoop(config, state), running=run.status == "running")
+        loop = crud.replay(session, run=run, config=config, generation=run.generation)
+        self.scheduler.add(run.id, loop, running=run.status == "running")
 
     # run lifecycle ---------------------------------------------------------------------------
 
@@ -666,7 +551,6 @@ class RunManager:
     def _forget(self, run_id: int) -> None:
         """Drop a run's jobs and caches (it is over)."""
         self.scheduler.forget(run_id)
-        self._origins.pop(run_id, None)
         self._logged_at.pop(run_id, None)
 
     # the store -------------------------------------------------------------------------------
@@ -674,23 +558,16 @@ class RunManager:
     def _write_generation(
         self, session: Session, item: Written, document: ControllerDocument | None = None
     ) -> None:
-        """Store generation g (statistics, GA state, its population as one frame) and move
-        the run to g + 1; complete the run after its last generation, with `document` (its
-        champion) as the run's best.
+        """Store generation g (statistics and what it was told; at a checkpoint also its GA
+        state, genomes and components) and move the run to g + 1; complete the run after its
+        last generation, with `document` (its champion) as the run's best.
 
-        A copy's genome bytes are stored once, at its origin (see `_genome_at`).
+        A checkpoint is every `checkpoint_every`-th generation and the last: the others are
+        rebuilt by replaying from the one before (`crud.replay`).
         """
         run_id, told, config = item.run_id, item.told, item.config
         g, genomes, fitness, metrics = told.generation, told.genomes, told.fitness, told.metrics
-        components = told.components
-        if components is None:
-            components = np.full((len(genomes), config.trials, 4), np.nan)
-        descriptors = told.descriptors
-        if descriptors is None:
-            descriptors = np.full((len(genomes), 4), np.nan)
-        params = GAParams.from_config(config)
-        order = metrics.order
-        top = float(fitness[order[0]])
+        top = float(fitness[metrics.order[0]])
         conn = session.connection()  # Core on the session's transaction: no ORM unit of work
         moved = conn.execute(
             _ADVANCE_RUN,
@@ -704,17 +581,15 @@ class RunManager:
         )
         if moved.rowcount != 1:
             raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
-        kin = _lineage(params, min(g, 2))  # every generation from 2 on has the same
-        genome_at = self._genome_at(session, run_id, g, kin, genomes, told.before, order)
-        parents = kin.parents if traits(config).in_state else np.full(len(genomes), -1)
-        ranked = Population(
-            index=order,
-            parent=parents[order],
-            fitness=fitness[order],
-            components=components[order],
-            descriptors=descriptors[order],
-            genome_at=genome_at,
-            genomes=genomes[order[genome_at[:, 0] == g]],
+        checkpoint = item.last or (g + 1) % self.settings.checkpoint_every == 0
+        components = told.components
+        if components is None:
+            components = np.full((len(genomes), config.trials, 4), np.nan)
+        frame = Stored(
+            fitness=fitness,
+            descriptors=None if traits(config).in_state else told.descriptors,
+            genomes=genomes if checkpoint else None,
+            components=components if checkpoint else None,
         )
         conn.execute(
             _INSERT_GENERATION,
@@ -725,8 +600,8 @@ class RunManager:
                 "mean": metrics.mean,
                 "worst": metrics.worst,
                 "nan_count": metrics.nan_count,
-                "state": seal(encode_state(told.after, with_ranked=False)),
-                "population": seal(population.encode(ranked)),
+                "state": seal(population.encode_state(told.after)) if checkpoint else None,
+                "population": seal(population.encode(frame)),
                 "committed_at": utcnow(),
             },
         )
@@ -747,57 +622,6 @@ class RunManager:
         )
         if item.last:
             self._finish(session, self._get(session, run_id), config, document)
-
-    def _genome_at(
-        self,
-        session: Session,
-        run_id: int,
-        g: int,
-        kin: _Lineage,
-        genomes: np.ndarray,
-        before: GAState,
-        order: np.ndarray,
-    ) -> np.ndarray:
-        """(n, 2) by rank: the (generation, row of its `genomes`) holding each individual's
-        genome bytes. Generation 0, mutants, and anything whose bytes differ from its origin's
-        store their own, at (g, k) for the k-th of them in rank order.
-
-        Eq 11 copies genomes: an elite or fill of parent rank p is rank p of g - 1
-        (`before.ranked[p]`), the k-2 elite rank 0 of g - 2 (`before.elite_k2`). Their origins
-        are remembered per run (`_origins`, read back with one query after a restart) and
-        followed one hop, so an origin always holds bytes. Records g's origins for g + 1.
-        """
-        n = len(genomes)
-        origin_g = np.full(n, -1, dtype=np.int64)
-        origin_r = np.full(n, -1, dtype=np.int64)
-        previous: _Origins | None = None
-        if g >= 1 and before.ranked is not None and before.ranked.shape == genomes.shape:
-            previous = self._origins.get(run_id)
-            if previous is None or previous.generation != g - 1:
-                previous = _read_origins(session, run_id, g - 1, n)
-            at_g, at_r = previous.generations[kin.copied], previous.rows[kin.copied]
-            same = _same_rows(genomes[kin.copies], before.ranked[kin.copied]) & (at_g >= 0)
-            origin_g[kin.copies[same]], origin_r[kin.copies[same]] = at_g[same], at_r[same]
-            k2 = kin.elite_k2
-            if (
-                k2 >= 0
-                and before.elite_k2 is not None
-                and previous.elite[0] >= 0
-                and _same_rows(genomes[k2 : k2 + 1], before.elite_k2[np.newaxis, :])[0]
-            ):
-                origin_g[k2], origin_r[k2] = previous.elite
-        at = np.stack([origin_g[order], origin_r[order]], axis=1)
-        own = at[:, 0] < 0
-        at[own, 0], at[own, 1] = g, np.arange(int(own.sum()))
-        self._origins[run_id] = _Origins(
-            generation=g,
-            generations=at[:, 0],
-            rows=at[:, 1],
-            elite=_NO_ORIGIN
-            if previous is None
-            else (int(previous.generations[0]), int(previous.rows[0])),
-        )
-        return at
 
     def _finish(
         self,

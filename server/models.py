@@ -93,12 +93,13 @@ class Generation(Base):
     mean: Mapped[float] = mapped_column(Float)
     worst: Mapped[float] = mapped_column(Float)
     nan_count: Mapped[int] = mapped_column(Integer, default=0)
-    state: Mapped[bytes] = mapped_column(LargeBinary)
-    """The GA state after `tell` (`server.manager.encode_state`), without `ranked` (this
-    generation's genomes in rank order) since `population` holds them."""
+    state: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    """At a checkpoint, the GA state after `tell` (`server.population.encode_state`), without
+    `ranked` (this generation's genomes in rank order) since `population` holds them; None
+    between checkpoints."""
     population: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)
-    """The generation's individuals by rank as one frame (`server.population`): fitness,
-    components, lineage, and the genome bytes first stored here (a copy points to its own).
+    """What the generation was told, in ask order (`server.population`): fitness, descriptors
+    for a strategy that resumes from them, and at a checkpoint its genomes and components.
     Deferred: listing generations reads only their statistics."""
     committed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 

@@ -1,43 +1,43 @@
-"""A committed generation's individuals as one value: the `generations.population` frame.
+"""A committed generation as stored: the `generations.population` frame, and its view by rank.
 
-One row per generation instead of one per individual: at the paper's scale the store's
-per-row work, not its bytes, was most of the server's recording. The frame (`schemas.wire`: raw arrays, self-describing, no pickle) holds, by rank
-(0 = fittest):
+A run is a pure function of its config, its seed and the fitness it was told, so the store keeps
+only what cannot be recomputed without simulating: what each generation was told (fitness, and
+descriptors for a strategy that resumes from them) and, at a checkpoint, its genomes and Eq 12
+components. Everything else is derived: the rank order is `ga.rank(fitness)` (what `tell`
+ranked by), the parents are `ga.lineage`, and a generation between checkpoints gets its genomes
+by replaying ask/tell from the checkpoint before it (`server.crud.replay`).
 
-- `index` (n,) int32: position in the population as asked (the job slices cut this order);
-- `parent` (n,) int32: rank in the previous generation it descends from, -1 for none;
+The frame (`schemas.wire`: raw arrays, self-describing, no pickle) holds, in ask order (the
+position of each individual in the population as asked, which job slices cut):
+
 - `fitness` (n,) float64: Eq 12 averaged over trials, NaN for a failed evaluation;
-- `components` (n, trials, 4) float64: Eq 12's curve length, net offset, max offset, stuck;
 - `descriptors` (n, 4) float64: behaviour descriptors (`evorobotics.evaluate.DESCRIPTORS`),
-  NaN in a frame written before they were stored;
-- `genome_at` (n, 2) int32: the (generation, row of that generation's `genomes`) holding the
-  individual's genome bytes, its own generation for a genome first stored here;
-- `genomes` (m, weights): the bytes first stored in this generation, in rank order. Eq 11's
-  copies (elites, fill, k-2 elite: three quarters of a generation) point to earlier rows.
+  only for a strategy that resumes from its history (`strategies.traits(config).in_state`
+  false);
+- at a checkpoint only: `genomes` (n, weights) and `components` (n, trials, 4) (curve length,
+  net offset, max offset, stuck), each byte-shuffled and zlib-compressed into a `|u1` array
+  (mutants differ from their parents in a few high bytes: a third of the raw size).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+import zlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from evorobotics.ga import GAParams, GAState, lineage, rank
+from evorobotics.strategies import traits
+from schemas.run import RunConfig
 from schemas.wire import WireError, decode_frame, encode_frame
 
-KIND = "population"
-_INT = np.dtype("<i4")
+KIND = "told"
 _FLOAT = np.dtype("<f8")
-_KINDS = {
-    "index": "i",
-    "parent": "i",
-    "fitness": "f",
-    "components": "f",
-    "descriptors": "f",
-    "genome_at": "i",
-    "genomes": "f",
-}
-"""numpy dtype kind of each array (integers, floats)."""
+_PACKED = ("genomes", "components")
+"""Arrays stored compressed (`_pack`), described in the header's `packed` entry."""
+_LEVEL = 6
+"""zlib level: 9 saves 2 % more for three times the writer's time."""
 
 
 class PopulationError(ValueError):
@@ -45,16 +45,31 @@ class PopulationError(ValueError):
 
 
 @dataclass(frozen=True)
+class Stored:
+    """A generation's frame as stored, in ask order; `genomes` and `components` only at a
+    checkpoint, `descriptors` only for a strategy that resumes from its history."""
+
+    fitness: np.ndarray
+    descriptors: np.ndarray | None = None
+    genomes: np.ndarray | None = None
+    components: np.ndarray | None = None
+
+    @property
+    def checkpoint(self) -> bool:
+        return self.genomes is not None
+
+
+@dataclass(frozen=True)
 class Population:
-    """A generation as stored, by rank; `genomes` are only those first stored here."""
+    """A generation as the API shows it, by rank (0 = fittest)."""
 
     index: np.ndarray
+    """(n,) its position in the population as asked."""
     parent: np.ndarray
+    """(n,) the rank in the previous generation it descends from, -1 for none."""
     fitness: np.ndarray
-    components: np.ndarray
-    descriptors: np.ndarray
-    genome_at: np.ndarray
-    genomes: np.ndarray
+    components: np.ndarray | None
+    """(n, trials, 4), or None when the caller did not ask for them between checkpoints."""
 
     def __len__(self) -> int:
         return len(self.index)
@@ -69,94 +84,109 @@ class Population:
         return f if np.isfinite(f) else None
 
 
-def encode(population: Population) -> bytes:
-    return encode_frame(
-        {"kind": KIND},
-        {
-            "index": population.index.astype(_INT, copy=False),
-            "parent": population.parent.astype(_INT, copy=False),
-            "fitness": population.fitness.astype(_FLOAT, copy=False),
-            "components": population.components.astype(_FLOAT, copy=False),
-            "descriptors": population.descriptors.astype(_FLOAT, copy=False),
-            "genome_at": population.genome_at.astype(_INT, copy=False),
-            "genomes": population.genomes,
-        },
+def by_rank(
+    config: RunConfig, generation: int, fitness: np.ndarray, components: np.ndarray | None
+) -> Population:
+    """The rank view of a generation told `fitness` (ask order), `components` in ask order."""
+    order = rank(fitness)
+    parents = np.full(len(fitness), -1, dtype=np.int64)
+    if traits(config).in_state:
+        kinds = lineage(GAParams.from_config(config), min(generation, 2))  # the same from 2 on
+        parents = np.array([max(p, -1) for _, p in kinds], dtype=np.int64)
+    return Population(
+        index=order,
+        parent=parents[order],
+        fitness=fitness[order],
+        components=None if components is None else components[order],
     )
 
 
-def decode(data: bytes) -> Population:
-    """Inverse of `encode`; PopulationError if the frame is not a population this module
-    wrote (kind, names, dtypes and shapes)."""
+def encode(stored: Stored) -> bytes:
+    arrays: dict[str, np.ndarray] = {"fitness": stored.fitness.astype(_FLOAT, copy=False)}
+    packed: dict[str, Any] = {}
+    if stored.descriptors is not None:
+        arrays["descriptors"] = stored.descriptors.astype(_FLOAT, copy=False)
+    for name in _PACKED:
+        value = getattr(stored, name)
+        if value is not None:
+            value = np.ascontiguousarray(value, dtype=_FLOAT)
+            packed[name] = list(value.shape)
+            arrays[name] = _pack(value)
+    return encode_frame({"kind": KIND, "packed": packed}, arrays)
+
+
+def decode(data: bytes) -> Stored:
+    """Inverse of `encode`; PopulationError if the frame is not one this module wrote (kind,
+    names, dtypes and shapes)."""
     try:
         header, arrays = decode_frame(bytes(data))
     except WireError as exc:
         raise PopulationError(f"not a frame: {exc}") from None
     if header.get("kind") != KIND:
         raise PopulationError(f"frame of kind {header.get('kind')!r}, expected {KIND!r}")
-    try:
-        population = Population(
-            index=arrays["index"],
-            parent=arrays["parent"],
-            fitness=arrays["fitness"],
-            components=arrays["components"],
-            descriptors=arrays.get("descriptors", np.full((len(arrays["index"]), 4), np.nan)),
-            genome_at=arrays["genome_at"],
-            genomes=arrays["genomes"],
-        )
-    except KeyError as exc:
-        raise PopulationError(f"population frame lacks array {exc}") from None
-    n = len(population.index) if population.index.ndim == 1 else -1
-    shapes = {name: getattr(population, name).shape for name in _KINDS}
-    expected = {
-        "index": (n,),
-        "parent": (n,),
-        "fitness": (n,),
-        "descriptors": (n, 4),
-        "genome_at": (n, 2),
-    }
+    packed = header.get("packed")
+    fitness = arrays.get("fitness")
     if (
-        any(shapes[name] != shape for name, shape in expected.items())
-        or population.components.ndim != 3
-        or population.components.shape[::2] != (n, 4)
-        or population.genomes.ndim != 2
+        not isinstance(packed, dict)
+        or set(packed) - set(_PACKED)
+        or set(arrays) - {"fitness", "descriptors", *_PACKED}
+        or set(packed) != set(arrays) & set(_PACKED)
+        or fitness is None
+        or fitness.dtype != _FLOAT
+        or fitness.ndim != 1
     ):
-        raise PopulationError(f"population frame has arrays of shapes {shapes}")
-    for name, kind in _KINDS.items():
-        if getattr(population, name).dtype.kind != kind:
-            raise PopulationError(f"population array {name!r} is not of kind {kind!r}")
-    return population
+        raise PopulationError(f"population frame of arrays {sorted(arrays)}, packed {packed!r}")
+    n = len(fitness)
+    values = {name: _unpack(arrays[name], shape, name) for name, shape in packed.items()}
+    descriptors = arrays.get("descriptors")
+    if descriptors is not None and (descriptors.dtype != _FLOAT or descriptors.shape != (n, 4)):
+        raise PopulationError(f"descriptors of {descriptors.shape} for {n} individuals")
+    genomes, components = values.get("genomes"), values.get("components")
+    if (genomes is None) != (components is None):
+        raise PopulationError("a checkpoint needs both genomes and components")
+    if genomes is not None and (genomes.ndim != 2 or len(genomes) != n):
+        raise PopulationError(f"genomes of {genomes.shape} for {n} individuals")
+    if components is not None and (components.ndim != 3 or components.shape[::2] != (n, 4)):
+        raise PopulationError(f"components of {components.shape} for {n} individuals")
+    return Stored(fitness, descriptors, genomes, components)
 
 
-def resolve(
-    generation: int,
-    population: Population,
-    load: Callable[[Iterable[int]], dict[int, Population]],
-    ranks: Sequence[int] | None = None,
-) -> np.ndarray:
-    """(k, weights) the genomes of `population` (generation `generation`) of `ranks` (all, in
-    rank order, by default), a copy's bytes read from the generation that holds them (`load`
-    gives those by number; only the generations the ranks need are loaded)."""
-    at = population.genome_at if ranks is None else population.genome_at[np.asarray(ranks, int)]
-    wanted = {int(g) for g in np.unique(at[:, 0])} - {generation}
-    holders = {generation: population, **(load(sorted(wanted)) if wanted else {})}
-    missing = wanted - holders.keys()
-    if missing:
-        raise PopulationError(
-            f"generation {generation} points to genome bytes in generations {sorted(missing)}, "
-            "which are not stored"
-        )
-    width, dtype = population.genomes.shape[1], population.genomes.dtype
-    out = np.empty((len(at), width), dtype=dtype)
-    for g in holders:
-        mine = at[:, 0] == g
-        rows = at[mine, 1]
-        source = holders[g].genomes
-        if source.shape[1] != width or source.dtype != dtype:
-            raise PopulationError(
-                f"generation {generation}'s genomes are {width} x {dtype}, generation {g}'s "
-                f"{source.shape[1]} x {source.dtype}"
-            )
-        if len(rows) and (rows.max() >= len(source) or rows.min() < 0):
-            raise PopulationError(f"generation {generation} points past generation {g}'s genomes")
-        out[mine] = source[rows]
-    return out
+def _pack(a: np.ndarray) -> np.ndarray:
+    """The bytes of float64 `a`, grouped by byte position (sign and exponent together), zlib'd."""
+    shuffled = a.reshape(-1).view(np.uint8).reshape(-1, _FLOAT.itemsize).T.tobytes()
+    return np.frombuffer(zlib.compress(shuffled, _LEVEL), dtype=np.uint8)
+
+
+def _unpack(packed: np.ndarray, shape: object, name: str) -> np.ndarray:
+    """Inverse of `_pack`, refusing anything but exactly the bytes `shape` needs."""
+    if (
+        not isinstance(shape, list)
+        or not all(isinstance(d, int) and 0 <= d < 2**31 for d in shape)
+        or packed.dtype != np.uint8
+    ):
+        raise PopulationError(f"packed {name} of shape {shape!r}")
+    size = int(np.prod(shape, dtype=np.int64)) * _FLOAT.itemsize
+    inflate = zlib.decompressobj()
+    try:
+        raw = inflate.decompress(packed.tobytes(), size)
+    except zlib.error as exc:
+        raise PopulationError(f"packed {name}: {exc}") from None
+    if len(raw) != size or inflate.unconsumed_tail or not inflate.eof:
+        raise PopulationError(f"packed {name} does not hold {shape} float64")
+    planes = np.frombuffer(raw, dtype=np.uint8).reshape(_FLOAT.itemsize, -1)
+    return np.ascontiguousarray(planes.T).view(_FLOAT).reshape(shape)
+
+
+def encode_state(state: GAState) -> bytes:
+    """A checkpoint's GA state as a frame of raw arrays, without `ranked` (the generation's
+    genomes in rank order, which its population frame holds)."""
+    return encode_frame({"kind": "ga-state"}, state.to_arrays(ranked=False))
+
+
+def decode_state(data: bytes, *, ranked: np.ndarray) -> GAState:
+    """Inverse of `encode_state`, given the checkpoint's genomes in rank order (WireError or
+    ValueError on anything but its frame)."""
+    header, arrays = decode_frame(data)
+    if header.get("kind") != "ga-state":
+        raise WireError(f"frame of kind {header.get('kind')!r}, expected 'ga-state'")
+    return GAState.from_arrays({**arrays, "ranked": ranked})

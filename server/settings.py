@@ -22,6 +22,10 @@ from schemas.security import (
     ZenohRouterAuth,
 )
 
+CHECKPOINT_EVERY = 50
+"""Generations between stored populations: a paper run keeps 7 and takes about 1.2 MB, and any
+other generation rebuilds in tens of milliseconds (bench/store.py)."""
+
 
 class Settings(BaseSettings):
     """What an operator sets (first), then the job path's tuning; defaults serve one lab machine."""
@@ -46,6 +50,13 @@ class Settings(BaseSettings):
         None, ge=0, le=64, description="in-process evaluation threads (default: 0 with zenoh, 1)"
     )
     max_active_runs: int = Field(8, ge=1, description="runs evolving at once; the rest queue")
+    checkpoint_every: int = Field(
+        CHECKPOINT_EVERY,
+        ge=1,
+        le=1_000_000,
+        description="store a run's genomes every N generations and its last; the others are "
+        "replayed from the one before (docs/api.md)",
+    )
     log_level: str = Field(
         "INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$", description="DEBUG, INFO, WARNING or ERROR"
     )

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import sqlalchemy as sa
+from alembic import command
 from alembic.script import ScriptDirectory
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -33,16 +34,9 @@ from server import crud
 from server.db import Checkpointer, alembic_config, make_engine, upgrade
 from server.errors import NotFoundError, ServerError
 from server.integrity import unseal
-from server.manager import (
-    RunManager,
-    _lineage,
-    _Origins,
-    decode_state,
-    encode_state,
-    stored_ranked,
-)
+from server.manager import RunManager
 from server.models import Generation
-from server.population import Population, PopulationError, decode, encode, resolve
+from server.population import PopulationError, Stored, decode, decode_state, encode, encode_state
 from server.robots.service import ranked_document
 from server.scheduler import run_job
 from server.settings import Settings
@@ -101,93 +95,68 @@ def test_memory_sqlite_is_refused() -> None:
     n=st.integers(0, 6),
     trials=st.integers(1, 3),
     width=st.integers(1, 5),
+    checkpoint=st.booleans(),
+    with_descriptors=st.booleans(),
     data=st.data(),
 )
-def test_a_population_frame_round_trips_bits_and_resolves_copies(
-    n: int, trials: int, width: int, data: st.DataObject
+def test_a_population_frame_round_trips_bits(
+    n: int, trials: int, width: int, checkpoint: bool, with_descriptors: bool, data: st.DataObject
 ) -> None:
-    """Any mix of own genomes and copies of an earlier generation's rows reads back bit for
-    bit: NaN fitness (a failed evaluation), NaN payloads and -0.0 in genomes included."""
-    own = data.draw(st.lists(st.booleans(), min_size=n, max_size=n))
-    earlier = data.draw(hnp.arrays(np.float64, (3, width), elements=st.floats(width=64)))
-    genomes = data.draw(hnp.arrays(np.float64, (sum(own), width), elements=st.floats(width=64)))
-    rows = iter(range(sum(own)))
-    genome_at = np.array(
-        [(5, next(rows)) if mine else (2, data.draw(st.integers(0, 2))) for mine in own],
-        dtype=np.int64,
-    ).reshape(n, 2)
-    stored = Population(
-        index=np.array(data.draw(st.permutations(range(n))), dtype=np.int64),
-        parent=np.array(data.draw(st.lists(st.integers(-1, 99), min_size=n, max_size=n))),
-        fitness=data.draw(hnp.arrays(np.float64, n, elements=st.floats(width=64))),
-        components=data.draw(hnp.arrays(np.float64, (n, trials, 4), elements=st.floats())),
-        descriptors=data.draw(hnp.arrays(np.float64, (n, 4), elements=st.floats(0, 1))),
-        genome_at=genome_at,
-        genomes=genomes,
+    """A generation between checkpoints (fitness, descriptors or not) and a checkpoint (with
+    genomes and components, stored compressed) read back bit for bit: NaN fitness (a failed
+    evaluation), NaN payloads and -0.0 included."""
+    floats = st.floats(width=64)
+    stored = Stored(
+        fitness=data.draw(hnp.arrays(np.float64, n, elements=floats)),
+        descriptors=data.draw(hnp.arrays(np.float64, (n, 4), elements=st.floats(0, 1)))
+        if with_descriptors
+        else None,
+        genomes=data.draw(hnp.arrays(np.float64, (n, width), elements=floats))
+        if checkpoint
+        else None,
+        components=data.draw(hnp.arrays(np.float64, (n, trials, 4), elements=floats))
+        if checkpoint
+        else None,
     )
     back = decode(encode(stored))
-    for name in ("index", "parent", "fitness", "components", "descriptors", "genome_at", "genomes"):
-        assert (
-            getattr(back, name).tobytes()
-            == getattr(stored, name).astype(getattr(back, name).dtype).tobytes()
-        ), name
-    holders = {2: dataclasses.replace(stored, genomes=earlier)}
-    asked: list[list[int]] = []
-
-    def load(gs: Iterable[int]) -> dict[int, Population]:
-        asked.append(list(gs))
-        return {g: holders[g] for g in gs if g in holders}
-
-    resolved = resolve(5, back, load)
-    for rank, (g, row) in enumerate(genome_at.tolist()):
-        source = genomes if g == 5 else earlier
-        assert resolved[rank].tobytes() == source[row].tobytes()
-    if n and not all(own):
-        with pytest.raises(PopulationError, match="not stored"):
-            resolve(5, back, lambda gs: {})
-    some = data.draw(st.lists(st.integers(0, max(n - 1, 0)), max_size=n))
-    asked.clear()
-    assert resolve(5, back, load, some).tobytes() == resolved[some].tobytes()
-    assert asked == ([[2]] if any(not own[r] for r in some) else [])  # only what they need
+    assert back.checkpoint == checkpoint
+    for name in ("fitness", "descriptors", "genomes", "components"):
+        value, read = getattr(stored, name), getattr(back, name)
+        assert (read is None) == (value is None), name
+        if value is not None:
+            assert read.shape == value.shape and read.tobytes() == value.tobytes(), name
 
 
 def test_a_frame_of_another_kind_shape_or_dtype_is_refused() -> None:
+    state = init(layout(SMALL.network_spec), GAParams.from_config(SMALL))
     with pytest.raises(PopulationError, match="kind"):
-        decode(encode_state(init(layout(SMALL.network_spec), GAParams.from_config(SMALL))))
+        decode(encode_frame({"kind": "ga-state"}, state.to_arrays()))
     with pytest.raises(PopulationError, match="not a frame"):
         decode(b"EVC1 garbage")
-    good = Population(
-        index=np.arange(3),
-        parent=np.arange(3),
-        fitness=np.zeros(3),
-        components=np.zeros((3, 1, 4)),
-        descriptors=np.zeros((3, 4)),
-        genome_at=np.zeros((3, 2), dtype=np.int64),
-        genomes=np.zeros((1, 2)),
-    )
-    assert len(decode(encode(good))) == 3
-    for name, value in [
-        ("parent", np.arange(2)),
-        ("components", np.zeros((3, 4))),
-        ("descriptors", np.zeros((3, 2))),
-        ("genome_at", np.zeros(3, dtype=np.int64)),
-        ("genomes", np.zeros(2)),
+    good = Stored(np.zeros(3), np.zeros((3, 4)), np.zeros((3, 2)), np.zeros((3, 1, 4)))
+    assert len(decode(encode(good)).fitness) == 3
+    for name, value, match in [
+        ("descriptors", np.zeros((3, 2)), "descriptors of"),
+        ("genomes", np.zeros((2, 2)), "genomes of"),
+        ("components", np.zeros((3, 4)), "components of"),
+        ("components", None, "both genomes and components"),
     ]:
-        with pytest.raises(PopulationError, match="shapes"):
-            decode(encode(dataclasses.replace(good, **{name: value})))
-    arrays = {name: getattr(good, name) for name in ("index", "parent", "fitness", "components")}
-    floats = encode_frame(  # `encode` casts: a frame written otherwise
-        {"kind": "population"}, {**arrays, "genome_at": np.zeros((3, 2)), "genomes": good.genomes}
-    )
-    with pytest.raises(PopulationError, match="'genome_at' is not of kind 'i'"):
-        decode(floats)
-    older = encode_frame(  # a generation stored before descriptors were: they read as NaN
-        {"kind": "population"}, {**arrays, "genome_at": good.genome_at, "genomes": good.genomes}
-    )
-    assert np.isnan(decode(older).descriptors).all() and decode(older).descriptors.shape == (3, 4)
-    narrow = dataclasses.replace(good, genome_at=np.array([[1, 0], [1, 0], [0, 0]]))
-    with pytest.raises(PopulationError, match="2 x float64, generation 0's 3 x float64"):
-        resolve(1, narrow, lambda gs: {0: dataclasses.replace(good, genomes=np.zeros((1, 3)))})
+        with pytest.raises(PopulationError, match=match):
+            decode(encode(dataclasses.replace(good, **{name: value})))  # type: ignore[arg-type]
+    header, arrays = decode_frame(encode(good))
+    for changed, match in [
+        ({**arrays, "fitness": np.zeros(3, dtype=np.int64)}, "population frame of arrays"),
+        ({**arrays, "genomes": arrays["genomes"][:-2]}, "packed genomes"),  # truncated
+        ({**arrays, "extra": np.zeros(1)}, "population frame of arrays"),
+    ]:
+        with pytest.raises(PopulationError, match=match):
+            decode(encode_frame(header, changed))
+    bomb = encode_frame({**header, "packed": {**header["packed"], "genomes": [3, 1]}}, arrays)
+    with pytest.raises(PopulationError, match="does not hold"):  # more bytes than its shape
+        decode(bomb)
+    old = encode_frame({"kind": "population"}, {"index": np.arange(3)})  # before checkpoints
+    with pytest.raises(PopulationError, match="'population', expected 'told'"):
+        decode(old)
 
 
 def test_a_damaged_stored_population_is_a_server_error_with_its_place(
@@ -207,7 +176,7 @@ def test_a_damaged_stored_population_is_a_server_error_with_its_place(
 
 
 @settings(max_examples=10, deadline=None)
-@given(st.integers(0, 2**32), st.integers(0, 3))
+@given(st.integers(0, 2**32), st.integers(1, 3))
 def test_ga_state_round_trips_through_the_store_encoding(seed: int, generations: int) -> None:
     config = SMALL.model_copy(update={"seed": seed})
     lay, params = layout(config.network_spec), GAParams.from_config(config)
@@ -216,7 +185,8 @@ def test_ga_state_round_trips_through_the_store_encoding(seed: int, generations:
         genomes, state = ask(ga_rng(seed, g), state, params, lay)
         fitness = np.random.default_rng(g).normal(size=config.population)
         state, _ = tell(genomes, fitness, state, params)
-    back = decode_state(encode_state(state))
+    assert state.ranked is not None
+    back = decode_state(encode_state(state), ranked=state.ranked)
     for name, value in state.to_arrays().items():
         assert np.array_equal(back.to_arrays()[name], value)
     a, _ = ask(ga_rng(seed, generations), state, params, lay)
@@ -490,16 +460,18 @@ def test_results_after_cancel_are_dropped(manager: RunManager) -> None:
     assert manager.scheduler.counts() == {"pending": 0, "leased": 0, "done": 0}
 
 
-def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(
-    manager: RunManager,
+def test_a_checkpoint_s_state_leaves_out_the_population_and_replay_reads_it_back(
+    make_manager: Callable[..., RunManager],
 ) -> None:
+    manager = make_manager(checkpoint_every=1)
     run_id = _first_generation_written(manager)
     with manager.sessions() as session:
         stored = crud.get_generation(session, run_id=run_id, generation=0)
-        assert stored is not None
+        run = crud.get_run(session, run_id=run_id)
+        assert stored is not None and stored.state is not None and run is not None
         arrays = decode_frame(unseal(stored.state, "its GA state"))[1]
         assert "ranked" not in arrays and "ranked_fitness" in arrays
-        ranked = stored_ranked(session, run_id=run_id, generation=0)
+        state = crud.replay(session, run=run, config=SMALL, generation=1).state
     params = GAParams.from_config(SMALL)
     lay = layout(SMALL.network_spec)
     genomes, _ = ask(ga_rng(SMALL.seed, 0), init(lay, params), params, lay)
@@ -507,7 +479,8 @@ def test_stored_state_leaves_out_the_population_and_resume_reads_it_back(
         [evaluate(SMALL, 0, genomes[a:b]).fitness for a, b in ((0, 5), (5, 10), (10, 12))]
     )
     expected, _ = tell(genomes, fitness, init(lay, params), params)
-    assert expected.ranked is not None and ranked.tobytes() == expected.ranked.tobytes()
+    assert expected.ranked is not None and state.ranked is not None
+    assert state.ranked.tobytes() == expected.ranked.tobytes()
 
 
 def test_the_next_generation_is_leased_before_the_told_one_is_written(
@@ -848,27 +821,28 @@ def test_any_order_of_worker_events_and_restarts_gives_the_local_result(
         assert run is not None and (run.status, run.generation) == ("completed", 3)
         assert [g.generation for g in crud.list_generations(session, run_id=run_id)] == [0, 1, 2]
     assert manager.best(run_id).sha256 == tiny_best
-    _assert_stored_once(engine, run_id, TINY, _local_ranked(TINY))
+    _assert_rebuilt(engine, run_id, TINY, _local_ranked(TINY), {TINY.generations - 1})
     engine.dispose()
 
 
-# genomes stored once: Eq 11's copies point to the row holding their bytes ---------------------
+# checkpoints: genomes every few generations, the others replayed ------------------------------
 
 COPIES = RunConfig(population=12, generations=6, steps=10, trials=2, job_size=5, seed=5)
 LITERAL = COPIES.model_copy(update={"ga": GAConfig(selection="literal"), "seed": 6})
 
 
-def _local_ranked(config: RunConfig) -> list[np.ndarray]:
-    """Every generation's genomes in rank order, composed as `evolve` composes the GA."""
+def _local_ranked(config: RunConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every generation's genomes and components in rank order, composed as `evolve`
+    composes the GA."""
     lay, params = layout(config.network_spec), GAParams.from_config(config)
     state, out = init(lay, params), []
     for g in range(config.generations):
         genomes, state = ask(ga_rng(config.seed, g), state, params, lay)
-        fitness, _, _ = evaluate_population(config, g, genomes)
-        state, _ = tell(genomes, fitness, state, params)
+        fitness, components, _ = evaluate_population(config, g, genomes)
+        state, metrics = tell(genomes, fitness, state, params)
         assert state.ranked is not None
-        out.append(state.ranked)
-    assert out[-1].tobytes() == np.asarray(evolve(config).state.ranked).tobytes()
+        out.append((state.ranked, components[metrics.order]))
+    assert out[-1][0].tobytes() == np.asarray(evolve(config).state.ranked).tobytes()
     return out
 
 
@@ -887,54 +861,65 @@ def _drive(manager: RunManager, *, until: int | None = None) -> None:
     manager.flush()
 
 
-def _assert_stored_once(
-    engine: sa.Engine, run_id: int, config: RunConfig, expected: list[np.ndarray]
+def _assert_rebuilt(
+    engine: sa.Engine,
+    run_id: int,
+    config: RunConfig,
+    expected: list[tuple[np.ndarray, np.ndarray]],
+    checkpoints: set[int],
 ) -> None:
-    """Bytes only for generation 0 and the mutants of later generations; every copy points to
-    bytes stored by an earlier generation, and resolves to exactly `evolve`'s genome."""
+    """Genomes, components and GA state only at `checkpoints`; every generation reads back
+    exactly `evolve`'s genomes and components, replayed or not."""
     m = config.replacement_count
     with Session(engine) as session:
-        stored = crud.populations(session, run_id=run_id, generations=range(len(expected)))
+        stored = crud.stored(session, run_id=run_id, generations=range(len(expected)))
         assert sorted(stored) == list(range(len(expected)))
-        for g, population in stored.items():
-            want = config.population if g == 0 else m
-            assert len(population.genomes) == want
-            at_g, at_row = population.genome_at[:, 0], population.genome_at[:, 1]
-            assert (at_row[at_g == g] == np.arange(want)).all()  # own bytes, in rank order
-            for holder, row in population.genome_at[at_g != g].tolist():
-                assert holder < g and row < len(stored[holder].genomes)
-        for g, ranked in enumerate(expected):
-            population, genomes = crud.ranked(session, run_id=run_id, generation=g)
-            assert genomes.tobytes() == ranked.tobytes()
-            assert stored_ranked(session, run_id=run_id, generation=g).tobytes() == ranked.tobytes()
+        assert {g for g, told in stored.items() if told.checkpoint} == checkpoints
+        states = session.scalars(
+            sa.select(Generation.generation).where(
+                Generation.run_id == run_id, Generation.state.is_not(None)
+            )
+        )
+        assert set(states) == checkpoints
+        for g, (ranked, components) in enumerate(expected):
+            found, genomes = crud.ranked(session, run_id=run_id, generation=g, components=True)
+            assert genomes.tobytes() == ranked.tobytes(), g
+            assert found.components is not None
+            assert found.components.tobytes() == components.tobytes(), g
+            one = crud.ranked(session, run_id=run_id, generation=g, rank=m)[1]
+            assert one.tobytes() == ranked[m : m + 1].tobytes()
         for rank in (0, m, 2 * m, config.population - 1):  # elite, mutant, fill, k-2 elite
             document = ranked_document(session, run_id, rank)
-            assert document.weights.tobytes() == expected[-1][rank].tobytes()
+            assert document.weights.tobytes() == expected[-1][0][rank].tobytes()
 
 
-@pytest.mark.parametrize("config", [COPIES, LITERAL], ids=["prose", "literal"])
-def test_a_run_stores_each_genome_once_and_reads_back_evolve_bit_for_bit(
-    tmp_path: Path, config: RunConfig
+@pytest.mark.parametrize(
+    ("config", "every"), [(COPIES, 2), (COPIES, 50), (LITERAL, 1)], ids=["2", "50", "literal-1"]
+)
+def test_a_run_stores_genomes_at_checkpoints_and_rebuilds_evolve_bit_for_bit(
+    tmp_path: Path, config: RunConfig, every: int
 ) -> None:
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
-    manager = RunManager(engine, Settings(**BASE))
+    manager = RunManager(engine, Settings(**{**BASE, "checkpoint_every": every}))
     run_id = manager.create_run(config)
     _drive(manager)
-    _assert_stored_once(engine, run_id, config, _local_ranked(config))
+    last = config.generations - 1
+    checkpoints = {g for g in range(config.generations) if (g + 1) % every == 0} | {last}
+    _assert_rebuilt(engine, run_id, config, _local_ranked(config), checkpoints)
     assert manager.best(run_id).sha256 == evolve(config).best.sha256
     engine.dispose()
 
 
 @pytest.mark.parametrize("restart_after", [1, 2, 4])
-def test_copies_after_a_restart_find_their_origins_in_the_store(
+def test_a_restart_between_checkpoints_replays_and_goes_on_as_evolve(
     tmp_path: Path, restart_after: int
 ) -> None:
-    """A restarted manager has no origins in memory: its first write reads them back (one
-    query) and copies still point at rows with bytes, written before the restart."""
+    """A restarted manager rebuilds the run's loop from the checkpoint before its last written
+    generation (or from its seed before the first), told the stored fitness since."""
     engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
     upgrade(engine)
-    settings_ = Settings(**BASE)
+    settings_ = Settings(**{**BASE, "checkpoint_every": 2})
     first = RunManager(engine, settings_)
     run_id = first.create_run(COPIES)
     _drive(first, until=restart_after)
@@ -944,33 +929,68 @@ def test_copies_after_a_restart_find_their_origins_in_the_store(
     with second.sessions() as session:
         run = crud.get_run(session, run_id=run_id)
         assert run is not None and run.status == "completed"
-    _assert_stored_once(engine, run_id, COPIES, _local_ranked(COPIES))
+    _assert_rebuilt(engine, run_id, COPIES, _local_ranked(COPIES), {1, 3, 5})
     assert second.best(run_id).sha256 == evolve(COPIES).best.sha256
     engine.dispose()
 
 
-def test_a_copy_whose_bytes_differ_from_its_origin_keeps_them(manager: RunManager) -> None:
-    """The lineage says which rows are copies; the bytes decide: -0.0 == 0.0 as a float, but a
-    copy must give back its own bits, so it keeps them."""
-    lay, params = layout(COPIES.network_spec), GAParams.from_config(COPIES)
-    state = init(lay, params)
-    for g in range(2):
-        genomes, state = ask(ga_rng(1, g), state, params, lay)
-        state, _ = tell(genomes, np.arange(12.0), state, params)
-    genomes, before = ask(ga_rng(1, 2), state, params, lay)
-    assert before.ranked is not None
-    genomes = genomes.copy()
-    genomes[0, 0], genomes[2, 0] = 0.0, -0.0  # elites: ranks 0 and 2 of the previous generation
-    ranked = before.ranked.copy()
-    ranked[0, 0] = ranked[2, 0] = 0.0
-    before = dataclasses.replace(before, ranked=ranked)
-    manager._origins[1] = _Origins(1, np.full(12, 1), np.arange(12), (0, 0))
-    with manager.sessions() as session:  # the origins are in memory: no query
-        at = manager._genome_at(session, 1, 2, _lineage(params, 2), genomes, before, np.arange(12))
-    m = COPIES.replacement_count
-    copies = [i for i in range(12) if not m <= i < 2 * m and i != 2]
-    assert [i for i in range(12) if at[i, 0] != 2] == copies
-    assert at[[0, 1]].tolist() == [[1, 0], [1, 1]]
-    assert at[11].tolist() == [0, 0]  # the k-2 elite: rank 0 two generations back
-    own = [i for i in range(12) if i not in copies]
-    assert at[own].tolist() == [[2, k] for k in range(len(own))]  # stored here, in rank order
+def test_a_store_of_every_population_migrates_to_checkpoints(tmp_path: Path) -> None:
+    """A database written before checkpoints (every generation's individuals by rank, a copy
+    pointing to the row with its bytes) upgrades in place: the last generation keeps its
+    genomes, the others are replayed, and every one reads back as before."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    command.upgrade(alembic_config(engine), "0007_served_checksums")
+    expected = _local_ranked(COPIES)
+    loop = RunLoop(COPIES)
+    held: dict[bytes, tuple[int, int]] = {}  # the previous generation's genomes: where they are
+    with engine.begin() as conn:
+        conn.execute(
+            sa.text(
+                "INSERT INTO runs (id, config, seed, status, generation, evaluations, tags, "
+                "created_at) VALUES (1, :config, 5, 'completed', 6, 72, '[]', '2026-01-01')"
+            ),
+            {"config": COPIES.model_dump_json()},
+        )
+        for g, (ranked, components) in enumerate(expected):
+            fitness, _, descriptors = evaluate_population(COPIES, g, loop.ask())
+            told = loop.tell(fitness, None, descriptors)
+            order, own = told.metrics.order, list[np.ndarray]()
+            genome_at = np.zeros((len(order), 2), dtype=np.int32)
+            for r, genome in enumerate(ranked):
+                if genome.tobytes() in held:  # a copy: no bytes of its own
+                    genome_at[r] = held[genome.tobytes()]
+                else:
+                    genome_at[r] = (g, len(own))
+                    own.append(genome)
+            assert g == 0 or len(own) < len(order)  # some copies point back
+            held = {
+                genome.tobytes(): (int(a), int(b))
+                for genome, (a, b) in zip(ranked, genome_at, strict=True)
+            }
+            frame = encode_frame(
+                {"kind": "population"},
+                {
+                    "index": order.astype(np.int32),
+                    "parent": np.full(len(order), -1, dtype=np.int32),
+                    "fitness": told.fitness[order],
+                    "components": components,
+                    "descriptors": np.asarray(told.descriptors)[order],
+                    "genome_at": genome_at,
+                    "genomes": np.array(own),
+                },
+            )
+            conn.execute(
+                sa.insert(Generation).values(
+                    run_id=1,
+                    generation=g,
+                    best=0.0,
+                    mean=0.0,
+                    worst=0.0,
+                    nan_count=0,
+                    state=encode_frame({"kind": "ga-state"}, told.after.to_arrays(ranked=False)),
+                    population=frame,
+                )
+            )
+    upgrade(engine)
+    _assert_rebuilt(engine, 1, COPIES, expected, {COPIES.generations - 1})
+    engine.dispose()

@@ -1327,8 +1327,8 @@ def _population(db: Session, run_id: int) -> int:
     latest = crud.latest_generation(db, run_id=run_id)
     if latest is None:
         return 0
-    found = crud.populations(db, run_id=run_id, generations=[latest.generation])
-    return sum(len(p) for p in found.values())
+    found = crud.stored(db, run_id=run_id, generations=[latest.generation])
+    return sum(len(p.fitness) for p in found.values())
 
 
 def _effective(

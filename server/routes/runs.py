@@ -171,7 +171,7 @@ def list_individuals(
         raise HTTPException(
             404, detail=f"run {run_id} has committed generations 0..{run.generation - 1} only"
         )
-    found, genomes = crud.ranked(session, run_id=run_id, generation=generation)
+    found, genomes = crud.ranked(session, run_id=run_id, generation=generation, components=True)
     spec = RunConfig.model_validate_json(run.config).network_spec
     return IndividualsOut(
         run_id=run_id,
@@ -182,7 +182,7 @@ def list_individuals(
                 index=int(found.index[rank]),
                 parent=found.parent_of(rank),
                 fitness=found.fitness_of(rank),
-                components=found.components[rank].tolist(),
+                components=[] if found.components is None else found.components[rank].tolist(),
                 sha256=controller_sha256(spec, genomes[rank]),
             )
             for rank in range(len(found))
