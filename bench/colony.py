@@ -32,7 +32,7 @@ from robot_agent.driver import BasicXDriver
 from robot_agent.emulator import BasicXEmulator
 from robot_agent.sim_body import SimBody
 from schemas.network import NetworkSpec
-from server.db import make_engine, upgrade
+from server.core.db import make_engine, upgrade
 from server.robots.service import RobotService
 from server.robots.store import TraceRow
 

@@ -47,10 +47,10 @@ from evorobotics.evaluate import trial_steps
 from evorobotics.evolution import RunLoop
 from schemas.run import RunConfig
 from schemas.wire import Ack, Result, decode, decode_result_reply, encode
-from server.dispatch import Dispatcher, DispatchSettings
-from server.manager import WRITE_AFTER_S
-from server.scheduler import Policy, Scheduler
-from server.settings import Settings
+from server.core.settings import Settings
+from server.runs.dispatch import Dispatcher, DispatchSettings
+from server.runs.lifecycle import WRITE_AFTER_S
+from server.runs.scheduler import Policy, Scheduler
 from worker.main import WorkerSettings, run_worker
 
 EMPTY = RunConfig(population=4, job_size=1, trials=1, steps=1, generations=100_000)
@@ -178,7 +178,7 @@ def bench_throughput(seconds: float, workers: int, windows: int) -> None:
                     server_us.append((time.process_time() - server_before) / done * 1e6)
                     workers_us.append((cpu_seconds(pids) - workers_before) / done * 1e6)
             # Stopped workers leave holding the job they were given: expected, not a warning.
-            logging.getLogger("server.dispatch").setLevel(logging.ERROR)
+            logging.getLogger("server.runs.dispatch").setLevel(logging.ERROR)
             stop_workers(procs, stop)
     finally:
         runs.close()

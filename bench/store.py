@@ -29,11 +29,11 @@ from pathlib import Path
 
 from schemas.run import RunConfig
 from schemas.wire import Job
-from server import crud
-from server.db import make_engine, upgrade
-from server.manager import RunManager
-from server.scheduler import run_job
-from server.settings import CHECKPOINT_EVERY, Settings
+from server.core.db import make_engine, upgrade
+from server.core.settings import CHECKPOINT_EVERY, Settings
+from server.runs import crud
+from server.runs.lifecycle import RunManager
+from server.runs.scheduler import run_job
 
 GENERATIONS = 60
 WARMUP = 5

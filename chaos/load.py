@@ -50,7 +50,7 @@ TRACED_SERVER = """
 import os, sys, threading, tracemalloc
 sys.argv = ["colony", *sys.argv[1:]]
 from colony.cli import main
-import server.app, server.dispatch, server.manager, server.robots.service  # imported before tracing
+import server.app, server.runs.dispatch, server.runs.lifecycle, server.robots.service  # imported before tracing
 inboxes = []  # (name, queue) of the zenoh callbacks' queues: their depth is reported too
 def keep(cls, method):
     original = getattr(cls, method)

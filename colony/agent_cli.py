@@ -117,7 +117,7 @@ def agent_command(
     from robot_agent.tracker import EmulatedTracker
     from schemas.security import ZenohClientAuth
     from schemas.world import world_from_json
-    from server.logs import as_format, configure
+    from server.core.logs import as_format, configure
 
     try:
         configure(log_level, as_format(log_format), ids={"robot": robot_id})

@@ -15,16 +15,16 @@ def check_command(
 ) -> None:
     """Read every generation and trace batch, verify its checksum and decode it; exit 1
     naming each damaged row (safe beside a running server: it only reads)."""
-    from server import crud
-    from server.db import (
+    from server.core.db import (
         StoreUnusableError,
         check_sqlite_file,
         make_engine,
         session_factory,
         sqlite_path,
     )
-    from server.errors import ServerError
-    from server.settings import Settings
+    from server.core.errors import ServerError
+    from server.core.settings import Settings
+    from server.runs import crud
 
     url = (Settings() if db is None else Settings(db_url=db)).db_url
     path = sqlite_path(url)

@@ -368,7 +368,7 @@ def _evolve(
     started = time.perf_counter()
     events = None
     if tensorboard is not None:
-        from server.tracking import RunEvents  # tensorboardX only when asked for
+        from server.runs.tracking import RunEvents  # tensorboardX only when asked for
 
         events = RunEvents(tensorboard)
     told_last = started  # after the last generation, `evolve` picks the champion: validation

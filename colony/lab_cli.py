@@ -42,7 +42,7 @@ def init_command(
     ] = None,
 ) -> None:
     """Write zenoh users and roles, the API token, the signing key, TLS files and env files."""
-    from server.lab import init_lab
+    from server.core.lab import init_lab
 
     try:
         lab = init_lab(

@@ -13,7 +13,7 @@ from colony.robot_cli import robot_app, robots_command, status, workers_command
 from colony.run_cli import run_app
 
 if TYPE_CHECKING:
-    from server.settings import Settings
+    from server.core.settings import Settings
 
 
 def serve(
@@ -107,8 +107,8 @@ def serve(
     import uvicorn
 
     from server.app import create_app
-    from server.auth import check_bind
-    from server.settings import Settings
+    from server.core.auth import check_bind
+    from server.core.settings import Settings
 
     overrides = {
         "db_url": db,
@@ -150,7 +150,7 @@ def serve(
         raise typer.Exit(1)
     from sqlalchemy.exc import OperationalError
 
-    from server.db import ServerLock, StoreUnusableError, check_sqlite_file
+    from server.core.db import ServerLock, StoreUnusableError, check_sqlite_file
 
     # one line and a non-zero exit, so a restart policy shows why (docs/reliability.md)
     try:
@@ -165,7 +165,7 @@ def serve(
         check_sqlite_file(settings.db_url)
         key_path = settings.server_key_path() or "an in-memory key"
         typer.echo(f"robot pushes are signed with {key_path}")
-        from server.logs import configure
+        from server.core.logs import configure
 
         configure(settings.log_level, settings.log_format)
         uvicorn.run(app, host=settings.host, port=settings.port, log_config=None)

@@ -38,7 +38,7 @@ def worker_command(
 ) -> None:
     """Pull evaluation jobs over zenoh and evaluate them; Ctrl-C finishes the current job."""
     from schemas.security import ZenohClientAuth
-    from server.logs import as_format, configure
+    from server.core.logs import as_format, configure
     from worker.main import (
         WorkerSettings,
         default_name,

@@ -173,7 +173,7 @@ class AgentSettings:
         conf.insert_json5(
             "scouting/multicast/enabled", "true" if self.multicast_scouting else "false"
         )
-        # no 16 MiB shared-memory pool per agent (zenoh's default; see server.dispatch)
+        # no 16 MiB shared-memory pool per agent (zenoh's default; see server.runs.dispatch)
         conf.insert_json5("transport/shared_memory/enabled", "false")
         for key, value in self.auth.entries():
             conf.insert_json5(key, value)

@@ -21,13 +21,11 @@ from fastapi.responses import JSONResponse
 from sqlalchemy.exc import OperationalError
 
 from schemas.api import ErrorOut
-from server import metrics
-from server.auth import SecurityMiddleware
-from server.db import Checkpointer, is_sqlite, make_engine, upgrade
-from server.dispatch import Dispatcher, DispatchSettings
-from server.errors import ServerError
-from server.executor import InProcessExecutor
-from server.manager import RunManager
+from server.core import metrics
+from server.core.auth import SecurityMiddleware
+from server.core.db import Checkpointer, is_sqlite, make_engine, upgrade
+from server.core.errors import ServerError
+from server.core.settings import Settings
 from server.robots import signing
 from server.robots.service import robot_service
 from server.robots.signing import Signer
@@ -41,8 +39,10 @@ from server.routes import (
     studies,
     workers,
 )
-from server.scheduler import Policy
-from server.settings import Settings
+from server.runs.dispatch import Dispatcher, DispatchSettings
+from server.runs.executor import InProcessExecutor
+from server.runs.lifecycle import RunManager
+from server.runs.scheduler import Policy
 from worker.local import LocalWorkers, local_endpoint
 
 log = logging.getLogger(__name__)

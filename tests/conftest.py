@@ -141,7 +141,7 @@ def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 @pytest.fixture
 def engine(db_url: str) -> Iterator[sa.Engine]:
     """An engine on `db_url`, migrated to the head revision; disposed after the test."""
-    from server.db import make_engine, upgrade
+    from server.core.db import make_engine, upgrade
 
     engine = make_engine(db_url)
     upgrade(engine)

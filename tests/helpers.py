@@ -33,12 +33,12 @@ if TYPE_CHECKING:
     from robot_agent.agent import Agent, AgentSettings
     from robot_agent.emulator import BasicXEmulator
     from schemas.wire import Result
-    from server.dispatch import DispatchSettings
-    from server.manager import RunManager
+    from server.core.settings import Settings
     from server.robots.service import RobotService, RobotSettings
     from server.robots.signing import Signer
-    from server.scheduler import Written
-    from server.settings import Settings
+    from server.runs.dispatch import DispatchSettings
+    from server.runs.lifecycle import RunManager
+    from server.runs.scheduler import Written
     from worker.main import Evaluator, WorkerStats
 
 SERVER_START_S = 60.0
@@ -77,7 +77,7 @@ def eventually(
 
 def dispatch_settings(port: int, **overrides: Any) -> DispatchSettings:
     """A dispatcher listening on 127.0.0.1:`port` only (multicast scouting off)."""
-    from server.dispatch import DispatchSettings
+    from server.runs.dispatch import DispatchSettings
 
     return DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",), **overrides)
 
@@ -274,7 +274,7 @@ class Served:
 def serve(tmp: Path, app: FastAPI | None = None) -> Iterator[Served]:
     """create_app (or `app`) under a real uvicorn on a free port, stopped on exit."""
     from server.app import create_app
-    from server.settings import Settings
+    from server.core.settings import Settings
 
     port = free_port()
     app = app or create_app(
@@ -355,7 +355,7 @@ def check_small_run(base_url: str) -> None:
 
 def evaluated(manager: RunManager, worker: str) -> Result | None:
     """`worker` leases a job and evaluates it (not yet settled); None when none is leasable."""
-    from server.scheduler import run_job
+    from server.runs.scheduler import run_job
 
     job = manager.scheduler.lease(worker)
     return None if job is None else run_job(job, worker)
@@ -461,7 +461,7 @@ def robot_link(
     archives through the app's run manager; it signs with `signer` if given."""
     import zenoh
 
-    from server.db import make_engine
+    from server.core.db import make_engine
     from server.robots.service import RobotService, RobotSettings
 
     port = port or free_port()

@@ -35,8 +35,8 @@ from schemas.robots import (
 )
 from schemas.security import ZenohClientAuth, ZenohRoles
 from schemas.wire import KEY_JOB_NEXT, JobRequest, encode, next_key
-from server.lab import init_lab
-from server.settings import Settings
+from server.core.lab import init_lab
+from server.core.settings import Settings
 from tests.helpers import (
     client_config,
     eventually,

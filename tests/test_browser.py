@@ -18,7 +18,7 @@ import httpx
 import pytest
 
 from server.app import create_app
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import (
     QUICK,
     Colony,

@@ -14,11 +14,11 @@ from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.evaluate import evaluate
 from evorobotics.evolution import RunLoop, champion
 from schemas.run import RunConfig, ValidationConfig
-from server import crud
-from server.db import make_engine, upgrade
-from server.manager import RunManager
+from server.core.db import make_engine, upgrade
+from server.core.settings import Settings
 from server.robots.service import ranked_document
-from server.settings import Settings
+from server.runs import crud
+from server.runs.lifecycle import RunManager
 from tests.helpers import (
     WAIT,
     Colony,

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from colony.cli import app
 from server.app import create_app
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import eventually, free_port
 
 SMALL = ["--population", "8", "--generations", "3", "--steps", "10", "--job-size", "4"]
@@ -151,7 +151,7 @@ if __name__ == "__main__":  # regenerate the table in docs/configuration.md
 def test_json_logs_carry_context_ids(capsys: pytest.CaptureFixture[str]) -> None:
     import logging
 
-    from server.logs import configure, context
+    from server.core.logs import configure, context
 
     root = logging.getLogger()
     saved = (root.handlers[:], root.level)

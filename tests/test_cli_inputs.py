@@ -21,10 +21,10 @@ from colony.robot_cli import ago
 from evorobotics.evolution import evolve
 from schemas.network import PRESETS
 from schemas.run import RunConfig
-from server import crud
-from server.db import make_engine, upgrade
-from server.errors import InvalidInputError, NotFoundError
-from server.settings import Settings
+from server.core.db import make_engine, upgrade
+from server.core.errors import InvalidInputError, NotFoundError
+from server.core.settings import Settings
+from server.runs import crud
 from tests.helpers import (
     QUICK,
     SMALL,

@@ -23,10 +23,10 @@ from typer.testing import CliRunner
 
 from colony.cli import app
 from schemas.security import ZenohRoles
-from server.auth import check_bind
-from server.dispatch import DispatchSettings
-from server.robots.signing import load_or_create_key, public_pem
-from server.settings import Settings
+from server.core.auth import check_bind
+from server.core.keys import load_or_create_key, public_pem
+from server.core.settings import Settings
+from server.runs.dispatch import DispatchSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"

@@ -34,8 +34,8 @@ from schemas.wire import (
     result_key,
     worker_key,
 )
-from server.dispatch import Dispatcher, DispatchSettings
-from server.scheduler import Policy, Scheduler, Written
+from server.runs.dispatch import Dispatcher, DispatchSettings
+from server.runs.scheduler import Policy, Scheduler, Written
 from tests.helpers import (
     as_worker,
     dispatch_settings,
@@ -285,7 +285,7 @@ def test_a_worker_of_another_protocol_waits_out_the_long_poll_and_is_not_counted
 
 def test_spans_over_zenoh_match_evolve_bit_for_bit(caplog: pytest.LogCaptureFixture) -> None:
     config = RunConfig(population=8, generations=25, trials=1, steps=5, job_size=8, seed=3)
-    caplog.set_level(logging.INFO, logger="server.dispatch")
+    caplog.set_level(logging.INFO, logger="server.runs.dispatch")
     with serve() as served, workers(served.port, ["solo"], evaluate_slice) as stats:
         assert eventually(lambda: len(served.scheduler.workers()) == 1, timeout=WAIT)
         served.scheduler.add(1, RunLoop(config), running=True)

@@ -20,7 +20,7 @@ from evorobotics.robustness import robustness
 from schemas.network import PRESETS
 from schemas.run import ValidationScore
 from schemas.world import World
-from server import crud
+from server.runs import crud
 from tests.helpers import Served, completed_run, serve
 
 REACTIVE = PRESETS["reactive"]

@@ -26,8 +26,8 @@ import sqlalchemy as sa
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
-from server.db import ServerLock, StoreUnusableError, make_engine, upgrade
-from server.settings import Settings
+from server.core.db import ServerLock, StoreUnusableError, make_engine, upgrade
+from server.core.settings import Settings
 from tests.helpers import (
     SERVER_START_S,
     TINY,

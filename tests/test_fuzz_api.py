@@ -20,7 +20,7 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
 )
 
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import SMALL, free_port, serving, wait_status
 
 

@@ -67,10 +67,10 @@ from schemas.wire import (
     next_key,
     result_key,
 )
-from server.db import make_engine, upgrade
-from server.dispatch import Dispatcher, DispatchSettings
+from server.core.db import make_engine, upgrade
 from server.robots.service import RobotService, RobotSettings
-from server.scheduler import Policy, Scheduler
+from server.runs.dispatch import Dispatcher, DispatchSettings
+from server.runs.scheduler import Policy, Scheduler
 from tests.helpers import (
     WAIT,
     as_worker,

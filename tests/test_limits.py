@@ -18,7 +18,7 @@ from schemas.robots import (
 )
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES
 from schemas.wire import WireError
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import free_port, serving
 
 

@@ -17,9 +17,9 @@ from prometheus_client.parser import text_string_to_metric_families
 from schemas.run import RunConfig
 from schemas.wire import Result
 from server.app import create_app
-from server.db import make_engine, upgrade
-from server.manager import RunManager
-from server.settings import Settings
+from server.core.db import make_engine, upgrade
+from server.core.settings import Settings
+from server.runs.lifecycle import RunManager
 from tests.helpers import eventually
 
 SMALL = {"population": 8, "generations": 3, "steps": 10, "job_size": 4}

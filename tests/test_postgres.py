@@ -21,12 +21,12 @@ from alembic.script import ScriptDirectory
 from sqlalchemy.orm import Session
 
 from evorobotics.evolution import evolve
-from server import crud
-from server.db import alembic_config, upgrade
-from server.manager import RunManager
-from server.models import Base
+from server.core.db import alembic_config, upgrade
+from server.core.models import Base
+from server.core.settings import Settings
 from server.robots.store import StuckEventRow, TraceRow
-from server.settings import Settings
+from server.runs import crud
+from server.runs.lifecycle import RunManager
 from tests.helpers import TINY, check_small_run, drain, evaluated, free_port, serving
 
 TABLES = {

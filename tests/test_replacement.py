@@ -19,9 +19,9 @@ from colony.cli import app as cli
 from evorobotics.document import ControllerDocument
 from robot_agent.stuck import StuckConfig
 from schemas.network import NetworkSpec
-from server import crud
-from server.models import Run
-from server.settings import Settings
+from server.core.models import Run
+from server.core.settings import Settings
+from server.runs import crud
 from tests.helpers import (
     QUICK,
     WAIT,

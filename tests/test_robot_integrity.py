@@ -49,13 +49,14 @@ from schemas.robots import (
     tracker_key,
 )
 from schemas.wire import decode_frame, encode_frame
-from server import crud
-from server.db import make_engine, upgrade
-from server.models import Robot
+from server.core.db import make_engine, upgrade
+from server.core.keys import load_or_create_key
+from server.core.models import Robot
+from server.core.settings import Settings
 from server.robots.service import RobotService, RobotSettings
-from server.robots.signing import Signer, load_or_create_key
+from server.robots.signing import Signer
 from server.robots.store import FieldStatsRow, RobotStateRow, TraceRow
-from server.settings import Settings
+from server.runs import crud
 from tests.helpers import (
     WAIT,
     Colony,

@@ -28,8 +28,8 @@ from robot_agent.sim_body import SimBody
 from schemas.robots import POSE_LIMIT, RobotStatus, TraceBatch, decode_trace, encode_trace
 from schemas.wire import WireError, decode_frame, encode_frame
 from schemas.world import World
+from server.core.settings import Settings
 from server.robots.store import StuckEventRow, TraceRow
-from server.settings import Settings
 from tests.helpers import (
     QUICK,
     WAIT,
@@ -277,7 +277,7 @@ def test_the_map_places_stuck_events_at_their_steps_pose(engine: sa.Engine) -> N
     robots without any give no path."""
     from sqlalchemy.orm import sessionmaker
 
-    from server.models import Robot
+    from server.core.models import Robot
     from server.robots.map import colony_map
 
     def line(start: float) -> np.ndarray:

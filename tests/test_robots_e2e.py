@@ -13,7 +13,7 @@ from typing import Any
 import httpx
 import pytest
 
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import QUICK, WAIT, completed_run, eventually, free_port, serving
 
 

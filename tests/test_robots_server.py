@@ -42,11 +42,11 @@ from schemas.robots import encode_message as encode_robot_message
 from schemas.run import RunConfig
 from schemas.wire import WireError
 from schemas.world import World
-from server import crud
-from server.models import Robot, Run
+from server.core.models import Robot, Run
+from server.core.settings import Settings
 from server.robots.service import RobotSettings, replay_trace
 from server.robots.store import FieldStatsRow, StuckEventRow, TraceRow, trace_checksum
-from server.settings import Settings
+from server.runs import crud
 from tests.helpers import (
     QUICK,
     WAIT,

@@ -14,7 +14,7 @@ from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
-from server.scheduler import (
+from server.runs.scheduler import (
     SPEED_MAX,
     SPEED_MIN,
     Policy,

@@ -21,11 +21,12 @@ from evorobotics.evolution import RunLoop
 from robot_agent.verify import Verifier
 from schemas.run import RunConfig
 from schemas.security import ZenohClientAuth, ZenohRoles, ZenohRouterAuth
-from server.dispatch import Dispatcher
-from server.lab import certificates
-from server.robots.signing import Signer, load_or_create_key
-from server.scheduler import Scheduler, Written
-from server.settings import Settings
+from server.core.keys import load_or_create_key
+from server.core.lab import certificates
+from server.core.settings import Settings
+from server.robots.signing import Signer
+from server.runs.dispatch import Dispatcher
+from server.runs.scheduler import Scheduler, Written
 from tests.helpers import dispatch_settings, eventually, fake_evaluator, free_port, serving
 from worker.main import WorkerSettings, WorkerStats, run_worker
 

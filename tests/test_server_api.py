@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from colony.cli import app as cli
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import (
     SMALL,
     WAIT,

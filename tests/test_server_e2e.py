@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session
 
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig
-from server import crud
+from server.runs import crud
 from tests.helpers import free_port
 
 CONFIG = {"population": 12, "generations": 1200, "steps": 20, "job_size": 5, "seed": 3}

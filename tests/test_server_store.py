@@ -30,16 +30,23 @@ from evorobotics.ga import GAParams, GAState, ask, ga_rng, init, tell
 from evorobotics.layout import layout
 from schemas.run import GAConfig, RunConfig
 from schemas.wire import Job, JobKey, Result, decode_frame, encode_frame, genome_digest
-from server import crud
-from server.db import Checkpointer, alembic_config, make_engine, upgrade
-from server.errors import NotFoundError, ServerError
-from server.integrity import unseal
-from server.manager import RunManager
-from server.models import Generation
-from server.population import PopulationError, Stored, decode, decode_state, encode, encode_state
+from server.core.db import Checkpointer, alembic_config, make_engine, upgrade
+from server.core.errors import NotFoundError, ServerError
+from server.core.integrity import unseal
+from server.core.models import Generation
+from server.core.settings import Settings
 from server.robots.service import ranked_document
-from server.scheduler import run_job
-from server.settings import Settings
+from server.runs import crud
+from server.runs.lifecycle import RunManager
+from server.runs.population import (
+    PopulationError,
+    Stored,
+    decode,
+    decode_state,
+    encode,
+    encode_state,
+)
+from server.runs.scheduler import run_job
 from tests.helpers import TINY, WAIT, drain, evaluated, eventually
 
 TABLES = {"runs", "generations", "controllers", "robots"}

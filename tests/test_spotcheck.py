@@ -34,7 +34,7 @@ from schemas.wire import (
     result_key,
     worker_key,
 )
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import (
     WAIT,
     client_config,
@@ -189,7 +189,7 @@ def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
         f"run {done.run_id} generation " in reason and "claimed " in reason
     )  # fitness or components
     assert done.workers["honest"]["quarantined"] is False
-    warned = [r.getMessage() for r in caplog.records if r.name == "server.scheduler"]
+    warned = [r.getMessage() for r in caplog.records if r.name == "server.runs.scheduler"]
     assert len(warned) == 1 and "worker rogue quarantined" in warned[0] and reason in warned[0]
     assert "colony_workers_quarantined 1.0" in done.metrics
     assert "colony_spot_check_mismatches_total 1.0" in done.metrics

@@ -17,9 +17,9 @@ import sqlalchemy as sa
 from evorobotics.document import controller_sha256
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig, StrategyConfig, StrategyName, ValidationConfig
-from server import crud
-from server.manager import RunManager
-from server.settings import Settings
+from server.core.settings import Settings
+from server.runs import crud
+from server.runs.lifecycle import RunManager
 from tests.helpers import completed_run, drain, evaluated, free_port, serving
 
 CONFIG = RunConfig(

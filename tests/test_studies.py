@@ -15,7 +15,7 @@ import pytest
 from evorobotics.evolution import evolve
 from evorobotics.stats import METRICS
 from schemas.run import RunConfig
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import eventually, free_port, serving, worker_thread
 
 TINY: dict[str, Any] = {

@@ -26,7 +26,7 @@ from colony.export import (
     Kind,
     read_csv_table,
 )
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import free_port, serving
 
 TINY: dict[str, Any] = {

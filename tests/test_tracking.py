@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from colony.cli import app as cli
 from evorobotics.document import ControllerDocument
 from server.app import create_app
-from server.settings import Settings
+from server.core.settings import Settings
 from tests.helpers import completed_run, serve
 
 CONFIG = {

@@ -33,8 +33,8 @@ from schemas.wire import (
     encode,
     encode_frame,
 )
-from server.dispatch import Dispatcher, DispatchSettings
-from server.scheduler import Scheduler, Written
+from server.runs.dispatch import Dispatcher, DispatchSettings
+from server.runs.scheduler import Scheduler, Written
 from tests.helpers import (
     WAIT,
     eventually,
@@ -320,7 +320,7 @@ def test_a_span_is_evolved_by_the_run_loop_and_counts_every_generation(
 ) -> None:
     """A fast worker gets spans from the real scheduler: the run's generations are the ones
     the run loop asks in this process, whoever evaluated them."""
-    caplog.set_level(logging.INFO, logger="server.dispatch")
+    caplog.set_level(logging.INFO, logger="server.runs.dispatch")
     port = free_port()
     config = CONFIG.model_copy(update={"generations": 6})
     with (

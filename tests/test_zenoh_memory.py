@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from robot_agent.agent import AgentSettings
-from server.dispatch import DispatchSettings
+from server.runs.dispatch import DispatchSettings
 from tests.helpers import client_config, dispatch_settings, free_port
 
 STATUS = Path("/proc/self/status")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import Engine, create_engine
 
-from server.models import Base
+from server.core.models import Base
 
 config = context.config
 target_metadata = Base.metadata

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from evorobotics.maze import load_maze
 from schemas.robots import ColonyMapOut, MapMaze, MapRobot, MapStuck
-from server.models import Robot, aware
+from server.core.models import Robot, aware
 from server.robots.service import trace_poses
 from server.robots.store import StuckEventRow, TraceRow
 

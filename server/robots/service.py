@@ -92,10 +92,9 @@ from schemas.robots import (
 from schemas.run import RunConfig
 from schemas.wire import WireError
 from schemas.world import MAX_GAP_ROBOTS, World
-from server import crud
-from server.errors import NotFoundError, ServerError
-from server.logs import context
-from server.models import Controller, Robot, Run, aware, utcnow
+from server.core.errors import NotFoundError, ServerError
+from server.core.logs import context
+from server.core.models import Controller, Robot, Run, aware, utcnow
 from server.robots.signing import Signer
 from server.robots.store import (
     FieldStatsRow,
@@ -105,6 +104,7 @@ from server.robots.store import (
     check_trace,
     trace_checksum,
 )
+from server.runs import crud
 
 log = logging.getLogger(__name__)
 

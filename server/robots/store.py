@@ -12,8 +12,8 @@ from datetime import datetime
 from sqlalchemy import BigInteger, Boolean, DateTime, Index, Integer, LargeBinary, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
-from server.integrity import DamagedRowError, checksum
-from server.models import Base, utcnow
+from server.core.integrity import DamagedRowError, checksum
+from server.core.models import Base, utcnow
 
 
 class TraceRow(Base):

@@ -10,12 +10,12 @@ from fastapi.responses import JSONResponse
 
 from schemas.api import ColonyOut, HealthOut, JobCounts
 from schemas.robots import ColonyMapOut
-from server import crud
-from server.deps import SessionDep, WorkersDep
-from server.manager import RunManager
 from server.robots.map import PATH_SAMPLES, colony_map
 from server.robots.service import RobotService, robot_summaries
+from server.routes.deps import SessionDep, WorkersDep
 from server.routes.runs import run_out
+from server.runs import crud
+from server.runs.lifecycle import RunManager
 
 router = APIRouter(tags=["colony"])
 

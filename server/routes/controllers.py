@@ -9,9 +9,9 @@ from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
 from evorobotics.errors import EvoError
 from evorobotics.maze import is_shipped_or_generated, load_maze
-from server import crud
-from server.deps import ManagerDep, SessionDep
-from server.evaluation import EVALUATIONS, MapParams, Params
+from server.routes.deps import ManagerDep, SessionDep
+from server.runs import crud
+from server.studies.evaluation import EVALUATIONS, MapParams, Params
 
 router = APIRouter(prefix="/api/controllers", tags=["controllers"])
 

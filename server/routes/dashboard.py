@@ -24,11 +24,11 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from sqlalchemy import select
 
-from server.deps import get_workers
-from server.manager import RunManager
-from server.models import Generation, Run
+from server.core.models import Generation, Run
 from server.robots.service import RobotService
+from server.routes.deps import get_workers
 from server.routes.runs import run_out
+from server.runs.lifecycle import RunManager
 
 router = APIRouter(tags=["dashboard"])
 

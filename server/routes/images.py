@@ -18,8 +18,8 @@ from fastapi import APIRouter, Header, HTTPException, Response
 
 from evorobotics.document import ControllerDocument
 from schemas.run import RunConfig
-from server import crud
-from server.deps import ManagerDep, SessionDep
+from server.routes.deps import ManagerDep, SessionDep
+from server.runs import crud
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 

@@ -22,12 +22,12 @@ from schemas.api import (
     RunStatus,
 )
 from schemas.run import RunConfig
-from server import crud
-from server.auth import run_limit_error
-from server.deps import ManagerDep, SessionDep
-from server.errors import NotFoundError
-from server.models import Run, aware
+from server.core.auth import run_limit_error
+from server.core.errors import NotFoundError
+from server.core.models import Run, aware
 from server.robots.service import with_colony_gap
+from server.routes.deps import ManagerDep, SessionDep
+from server.runs import crud
 
 RunId = Annotated[int, Path(ge=0, le=2**63 - 1, description="a run id (64-bit)")]
 """Bounded so an id beyond the database's integers is a 422, not an overflow."""

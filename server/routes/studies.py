@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Response, status
 
 from schemas.study import StudyCreate, StudyOut
-from server.deps import StudiesDep
+from server.routes.deps import StudiesDep
 
 router = APIRouter(prefix="/api/studies", tags=["studies"])
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from schemas.api import WorkerOut
-from server.deps import WorkersDep
+from server.routes.deps import WorkersDep
 
 router = APIRouter(tags=["workers"])
 

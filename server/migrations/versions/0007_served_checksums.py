@@ -3,7 +3,7 @@
 Field statistics count a controller's steps and stuck events only on robots the server gave it
 to (a push the robot acknowledged, or a replacement it was sent), so no robot raises another
 controller's figures by naming it (docs/security.md). Robots before: none recorded (null).
-A trace batch's arrays share one CRC-32, verified on every read (`server.integrity`); batches
+A trace batch's arrays share one CRC-32, verified on every read (`server.core.integrity`); batches
 stored before: null, read unverified.
 
 Revision ID: 0007_served_checksums

@@ -3,7 +3,7 @@
 A run is a pure function of its config, seed and the fitness it was told, so a generation keeps
 its statistics and its told fitness (and descriptors, for a strategy that resumes from them);
 every 50th generation, a run's last written one and its final one also keep their GA state,
-genomes and components, from which the others are replayed (`server.population`,
+genomes and components, from which the others are replayed (`server.runs.population`,
 `server.crud.replay`). Rows before held every generation's individuals by rank, a copy pointing
 to the earlier row with its genome bytes; they are rewritten here, a run at a time. The freed
 pages are reused by later rows (VACUUM returns them to the file system).

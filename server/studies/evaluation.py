@@ -1,7 +1,7 @@
 """Exploration reports and robustness maps of stored controllers, computed once and kept.
 
 One cache serves `GET /api/controllers/{sha}/evaluation`, `.../robustness` and the studies'
-final metrics (`server.studies`), keyed by the document's text and the parameters: a report
+final metrics (`server.studies.service`), keyed by the document's text and the parameters: a report
 is a pure function of them, and the dashboard, the CLI and a study asking again cost nothing.
 """
 

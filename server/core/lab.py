@@ -24,7 +24,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
 from schemas.security import ZenohRoles
-from server.robots.signing import load_or_create_key, public_pem
+from server.core.keys import load_or_create_key, public_pem
 
 LOCAL_WORKERS = "local"
 """The zenoh user of the server's own local workers (`colony server --workers N`)."""

@@ -11,8 +11,8 @@ from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 
 from schemas.api import WorkerOut
-from server.manager import RunManager
-from server.studies import StudyService
+from server.runs.lifecycle import RunManager
+from server.studies.service import StudyService
 
 
 def get_manager(request: Request) -> RunManager:

@@ -39,10 +39,10 @@ from schemas.wire import (
     encode,
     worker_key,
 )
-from server.auth import is_loopback
-from server.logs import context
-from server.scheduler import Scheduler
-from server.settings import Settings
+from server.core.auth import is_loopback
+from server.core.logs import context
+from server.core.settings import Settings
+from server.runs.scheduler import Scheduler
 
 log = logging.getLogger(__name__)
 

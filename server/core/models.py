@@ -98,7 +98,7 @@ class Generation(Base):
     `ranked` (this generation's genomes in rank order) since `population` holds them; None
     between checkpoints."""
     population: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)
-    """What the generation was told, in ask order (`server.population`): fitness, descriptors
+    """What the generation was told, in ask order (`server.runs.population`): fitness, descriptors
     for a strategy that resumes from them, and at a checkpoint its genomes and components.
     Deferred: listing generations reads only their statistics."""
     committed_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -1,6 +1,6 @@
 """The run manager: lifecycle of runs in the store, and the writer of told generations.
 
-Each live run is a `RunLoop` (evorobotics) served by the scheduler (`server.scheduler`), which
+Each live run is a `RunLoop` (evorobotics) served by the scheduler (`server.runs.scheduler`), which
 tells and asks it as results come. The manager builds a run's loop from its last committed GA
 state (`ask` is a pure function of that state and the seed, so a restarted server resumes
 exactly), and its one thread writes what the scheduler told: every `WRITE_AFTER_S` the told
@@ -9,7 +9,7 @@ A crash loses at most those, which a restart recomputes bit for bit.
 
 The write path uses SQLAlchemy Core statements; lifecycle changes use the ORM and write the
 told generations first. A generation is one row holding its statistics and what it was told
-(`server.population`); every `Settings.checkpoint_every`-th and the last also hold the GA state,
+(`server.runs.population`); every `Settings.checkpoint_every`-th and the last also hold the GA state,
 genomes and components, from which the generations after it are replayed.
 
 Lifecycle: queued -> running <-> paused; queued/running/paused -> cancelled;
@@ -46,16 +46,16 @@ from evorobotics.ga import rank
 from evorobotics.strategies import Archive, traits
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
-from server import crud, population
-from server.db import session_factory
-from server.errors import NotFoundError, ServerError, TransitionError
-from server.integrity import seal
-from server.logs import context
-from server.models import Generation, Run, Study, utcnow
-from server.population import Stored
-from server.scheduler import Policy, Scheduler, Written
-from server.settings import Settings
-from server.tracking import Tracker
+from server.core.db import session_factory
+from server.core.errors import NotFoundError, ServerError, TransitionError
+from server.core.integrity import seal
+from server.core.logs import context
+from server.core.models import Generation, Run, Study, utcnow
+from server.core.settings import Settings
+from server.runs import crud, population
+from server.runs.population import Stored
+from server.runs.scheduler import Policy, Scheduler, Written
+from server.runs.tracking import Tracker
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 
-from server.scheduler import Scheduler, run_job
+from server.runs.scheduler import Scheduler, run_job
 
 
 class InProcessExecutor:

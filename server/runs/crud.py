@@ -1,6 +1,6 @@
 """Reads and small writes of the store, keyword-only so call sites name what they pass.
 
-The run loop's writes (generation commits) live in `server.manager`; jobs in `server.scheduler`.
+The run loop's writes (generation commits) live in `server.runs.lifecycle`; jobs in `server.runs.scheduler`.
 """
 
 from __future__ import annotations
@@ -19,10 +19,11 @@ from evorobotics.strategies import traits
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from schemas.wire import WireError, decode_frame
-from server import integrity, population
-from server.errors import InvalidInputError, NotFoundError, ServerError
-from server.models import Controller, Generation, Run, Study, utcnow
-from server.population import Population, Stored
+from server.core import integrity
+from server.core.errors import InvalidInputError, NotFoundError, ServerError
+from server.core.models import Controller, Generation, Run, Study, utcnow
+from server.runs import population
+from server.runs.population import Population, Stored
 
 
 def get_run(session: Session, *, run_id: int) -> Run | None:

@@ -48,8 +48,8 @@ from evorobotics.evolution import RunLoop, Told, job_slices
 from evorobotics.strategies import traits
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus, genome_digest
-from server.logs import context
-from server.settings import Settings
+from server.core.logs import context
+from server.core.settings import Settings
 
 log = logging.getLogger(__name__)
 

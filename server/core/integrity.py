@@ -12,7 +12,7 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterable
 
-from server.errors import ServerError
+from server.core.errors import ServerError
 
 SEAL = b"CRC1"
 """Starts a sealed blob; a bare frame starts with `schemas.wire.MAGIC` instead."""

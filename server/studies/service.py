@@ -10,7 +10,7 @@ A completed run's metrics come from its champion: `validation_score` from the do
 `validation` member, `gap_roaming` and `gap_stuck` from its held-out `test` under the reality
 gap; `roaming`, `stuck` (by the report's horizon), `max_offset` and `coverage`
 from its exploration report on unseen start poses at `colony evaluate`'s defaults (not from
-the validation poses: the champion was chosen on those, so they flatter it) (`server.evaluation`, the cache that serves
+the validation poses: the champion was chosen on those, so they flatter it) (`server.studies.evaluation`, the cache that serves
 `GET /api/controllers/{sha}/evaluation`). A report costs about a second of one core, so it is
 computed by one background thread; until then those metrics are None.
 """
@@ -33,12 +33,12 @@ from sqlalchemy.orm import Session
 from evorobotics.errors import EvoError
 from evorobotics.stats import METRICS, Summary, compare, summarize, verdicts
 from schemas.study import ComparisonOut, StudyCreate, StudyOut, StudyRun, StudySummary
-from server import crud
-from server.auth import run_limit_error
-from server.errors import NotFoundError, ServerError
-from server.evaluation import EVALUATIONS, Evaluations, Params
-from server.manager import RunManager
-from server.models import Controller, Generation, Study, aware
+from server.core.auth import run_limit_error
+from server.core.errors import NotFoundError, ServerError
+from server.core.models import Controller, Generation, Study, aware
+from server.runs import crud
+from server.runs.lifecycle import RunManager
+from server.studies.evaluation import EVALUATIONS, Evaluations, Params
 
 log = logging.getLogger(__name__)
 
