@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -204,39 +205,82 @@ def rank_in_world(
     return np.lexsort((np.arange(len(scored.score)), -scored.score, -scored.roaming)), scored
 
 
-def _world_score(
-    config: RunConfig, weights: np.ndarray, poses: np.ndarray, gap: Gap | None, threads: int
-) -> WorldScore:
-    """One controller from every test pose, in slices of poses on `threads` threads."""
-    steps = config.validation.steps
+@dataclass(frozen=True)
+class HeldOutTrials:
+    """Test poses start:stop of a controller's held-out test, row 0 in the nominal world and
+    row 1 in the test gap's: roaming and stuck (bool) and the largest offset from start (m),
+    each (2, stop - start). Slices of poses concatenate to the whole test, bit for bit."""
+
+    roaming: np.ndarray
+    stuck: np.ndarray
+    offset: np.ndarray
+
+    @staticmethod
+    def concatenate(parts: list[HeldOutTrials]) -> HeldOutTrials:
+        return HeldOutTrials(
+            *(np.concatenate([getattr(p, f) for p in parts], axis=1) for f in _HELD_OUT_FIELDS)
+        )
+
+
+_HELD_OUT_FIELDS = ("roaming", "stuck", "offset")
+
+
+def held_out_trials(
+    config: RunConfig, weights: np.ndarray, start: int, stop: int, *, threads: int = 1
+) -> HeldOutTrials:
+    """Test poses start:stop of `held_out` for one controller, in slices of poses on
+    `threads` threads; a job of the held-out test is one such slice."""
+    v = config.validation
+    if not 0 <= start < stop <= v.test_poses:
+        raise ValueError(f"test poses {start}:{stop} outside the test's {v.test_poses}")
     maze = load_maze(config.maze)
+    poses = start_poses(maze, config.seed, 0, v.test_poses, config.world, Purpose.TEST)[start:stop]
+    gap = draw_gap(config.seed, 0, v.test_poses, config.world, Purpose.TEST_GAP, v.steps)
+    gap = Gap(gap.whisker_range[start:stop], gap.motor_gain[start:stop])
     w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
 
-    def run(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def run(world: Gap | None, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         result = simulate(
             config.network_spec,
             np.repeat(w, b - a, axis=0),
             maze,
             poses[a:b],
-            steps,
+            v.steps,
             params=config.world,
-            gap=None if gap is None else Gap(gap.whisker_range[a:b], gap.motor_gain[a:b]),
+            gap=None if world is None else Gap(world.whisker_range[a:b], world.motor_gain[a:b]),
             record=True,
         )
         assert result.poses is not None
         free = ~confined(result.poses, result.stuck_step) & ~result.stuck
         return free, result.stuck, result.max_offset
 
-    parts = map_slices(run, thread_slices(len(poses), threads), threads)
-    free, stuck, offset = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    n = len(poses)
+    rows = []
+    for world in (None, gap):
+        parts = map_slices(partial(run, world), thread_slices(len(poses), threads), threads)
+        rows.append([np.concatenate([p[i] for p in parts]) for i in range(3)])
+    return HeldOutTrials(*(np.stack([row[i] for row in rows]) for i in range(3)))
+
+
+def held_out_score(config: RunConfig, trials: HeldOutTrials) -> HeldOutScore:
+    """The held-out test's figures from all its trials (`held_out_trials` of every pose)."""
+    v = config.validation
+    n = trials.roaming.shape[1]
+    if n != v.test_poses:
+        raise ValueError(f"{n} test trials for a test of {v.test_poses} poses")
 
     def proportion(hits: np.ndarray) -> Proportion:
         low, high = wilson(int(hits.sum()), n)
         return Proportion(value=float(hits.mean()), low=low, high=high)
 
-    return WorldScore(
-        roaming=proportion(free), stuck=proportion(stuck), max_offset=float(offset.mean())
+    def world(i: int) -> WorldScore:
+        return WorldScore(
+            roaming=proportion(trials.roaming[i]),
+            stuck=proportion(trials.stuck[i]),
+            max_offset=float(trials.offset[i].mean()),
+        )
+
+    return HeldOutScore(
+        poses=v.test_poses, steps=v.steps, seed=config.seed, nominal=world(0), gap=world(1)
     )
 
 
@@ -248,15 +292,56 @@ def held_out(config: RunConfig, weights: np.ndarray, *, threads: int = 1) -> Hel
     v = config.validation
     if v.test_poses < 1:
         raise ValueError("the test is off (validation.test_poses = 0)")
-    maze = load_maze(config.maze)
-    poses = start_poses(maze, config.seed, 0, v.test_poses, config.world, Purpose.TEST)
-    gap = draw_gap(config.seed, 0, v.test_poses, config.world, Purpose.TEST_GAP, v.steps)
-    return HeldOutScore(
-        poses=v.test_poses,
-        steps=v.steps,
-        seed=config.seed,
-        nominal=_world_score(config, weights, poses, None, threads),
-        gap=_world_score(config, weights, poses, gap, threads),
+    return held_out_score(
+        config, held_out_trials(config, weights, 0, v.test_poses, threads=threads)
+    )
+
+
+def validation_pick(scored: Validated) -> int:
+    """The validated candidate the champion is: most roaming validation trials, ties to the
+    higher mean Eq 12 there, then to the better training rank (lexsort's last key leads)."""
+    return int(np.lexsort((np.arange(len(scored.score)), -scored.score, -scored.roaming))[0])
+
+
+def champion_document(
+    config: RunConfig,
+    genomes: np.ndarray,
+    fitness: np.ndarray,
+    order: np.ndarray,
+    scored: Validated | None,
+    test: HeldOutScore | None,
+    *,
+    generation: int,
+    run: str | int = "local",
+) -> ControllerDocument:
+    """The champion's document from its candidates' validation (`validate` of
+    `order[:validation.candidates]`; None with validation off: training rank 0) and the
+    held-out test of the pick (`validation_pick`), wherever they were simulated."""
+    v = config.validation
+    if scored is None:
+        return best_document(
+            config, genomes, fitness, order, generation=generation, run=run, test=test
+        )
+    pick = validation_pick(scored)
+    return best_document(
+        config,
+        genomes,
+        fitness,
+        order,
+        generation=generation,
+        run=run,
+        rank=pick,
+        validation=ValidationScore(
+            poses=v.poses,
+            steps=v.steps,
+            seed=config.seed,
+            candidates=len(scored.score),
+            training_rank=pick,
+            score=float(scored.score[pick]),
+            stuck=float(scored.stuck[pick]),
+            roaming=float(scored.roaming[pick]),
+        ),
+        test=test,
     )
 
 
@@ -275,46 +360,18 @@ def champion(
 
     Training ranks a generation on a few short trials, so its rank 0 is partly luck (a
     winner's curse). The `config.validation.candidates` fittest on training are re-scored on
-    the run's validation set (`validate`); the champion roams on the most validation trials,
-    ties to the higher mean Eq 12 there, then to the better training rank. Its document
-    carries those figures, and its held-out test (`held_out`, with `validation.test_poses` >
-    0). With validation off it is training rank 0.
+    the run's validation set (`validate`); the champion is `validation_pick` of them. Its
+    document carries those figures, and its held-out test (`held_out`, with
+    `validation.test_poses` > 0). With validation off it is training rank 0.
     """
     v = config.validation
     genomes = np.asarray(genomes)
-
-    def tested(rank: int) -> HeldOutScore | None:
-        if v.test_poses == 0:
-            return None
-        return held_out(config, genomes[int(order[rank])], threads=threads)
-
-    if v.poses == 0:
-        return best_document(
-            config, genomes, fitness, order, generation=generation, run=run, test=tested(0)
-        )
-    candidates = np.asarray(order[: v.candidates])
-    scored = validate(config, genomes[candidates], threads=threads)
-    # lexicographic: roaming, then Eq 12, then training rank (lexsort's last key is primary)
-    pick = int(np.lexsort((np.arange(len(candidates)), -scored.score, -scored.roaming))[0])
-    return best_document(
-        config,
-        genomes,
-        fitness,
-        order,
-        generation=generation,
-        run=run,
-        rank=pick,
-        validation=ValidationScore(
-            poses=v.poses,
-            steps=v.steps,
-            seed=config.seed,
-            candidates=len(candidates),
-            training_rank=pick,
-            score=float(scored.score[pick]),
-            stuck=float(scored.stuck[pick]),
-            roaming=float(scored.roaming[pick]),
-        ),
-        test=tested(pick),
+    order = np.asarray(order)
+    scored = validate(config, genomes[order[: v.candidates]], threads=threads) if v.poses else None
+    pick = 0 if scored is None else validation_pick(scored)
+    test = held_out(config, genomes[int(order[pick])], threads=threads) if v.test_poses else None
+    return champion_document(
+        config, genomes, fitness, order, scored, test, generation=generation, run=run
     )
 
 

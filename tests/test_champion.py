@@ -1,5 +1,7 @@
 """The validated champion: chosen on poses no training trial used, and reproducible."""
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,12 +11,17 @@ from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
 from evorobotics.evaluate import draw_gap, start_poses, validation_set
 from evorobotics.evolution import (
+    HeldOutTrials,
     RunLoop,
+    Validated,
     best_document,
     champion,
+    champion_document,
     evaluate_population,
     evolve,
     held_out,
+    held_out_score,
+    held_out_trials,
     validate,
 )
 from evorobotics.explore import confined
@@ -155,3 +162,37 @@ def test_the_champions_test_is_held_out_and_what_it_says() -> None:
         ControllerDocument.from_dict(forged)
     off = config.model_copy(update={"validation": ValidationConfig(poses=12, test_poses=0)})
     assert champion(off, genomes, fitness, order, generation=generation).test is None
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**31), cuts=st.sets(st.integers(1, 11), max_size=4))
+def test_the_champion_assembled_from_slices_is_the_champion(seed: int, cuts: set[int]) -> None:
+    """Candidates validated in any slices and the test's poses run in any slices (what jobs on
+    workers do) give the champion `champion` computes in one call, bit for bit."""
+    config = SMALL.model_copy(
+        update={
+            "seed": seed,
+            "reality_gap": "on",
+            "validation": ValidationConfig(poses=5, steps=100, candidates=6, test_poses=12),
+        }
+    )
+    genomes, fitness, order, generation = _final(config)
+    candidates = genomes[order[:6]]
+    bounds = [0, *sorted(c for c in cuts if c < 6), 6]
+    parts = [validate(config, candidates[a:b]) for a, b in itertools.pairwise(bounds)]
+    scored = Validated(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("score", "stuck", "roaming"))
+    )
+    whole = champion(config, genomes, fitness, order, generation=generation)
+    pick = int(whole.provenance["rank"] or 0)
+    poses = [0, *sorted(cuts), 12]
+    trials = HeldOutTrials.concatenate(
+        [held_out_trials(config, genomes[order[pick]], a, b) for a, b in itertools.pairwise(poses)]
+    )
+    test = held_out_score(config, trials)
+    assembled = champion_document(
+        config, genomes, fitness, order, scored, test, generation=generation
+    )
+    assert assembled.to_json() == whole.to_json()
+    with pytest.raises(ValueError, match="outside"):
+        held_out_trials(config, genomes[0], 3, 13)
