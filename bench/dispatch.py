@@ -50,7 +50,8 @@ from schemas.wire import Ack, Result, decode, decode_result_reply, encode
 from server.core.settings import Settings
 from server.runs.dispatch import Dispatcher, DispatchSettings
 from server.runs.lifecycle import WRITE_AFTER_S
-from server.runs.scheduler import Policy, Scheduler
+from server.runs.policy import Policy
+from server.runs.scheduler import Scheduler
 from worker.main import WorkerSettings, run_worker
 
 EMPTY = RunConfig(population=4, job_size=1, trials=1, steps=1, generations=100_000)

@@ -32,8 +32,8 @@ from schemas.wire import Job
 from server.core.db import make_engine, upgrade
 from server.core.settings import CHECKPOINT_EVERY, Settings
 from server.runs import crud
+from server.runs.evaluation import run_job
 from server.runs.lifecycle import RunManager
-from server.runs.scheduler import run_job
 
 GENERATIONS = 60
 WARMUP = 5

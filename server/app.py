@@ -42,7 +42,7 @@ from server.routes import (
 from server.runs.dispatch import Dispatcher, DispatchSettings
 from server.runs.executor import InProcessExecutor
 from server.runs.lifecycle import RunManager
-from server.runs.scheduler import Policy
+from server.runs.policy import Policy
 from worker.local import LocalWorkers, local_endpoint
 
 log = logging.getLogger(__name__)

@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from server.robots.signing import Signer
     from server.runs.dispatch import DispatchSettings
     from server.runs.lifecycle import RunManager
-    from server.runs.scheduler import Written
+    from server.runs.outbox import Written
     from worker.main import Evaluator, WorkerStats
 
 SERVER_START_S = 60.0
@@ -355,7 +355,7 @@ def check_small_run(base_url: str) -> None:
 
 def evaluated(manager: RunManager, worker: str) -> Result | None:
     """`worker` leases a job and evaluates it (not yet settled); None when none is leasable."""
-    from server.runs.scheduler import run_job
+    from server.runs.evaluation import run_job
 
     job = manager.scheduler.lease(worker)
     return None if job is None else run_job(job, worker)

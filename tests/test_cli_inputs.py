@@ -215,7 +215,7 @@ def broken(config: RunConfig, generation: int, genomes: np.ndarray) -> tuple[np.
 def test_follow_prints_why_a_run_failed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A worker's error fails nothing; the server's own evaluation failing fails the run (its
     physics broken here by hand: nothing else makes it fail)."""
-    monkeypatch.setattr("server.scheduler.evaluate", broken)
+    monkeypatch.setattr("server.runs.evaluation.evaluate", broken)
     zport = free_port()
     settings = Settings(
         db_url=f"sqlite:///{tmp_path / 'colony.db'}",

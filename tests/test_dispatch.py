@@ -35,7 +35,9 @@ from schemas.wire import (
     worker_key,
 )
 from server.runs.dispatch import Dispatcher, DispatchSettings
-from server.runs.scheduler import Policy, Scheduler, Written
+from server.runs.outbox import Written
+from server.runs.policy import Policy
+from server.runs.scheduler import Scheduler
 from tests.helpers import (
     as_worker,
     dispatch_settings,

@@ -70,7 +70,8 @@ from schemas.wire import (
 from server.core.db import make_engine, upgrade
 from server.robots.service import RobotService, RobotSettings
 from server.runs.dispatch import Dispatcher, DispatchSettings
-from server.runs.scheduler import Policy, Scheduler
+from server.runs.policy import Policy
+from server.runs.scheduler import Scheduler
 from tests.helpers import (
     WAIT,
     as_worker,

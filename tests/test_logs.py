@@ -18,8 +18,8 @@ from schemas.run import RunConfig
 from server.core.db import make_engine, upgrade
 from server.core.logs import as_format, configure, context
 from server.core.settings import Settings
+from server.runs.evaluation import run_job
 from server.runs.lifecycle import LOG_EVERY_S, RunManager
-from server.runs.scheduler import run_job
 from tests.helpers import free_port
 
 WAIT = 60.0

@@ -14,15 +14,10 @@ from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
-from server.runs.scheduler import (
-    SPEED_MAX,
-    SPEED_MIN,
-    Policy,
-    Scheduler,
-    Written,
-    clamp_speed,
-    run_job,
-)
+from server.runs.evaluation import run_job
+from server.runs.outbox import Written
+from server.runs.policy import SPEED_MAX, SPEED_MIN, Policy, clamp_speed
+from server.runs.scheduler import Scheduler
 from tests.helpers import (
     WAIT,
     eventually,
@@ -353,7 +348,7 @@ def test_a_run_fails_only_when_the_servers_own_evaluation_fails(
     def broken(config: RunConfig, generation: int, genomes: np.ndarray) -> None:
         raise RuntimeError("the physics broke")
 
-    monkeypatch.setattr("server.scheduler.evaluate", broken)
+    monkeypatch.setattr("server.runs.evaluation.evaluate", broken)
     sched, _ = make(Policy())
     sched.add(1, RunLoop(CONFIG), running=True)
     sched.add(2, RunLoop(CONFIG), running=True)

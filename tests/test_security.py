@@ -26,7 +26,8 @@ from server.core.lab import certificates
 from server.core.settings import Settings
 from server.robots.signing import Signer
 from server.runs.dispatch import Dispatcher
-from server.runs.scheduler import Scheduler, Written
+from server.runs.outbox import Written
+from server.runs.scheduler import Scheduler
 from tests.helpers import dispatch_settings, eventually, fake_evaluator, free_port, serving
 from worker.main import WorkerSettings, WorkerStats, run_worker
 

@@ -37,6 +37,7 @@ from server.core.models import Generation
 from server.core.settings import Settings
 from server.robots.service import ranked_document
 from server.runs import crud
+from server.runs.evaluation import run_job
 from server.runs.lifecycle import RunManager
 from server.runs.population import (
     PopulationError,
@@ -46,7 +47,6 @@ from server.runs.population import (
     encode,
     encode_state,
 )
-from server.runs.scheduler import run_job
 from tests.helpers import TINY, WAIT, drain, evaluated, eventually
 
 TABLES = {"runs", "generations", "controllers", "robots"}

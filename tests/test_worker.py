@@ -34,7 +34,8 @@ from schemas.wire import (
     encode_frame,
 )
 from server.runs.dispatch import Dispatcher, DispatchSettings
-from server.runs.scheduler import Scheduler, Written
+from server.runs.outbox import Written
+from server.runs.scheduler import Scheduler
 from tests.helpers import (
     WAIT,
     eventually,

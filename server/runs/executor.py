@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import threading
 
-from server.runs.scheduler import Scheduler, run_job
+from server.runs.evaluation import run_job
+from server.runs.scheduler import Scheduler
 
 
 class InProcessExecutor:

@@ -53,8 +53,10 @@ from server.core.logs import context
 from server.core.models import Generation, Run, Study, utcnow
 from server.core.settings import Settings
 from server.runs import crud, population
+from server.runs.outbox import Written
+from server.runs.policy import Policy
 from server.runs.population import Stored
-from server.runs.scheduler import Policy, Scheduler, Written
+from server.runs.scheduler import Scheduler
 from server.runs.tracking import Tracker
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from evorobotics.document import ControllerDocument
 from schemas.run import ValidationScore
-from server.runs.scheduler import Written
+from server.runs.outbox import Written
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,140 @@
+"""The server's own evaluations and its checks of a worker's result: a job (`run_job`: the
+in-process executors' and the referee's), a spot-check (`spot_check`: re-evaluate some of a
+result here) and a span's digest (`digest_error`: the genomes it evaluated were those asked).
+
+Runs are deterministic, so a spot-check compares bit for bit; it draws the individuals with
+`secrets`, never the run's seed stream, so a worker cannot predict them.
+"""
+
+from __future__ import annotations
+
+import secrets
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from evorobotics.evaluate import evaluate, robot_steps
+from evorobotics.evolution import RunLoop
+from schemas.run import RunConfig
+from schemas.wire import Job, Result, genome_digest
+from server.runs.jobs import Lease, Run
+
+_CHOOSE = secrets.SystemRandom()
+"""Picks the individuals to re-evaluate: a worker cannot predict them from the run's seed."""
+
+
+def run_job(job: Job, worker: str) -> Result:
+    """Evaluate `job` (one generation of its slice) as a Result; an error, or an evaluation
+    no Result can carry (non-finite fitness, descriptors outside [0, 1]), becomes one."""
+    began = time.perf_counter()
+    try:
+        evaluation = evaluate(job.config, job.key.generation, job.genomes)
+        if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
+            raise ValueError("evaluation returned non-finite fitness")
+        seconds = time.perf_counter() - began
+        return Result(
+            key=job.key,
+            worker=worker,
+            start=job.start,
+            stop=job.stop,
+            robot_steps_per_s=(
+                robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else 0.0
+            ),
+            seconds=seconds,
+            fitness=evaluation.fitness[None],
+            components=evaluation.components[None],
+            descriptors=evaluation.descriptors[None],
+        )
+    except Exception as exc:  # an evaluation error is the run's problem, not the thread's
+        return Result(
+            key=job.key,
+            worker=worker,
+            start=job.start,
+            stop=job.stop,
+            error=f"{type(exc).__name__}: {exc}",
+        )
+
+
+def spot_check(
+    result: Result,
+    lease: Lease | None,
+    run: Run | None,
+    *,
+    wanted: int,
+    job_size: Callable[[RunConfig, int, int | None], int],
+    totals: dict[str, int],
+) -> str | None:
+    """Re-evaluate `wanted` individuals of `result`, drawn with `secrets` among the generations
+    it may complete (those of `lease` that `job_size` leaves whole); why it fails (worker, run,
+    generation, individual, claimed and recomputed), or None (it passed, or it counts for
+    nothing anyway). Counts into `totals` (`Scheduler.spot_totals`)."""
+    fitness, components, descriptors = result.fitness, result.components, result.descriptors
+    if (
+        wanted == 0
+        or fitness is None
+        or components is None
+        or descriptors is None
+        or lease is None
+        or run is None
+        or lease.worker != result.worker
+        or (result.start, result.stop) != (lease.start, lease.stop)
+    ):
+        return None  # off, an error, or dropped by `Scheduler.settle`
+    n = lease.stop - lease.start
+    loop = run.loop
+    config = loop.config
+    generations = 1  # then those `Scheduler._complete` will move the span's lease on to
+    while (
+        generations < min(result.generations, lease.span_left + 1)
+        and run.running
+        and job_size(config, loop.generation + generations, run.run_id) >= config.population
+    ):
+        generations += 1
+    picks = sorted(_CHOOSE.sample(range(generations * n), min(wanted, generations * n)))
+    asked, shadow = loop.ask(), None
+    totals["results_checked"] += 1
+    for i in range(picks[-1] // n + 1):
+        if i > 0:  # a span's later generation: the genomes its claimed fitness leads to
+            shadow = shadow or RunLoop(config, state=loop.state)
+            shadow.tell(fitness[i - 1], components[i - 1], descriptors[i - 1])
+            asked = shadow.ask()
+        rows = [p % n for p in picks if p // n == i]
+        if not rows:
+            continue
+        generation = loop.generation + i
+        again = evaluate(config, generation, asked[lease.start + np.array(rows)])
+        totals["individuals_checked"] += len(rows)
+        totals["robot_steps_checked"] += robot_steps(config, len(rows))
+        for j, row in enumerate(rows):
+            claimed = (fitness[i, row], components[i, row], descriptors[i, row])
+            recomputed = (again.fitness[j], again.components[j], again.descriptors[j])
+            for what, a, b in zip(_CHECKED, claimed, recomputed, strict=True):
+                if not _same_bits(a, b):
+                    return (
+                        f"worker {result.worker} run {run.run_id} generation {generation} "
+                        f"individual {lease.start + row}: claimed {what} "
+                        f"{np.asarray(a).tolist()!r}, recomputed {np.asarray(b).tolist()!r}"
+                    )
+    return None
+
+
+def digest_error(result: Result, i: int, lease: Lease, loop: RunLoop) -> str | None:
+    """Why generation `i` of `result` cannot count (None if it can): a span's worker must have
+    evaluated the genomes `loop` asks for `lease`, else its GA differs (no more spans for it)."""
+    if not result.digests:
+        return "a span's generation without its digest" if lease.asked_by_worker else None
+    if result.digests[i] == genome_digest(loop.ask()[lease.start : lease.stop]):
+        return None
+    return "evaluated other genomes than the server asked (its GA differs: another version?)"
+
+
+def _same_bits(claimed: np.ndarray, recomputed: np.ndarray) -> bool:
+    """Bit for bit: a deterministic evaluation repeats every byte (-0.0 and NaN payloads too)."""
+    a = np.ascontiguousarray(claimed, dtype="<f8")
+    b = np.ascontiguousarray(recomputed, dtype="<f8")
+    return a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+_CHECKED = ("fitness", "components", "descriptors")
+"""What a spot-check compares bit for bit, in this order."""
