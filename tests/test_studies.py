@@ -268,7 +268,7 @@ def test_a_study_whose_runs_fail_ends_failed(
 ) -> None:
     """Every evaluation fails, on a zenoh worker and in the server (its physics broken by
     hand): the runs fail, and the study with them."""
-    monkeypatch.setattr("server.scheduler.evaluate", broken)
+    monkeypatch.setattr("server.runs.scheduler.evaluate", broken)
     zport = free_port()
     settings = Settings(
         db_url=f"sqlite:///{tmp_path / 'colony.db'}",
