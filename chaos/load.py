@@ -59,8 +59,8 @@ def keep(cls, method):
         inboxes.append((cls.__name__, self._inbox))
         return result
     setattr(cls, method, wrapped)
-keep(server.robots.RobotService, "start")
-keep(server.dispatch.Dispatcher, "__init__")
+keep(server.robots.service.RobotService, "start")
+keep(server.runs.dispatch.Dispatcher, "__init__")
 tracemalloc.start(int(os.environ.get("LOAD_TRACEMALLOC_FRAMES", "1")))
 out, every = os.environ["LOAD_TRACEMALLOC"], float(os.environ["LOAD_TRACEMALLOC_EVERY"])
 def dump():

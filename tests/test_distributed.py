@@ -265,7 +265,7 @@ def test_stopped_worker_past_its_lease_is_replaced_and_its_late_result_dropped(
 
 LONG_CONFIG = {**CONFIG, "generations": 12}
 """Long enough that the server is still evolving it when killed (at generation 2, ten to go):
-told generations are written together (server.manager.WRITE_AFTER_S), several at once."""
+told generations are written together (server.runs.lifecycle.WRITE_AFTER_S), several at once."""
 
 
 def test_sigkilled_server_restarts_and_workers_reconnect_by_themselves(colony: Colony) -> None:

@@ -1,6 +1,6 @@
 """Reads and small writes of the store, keyword-only so call sites name what they pass.
 
-The run loop's writes (generation commits) live in `server.runs.lifecycle`; jobs in `server.runs.scheduler`.
+The run loop's writes (generation commits) live in `server.runs.writer`; jobs in `server.runs.scheduler`.
 """
 
 from __future__ import annotations
@@ -28,6 +28,14 @@ from server.runs.population import Population, Stored
 
 def get_run(session: Session, *, run_id: int) -> Run | None:
     return session.get(Run, run_id)
+
+
+def find_run(session: Session, *, run_id: int) -> Run:
+    """The run, or NotFoundError (what the manager's changes and reads of one run want)."""
+    run = get_run(session, run_id=run_id)
+    if run is None:
+        raise NotFoundError(f"no run with id {run_id}")
+    return run
 
 
 def list_runs(
