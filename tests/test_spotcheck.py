@@ -48,33 +48,43 @@ from tests.helpers import (
 from worker.main import evaluate_slice
 
 CONFIG = {"population": 16, "generations": 6, "steps": 20, "trials": 2, "job_size": 4, "seed": 5}
-Forgery = Callable[[RunConfig, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray] | str]
-"""(config, fitness (n,), components (n, trials, 4)) -> the forged fitness and components, or
-an error message to send instead."""
+Claims = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""fitness (n,), components (n, trials, 4) and descriptors (n, 4) of a slice."""
+Forgery = Callable[[RunConfig, np.ndarray, np.ndarray, np.ndarray], Claims | str]
+"""(config, the real claims) -> the forged claims, or an error message to send instead."""
 
 
-def beyond_physics(
-    config: RunConfig, f: np.ndarray, c: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def beyond_physics(config: RunConfig, f: np.ndarray, c: np.ndarray, d: np.ndarray) -> Claims:
     """Issue 38's attack: two fitness values at 1.7e308."""
     f = f.copy()
     f[:2] = 1.7e308
-    return f, c
+    return f, c, d
 
 
-def nan_components(
-    config: RunConfig, f: np.ndarray, c: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def nan_components(config: RunConfig, f: np.ndarray, c: np.ndarray, d: np.ndarray) -> Claims:
     c = c.copy()
     c[0, 0, 0] = np.nan
-    return f, c
+    return f, c, d
 
 
-def too_far(config: RunConfig, f: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def too_far(config: RunConfig, f: np.ndarray, c: np.ndarray, d: np.ndarray) -> Claims:
     """Curve lengths of a kilometre: Eq 12's k1 is 0, so the fitness still matches them."""
     c = c.copy()
     c[..., 0] = 1000.0
-    return f, c
+    return f, c, d
+
+
+def off_the_maze(config: RunConfig, f: np.ndarray, c: np.ndarray, d: np.ndarray) -> Claims:
+    """Descriptors are fractions of the maze (quality-diversity strategies select on them):
+    one beyond it, one not a number."""
+    d = d.copy()
+    d[0, 0], d[-1, 3] = 7.5, np.nan
+    return f, c, d
+
+
+def plausibly(config: RunConfig, f: np.ndarray, c: np.ndarray, d: np.ndarray) -> Claims:
+    """`plausible_forgery`: within physics, so only a spot-check tells it from the truth."""
+    return (*plausible_forgery(config, c), d)
 
 
 @contextmanager
@@ -97,7 +107,8 @@ def rogue_worker(port: int, forge: Forgery, name: str = "rogue") -> Iterator[lis
             fitness, components, descriptors = evaluate_slice(
                 job.config, job.key.generation, job.genomes
             )
-            forged = forge(job.config, fitness, components) if acks else (fitness, components)
+            real = (fitness, components, descriptors)
+            forged = forge(job.config, *real) if acks else real
             # honest once, so a result of it is accepted before it forges
             result = (
                 Result(key=job.key, worker=name, start=job.start, stop=job.stop, error=forged)
@@ -109,7 +120,7 @@ def rogue_worker(port: int, forge: Forgery, name: str = "rogue") -> Iterator[lis
                     stop=job.stop,
                     fitness=forged[0][None],
                     components=forged[1][None],
-                    descriptors=descriptors[None],
+                    descriptors=forged[2][None],
                 )
             )
             replies = list(session.get(result_key(name), payload=encode(result), timeout=WAIT))
@@ -178,7 +189,7 @@ def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     honest = evolve(RunConfig(**CONFIG))
-    done = rogue_run(tmp_path, lambda config, f, c: plausible_forgery(config, c))
+    done = rogue_run(tmp_path, plausibly)
     assert Settings(db_url="unused").spot_checks == 1  # the default, which rogue_run keeps
     assert done.acks[0].accepted  # its honest result passed its spot-check
     assert not done.acks[1].accepted and "spot-check" in done.acks[1].reason
@@ -203,14 +214,16 @@ def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
         (beyond_physics, "is not Eq 12 of its components"),
         (nan_components, "must be finite"),
         (too_far, "the trial's reach at full speed"),
+        (off_the_maze, "a descriptor outside [0, 1]"),
     ],
 )
 def test_claims_beyond_the_trials_physics_are_refused_without_a_spot_check(
     tmp_path: Path, forge: Forgery, why: str
 ) -> None:
     """Issue 38, attack 3: fitness values of 1.7e308 were stored as a generation's best and
-    NaN components accepted. With spot-checks off, such claims are still refused on arrival,
-    the rogue's credential is quarantined, and the run ends as an honest one."""
+    NaN components accepted, and descriptors off the maze were dropped as malformed, costing
+    their credential nothing. With spot-checks off, such claims are still refused on arrival
+    as forgeries, the rogue's credential is quarantined, and the run ends as an honest one."""
     honest = evolve(RunConfig(**CONFIG))
     done = rogue_run(tmp_path, forge, spot_checks=0)
     assert done.acks[0].accepted and not done.acks[1].accepted and why in done.acks[1].reason
@@ -218,6 +231,7 @@ def test_claims_beyond_the_trials_physics_are_refused_without_a_spot_check(
         done.workers["rogue"]["quarantined"] is True
         and why in done.workers["rogue"]["quarantine_reason"]
     )
+    assert "colony_spot_check_mismatches_total 1.0" in done.metrics
     assert done.best["sha256"] == honest.best.sha256
     assert done.run["best_fitness"] == honest.history[-1].best
 
@@ -229,7 +243,7 @@ def test_a_workers_error_results_fail_no_run_and_repeated_ones_quarantine_it(
     it erred on goes to the honest worker, the credential is quarantined at its third error in
     a row, and the run ends as an honest one."""
     honest = evolve(RunConfig(**CONFIG))
-    done = rogue_run(tmp_path, lambda config, f, c: "RuntimeError: not today")
+    done = rogue_run(tmp_path, lambda config, f, c, d: "RuntimeError: not today")
     assert done.acks[0].accepted
     assert [a.reason for a in done.acks[1:4]] == ["error recorded"] * 3
     rogue = done.workers["rogue"]

@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from evorobotics.evaluate import evaluate, robot_steps
+from evorobotics.evaluate import evaluate, implausible, robot_steps
 from evorobotics.evolution import RunLoop
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
@@ -26,12 +26,16 @@ _CHOOSE = secrets.SystemRandom()
 
 def run_job(job: Job, worker: str) -> Result:
     """Evaluate `job` (one generation of its slice) as a Result; an error, or an evaluation
-    no Result can carry (non-finite fitness, descriptors outside [0, 1]), becomes one."""
+    the scheduler would refuse as implausible (`implausible`), becomes one: this process's
+    own evaluation failing fails the run, it quarantines nobody."""
     began = time.perf_counter()
     try:
         evaluation = evaluate(job.config, job.key.generation, job.genomes)
-        if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
-            raise ValueError("evaluation returned non-finite fitness")
+        why = implausible(
+            job.config, evaluation.fitness, evaluation.components, evaluation.descriptors
+        )
+        if why is not None:
+            raise ValueError(f"the evaluation is implausible: {why}")
         seconds = time.perf_counter() - began
         return Result(
             key=job.key,
