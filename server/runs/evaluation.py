@@ -1,6 +1,7 @@
 """The server's own evaluations and its checks of a worker's result: a job (`run_job`: the
 in-process executors' and the referee's), a spot-check (`spot_check`: re-evaluate some of a
-result here) and a span's digest (`digest_error`: the genomes it evaluated were those asked).
+result here), a span's digest (`digest_error`: the genomes it evaluated were those asked) and
+a stored claim before it is served (`repeats_claim`).
 
 Runs are deterministic, so a spot-check compares bit for bit; it draws the individuals with
 `secrets`, never the run's seed stream, so a worker cannot predict them.
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -131,6 +132,26 @@ def digest_error(result: Result, i: int, lease: Lease, loop: RunLoop) -> str | N
     if result.digests[i] == genome_digest(loop.ask()[lease.start : lease.stop]):
         return None
     return "evaluated other genomes than the server asked (its GA differs: another version?)"
+
+
+def repeats_claim(
+    config: RunConfig,
+    generation: int,
+    genome: np.ndarray,
+    fitness: float,
+    descriptors: tuple[Sequence[int], np.ndarray] | None = None,
+) -> bool:
+    """Whether this process's own evaluation of `genome` in `generation` gives the claimed
+    `fitness`, and with `descriptors` (columns of DESCRIPTORS, values) those descriptors, bit
+    for bit: what the server serves or reports on a worker's claim (a training rank, an archive
+    elite) must pass this first, so no forged claim alone chooses it (docs/security.md)."""
+    again = evaluate(config, generation, np.asarray(genome, dtype=np.float64)[None])
+    if not _same_bits(np.array([fitness]), again.fitness):
+        return False
+    if descriptors is None:
+        return True
+    columns, values = descriptors
+    return _same_bits(values, again.descriptors[0, list(columns)])
 
 
 def _same_bits(claimed: np.ndarray, recomputed: np.ndarray) -> bool:
