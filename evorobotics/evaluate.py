@@ -261,17 +261,30 @@ def robot_steps(config: RunConfig, individuals: int) -> int:
     return individuals * config.trials * trial_steps(config)
 
 
-def implausible(config: RunConfig, fitness: np.ndarray, components: np.ndarray) -> str | None:
-    """Why a claimed evaluation of n individuals, fitness (n,) and components (n, trials, 4),
-    cannot come from `config`'s trials, or None: every component finite and within what a
-    robot at full speed (the fastest wheel gain the gap allows) reaches in the trial's steps,
-    stuck 0 or 1, and each fitness Eq 12 of its components. A worker cannot forge a
-    fitness beyond physics, only, at most, a plausible one (which spot-checks catch)."""
+def implausible(
+    config: RunConfig, fitness: np.ndarray, components: np.ndarray, descriptors: np.ndarray
+) -> str | None:
+    """Why a claimed evaluation of n individuals, fitness (n,), components (n, trials, 4) and
+    descriptors (n, 4), cannot come from `config`'s trials, or None: every component finite
+    and within what a robot at full speed (the fastest wheel gain the gap allows) reaches in
+    the trial's steps, stuck 0 or 1, each fitness Eq 12 of its components, and every
+    descriptor in [0, 1] (DESCRIPTORS are fractions of the maze). A worker cannot forge a
+    fitness or a descriptor beyond physics, only, at most, a plausible one (which spot-checks
+    catch)."""
     n = fitness.shape[0]
-    if fitness.shape != (n,) or components.shape != (n, config.trials, 4):
-        return f"fitness {fitness.shape} and components {components.shape} do not match"
+    if (
+        fitness.shape != (n,)
+        or components.shape != (n, config.trials, 4)
+        or descriptors.shape != (n, len(DESCRIPTORS))
+    ):
+        return (
+            f"fitness {fitness.shape}, components {components.shape} and descriptors "
+            f"{descriptors.shape} do not match"
+        )
     if not (np.isfinite(fitness).all() and np.isfinite(components).all()):
         return "fitness and components must be finite"
+    if not ((descriptors >= 0.0) & (descriptors <= 1.0)).all():  # NaN fails too
+        return "a descriptor outside [0, 1]"
     world, maze = config.world, load_maze(config.maze)
     gain = max(world.motor_gain) * (1.0 + world.gap_motor_gain)
     reach = trial_steps(config) * world.dt * world.max_speed * gain * (1.0 + 1e-9) + 1e-9

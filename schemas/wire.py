@@ -344,11 +344,13 @@ class Result(_Message):
     digests: tuple[str, ...] = Field((), max_length=SPAN_BATCH_MAX)
     """`genome_digest` of each generation's genomes: a span's, which the worker asked itself."""
     fitness: np.ndarray | None = None
-    """(k, stop - start) finite float64."""
+    """(k, stop - start) float64."""
     components: np.ndarray | None = None
     """(k, stop - start, trials, 4) float64."""
     descriptors: np.ndarray | None = None
-    """(k, stop - start, 4) float64 in [0, 1] (`evorobotics.evaluate.DESCRIPTORS`)."""
+    """(k, stop - start, 4) float64 (`evorobotics.evaluate.DESCRIPTORS`). Only dtypes and
+    shapes are checked here: whether the values can be true is a claim the scheduler judges
+    (`evorobotics.evaluate.implausible`), so a false one counts against its credential."""
 
     _name = field_validator("worker")(_worker_name)
 
@@ -390,14 +392,12 @@ class Result(_Message):
         k, n = len(fitness) if fitness.ndim else 0, self.stop - self.start
         if fitness.dtype != np.float64 or fitness.ndim != 2 or not 1 <= k <= SPAN_BATCH_MAX:
             raise ValueError(f"fitness must be float64 (k <= {SPAN_BATCH_MAX}, n)")
-        if fitness.shape[1] != n or not np.isfinite(fitness).all():
-            raise ValueError(f"fitness {fitness.shape} must be finite, for the slice of {n}")
+        if fitness.shape[1] != n:
+            raise ValueError(f"fitness {fitness.shape} must be for the slice of {n}")
         if components.dtype != np.float64 or components.ndim != 4 or components.shape[:2] != (k, n):
             raise ValueError(f"components {components.shape} do not match fitness {fitness.shape}")
         if descriptors.dtype != np.float64 or descriptors.shape != (k, n, 4):
             raise ValueError(f"descriptors {descriptors.shape} must be float64 ({k}, {n}, 4)")
-        if not ((descriptors >= 0.0) & (descriptors <= 1.0)).all():
-            raise ValueError("descriptors must lie in [0, 1]")
         if self.digests and len(self.digests) != k:
             raise ValueError(f"{len(self.digests)} digests for {k} generations")
         return self

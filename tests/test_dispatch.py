@@ -1,5 +1,6 @@
 """The dispatcher over real zenoh on 127.0.0.1 (multicast scouting off): the real Scheduler
-behind it, real workers (`run_worker` in threads) or a hand-driven zenoh client in front."""
+behind it, real workers (`run_worker` in threads) or a hand-driven zenoh client in front; once
+the whole server (uvicorn, its router, an honest worker) against a rogue client."""
 
 from __future__ import annotations
 
@@ -8,7 +9,10 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import asdict
+from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import zenoh
@@ -34,6 +38,7 @@ from schemas.wire import (
     result_key,
     worker_key,
 )
+from server.core.settings import Settings
 from server.runs.dispatch import Dispatcher, DispatchSettings
 from server.runs.outbox import Written
 from server.runs.policy import Policy
@@ -48,6 +53,9 @@ from tests.helpers import (
     gone_worker,
     reference,
     same_generations,
+    serving,
+    wait_status,
+    worker_thread,
     zenoh_client,
 )
 from worker.main import Evaluator, WorkerSettings, WorkerStats, evaluate_slice, run_worker
@@ -262,6 +270,61 @@ def test_names_that_hold_a_token_but_never_ask_do_not_cut_generations() -> None:
         served.scheduler.add(1, RunLoop(CONFIG), running=True)
         job = ask_next(session, "honest")
         assert isinstance(job, Job) and (job.start, job.stop) == (0, CONFIG.population)
+
+
+def test_through_the_server_tokenless_names_and_absurd_speeds_change_no_run(
+    tmp_path: Path,
+) -> None:
+    """Issue 38, attack 2, through the real server: a rogue asks under 20 names that never
+    declare a token (answered idle, never listed), then under one that does while claiming 0
+    and 1e-300 robot-steps/s (leased by measured speed, never past `lease_max_seconds`); with
+    an honest worker the run tells `colony evolve`'s generations."""
+    config = {"population": 12, "generations": 4, "trials": 2, "steps": 10, "job_size": 3}
+    zenoh_port = free_port()
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}",
+        port=free_port(),
+        zenoh_listen=[f"tcp/127.0.0.1:{zenoh_port}"],
+        workers=0,
+        housekeeping_seconds=0.2,
+    )
+    with (
+        serving(settings) as (url, _app),
+        httpx.Client(base_url=url, timeout=WAIT) as client,
+        zenoh_client(zenoh_port) as rogue,
+    ):
+        run_id = client.post("/api/runs", json=config).json()["id"]
+        phantoms = [f"phantom-{i}" for i in range(20)]
+        pending = [
+            rogue.get(next_key(n), payload=encode(JobRequest(worker=n)), timeout=WAIT)
+            for n in phantoms
+        ]
+        answers = [decode_next_reply(ok(list(p))) for p in pending]
+        assert all(isinstance(a, Idle) and "no liveliness token" in a.reason for a in answers)
+        leases = []
+        for speed in (0.0, 1e-300, 0.0):
+            job = ask_next(rogue, "claimer", robot_steps_per_s=speed)
+            assert isinstance(job, Job), job  # the only worker asking: a job each time
+            leases.append(job.lease_s)
+            f, c, d = evaluate_slice(job.config, job.key.generation, job.genomes)
+            claimed = Result(
+                key=job.key, worker="claimer", start=job.start, stop=job.stop,
+                robot_steps_per_s=speed, fitness=f[None], components=c[None], descriptors=d[None],
+            )  # fmt: skip
+            assert send(rogue, claimed)[0].accepted
+        with worker_thread(zenoh_port, "honest", evaluate_slice):
+            run = wait_status(client, run_id, {"completed", "failed"})
+        assert run["status"] == "completed", run["error"]
+        generations = client.get(f"/api/runs/{run_id}/generations").json()
+        best = client.get(f"/api/runs/{run_id}/best").json()
+        names = {w["name"] for w in client.get("/api/workers").json()}
+    # the first before any speed is known, then the measured one, whatever it claimed
+    assert leases == [settings.lease_unknown_seconds] + [settings.lease_min_seconds] * 2
+    assert max(leases) <= settings.lease_max_seconds
+    assert names == {"claimer", "honest"}
+    local = evolve(RunConfig(**config))
+    assert generations == [asdict(summary) for summary in local.history]
+    assert best["sha256"] == local.best.sha256
 
 
 def test_an_idle_request_is_answered_at_the_end_of_the_long_poll() -> None:

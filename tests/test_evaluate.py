@@ -416,7 +416,8 @@ def test_honest_evaluations_are_never_implausible_and_forged_reach_is(
     seed: int, steps: int, gap: str, gain: float, preset: str
 ) -> None:
     """The physics bound on workers' claims never refuses a real evaluation (any seed, trial
-    length, gap, wheel gain, network), and a curve length beyond full speed is refused."""
+    length, gap, wheel gain, network); a curve length beyond full speed, a fitness not Eq 12
+    of its components and a descriptor outside [0, 1] or not a number are refused."""
     world = World(motor_gain=(gain, 1.0))
     config = RunConfig(
         population=6, trials=2, steps=steps, seed=seed, reality_gap=gap, world=world,
@@ -424,10 +425,14 @@ def test_honest_evaluations_are_never_implausible_and_forged_reach_is(
     )  # fmt: skip
     genomes = rng(seed, 0, Purpose.BODY_GAP).uniform(-3, 3, (6, config.network_spec.weight_count))
     ev = evaluate(config, 0, genomes)
-    f, c = ev.fitness, ev.components
-    assert implausible(config, f, c) is None
+    f, c, d = ev.fitness, ev.components, ev.descriptors
+    assert implausible(config, f, c, d) is None
     far = c.copy()
     fastest = max(world.motor_gain) * (1 + world.gap_motor_gain)
     far[0, 0, 0] = steps * world.dt * world.max_speed * fastest * 1.01
-    assert "reach at full speed" in str(implausible(config, f, far))
-    assert "not Eq 12" in str(implausible(config, f + 1e-3, c))
+    assert "reach at full speed" in str(implausible(config, f, far, d))
+    assert "not Eq 12" in str(implausible(config, f + 1e-3, c, d))
+    for bad in (1.0 + 1e-12, -1e-12, np.nan, np.inf):
+        forged = d.copy()
+        forged[-1, 2] = bad
+        assert implausible(config, f, c, forged) == "a descriptor outside [0, 1]"

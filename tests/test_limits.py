@@ -7,6 +7,7 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
+from schemas.network import MAX_WEIGHTS, NetworkSpec
 from schemas.robots import (
     PushAck,
     RobotMessage,
@@ -17,7 +18,7 @@ from schemas.robots import (
     encode_message,
 )
 from schemas.security import MAX_ROBOT_MESSAGE, MAX_TRACE_BYTES
-from schemas.wire import WireError
+from schemas.wire import MAX_HEADER, WireError, decode_frame, encode_frame
 from server.core.settings import Settings
 from tests.helpers import free_port, serving
 
@@ -66,6 +67,18 @@ def test_oversized_robot_payloads_are_refused() -> None:
         decode_message(b"\0" * (MAX_ROBOT_MESSAGE + 1))
     with pytest.raises(WireError, match="exceeds"):
         decode_trace(b"\0" * (MAX_TRACE_BYTES + 1))
+
+
+def test_a_network_over_a_million_weights_is_refused() -> None:
+    with pytest.raises(ValueError, match=f"the limit is {MAX_WEIGHTS}"):
+        NetworkSpec(hidden=(1024, 1024), delays=32)
+
+
+def test_a_frame_header_over_a_mebibyte_is_refused() -> None:
+    frame = encode_frame({"kind": "x", "pad": "a" * MAX_HEADER})
+    with pytest.raises(WireError, match="header length"):
+        decode_frame(frame)
+    decode_frame(encode_frame({"kind": "x", "pad": "a" * (MAX_HEADER - 1000)}))
 
 
 @pytest.mark.parametrize(

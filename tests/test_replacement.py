@@ -6,6 +6,7 @@ signatures. `off` leaves the robot its controller, a robot's own `rank` wins ove
 
 from __future__ import annotations
 
+import secrets
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,19 +14,23 @@ from typing import Any
 
 import httpx
 import pytest
+import zenoh
 from typer.testing import CliRunner
 
 from colony.cli import app as cli
 from evorobotics.document import ControllerDocument
 from robot_agent.stuck import StuckConfig
 from schemas.network import NetworkSpec
-from server.core.models import Run
+from schemas.robots import Replacement, StuckRequest, decode_message, encode_message, replace_key
+from schemas.wire import encode_frame
+from server.core.models import Robot, Run
 from server.core.settings import Settings
 from server.runs import crud
 from tests.helpers import (
     QUICK,
     WAIT,
     Link,
+    client_config,
     constant_drive,
     eventually,
     free_port,
@@ -209,3 +214,33 @@ def test_policy_changes_need_the_token_and_a_known_value(server: Server, tmp_pat
             cli, ["robot", "replacement", "r-api", "random", "--server", server.url]
         )
         assert cli_refused.exit_code == 2
+
+
+def test_a_robot_cannot_choose_its_policy_and_an_unknown_stored_one_is_ignored(
+    server: Server,
+) -> None:
+    """The policy is read from the server's database, never from the robot: a stuck request
+    naming one is malformed, and a stored policy this server does not know (a newer release's)
+    gives way to the colony's (`off` here)."""
+    with server.link.service.sessions.begin() as db:
+        db.add(Robot(id="r-newer", status="online", replacement="someday"))
+    request = StuckRequest(
+        robot="r-newer", sha256=server.wall.sha256, reason="x", step=1, nonce=secrets.token_hex(16)
+    )
+    choosing = encode_frame({**request.model_dump(mode="json"), "policy": "rank"})
+    with zenoh.open(client_config(server.link.port)) as rogue:
+        refused = list(rogue.get(replace_key("r-newer"), payload=choosing, timeout=WAIT))
+        answered = list(
+            rogue.get(replace_key("r-newer"), payload=encode_message(request), timeout=WAIT)
+        )
+    assert len(refused) == 1 and refused[0].err is not None
+    assert b"malformed" in refused[0].err.payload.to_bytes()
+    assert len(answered) == 1 and answered[0].ok is not None
+    reply = decode_message(answered[0].ok.payload.to_bytes())
+    assert isinstance(reply, Replacement) and reply.document is None
+    assert reply.reason == "replacement is off for this robot"
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        (event,) = ledger(client, "r-newer")
+        detail = client.get("/api/robots/r-newer").json()
+    assert event["policy"] == "off"
+    assert (detail["replacement"], detail["replacement_source"]) == ("off", "colony")

@@ -536,6 +536,40 @@ def test_a_robot_naming_a_controller_it_was_never_given_raises_no_field_statisti
         assert link.service.field_stats(doc.sha256) is None
 
 
+def test_a_megabyte_sha256_from_a_robot_is_refused_and_stores_nothing(
+    colony: Colony, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 38, attack 5: a robot credential's sha256 fields were strings of any length, stored
+    and logged as sent. A stuck request and a trace batch carrying a 1 MB sha256 over zenoh are
+    refused as malformed, naming the field; no stuck event, sample or megabyte log line."""
+    huge = "f" * 1_000_000
+    with robot_link(colony) as link, zenoh.open(client_config(link.port)) as rogue:
+        with link.service.sessions.begin() as db:  # known to the colony, as its agent made it
+            db.add(Robot(id="r-huge", status="online"))
+        request = StuckRequest(
+            robot="r-huge", sha256=None, reason="x", step=1, nonce=secrets.token_hex(16)
+        )
+        stuck = encode_frame({**request.model_dump(mode="json"), "sha256": huge})
+        header, arrays = decode_frame(encode_trace(_batch("r-huge", 0, 0, 10)))
+        traces = encode_frame({**header, "controllers": [huge]}, arrays)
+        sent = [
+            (replace_key("r-huge"), stuck, "StuckRequest: 1 validation error for StuckRequest\nsha256"),
+            (traces_key("r-huge"), traces, "trace header: 1 validation error for TraceHeader\ncontrollers.0"),
+        ]  # fmt: skip
+        for key, payload, field in sent:
+            assert len(payload) > 1_000_000
+            reply = _ask(rogue, key, payload)
+            assert reply.err is not None, key
+            why = reply.err.payload.to_bytes().decode()
+            assert why.startswith(f"malformed: {field}") and len(why) < 10_000, why
+        assert link.service.stuck_events("r-huge").events == []
+        assert _stored_steps(link.service, "r-huge", 0).shape[0] == 0
+        with link.service.sessions() as db:
+            state = db.get(RobotStateRow, "r-huge")
+            assert state is None or state.stuck_events == 0
+    assert all(len(r.getMessage()) < 10_000 for r in caplog.records)
+
+
 def test_a_push_acknowledged_after_its_timeout_still_counts_for_its_controller(
     colony: Colony, tmp_path: Path
 ) -> None:

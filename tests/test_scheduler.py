@@ -977,10 +977,32 @@ def test_forged_components_or_descriptors_quarantine_as_forged_fitness_does(what
     real = honest(job, "rogue")
     claimed = getattr(real, what).copy()
     first = (0,) * claimed.ndim
-    claimed[first] = 0.25 if claimed[first] != 0.25 else 0.5
+    claimed[first] = 0.05 if claimed[first] != 0.05 else 0.1  # within the trial's physics
     ack = sched.settle(real.model_copy(update={what: claimed}))
     assert not ack.accepted and "spot-check" in ack.reason
     assert f"claimed {what}" in sched.quarantined()["rogue"]
+
+
+@pytest.mark.parametrize("claim", [1.5, -0.25, np.nan, np.inf])
+def test_descriptors_no_maze_gives_are_refused_as_forgery_with_spot_checks_off(
+    claim: float,
+) -> None:
+    """Descriptors are fractions of the maze: a claim outside [0, 1] (or not a number) is a
+    forgery like a fitness beyond physics, refused, counted and its credential quarantined."""
+    sched, _ = make(Policy(spot_checks=0))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("rogue")
+    assert job is not None
+    real = honest(job, "rogue")
+    assert real.descriptors is not None
+    claimed = real.descriptors.copy()
+    claimed[0, -1, 3] = claim
+    ack = sched.settle(real.model_copy(update={"descriptors": claimed}))
+    assert not ack.accepted and "a descriptor outside [0, 1]" in ack.reason
+    assert "run 1 generation 0: a descriptor outside [0, 1]" in sched.quarantined()["rogue"]
+    assert sched.spot_totals()["mismatches"] == 1
+    assert sched.counts()["leased"] == 0  # its job is pending again, for others
+    assert drain_honestly(sched, "honest")[0].told.generation == 0
 
 
 def test_with_spot_checks_off_a_forgery_is_accepted() -> None:

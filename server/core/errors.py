@@ -5,7 +5,9 @@ Hierarchy:
     ├── NotFoundError        no run, generation or controller with that id (HTTP 404)
     ├── InvalidInputError    a value the request names cannot be used, e.g. an ambiguous sha256
     │                        prefix (HTTP 422)
-    └── TransitionError      the run's status does not allow the requested change (HTTP 409)
+    ├── TransitionError      the run's status does not allow the requested change (HTTP 409)
+    └── UnconfirmedError     what was asked for rests on a worker's claim that the server's own
+                             evaluation does not repeat, so it is not served (HTTP 409)
 
 Bad arguments raise plain `ValueError`. The app answers a ServerError that reaches a route
 with its `status_code` and message; `HTTPException` is raised only in `server/routes`.
@@ -32,5 +34,12 @@ class InvalidInputError(ServerError):
 
 class TransitionError(ServerError):
     """A lifecycle change that the run's current status forbids (e.g. resuming a completed run)."""
+
+    status_code = 409
+
+
+class UnconfirmedError(ServerError):
+    """The controller asked for was chosen by a worker's claimed fitness (or descriptors) that
+    the server's own evaluation does not repeat bit for bit: a forgery is never served."""
 
     status_code = 409

@@ -48,7 +48,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from evorobotics import network
 from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.errors import ControllerDocumentError
-from evorobotics.evolution import rank_in_world, ranking_validation
+from evorobotics.evaluate import DESCRIPTORS
+from evorobotics.evolution import StrategyHistory, rank_in_world, ranking_validation
 from evorobotics.strategies import Archive
 from schemas.robots import (
     DEFAULT_REPLACEMENT,
@@ -92,7 +93,7 @@ from schemas.robots import (
 from schemas.run import RunConfig
 from schemas.wire import WireError
 from schemas.world import MAX_GAP_ROBOTS, World
-from server.core.errors import NotFoundError, ServerError
+from server.core.errors import NotFoundError, ServerError, UnconfirmedError
 from server.core.logs import context
 from server.core.models import Controller, Robot, Run, aware, utcnow
 from server.robots.signing import Signer
@@ -105,6 +106,8 @@ from server.robots.store import (
     trace_checksum,
 )
 from server.runs import crud
+from server.runs.champions import confirmed_document
+from server.runs.evaluation import repeats_claim
 
 log = logging.getLogger(__name__)
 
@@ -717,12 +720,25 @@ class RobotService:
 
     # ------------------------------------------------------------------ replacement
 
-    def _elite(self, run_id: int, elite: int) -> tuple[int, ControllerDocument]:
-        """(generation, document) of entry `elite` of the run's archive."""
+    def _elite(
+        self, run_id: int, elite: int, *, confirm: bool = False
+    ) -> tuple[int, ControllerDocument]:
+        """(generation, document) of entry `elite` of the run's archive; with `confirm`, only
+        if the server's own evaluation repeats its archived claim (`_elite_holds`), else
+        UnconfirmedError."""
         if self._archives is None:
             raise NotFoundError("this server keeps no archives")
         generations, config, archive = self._archives(run_id)
-        return generations - 1, _elite_document(run_id, generations, config, archive, elite)
+        document = _elite_document(run_id, generations, config, archive, elite)
+        if confirm:
+            with self.sessions() as db:
+                history = crud.history(db, run_id=run_id, generations=generations)
+            if not _elite_holds(config, history, archive, elite):
+                raise UnconfirmedError(
+                    f"run {run_id}'s elite {elite}: its archived fitness and descriptors are "
+                    "not what the server's own evaluation gives; not served"
+                )
+        return generations - 1, document
 
     def _replace(self, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
         with self.sessions.begin() as db:
@@ -929,13 +945,16 @@ class RobotService:
     ) -> tuple[ControllerDocument | None, str]:
         """The elite of the run's archive farthest, in its descriptors, from the failed
         controller's entry (the fittest first when the failed one is not in the archive),
-        skipping those that failed recently on this robot."""
+        skipping those that failed recently on this robot and those whose archived claim the
+        server's own evaluation does not repeat (`_elite_holds`, logged): an archive is made of
+        workers' claims, so no forged fitness or descriptor alone chooses what is served."""
         try:
             if self._archives is None:
                 raise NotFoundError("this server keeps no archives")
             generations, config, archive = self._archives(run_id)
         except NotFoundError as exc:
             return None, str(exc)
+        history = crud.history(db, run_id=run_id, generations=generations)
         spec = config.network_spec
         shas = [controller_sha256(spec, genome) for genome in archive.genomes]
         if failed in shas:
@@ -946,12 +965,24 @@ class RobotService:
             order = np.argsort(-np.nan_to_num(archive.fitness, nan=-np.inf), kind="stable")
             why = "fittest (the stuck controller is not in it)"
         for k in (int(i) for i in order):
-            if shas[k] not in recent:
-                doc = _elite_document(run_id, generations, config, archive, k)
-                return _stored(
-                    db, run_id, generations - 1, doc
-                ), f"elite {k} of run {run_id}'s archive, {why}"
-        return None, f"every elite of run {run_id}'s archive failed recently on this robot"
+            if shas[k] in recent:
+                continue
+            if not _elite_holds(config, history, archive, k):
+                log.warning(
+                    "run %d elite %d: its archived fitness and descriptors are not what the "
+                    "server's own evaluation gives; not served",
+                    run_id,
+                    k,
+                )
+                continue
+            doc = _elite_document(run_id, generations, config, archive, k)
+            return _stored(
+                db, run_id, generations - 1, doc
+            ), f"elite {k} of run {run_id}'s archive, {why}"
+        return None, (
+            f"every elite of run {run_id}'s archive failed recently on this robot or rests on a "
+            "claim the server's own evaluation does not repeat"
+        )
 
     # ------------------------------------------------------------------ API operations
 
@@ -1114,12 +1145,16 @@ class RobotService:
         """Push a stored controller (sha256) or a run's controller; wait for the ack.
 
         A run's `rank` is that training rank of its latest committed generation, its `elite`
-        that entry of its archive (`RunManager.archive`), `fit` its candidate that roams most in
-        the robot's calibrated world (waiting for the ranking); without any, the run's best: its
-        validated champion once completed, else training rank 0."""
+        that entry of its archive (`RunManager.archive`), each only if the server's own
+        evaluation repeats its claim (else UnconfirmedError); `fit` its candidate that roams
+        most in the robot's calibrated world (waiting for the ranking); without any, the run's
+        best: its validated champion once completed, else the best training rank whose claim
+        the server's evaluation repeats (`confirmed_document`)."""
         if sha256 is not None and run_id is not None:
             raise ValueError("give exactly one of sha256 or run_id")
-        chosen_elite = None if elite is None or run_id is None else self._elite(run_id, elite)
+        chosen_elite = (
+            None if elite is None or run_id is None else self._elite(run_id, elite, confirm=True)
+        )
         with self.sessions.begin() as db:
             if db.get(Robot, robot_id) is None:
                 raise NotFoundError(f"no robot with id {robot_id}")
@@ -1145,10 +1180,8 @@ class RobotService:
                 elif best is not None:
                     text, sha = best.document, best.sha256
                 else:
-                    chosen = 0 if rank is None else rank
-                    if chosen >= _population(db, run_id):
-                        raise NotFoundError(f"run {run_id} has no individual of rank {chosen}")
-                    doc = ranked_document(db, run_id, chosen)
+                    config = RunConfig.model_validate_json(run.config)
+                    doc = _stored(db, run_id, *confirmed_document(db, run, config, rank))
                     text, sha = doc.to_json(), doc.sha256
         push_id = uuid.uuid4().hex
         seq, signature = self._sign("push", robot_id, push_id, text)
@@ -1323,12 +1356,24 @@ def _stored(
     return doc
 
 
-def _population(db: Session, run_id: int) -> int:
-    latest = crud.latest_generation(db, run_id=run_id)
-    if latest is None:
-        return 0
-    found = crud.stored(db, run_id=run_id, generations=[latest.generation])
-    return sum(len(p.fitness) for p in found.values())
+def _elite_holds(config: RunConfig, history: StrategyHistory, archive: Archive, elite: int) -> bool:
+    """Whether the server's own evaluation of entry `elite`, in a generation that was told its
+    archived fitness and descriptors, repeats them bit for bit (`repeats_claim`; usually one
+    evaluation of one controller)."""
+    axes = [DESCRIPTORS.index(a) for a in config.strategy_settings.axes]
+    fitness, descriptors = archive.fitness[elite], archive.descriptors[elite]
+    told = (_bits(history.fitness) == _bits(fitness)) & (
+        _bits(history.descriptors[..., axes]) == _bits(descriptors)
+    ).all(axis=-1)
+    return any(
+        repeats_claim(config, g, archive.genomes[elite], float(fitness), (axes, descriptors))
+        for g in sorted({int(g) for g in np.nonzero(told)[0]})
+    )
+
+
+def _bits(values: np.ndarray) -> np.ndarray:
+    """float64 values as their bits, so equal means identical (NaN too)."""
+    return np.ascontiguousarray(values, dtype="<f8").view("<u8")
 
 
 def _effective(

@@ -24,9 +24,10 @@ from evorobotics.evolution import RunLoop, best_document, champion
 from evorobotics.ga import rank
 from evorobotics.strategies import Archive, traits
 from schemas.run import RunConfig
-from server.core.errors import NotFoundError
+from server.core.errors import NotFoundError, UnconfirmedError
 from server.core.models import Run
 from server.runs import crud
+from server.runs.evaluation import repeats_claim
 from server.runs.outbox import Written
 
 log = logging.getLogger(__name__)
@@ -125,17 +126,16 @@ class Champions:
 
     def best(self, run_id: int) -> ControllerDocument:
         """The run's best controller, read from the store (nothing is written): a completed
-        run's validated champion (with `validation`), any other run's training rank 0 of its
-        latest committed generation; NotFoundError before its first committed generation."""
+        run's validated champion (with `validation`), any other run's best training rank of its
+        latest committed generation whose claimed fitness the server's own evaluation repeats
+        (`confirmed_document`); NotFoundError before its first committed generation."""
         with self._sessions() as session:
             run = crud.find_run(session, run_id=run_id)
             stored = crud.champion(session, run=run)
             if stored is not None:
                 return ControllerDocument.from_json(stored.document)
-            document = _best(session, run, RunConfig.model_validate_json(run.config))
-        if document is None:
-            raise NotFoundError(f"run {run_id} has no completed generation yet")
-        return document
+            config = RunConfig.model_validate_json(run.config)
+            return confirmed_document(session, run, config)[1]
 
 
 def store_champion(
@@ -182,19 +182,41 @@ def store_champion(
     return document.sha256
 
 
-def _best(session: Session, run: Run, config: RunConfig) -> ControllerDocument | None:
-    """Training rank 0 of the latest committed generation."""
+def confirmed_document(
+    session: Session, run: Run, config: RunConfig, rank: int | None = None
+) -> tuple[int, ControllerDocument]:
+    """(generation, document): the controller of training rank `rank` of the run's latest committed generation, or
+    without `rank` of the best rank, only if this process's own evaluation repeats its claimed
+    fitness bit for bit (`repeats_claim`): ranks that do not are logged and skipped, so no
+    worker crowns a controller by a forged fitness. One evaluation of one individual when the
+    claims are true (a few ms), at most the generation's when they are not. NotFoundError
+    before the first committed generation or for a rank beyond it; UnconfirmedError when no
+    claim asked for holds."""
     latest = crud.latest_generation(session, run_id=run.id)
     if latest is None:
-        return None
-    found, genomes = crud.ranked(session, run_id=run.id, generation=latest.generation, rank=0)
-    return best_document(
-        config,
-        genomes,
-        found.fitness[:1],
-        np.array([0]),
-        generation=latest.generation,
-        run=run.id,
+        raise NotFoundError(f"run {run.id} has no completed generation yet")
+    g = latest.generation
+    found, genomes = crud.ranked(session, run_id=run.id, generation=g)
+    if rank is not None and not 0 <= rank < len(found):
+        raise NotFoundError(f"run {run.id} has no individual of rank {rank}")
+    ranks = range(len(found)) if rank is None else range(rank, rank + 1)
+    for r in ranks:
+        if repeats_claim(config, g, genomes[r], found.fitness[r]):
+            order = np.arange(len(found))
+            return g, best_document(
+                config, genomes, found.fitness, order, generation=g, run=run.id, rank=r
+            )
+        log.warning(
+            "run %d generation %d rank %d: claimed fitness %r is not what the server's own "
+            "evaluation gives; not served",
+            run.id, g, r, float(found.fitness[r]),
+        )  # fmt: skip
+    which = (
+        "no rank's claimed fitness is" if rank is None else f"rank {rank}'s claimed fitness is not"
+    )
+    raise UnconfirmedError(
+        f"run {run.id} generation {g}: {which} what the server's own evaluation gives; "
+        "nothing is served on a claim it does not repeat"
     )
 
 

@@ -1,6 +1,7 @@
 """The server's own evaluations and its checks of a worker's result: a job (`run_job`: the
 in-process executors' and the referee's), a spot-check (`spot_check`: re-evaluate some of a
-result here) and a span's digest (`digest_error`: the genomes it evaluated were those asked).
+result here), a span's digest (`digest_error`: the genomes it evaluated were those asked) and
+a stored claim before it is served (`repeats_claim`).
 
 Runs are deterministic, so a spot-check compares bit for bit; it draws the individuals with
 `secrets`, never the run's seed stream, so a worker cannot predict them.
@@ -10,11 +11,11 @@ from __future__ import annotations
 
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from evorobotics.evaluate import evaluate, robot_steps
+from evorobotics.evaluate import evaluate, implausible, robot_steps
 from evorobotics.evolution import RunLoop
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
@@ -26,12 +27,16 @@ _CHOOSE = secrets.SystemRandom()
 
 def run_job(job: Job, worker: str) -> Result:
     """Evaluate `job` (one generation of its slice) as a Result; an error, or an evaluation
-    no Result can carry (non-finite fitness, descriptors outside [0, 1]), becomes one."""
+    the scheduler would refuse as implausible (`implausible`), becomes one: this process's
+    own evaluation failing fails the run, it quarantines nobody."""
     began = time.perf_counter()
     try:
         evaluation = evaluate(job.config, job.key.generation, job.genomes)
-        if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
-            raise ValueError("evaluation returned non-finite fitness")
+        why = implausible(
+            job.config, evaluation.fitness, evaluation.components, evaluation.descriptors
+        )
+        if why is not None:
+            raise ValueError(f"the evaluation is implausible: {why}")
         seconds = time.perf_counter() - began
         return Result(
             key=job.key,
@@ -127,6 +132,26 @@ def digest_error(result: Result, i: int, lease: Lease, loop: RunLoop) -> str | N
     if result.digests[i] == genome_digest(loop.ask()[lease.start : lease.stop]):
         return None
     return "evaluated other genomes than the server asked (its GA differs: another version?)"
+
+
+def repeats_claim(
+    config: RunConfig,
+    generation: int,
+    genome: np.ndarray,
+    fitness: float,
+    descriptors: tuple[Sequence[int], np.ndarray] | None = None,
+) -> bool:
+    """Whether this process's own evaluation of `genome` in `generation` gives the claimed
+    `fitness`, and with `descriptors` (columns of DESCRIPTORS, values) those descriptors, bit
+    for bit: what the server serves or reports on a worker's claim (a training rank, an archive
+    elite) must pass this first, so no forged claim alone chooses it (docs/security.md)."""
+    again = evaluate(config, generation, np.asarray(genome, dtype=np.float64)[None])
+    if not _same_bits(np.array([fitness]), again.fitness):
+        return False
+    if descriptors is None:
+        return True
+    columns, values = descriptors
+    return _same_bits(values, again.descriptors[0, list(columns)])
 
 
 def _same_bits(claimed: np.ndarray, recomputed: np.ndarray) -> bool:

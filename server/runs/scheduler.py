@@ -249,6 +249,11 @@ class Scheduler:
             return Ack(key=result.key, accepted=False, reason="worker quarantined")
         if result.robot_steps_per_s > 0:
             record.speed = clamp_speed(result.robot_steps_per_s)
+        forged = self._implausible(result)
+        if forged is not None:
+            self._spot["mismatches"] += 1
+            self._quarantine(record.name, forged)
+            return Ack(key=result.key, accepted=False, reason=f"refused: {forged}")
         mismatch = self._spot_check(result, record)
         if mismatch is not None:
             self._spot["mismatches"] += 1
@@ -289,17 +294,6 @@ class Scheduler:
             if fitness is None or components is None or descriptors is None:  # handled above
                 break
             run = self._runs.get(key.run_id)
-            forged = (
-                None if run is None else implausible(run.loop.config, fitness[i], components[i])
-            )
-            if run is not None and forged is not None:
-                run.make_pending(key.index)
-                self._spot["mismatches"] += 1
-                self._quarantine(
-                    record.name, f"worker {result.worker} run {key.run_id} generation "
-                    f"{key.generation}: {forged}"
-                )  # fmt: skip
-                return Ack(key=result.key, accepted=False, reason=f"refused: {forged}")
             if run is not None:  # before a span's lease moves on at this speed
                 took = max(self._clock() - lease.leased_at, 1e-6)
                 steps = robot_steps(run.loop.config, lease.stop - lease.start)
@@ -451,6 +445,24 @@ class Scheduler:
             self._lease(
                 following, 0, lease.worker, span_left=lease.span_left - 1, asked_by_worker=True
             )
+
+    def _implausible(self, result: Result) -> str | None:
+        """Why a generation of `result` claims what its run's trials cannot produce
+        (`implausible`), naming worker, run and generation; None if none does, or it carries
+        no evaluation or its run is not in flight. Judged before any lease or spot-check, so a
+        forgery counts against its credential even when it comes late."""
+        run = self._runs.get(result.key.run_id)
+        fitness, components, descriptors = result.fitness, result.components, result.descriptors
+        if run is None or fitness is None or components is None or descriptors is None:
+            return None
+        for i in range(result.generations):
+            why = implausible(run.loop.config, fitness[i], components[i], descriptors[i])
+            if why is not None:
+                return (
+                    f"worker {result.worker} run {result.key.run_id} generation "
+                    f"{result.key.generation + i}: {why}"
+                )
+        return None
 
     def _spot_check(self, result: Result, record: Worker) -> str | None:
         """`spot_check` `result`, unless this process's own evaluator sent it (it runs this
