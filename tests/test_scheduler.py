@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
-from schemas.run import RunConfig
+from schemas.run import RunConfig, ValidationConfig
 from schemas.wire import Job, Result, genome_digest
 from server.runs.evaluation import run_job
 from server.runs.outbox import Written
@@ -28,7 +28,15 @@ from tests.helpers import (
     same_generations,
 )
 
-CONFIG = RunConfig(population=8, generations=4, trials=1, steps=5, job_size=3)
+CONFIG = RunConfig(
+    population=8,
+    generations=4,
+    trials=1,
+    steps=5,
+    job_size=3,
+    validation=ValidationConfig(poses=0, test_poses=0),
+)
+"""Validation off: no champion stages after the last generation (tests/test_choosing.py)."""
 FAST = 1e9
 """A speed at which a generation of CONFIG takes far less than span_below_s: spans."""
 SLOW = 10.0

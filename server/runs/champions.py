@@ -2,19 +2,14 @@
 
 A run completes with its validated champion (`evorobotics.evolution.champion`: the final
 population's best on the run's validation set), stored in `controllers` and named by
-`runs.champion_sha256` in the transaction that writes the last generation. Its validation
-(seconds of simulation) runs in a thread of its own on the told generation, outside any
-transaction: meanwhile the writer (`server.runs.writer`) goes on writing the other runs'
-generations, so they never wait for it; the last generation joins the write after its champion
-is known.
+`runs.champion_sha256` in the transaction that writes the last generation. Workers compute it
+(`server.runs.choosing`); `store_champion` computes it here only for a completed run stored
+without one.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
@@ -27,7 +22,6 @@ from schemas.run import RunConfig
 from server.core.errors import NotFoundError
 from server.core.models import Run
 from server.runs import crud
-from server.runs.outbox import Written
 
 log = logging.getLogger(__name__)
 
@@ -36,68 +30,12 @@ ARCHIVES_KEPT = 8
 
 
 class Champions:
-    """Validates the champions of runs' last generations, one at a time, in a thread of its
-    own; reads a run's best and archive from the store."""
+    """Reads a run's best controller and archive from the store."""
 
-    def __init__(
-        self,
-        sessions: sessionmaker[Session],
-        lock: threading.RLock,
-        told: threading.Event,
-        fail: Callable[[Session, int, str], None],
-    ) -> None:
+    def __init__(self, sessions: sessionmaker[Session]) -> None:
         self._sessions = sessions
-        self._lock = lock
-        """The manager's: the validated and validating runs are under it."""
-        self._told = told
-        """Set once a champion is known, so the writer writes its generation without delay."""
-        self._fail = fail
-        """Fails a run (in the session) whose validation failed, saying why."""
-        self._validator = ThreadPoolExecutor(1, thread_name_prefix="colony-champion")
-        """Validates the champions of runs' last generations, one at a time."""
-        self._validated: list[tuple[Written, ControllerDocument]] = []
-        """Last generations whose champion is known, for the next write (under `_lock`)."""
-        self._validating: set[int] = set()
-        """Runs whose last generation is with the validator (under `_lock`)."""
         self._archives: dict[tuple[int, int], Archive] = {}
         """(run id, generations) -> its archive replayed (`archive`), oldest first."""
-
-    def validate(self, item: Written) -> None:
-        """Compute the champion of a run's last generation in the validator's thread; the
-        writer writes that generation once it is known. A failure fails the run, saying why."""
-        if item.run_id in self._validating:
-            return
-        self._validating.add(item.run_id)
-
-        def validate() -> None:
-            try:
-                document = _champion(item)
-            except Exception as exc:
-                log.exception("run %d: champion validation failed", item.run_id)
-                with self._lock, self._sessions.begin() as session:
-                    self._validating.discard(item.run_id)
-                    self._fail(session, item.run_id, f"champion validation failed: {exc}")
-                return
-            with self._lock:
-                self._validating.discard(item.run_id)
-                self._validated.append((item, document))
-            self._told.set()
-
-        self._validator.submit(validate)
-
-    def take(self) -> list[tuple[Written, ControllerDocument]]:
-        """The last generations whose champion is known, for the write at hand (under the
-        manager's lock)."""
-        validated, self._validated = self._validated, []
-        return validated
-
-    def keep(self, validated: list[tuple[Written, ControllerDocument]]) -> None:
-        """Give back what `take` gave, for the next write (the store refused this one)."""
-        self._validated += validated
-
-    def wait(self) -> None:
-        """Return once the validations submitted so far are done."""
-        self._validator.submit(lambda: None).result()  # one thread: the ones before are done
 
     def archive(self, run_id: int) -> tuple[int, RunConfig, Archive]:
         """(generations, config, archive) of a map-elites, cma-me or novelty run after its
@@ -195,14 +133,4 @@ def _best(session: Session, run: Run, config: RunConfig) -> ControllerDocument |
         np.array([0]),
         generation=latest.generation,
         run=run.id,
-    )
-
-
-def _champion(item: Written) -> ControllerDocument:
-    """The champion of a run's last told generation, chosen among its candidates (seconds of
-    simulation: no transaction)."""
-    told = item.told
-    genomes, fitness = item.candidates or (told.genomes, told.fitness)
-    return champion(
-        item.config, genomes, fitness, rank(fitness), generation=told.generation, run=item.run_id
     )

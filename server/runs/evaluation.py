@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from evorobotics.evaluate import evaluate, robot_steps
-from evorobotics.evolution import RunLoop
+from evorobotics.evolution import RunLoop, champion_scores, stage_robot_steps
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
 from server.runs.jobs import Lease, Run
@@ -29,6 +29,8 @@ def run_job(job: Job, worker: str) -> Result:
     no Result can carry (non-finite fitness, descriptors outside [0, 1]), becomes one."""
     began = time.perf_counter()
     try:
+        if job.key.stage != "train":
+            return _run_stage(job, worker, began)
         evaluation = evaluate(job.config, job.key.generation, job.genomes)
         if not np.isfinite(evaluation.fitness).all():  # a Result refuses it: a ValueError here
             raise ValueError("evaluation returned non-finite fitness")
@@ -54,6 +56,55 @@ def run_job(job: Job, worker: str) -> Result:
             stop=job.stop,
             error=f"{type(exc).__name__}: {exc}",
         )
+
+
+def _run_stage(job: Job, worker: str, began: float) -> Result:
+    """A champion stage's job: its rows' scores (`champion_scores`)."""
+    stage = job.key.stage
+    scores = champion_scores(job.config, stage, job.genomes, job.start, job.stop)
+    seconds = time.perf_counter() - began
+    steps = stage_robot_steps(job.config, stage, job.stop - job.start)
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=job.start,
+        stop=job.stop,
+        robot_steps_per_s=steps / seconds if seconds > 0 else 0.0,
+        seconds=seconds,
+        scores=scores,
+    )
+
+
+def spot_check_scores(
+    result: Result, lease: Lease | None, run: Run | None, *, wanted: int, totals: dict[str, int]
+) -> str | None:
+    """`spot_check` of a champion stage's result: `wanted` of its rows (candidates or test
+    poses, drawn with `secrets`) scored again here, bit for bit."""
+    scores, choosing = result.scores, None if run is None else run.choosing
+    if (
+        wanted == 0
+        or scores is None
+        or lease is None
+        or run is None
+        or choosing is None
+        or lease.worker != result.worker
+        or (result.start, result.stop) != (lease.start, lease.stop)
+    ):
+        return None
+    config, stage = run.loop.config, run.stage
+    totals["results_checked"] += 1
+    n = lease.stop - lease.start
+    for row in sorted(_CHOOSE.sample(range(n), min(wanted, n))):
+        i = lease.start + row
+        again = champion_scores(config, stage, choosing.genomes_for(i, i + 1), i, i + 1)[0]
+        totals["individuals_checked"] += 1
+        totals["robot_steps_checked"] += run.robot_steps(1)
+        if not _same_bits(scores[row], again):
+            return (
+                f"worker {result.worker} run {run.run_id} {stage} row {i}: claimed scores "
+                f"{scores[row].tolist()!r}, recomputed {again.tolist()!r}"
+            )
+    return None
 
 
 def spot_check(

@@ -59,10 +59,8 @@ class RunManager:
         self.scheduler = Scheduler(Policy.from_settings(settings))
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._champions = Champions(
-            self.sessions, self._lock, self.scheduler.told_many, self._fail_id
-        )
-        """Validates the champions of runs' last generations; reads a run's best and archive."""
+        self._champions = Champions(self.sessions)
+        """Reads a run's best and archive."""
         self._writer = Writer(
             self.sessions, settings, self.scheduler, self._champions, self._finish
         )
@@ -124,10 +122,7 @@ class RunManager:
                 failing = None
 
     def flush(self) -> None:
-        """Write everything told, the last generations with their champions (this waits for
-        their validation): what `stop` and callers outside the writer thread want."""
-        self._flush()
-        self._champions.wait()
+        """Write everything told: what `stop` and callers outside the writer thread want."""
         self._flush()
 
     def _flush(self) -> None:

@@ -12,8 +12,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
+from evorobotics.document import ControllerDocument
 from evorobotics.evolution import Told
 from schemas.run import RunConfig
 from server.runs.policy import Policy
@@ -28,9 +27,8 @@ class Written:
     told: Told
     last: bool = False
     """The run's last generation: storing it completes the run."""
-    candidates: tuple[np.ndarray, np.ndarray] | None = None
-    """With `last`: the genomes and fitness the champion is chosen from (`RunLoop.candidates`:
-    the final generation, or a quality-diversity run's archive)."""
+    champion: ControllerDocument | None = None
+    """With `last`: the run's champion, chosen by its stage jobs (`server.runs.choosing`)."""
 
 
 class Outbox:

@@ -38,13 +38,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from evorobotics.evaluate import implausible, robot_steps
+from evorobotics.evaluate import implausible
 from evorobotics.evolution import RunLoop
 from evorobotics.strategies import traits
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus
 from server.core.logs import context
-from server.runs.evaluation import digest_error, run_job, spot_check
+from server.runs.choosing import Choosing
+from server.runs.evaluation import digest_error, run_job, spot_check, spot_check_scores
 from server.runs.jobs import Lease, Run, Slot
 from server.runs.outbox import Outbox, Written
 from server.runs.policy import Policy, clamp_speed
@@ -229,7 +230,12 @@ class Scheduler:
             loop = chosen.loop
             config = loop.config
             span = 1
-            if record.spans and len(chosen.slots) == 1 and traits(config).in_state:
+            if (
+                record.spans
+                and len(chosen.slots) == 1
+                and chosen.choosing is None
+                and traits(config).in_state
+            ):
                 wanted = self.policy.span_generations(config, record.speed, crowded=self._crowded())
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._lease(chosen, index, worker, span_left=span - 1)
@@ -285,14 +291,14 @@ class Scheduler:
                 self._runs[key.run_id].make_pending(key.index)  # asked here next time
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
-            fitness, components, descriptors = result.fitness, result.components, result.descriptors
-            if fitness is None or components is None or descriptors is None:  # handled above
-                break
-            run = self._runs.get(key.run_id)
+            run = self._runs[key.run_id]
+            fitness, components = result.fitness, result.components
             forged = (
-                None if run is None else implausible(run.loop.config, fitness[i], components[i])
+                None
+                if fitness is None or components is None  # a stage's scores: `Result`'s checks
+                else implausible(run.loop.config, fitness[i], components[i])
             )
-            if run is not None and forged is not None:
+            if forged is not None:
                 run.make_pending(key.index)
                 self._spot["mismatches"] += 1
                 self._quarantine(
@@ -300,11 +306,9 @@ class Scheduler:
                     f"{key.generation}: {forged}"
                 )  # fmt: skip
                 return Ack(key=result.key, accepted=False, reason=f"refused: {forged}")
-            if run is not None:  # before a span's lease moves on at this speed
-                took = max(self._clock() - lease.leased_at, 1e-6)
-                steps = robot_steps(run.loop.config, lease.stop - lease.start)
-                record.measured = clamp_speed(steps / took)
-            self._complete(key, lease, fitness[i], components[i], descriptors[i])
+            took = max(self._clock() - lease.leased_at, 1e-6)  # before a span's lease moves on
+            record.measured = clamp_speed(run.robot_steps(lease.stop - lease.start) / took)
+            self._accept(key, lease, result, i)
             self._workers.accepted(result.worker)
             record.jobs_done += 1
             record.evaluations += lease.stop - lease.start
@@ -408,20 +412,31 @@ class Scheduler:
         """Lease slot `index` of the run's generation to `worker`; the lease's seconds, from
         the slot's robot-steps and the worker's speed."""
         slot = run.slots[index]
-        config = run.loop.config
         lease_s = self.policy.lease_seconds(
-            robot_steps(config, slot.stop - slot.start), self._workers[worker].measured
+            run.robot_steps(slot.stop - slot.start), self._workers[worker].measured
         )
         slot.status = "leased"
         self._sequence += 1
         run.served = self._sequence
-        key = JobKey(run_id=run.run_id, generation=run.loop.generation, index=index)
+        key = run.key(index)
         now = self._clock()
         self._leases[key] = Lease(
             key, worker, now + lease_s, slot.start, slot.stop, now, span_left, asked_by_worker
         )
         self._totals["leased"] += 1
         return lease_s
+
+    def _accept(self, key: JobKey, lease: Lease, result: Result, i: int) -> None:
+        """Generation `i` of `result` (or a stage's scores) fills the slot `lease` held."""
+        if result.scores is not None:
+            self._complete_stage(key, lease, result.scores)
+        elif (
+            result.fitness is not None
+            and result.components is not None
+            and result.descriptors is not None
+        ):
+            fitness, components, descriptors = result.fitness, result.components, result.descriptors
+            self._complete(key, lease, fitness[i], components[i], descriptors[i])
 
     def _complete(
         self,
@@ -439,11 +454,11 @@ class Scheduler:
             return
         loop = run.loop
         told = loop.tell(run.fitness, run.components, run.descriptors)
-        candidates = loop.candidates(told.genomes, told.fitness) if loop.done else None
-        self._outbox.tell(Written(run.run_id, loop.config, told, loop.done, candidates))
         if loop.done:
-            del self._runs[run.run_id]
+            genomes, fitness = loop.candidates(told.genomes, told.fitness)
+            self._choose(run, Choosing.new(loop.config, run.run_id, told, genomes, fitness))
             return
+        self._outbox.tell(Written(run.run_id, loop.config, told))
         self._install(run.run_id, loop, run.running, served=run.served)
         following = self._runs[run.run_id]
         if lease.span_left > 0 and following.running and len(following.slots) == 1:
@@ -452,15 +467,43 @@ class Scheduler:
                 following, 0, lease.worker, span_left=lease.span_left - 1, asked_by_worker=True
             )
 
+    def _complete_stage(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
+        run = self._runs[key.run_id]
+        self._count_errors(run.slots[key.index])
+        run.fill_scores(key.index, lease.worker, scores)
+        self._totals["done"] += 1
+        if run.remaining or run.choosing is None or run.scores is None:
+            return
+        run.choosing.advance(run.scores)
+        self._choose(run, run.choosing)
+
+    def _choose(self, run: Run, choosing: Choosing) -> None:
+        """Serve `choosing`'s next stage, cut into a job per live worker; once none is left,
+        the last generation goes to the store with its champion."""
+        if choosing.stage is None:
+            champion = choosing.document()
+            self._outbox.tell(Written(run.run_id, run.loop.config, choosing.told, True, champion))
+            del self._runs[run.run_id]
+            return
+        parts = len(self._live()) * self.policy.jobs_per_worker
+        self._runs[run.run_id] = Run.choose(
+            run.run_id, run.loop, choosing, running=run.running, served=run.served, parts=parts
+        )
+
     def _spot_check(self, result: Result, record: Worker) -> str | None:
         """`spot_check` `result`, unless this process's own evaluator sent it (it runs this
         process's code)."""
         if not record.listed:
             return None
+        lease, run = self._leases.get(result.key), self._runs.get(result.key.run_id)
+        if result.scores is not None:
+            return spot_check_scores(
+                result, lease, run, wanted=self.policy.spot_checks, totals=self._spot
+            )
         return spot_check(
             result,
-            self._leases.get(result.key),
-            self._runs.get(result.key.run_id),
+            lease,
+            run,
             wanted=self.policy.spot_checks,
             job_size=self._job_size,
             totals=self._spot,
@@ -562,17 +605,10 @@ class Scheduler:
                 if self._leases.get(job.key) is not lease:
                     return
                 del self._leases[job.key]
-                if (
-                    result.fitness is None
-                    or result.components is None
-                    or result.descriptors is None
-                ):
-                    self._fail_run(job.key, result.error or "no evaluation")
+                if result.error is not None:
+                    self._fail_run(job.key, result.error)
                 else:
-                    self._complete(
-                        job.key, lease, result.fitness[0], result.components[0],
-                        result.descriptors[0],
-                    )  # fmt: skip
+                    self._accept(job.key, lease, result, 0)
         except Exception as exc:  # a bug here must fail the run, not leave its job held
             log.exception("the server's evaluation of run %d could not be recorded", job.key.run_id)
             with self._lock:
@@ -594,7 +630,7 @@ class Scheduler:
         for lease in released:
             del self._leases[lease.key]
             run = self._runs.get(lease.key.run_id)
-            if run is not None and run.loop.generation == lease.key.generation:
+            if run is not None and run.key(lease.key.index) == lease.key:
                 run.make_pending(lease.key.index)
         self._totals["requeued"] += len(released)
         return [lease.key for lease in released]
