@@ -6,7 +6,8 @@ zenoh itself reconnects a live session after a server restart), a liveliness tok
 runs; a bad job or a failing evaluation becomes an error result, never a crash. A stop request
 (SIGINT, SIGTERM) lets the current job finish and its result go back, then the worker exits.
 A span is evolved here generation after generation by the run loop of `evorobotics`, the one
-the server drives.
+the server drives. A job of a finished run's champion (`Job.key.stage`) scores its candidates
+on the validation set or its test poses.
 
 Hierarchy:
     WorkerError          the worker's own errors
@@ -307,8 +308,8 @@ def _evaluate(
 
 
 def _score(link: _Link, job: Job) -> Result:
-    """A champion stage's job (validation candidates or test poses) as a Result."""
-
+    """A champion stage's job (validation candidates or test poses) as a Result: the science
+    itself (`champion_scores`), whatever the evaluator."""
     began = time.perf_counter()
     try:
         scores = champion_scores(job.config, job.key.stage, job.genomes, job.start, job.stop)

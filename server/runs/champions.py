@@ -2,9 +2,8 @@
 
 A run completes with its validated champion (`evorobotics.evolution.champion`: the final
 population's best on the run's validation set), stored in `controllers` and named by
-`runs.champion_sha256` in the transaction that writes the last generation. Workers compute it
-(`server.runs.choosing`); `store_champion` computes it here only for a completed run stored
-without one.
+`runs.champion_sha256` (`store_champion`) in the transaction that writes the last generation.
+It is chosen by jobs like a generation's (`server.runs.choosing`), never simulated here.
 """
 
 from __future__ import annotations
@@ -15,8 +14,7 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evolution import RunLoop, best_document, champion
-from evorobotics.ga import rank
+from evorobotics.evolution import RunLoop, best_document
 from evorobotics.strategies import Archive, traits
 from schemas.run import RunConfig
 from server.core.errors import NotFoundError
@@ -77,42 +75,17 @@ class Champions:
 
 
 def store_champion(
-    session: Session,
-    run: Run,
-    config: RunConfig,
-    document: ControllerDocument | None = None,
-) -> str | None:
-    """Store a finished run's champion and name it on the run, so it is fetched and pushed
-    by its sha256 after any restart; its sha256 (None without a committed generation).
-
-    `document` is the champion computed from the told last generation; without it, it is
-    computed from the stored one (the same document: ranks and genomes are stored bit for
-    bit). It replaces a document of the same sha256 that a push stored before without
-    the `validation` member."""
-    last = config.generations - 1
-    if document is None:
-        latest = crud.latest_generation(session, run_id=run.id)
-        if latest is None:
-            return None
-        last = latest.generation
-        found, genomes = crud.ranked(session, run_id=run.id, generation=last)
-        if traits(config).in_state:
-            order = np.arange(len(found))
-            document = champion(config, genomes, found.fitness, order, generation=last, run=run.id)
-        else:  # its candidates may be an archive: the loop replayed from what it was told
-            asked, fitness = np.empty_like(genomes), np.empty(len(found))
-            asked[found.index], fitness[found.index] = genomes, found.fitness
-            loop = RunLoop.resume(
-                config, crud.history(session, run_id=run.id, generations=last + 1)
-            )
-            chosen, scores = loop.candidates(asked, fitness)
-            document = champion(config, chosen, scores, rank(scores), generation=last, run=run.id)
+    session: Session, run: Run, config: RunConfig, document: ControllerDocument
+) -> str:
+    """Store a finished run's champion `document` and name it on the run, so it is fetched
+    and pushed by its sha256 after any restart; its sha256. It replaces a document of the
+    same sha256 that a push stored before without the `validation` member."""
     crud.put_controller(
         session,
         sha256=document.sha256,
         document=document.to_json(),
         run_id=run.id,
-        generation=last,
+        generation=config.generations - 1,
         fitness=document.fitness,
         replace=True,
     )

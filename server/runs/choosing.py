@@ -1,10 +1,11 @@
 """A finished run's champion, chosen by jobs that workers take, sliced like generations.
 
 Once a run's last generation is told, its champion (`evorobotics.evolution.champion`) is
-computed in stages: `validate` scores the candidates on the validation set, `test` runs the
-pick's held-out test. Each stage's slices are independent (a candidate, a test pose), so they
-assemble to `champion`'s document bit for bit wherever they were simulated; the server only
-ranks, picks and writes the document.
+computed in stages: `validate` scores the candidates on the validation set, then `test` runs
+the pick's held-out test (either is skipped when the run's validation turns it off). Each
+stage's rows are independent (a candidate, a test pose), so however the scheduler slices them
+and whoever simulates them, they assemble to `champion`'s document bit for bit; the server
+only ranks, picks and writes the document.
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evorobotics.document import ControllerDocument
 from evorobotics.evolution import (
     HeldOutTrials,
+    RunLoop,
     Told,
     Validated,
     champion_document,
@@ -25,13 +26,14 @@ from evorobotics.evolution import (
 from evorobotics.ga import rank
 from schemas.run import RunConfig
 from schemas.wire import Stage
+from server.runs.outbox import Written
 
 
 @dataclass
 class Choosing:
     """The champion of a run's told last generation being chosen: its candidates (`RunLoop
-    .candidates`: the final generation or an archive), the stage in hand and what the stages
-    before scored."""
+    .candidates`: the final generation or an archive) ranked on training, the stage in hand
+    and what the stages before scored."""
 
     config: RunConfig
     run_id: int
@@ -41,17 +43,22 @@ class Choosing:
     order: np.ndarray
     stage: Stage | None
     """The stage in hand; None once the document can be written."""
+    stored: bool = False
+    """The last generation is in the store already (`Written.stored`)."""
     scored: Validated | None = None
     test: HeldOutTrials | None = None
 
     @classmethod
-    def new(
-        cls, config: RunConfig, run_id: int, told: Told, genomes: np.ndarray, fitness: np.ndarray
-    ) -> Choosing:
+    def new(cls, run_id: int, loop: RunLoop, told: Told, *, stored: bool = False) -> Choosing:
+        """The choice of `loop`'s champion after its last generation, `told`. ValueError if
+        it has no candidate (an empty archive)."""
+        config = loop.config
+        genomes, fitness = (np.asarray(a) for a in loop.candidates(told.genomes, told.fitness))
+        if len(genomes) == 0:
+            raise ValueError("no candidate to choose a champion from")
         v = config.validation
         first: Stage | None = "validate" if v.poses else "test" if v.test_poses else None
-        genomes, fitness = np.asarray(genomes), np.asarray(fitness)
-        return cls(config, run_id, told, genomes, fitness, rank(fitness), first)
+        return cls(config, run_id, told, genomes, fitness, rank(fitness), first, stored)
 
     @property
     def size(self) -> int:
@@ -69,21 +76,26 @@ class Choosing:
         return np.asarray(self.genomes[int(self.order[pick])][None])
 
     def advance(self, scores: np.ndarray) -> None:
-        """The stage in hand is scored (every row of it, `Result.scores`): on to the next."""
-        v = self.config.validation
+        """The stage in hand is scored, every row of it (`Result.scores` in row order): on
+        to the next. ValueError for a row not scored (NaN) or a stage already over."""
+        if self.stage is None:
+            raise ValueError(f"run {self.run_id}'s champion has no stage left to score")
+        if scores.shape[0] != self.size or not np.isfinite(scores).all():
+            raise ValueError(f"run {self.run_id}'s {self.stage} stage is not scored whole")
         if self.stage == "validate":
             self.scored = Validated.from_scores(scores)
-            self.stage = "test" if v.test_poses else None
-        elif self.stage == "test":
+            self.stage = "test" if self.config.validation.test_poses else None
+        else:
             self.test = HeldOutTrials.from_scores(scores)
             self.stage = None
 
-    def document(self) -> ControllerDocument:
-        """The champion's document (all stages scored): `champion`'s, bit for bit."""
+    def written(self) -> Written:
+        """The last generation with the champion's document for the store (all stages
+        scored): the document is `champion`'s, bit for bit."""
         if self.stage is not None:
             raise ValueError(f"run {self.run_id}'s champion is still in its {self.stage} stage")
         test = None if self.test is None else held_out_score(self.config, self.test)
-        return champion_document(
+        document = champion_document(
             self.config,
             self.genomes,
             self.fitness,
@@ -93,3 +105,4 @@ class Choosing:
             generation=self.told.generation,
             run=self.run_id,
         )
+        return Written(self.run_id, self.config, self.told, document, self.stored)

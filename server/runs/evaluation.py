@@ -1,6 +1,7 @@
 """The server's own evaluations and its checks of a worker's result: a job (`run_job`: the
-in-process executors' and the referee's), a spot-check (`spot_check`: re-evaluate some of a
-result here) and a span's digest (`digest_error`: the genomes it evaluated were those asked).
+in-process executors' and the referee's, a generation's or a champion's stage's), a spot-check
+(`spot_check`, `spot_check_scores` for a stage's: re-evaluate some of a result here) and a
+span's digest (`digest_error`: the genomes it evaluated were those asked).
 
 Runs are deterministic, so a spot-check compares bit for bit; it draws the individuals with
 `secrets`, never the run's seed stream, so a worker cannot predict them.

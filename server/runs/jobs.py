@@ -52,16 +52,12 @@ class Run:
     """Sequence number of its last lease: the run served least recently goes first."""
     erred: bool = False
     """Some slot of this generation erred: leases skip the slots a credential erred on."""
+    stage: Stage = "train"
+    """What its slots are: the generation's individuals, or its champion's stage in hand."""
     choosing: Choosing | None = None
     """After the last generation: the champion being chosen, whose stage the slots are."""
     scores: np.ndarray | None = None
     """A stage's rows as scored (`Result.scores`), NaN until done."""
-
-    @property
-    def stage(self) -> Stage:
-        return (
-            "train" if self.choosing is None or self.choosing.stage is None else self.choosing.stage
-        )
 
     @property
     def generation(self) -> int:
@@ -87,10 +83,10 @@ class Run:
         parts: int,
     ) -> Run:
         """The stage in hand of `choosing` cut into about `parts` jobs, all pending."""
-        n = choosing.size
+        stage, n = choosing.stage, choosing.size
+        if stage is None:
+            raise ValueError(f"run {run_id}'s champion has no stage left to score")
         slots = [Slot(a, b) for a, b in job_slices(n, -(-n // max(1, min(parts, n))))]
-        stage = choosing.stage
-        assert stage is not None
         return cls(
             run_id=run_id,
             loop=loop,
@@ -102,6 +98,7 @@ class Run:
             descriptors=np.empty(0),
             remaining=len(slots),
             served=served,
+            stage=stage,
             choosing=choosing,
             scores=np.full((n, score_columns(stage)), np.nan),
         )
@@ -182,12 +179,18 @@ class Run:
         self.descriptors[slot.start : slot.stop] = descriptors
         self._done(slot, worker)
 
-    def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> None:
-        """Slot `index` of a champion's stage is done: `worker`'s scores of it."""
+    def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> Choosing | None:
+        """Slot `index` of a champion's stage is done: `worker`'s scores of it. Once every slot
+        is, the choice moves on to its next stage (`Choosing.advance`) and is returned."""
+        if self.choosing is None or self.scores is None:
+            raise ValueError(f"run {self.run_id} is evolving: it has no champion's stage")
         slot = self.slots[index]
-        assert self.scores is not None
         self.scores[slot.start : slot.stop] = scores
         self._done(slot, worker)
+        if self.remaining:
+            return None
+        self.choosing.advance(self.scores)
+        return self.choosing
 
     def _done(self, slot: Slot, worker: str) -> None:
         slot.status = "done"

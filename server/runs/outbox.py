@@ -25,10 +25,17 @@ class Written:
     run_id: int
     config: RunConfig
     told: Told
-    last: bool = False
-    """The run's last generation: storing it completes the run."""
     champion: ControllerDocument | None = None
-    """With `last`: the run's champion, chosen by its stage jobs (`server.runs.choosing`)."""
+    """The run's champion (`server.runs.choosing`) with its last generation, whose storing
+    completes the run; None for any other generation."""
+    stored: bool = False
+    """The generation is in the store already (a run an older server completed, or stopped,
+    without naming its champion): only the champion is written."""
+
+    @property
+    def last(self) -> bool:
+        """The run's last generation: storing it completes the run."""
+        return self.champion is not None
 
 
 class Outbox:

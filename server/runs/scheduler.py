@@ -9,16 +9,19 @@ in-process executor and the run manager drive it, each call under one lock held 
 
 A job is a contiguous slice of a generation. Only its lease holder's result counts: a late or
 duplicate result is acknowledged as dropped. The result of the last job tells the run loop,
-which asks the next generation at once. A span lets the worker holding a generation's only
+which asks the next generation at once. After the last generation the run's jobs are its
+champion's stages (`server.runs.choosing`: candidates to validate, then test poses of the
+pick), leased, retried, refereed and spot-checked as a generation's are; the last generation
+goes to the store with the champion. A span lets the worker holding a generation's only
 job evolve the following ones itself (ask and tell are pure functions of the GA state and the
 seed): each accepted generation moves the lease on to the next, and the worker proves with a
 digest that it evaluated the genomes asked here.
 
-Spot-checks (`server.runs.evaluation`) re-evaluate `Policy.spot_checks` individuals of every
-result of a listed worker. A mismatch quarantines the worker's credential for the life of the
-process (`server.runs.workers`): its workers get no more jobs and its results in the
-generations in flight return to pending, so honest workers evaluate them (docs/reliability.md,
-"Spot-checks").
+Spot-checks (`server.runs.evaluation`) re-evaluate `Policy.spot_checks` individuals (a
+stage's: rows) of every result of a listed worker. A mismatch quarantines the worker's
+credential for the life of the process (`server.runs.workers`): its workers get no more jobs
+and its results in the generations (or the stage) in flight return to pending, so honest
+workers evaluate them (docs/reliability.md, "Spot-checks").
 
 Errors: a worker's error result says nothing about the run, only about that worker. Its job
 returns to pending for other credentials; once `Policy.max_attempts` credentials erred on it, or
@@ -112,6 +115,14 @@ class Scheduler:
         with self._lock:
             self._drop_leases(run_id)
             self._install(run_id, loop, running, served=self._sequence)
+        self._announce()
+
+    def choose(self, run_id: int, loop: RunLoop, choosing: Choosing, *, running: bool) -> None:
+        """Serve the champion's stages of a run whose `loop` is done (`choosing`, rebuilt from
+        the store after a restart), replacing anything of the run in flight."""
+        with self._lock:
+            self._drop_leases(run_id)
+            self._choose(run_id, loop, choosing, running=running, served=self._sequence)
         self._announce()
 
     def set_running(self, run_id: int, running: bool) -> None:
@@ -311,7 +322,8 @@ class Scheduler:
             self._accept(key, lease, result, i)
             self._workers.accepted(result.worker)
             record.jobs_done += 1
-            record.evaluations += lease.stop - lease.start
+            if key.stage == "train":  # a stage's rows are no controllers' fitness
+                record.evaluations += lease.stop - lease.start
             ack = Ack(key=result.key, accepted=True)
             following = key.at(key.generation + 1)
         if ack.accepted and self._outbox.lags(result.key.run_id):
@@ -455,8 +467,12 @@ class Scheduler:
         loop = run.loop
         told = loop.tell(run.fitness, run.components, run.descriptors)
         if loop.done:
-            genomes, fitness = loop.candidates(told.genomes, told.fitness)
-            self._choose(run, Choosing.new(loop.config, run.run_id, told, genomes, fitness))
+            try:
+                choosing = Choosing.new(run.run_id, loop, told)
+            except ValueError as exc:
+                self._fail_choice(run.run_id, exc)
+                return
+            self._choose(run.run_id, loop, choosing, running=run.running, served=run.served)
             return
         self._outbox.tell(Written(run.run_id, loop.config, told))
         self._install(run.run_id, loop, run.running, served=run.served)
@@ -470,25 +486,39 @@ class Scheduler:
     def _complete_stage(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
         run = self._runs[key.run_id]
         self._count_errors(run.slots[key.index])
-        run.fill_scores(key.index, lease.worker, scores)
-        self._totals["done"] += 1
-        if run.remaining or run.choosing is None or run.scores is None:
+        try:
+            choosing = run.fill_scores(key.index, lease.worker, scores)
+        except ValueError as exc:
+            self._fail_choice(run.run_id, exc)
             return
-        run.choosing.advance(run.scores)
-        self._choose(run, run.choosing)
+        self._totals["done"] += 1
+        if choosing is not None:
+            self._choose(run.run_id, run.loop, choosing, running=run.running, served=run.served)
 
-    def _choose(self, run: Run, choosing: Choosing) -> None:
-        """Serve `choosing`'s next stage, cut into a job per live worker; once none is left,
-        the last generation goes to the store with its champion."""
+    def _choose(
+        self, run_id: int, loop: RunLoop, choosing: Choosing, *, running: bool, served: int
+    ) -> None:
+        """Serve `choosing`'s stage in hand, cut into a job per live worker (`jobs_per_worker`
+        each); once none is left, the last generation goes to the store with its champion."""
         if choosing.stage is None:
-            champion = choosing.document()
-            self._outbox.tell(Written(run.run_id, run.loop.config, choosing.told, True, champion))
-            del self._runs[run.run_id]
+            try:
+                written = choosing.written()
+            except ValueError as exc:
+                self._fail_choice(run_id, exc)
+                return
+            self._outbox.tell(written)
+            self._runs.pop(run_id, None)
             return
         parts = len(self._live()) * self.policy.jobs_per_worker
-        self._runs[run.run_id] = Run.choose(
-            run.run_id, run.loop, choosing, running=run.running, served=run.served, parts=parts
+        self._runs[run_id] = Run.choose(
+            run_id, loop, choosing, running=running, served=served, parts=parts
         )
+
+    def _fail_choice(self, run_id: int, exc: ValueError) -> None:
+        """The run's champion cannot be chosen (no candidate, or a bug): the run fails."""
+        log.error("run %d: its champion cannot be chosen: %s", run_id, exc)
+        self._outbox.fail(run_id, f"its champion cannot be chosen: {exc}")
+        self._drop_run(run_id)
 
     def _spot_check(self, result: Result, record: Worker) -> str | None:
         """`spot_check` `result`, unless this process's own evaluator sent it (it runs this

@@ -1,12 +1,13 @@
 """The writer of told generations: what the scheduler told goes into the store, in one
-transaction a write (`RunManager._flush`: every `WRITE_AFTER_S` and before a lifecycle change).
+transaction a write (`RunManager.flush`: every `WRITE_AFTER_S` and before a lifecycle change).
 
 The write path uses SQLAlchemy Core statements (the manager's lifecycle changes use the ORM).
 A generation is one row holding its statistics and what it was told (`server.runs.population`);
 every `Settings.checkpoint_every`-th and the last also hold the GA state, genomes and
 components, from which the generations after it are replayed. A run's last generation comes
 with its champion (`server.runs.choosing`) and completes the run in the transaction that
-writes it.
+writes it; a last generation an older server stored without its champion gets the champion
+alone (`Written.stored`).
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ class Writer:
         settings: Settings,
         scheduler: Scheduler,
         champions: Champions,
-        finish: Callable[[Session, Run, RunConfig, ControllerDocument | None], None],
+        finish: Callable[[Session, Run, RunConfig, ControllerDocument], None],
     ) -> None:
         self._sessions = sessions
         self._settings = settings
@@ -180,6 +181,9 @@ class Writer:
         A checkpoint is every `checkpoint_every`-th generation and the last: the others are
         rebuilt by replaying from the one before (`crud.replay`).
         """
+        if item.stored:
+            self._name_champion(session, item)
+            return
         run_id, told, config = item.run_id, item.told, item.config
         g, genomes, fitness, metrics = told.generation, told.genomes, told.fitness, told.metrics
         top = float(fitness[metrics.order[0]])
@@ -235,5 +239,19 @@ class Writer:
             metrics.best,
             metrics.mean,
         )
-        if item.last:
+        if item.champion is not None:
             self._finish(session, crud.find_run(session, run_id=run_id), config, item.champion)
+
+    def _name_champion(self, session: Session, item: Written) -> None:
+        """Complete with its champion a run whose last generation is stored already (a
+        completed run without a champion: name it)."""
+        run = session.get(Run, item.run_id)
+        if (
+            item.champion is None
+            or run is None
+            or run.generation != item.told.generation + 1
+            or run.status not in ("running", "paused", "completed")
+            or run.champion_sha256 is not None
+        ):
+            raise RunOverError(f"run {item.run_id} is not waiting for its champion")
+        self._finish(session, run, item.config, item.champion)
