@@ -682,3 +682,27 @@ def test_a_stage_result_carries_scores_only_and_a_training_result_none() -> None
         make_result(key=key, scores=np.zeros((4, 3)))
     with pytest.raises(ValueError, match="no scores"):
         make_result(scores=np.zeros((4, 3)))
+
+
+def test_validation_off_refuses_its_stages_jobs_and_a_stage_is_one_of_three() -> None:
+    v = CHAMPION.validation.model_copy(update={"poses": 0, "test_poses": 0})
+    off = CHAMPION.model_copy(update={"validation": v})
+    for stage, rows in (("validate", 2), ("test", 1)):
+        key = JobKey(run_id=3, generation=off.generations - 1, index=0, stage=stage)
+        with pytest.raises(ValueError, match="outside 0"):
+            Job(key=key, start=0, stop=rows, config=off, genomes=np.zeros((rows, W)))
+    with pytest.raises(ValueError, match="stage"):
+        JobKey.model_validate({"run_id": 3, "generation": 1, "index": 0, "stage": "explore"})
+    assert JobKey(run_id=3, generation=1, index=0).stage == "train"
+
+
+def test_a_stage_result_carries_a_row_per_slice_member_and_an_error_none() -> None:
+    with pytest.raises(ValueError, match=r"float64\(2, 3\)"):
+        stage_result("validate", np.zeros((2, 6)))
+    key = JobKey(run_id=3, generation=CHAMPION.generations - 1, index=0, stage="test")
+    with pytest.raises(ValueError, match="needs its slice"):
+        Result(key=key, worker="w-1", scores=np.zeros((1, 6)))
+    with pytest.raises(ValueError, match="no fitness"):
+        Result(key=key, worker="w-1", start=0, stop=1, error="boom", scores=np.zeros((1, 6)))
+    erred = Result(key=key, worker="w-1", start=0, stop=1, error="boom")
+    assert_same(erred, decode(encode(erred), Result))
