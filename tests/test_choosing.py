@@ -410,3 +410,16 @@ def test_a_server_with_a_worker_stores_colony_evolves_champion(
         totals = app.state.manager.scheduler.totals()
     assert best == evolved_champion(CONFIG, run_id).to_dict()
     assert stats.jobs_done >= CONFIG.generations + 2 and totals["done"] == stats.jobs_done
+
+
+def test_a_server_without_workers_stores_colony_evolves_champion(tmp_path: Path) -> None:
+    """No zenoh: the in-process executor's threads take the stage jobs."""
+    settings = Settings(
+        db_url=f"sqlite:///{tmp_path / 'colony.db'}", port=free_port(), executors=2, zenoh=False
+    )
+    with serving(settings) as (url, _), httpx.Client(base_url=url, timeout=30) as client:
+        run_id = client.post("/api/runs", json=CONFIG.model_dump(mode="json")).json()["id"]
+        run = wait_status(client, run_id, {"completed", "failed"})
+        assert run["status"] == "completed", run["error"]
+        best = client.get(f"/api/runs/{run_id}/best").json()
+    assert best == evolved_champion(CONFIG, run_id).to_dict()
