@@ -261,6 +261,8 @@ class JobKey(BaseModel):
 def score_columns(stage: Stage) -> int:
     """Columns of a champion stage's `Result.scores`: validate's (score, stuck, roaming),
     test's (roaming, stuck, offset) in the nominal world then in the test gap's."""
+    if stage == "train":
+        raise ValueError("a training job's result carries fitness, not scores")
     return 3 if stage == "validate" else 6
 
 
