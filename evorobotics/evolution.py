@@ -26,6 +26,7 @@ from evorobotics.evaluate import (
     draw_gap,
     evaluate,
     map_slices,
+    robot_steps,
     start_poses,
     thread_slices,
     validation_set,
@@ -47,6 +48,7 @@ from schemas.run import (
     ValidationScore,
     WorldScore,
 )
+from schemas.wire import Stage
 from schemas.world import World
 
 
@@ -135,6 +137,14 @@ class Validated:
     stuck: np.ndarray
     roaming: np.ndarray
 
+    def scores(self) -> np.ndarray:
+        """As a validate job's `Result.scores`: (k, 3) columns score, stuck, roaming."""
+        return np.stack([self.score, self.stuck, self.roaming], axis=1)
+
+    @staticmethod
+    def from_scores(scores: np.ndarray) -> Validated:
+        return Validated(*(np.ascontiguousarray(scores[:, i]) for i in range(3)))
+
 
 VALIDATION_CHUNK_BYTES = 64 * 2**20
 """Recorded validation trials are simulated in slices of candidates of about this many bytes
@@ -214,6 +224,17 @@ class HeldOutTrials:
     roaming: np.ndarray
     stuck: np.ndarray
     offset: np.ndarray
+
+    def scores(self) -> np.ndarray:
+        """As a test job's `Result.scores`: (k, 6) columns roaming, stuck and offset, each in
+        the nominal world then the gap's."""
+        return np.concatenate([self.roaming.T, self.stuck.T, self.offset.T], axis=1, dtype=float)
+
+    @staticmethod
+    def from_scores(scores: np.ndarray) -> HeldOutTrials:
+        return HeldOutTrials(
+            scores[:, 0:2].T == 1.0, scores[:, 2:4].T == 1.0, np.ascontiguousarray(scores[:, 4:6].T)
+        )
 
     @staticmethod
     def concatenate(parts: list[HeldOutTrials]) -> HeldOutTrials:
@@ -295,6 +316,26 @@ def held_out(config: RunConfig, weights: np.ndarray, *, threads: int = 1) -> Hel
     return held_out_score(
         config, held_out_trials(config, weights, 0, v.test_poses, threads=threads)
     )
+
+
+def champion_scores(
+    config: RunConfig, stage: Stage, genomes: np.ndarray, start: int, stop: int
+) -> np.ndarray:
+    """A champion stage job's `Result.scores`: candidates `genomes` (candidates start:stop)
+    on the validation set, or test poses start:stop of the one genome."""
+    if stage == "validate":
+        return validate(config, genomes).scores()
+    if stage == "test":
+        return held_out_trials(config, genomes[0], start, stop).scores()
+    raise ValueError(f"{stage} is no champion stage")
+
+
+def stage_robot_steps(config: RunConfig, stage: Stage, n: int) -> int:
+    """Robot-steps of a job of n individuals (`train`), candidates or test poses."""
+    v = config.validation
+    if stage == "train":
+        return robot_steps(config, n)
+    return n * v.steps * (v.poses if stage == "validate" else 2)
 
 
 def validation_pick(scored: Validated) -> int:

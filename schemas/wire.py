@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schemas.run import RunConfig
 
-PROTOCOL = 12
+PROTOCOL = 13
 """Wire protocol version, sent in every job request and robot trace batch; the server idles
 workers and refuses robots' traces of other versions."""
 
@@ -230,6 +230,13 @@ def _first_line(exc: ValidationError) -> str:
     return f"{where}: {errors[0]['msg']}" if errors else str(exc)
 
 
+Stage = Literal["train", "validate", "test"]
+"""What a job simulates: individuals of a generation (`train`), or, once a run's last
+generation is told, slices of its champion's choice: candidates on the validation set
+(`validate`, `evorobotics.evolution.validate`) and the pick's held-out test poses (`test`,
+`evorobotics.evolution.held_out_trials`)."""
+
+
 class JobKey(BaseModel):
     """Identity of one evaluation job: results are idempotent under it."""
 
@@ -239,13 +246,24 @@ class JobKey(BaseModel):
     generation: int = Field(ge=0, lt=2**63)
     index: int = Field(ge=0, lt=2**63)
     """Each fits a signed 64-bit integer (the database's, and every JSON header's)."""
+    stage: Stage = "train"
+    """A champion stage's jobs carry the run's last generation."""
 
     def label(self) -> str:
-        return f"run {self.run_id} gen {self.generation} job {self.index}"
+        stage = "" if self.stage == "train" else f" {self.stage}"
+        return f"run {self.run_id} gen {self.generation}{stage} job {self.index}"
 
     def at(self, generation: int) -> JobKey:
         """The same job of another generation (a span's generations are one job each)."""
-        return JobKey(run_id=self.run_id, generation=generation, index=self.index)
+        return JobKey(run_id=self.run_id, generation=generation, index=self.index, stage=self.stage)
+
+
+def score_columns(stage: Stage) -> int:
+    """Columns of a champion stage's `Result.scores`: validate's (score, stuck, roaming),
+    test's (roaming, stuck, offset) in the nominal world then in the test gap's."""
+    if stage == "train":
+        raise ValueError("a training job's result carries fitness, not scores")
+    return 3 if stage == "validate" else 6
 
 
 def _worker_name(value: str) -> str:
@@ -284,7 +302,8 @@ class Ack(_Message):
 class Job(_Message):
     """One evaluation job: individuals start..stop of a generation, with their genomes; with
     `span` > 1 the whole generation, evolved `span` generations on by the worker itself from
-    `state` (the GA state before this generation's `tell`)."""
+    `state` (the GA state before this generation's `tell`). A champion stage's job (`key.stage`)
+    is validation candidates start..stop, or test poses start..stop of the one genome."""
 
     ARRAYS: ClassVar[tuple[str, ...]] = ("genomes", "state")
     kind: Literal["job"] = "job"
@@ -302,6 +321,8 @@ class Job(_Message):
 
     @model_validator(mode="after")
     def _check(self) -> Job:
+        if self.key.stage != "train":
+            return self._check_stage()
         config, genomes = self.config, self.genomes
         if not 0 <= self.start < self.stop <= config.population:
             raise ValueError(
@@ -323,12 +344,29 @@ class Job(_Message):
             )
         return self
 
+    def _check_stage(self) -> Job:
+        config, genomes, v = self.config, self.genomes, self.config.validation
+        validate = self.key.stage == "validate"
+        if self.span != 1 or self.state is not None:
+            raise ValueError(f"a {self.key.stage} job is no span")
+        if self.key.generation != config.generations - 1:
+            raise ValueError(f"a {self.key.stage} job is of the last generation")
+        most = v.candidates if validate and v.poses else v.test_poses if not validate else 0
+        if not 0 <= self.start < self.stop <= most:
+            raise ValueError(f"{self.key.stage} slice {self.start}:{self.stop} outside {most}")
+        shape = (self.stop - self.start if validate else 1, config.network_spec.weight_count)
+        if genomes.shape != shape or genomes.dtype != np.float64:
+            raise ValueError(f"genomes are {genomes.dtype}{genomes.shape}, expected float64{shape}")
+        if not np.isfinite(genomes).all():
+            raise ValueError("genomes contain NaN or infinity")
+        return self
+
 
 class Result(_Message):
     """Worker -> server on KEY_JOB_RESULT: fitness, components and behaviour descriptors of
     `k` consecutive generations of one job's slice (k = 1 but for a span), or an error."""
 
-    ARRAYS: ClassVar[tuple[str, ...]] = ("fitness", "components", "descriptors")
+    ARRAYS: ClassVar[tuple[str, ...]] = ("fitness", "components", "descriptors", "scores")
     kind: Literal["result"] = "result"
     key: JobKey
     """The job of the first generation; generation i of the result is `key.at(g + i)`."""
@@ -351,6 +389,8 @@ class Result(_Message):
     """(k, stop - start, 4) float64 (`evorobotics.evaluate.DESCRIPTORS`). Only dtypes and
     shapes are checked here: whether the values can be true is a claim the scheduler judges
     (`evorobotics.evaluate.implausible`), so a false one counts against its credential."""
+    scores: np.ndarray | None = None
+    """A champion stage's: (stop - start, `score_columns`) float64, in place of the others."""
 
     _name = field_validator("worker")(_worker_name)
 
@@ -376,10 +416,15 @@ class Result(_Message):
                 self.fitness is not None
                 or self.components is not None
                 or self.descriptors is not None
+                or self.scores is not None
                 or self.digests
             ):
                 raise ValueError("an error result carries no fitness")
             return self
+        if self.key.stage != "train":
+            return self._check_scores()
+        if self.scores is not None:
+            raise ValueError("a training result carries no scores")
         fitness, components, descriptors = self.fitness, self.components, self.descriptors
         if (
             fitness is None
@@ -400,6 +445,26 @@ class Result(_Message):
             raise ValueError(f"descriptors {descriptors.shape} must be float64 ({k}, {n}, 4)")
         if self.digests and len(self.digests) != k:
             raise ValueError(f"{len(self.digests)} digests for {k} generations")
+        return self
+
+    def _check_scores(self) -> Result:
+        scores, stage = self.scores, self.key.stage
+        if self.fitness is not None or self.components is not None or self.descriptors is not None:
+            raise ValueError(f"a {stage} result carries scores only")
+        if scores is None or self.start is None or self.stop is None or self.digests:
+            raise ValueError(f"a {stage} result needs its slice and scores")
+        shape = (self.stop - self.start, score_columns(stage))
+        if scores.dtype != np.float64 or scores.shape != shape:
+            raise ValueError(f"scores {scores.dtype}{scores.shape} must be float64{shape}")
+        if not np.isfinite(scores).all():
+            raise ValueError("scores must be finite")
+        fractions = scores[:, 1:] if stage == "validate" else scores[:, :4]
+        if not ((fractions >= 0.0) & (fractions <= 1.0)).all():
+            raise ValueError("stuck and roaming must lie in [0, 1]")
+        if stage == "test" and ((fractions != 0.0) & (fractions != 1.0)).any():
+            raise ValueError("a test trial roams or not and sticks or not: 0 or 1")
+        if stage == "test" and not ((scores[:, 4:] >= 0.0) & (scores[:, 4:] <= 1e6)).all():
+            raise ValueError("a test trial's offset must lie in [0, 1e6] m")
         return self
 
     @property

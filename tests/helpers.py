@@ -1,7 +1,8 @@
 """Helpers shared by the tests (tests never import each other): free loopback ports, polling
 with a deadline, a dispatcher's loopback settings, zenoh router and client configurations, a
-fast fake evaluator, a worker thread, a real uvicorn server, the REST API's small run, robot
-controllers and agents on BasicX emulators, and the store's manager steps.
+fast fake evaluator, a scheduler on a fake clock, `colony evolve`'s champion, a worker thread,
+a real uvicorn server, the REST API's small run, robot controllers and agents on BasicX
+emulators, and the store's manager steps.
 
 Imports stay light: the app, zenoh, the agent and the science are imported where they are used.
 """
@@ -14,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,8 @@ if TYPE_CHECKING:
     from server.runs.dispatch import DispatchSettings
     from server.runs.lifecycle import RunManager
     from server.runs.outbox import Written
+    from server.runs.policy import Policy
+    from server.runs.scheduler import Scheduler
     from worker.main import Evaluator, WorkerStats
 
 SERVER_START_S = 60.0
@@ -147,6 +150,34 @@ def same_generations(written: list[Written], expected: list[Told]) -> None:
         assert w.told.genomes.tobytes() == t.genomes.tobytes()
         assert w.told.fitness.tobytes() == t.fitness.tobytes()
     assert [w.last for w in written] == [False] * (len(written) - 1) + [True]
+
+
+class Clock:
+    """A fake monotonic clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def make_scheduler(policy: Policy | None = None) -> tuple[Scheduler, Clock]:
+    """A scheduler on a fake clock (its wall clock 1000 s ahead of it)."""
+    from server.runs.policy import Policy
+    from server.runs.scheduler import Scheduler
+
+    clock = Clock()
+    return Scheduler(policy or Policy(), clock=clock, wall=lambda: 1000.0 + clock.t), clock
+
+
+def evolved_champion(config: RunConfig, run_id: int) -> ControllerDocument:
+    """`colony evolve`'s champion of `config` (`evolve(...).best`), named as the server names
+    its run `run_id`'s."""
+    from evorobotics.evolution import evolve
+
+    best = evolve(config, threads=1).best
+    return replace(best, provenance={**best.provenance, "run": run_id})
 
 
 def router_config(port: int) -> zenoh.Config:

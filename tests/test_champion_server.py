@@ -108,11 +108,12 @@ def test_live_best_is_rank_0_and_a_completed_run_serves_its_champion_after_a_res
     engine.dispose()
 
 
-def test_a_champion_replaces_its_rank_document_and_an_unnamed_one_is_stored_at_start(
+def test_a_champion_replaces_its_rank_document_and_an_unnamed_one_is_chosen_at_start(
     tmp_path: Path,
 ) -> None:
     """A completed run without a named champion (its push stored the champion's controller
-    without `validation`) gets it, recomputed from the store, when the server starts."""
+    without `validation`) gets it when the server starts: its stages are jobs again, chosen
+    from the stored last generation."""
     engine = engine_in(tmp_path)
     manager = RunManager(engine, SETTINGS)
     run_id = manager.create_run(CONFIG)
@@ -133,6 +134,8 @@ def test_a_champion_replaces_its_rank_document_and_an_unnamed_one_is_stored_at_s
 
     restarted = RunManager(engine, SETTINGS)
     restarted.recover()
+    assert restarted.best(run_id).validation is None  # until its stages are done
+    drain(restarted)
     assert restarted.best(run_id).to_json() == expected.to_json()
     with restarted.sessions() as session:
         stored = crud.get_controller(session, sha256=expected.sha256)

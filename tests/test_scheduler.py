@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from evorobotics.evolution import RunLoop, evaluate_population, evolve
 from evorobotics.ga import GAState
-from schemas.run import RunConfig
+from schemas.run import RunConfig, ValidationConfig
 from schemas.wire import Job, Result, genome_digest
 from server.runs.evaluation import run_job
 from server.runs.outbox import Written
@@ -23,31 +23,25 @@ from tests.helpers import (
     eventually,
     fake_evaluator,
     fake_fitness,
+    make_scheduler,
     plausible_forgery,
     reference,
     same_generations,
 )
 
-CONFIG = RunConfig(population=8, generations=4, trials=1, steps=5, job_size=3)
+CONFIG = RunConfig(
+    population=8,
+    generations=4,
+    trials=1,
+    steps=5,
+    job_size=3,
+    validation=ValidationConfig(poses=0, test_poses=0),
+)
+"""Validation off: no champion stages after the last generation (tests/test_choosing.py)."""
 FAST = 1e9
 """A speed at which a generation of CONFIG takes far less than span_below_s: spans."""
 SLOW = 10.0
 """A speed at which it takes seconds: no spans."""
-
-
-class Clock:
-    """A fake monotonic clock the test moves by hand."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
-def make(policy: Policy | None = None) -> tuple[Scheduler, Clock]:
-    clock = Clock()
-    return Scheduler(policy or Policy(), clock=clock, wall=lambda: 1000.0 + clock.t), clock
 
 
 def result(
@@ -97,7 +91,7 @@ def error_result(job: Job, worker: str) -> Result:
 
 
 def test_with_no_worker_known_a_generation_is_cut_by_job_size() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     assert sched.counts() == {"pending": 3, "leased": 0, "done": 0}
     jobs = [sched.lease(f"w{i}") for i in range(4)]
@@ -117,7 +111,7 @@ def test_with_no_worker_known_a_generation_is_cut_by_job_size() -> None:
 def test_a_generation_is_cut_per_live_worker(
     workers: int, per_worker: int, expected: list[tuple[int, int]]
 ) -> None:
-    sched, _ = make(Policy(jobs_per_worker=per_worker))
+    sched, _ = make_scheduler(Policy(jobs_per_worker=per_worker))
     for i in range(workers):
         sched.join(f"w{i}", speed=SLOW)
     sched.join("other-protocol", serving=False)  # never counted
@@ -132,7 +126,7 @@ def test_a_generation_is_cut_per_live_worker(
 
 
 def test_the_next_generation_is_cut_for_the_workers_live_then() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)  # no worker yet: by job_size
     first = [sched.lease(f"w{i}") for i in range(3)]
     sched.leave("w2")  # its job returns; two live workers remain
@@ -148,7 +142,7 @@ def test_the_next_generation_is_cut_for_the_workers_live_then() -> None:
 
 
 def test_runs_share_workers_least_recently_served_first() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     sched.add(2, RunLoop(CONFIG.model_copy(update={"seed": 1})), running=True)
     order: list[int] = []
@@ -159,7 +153,7 @@ def test_runs_share_workers_least_recently_served_first() -> None:
 
 
 def test_a_paused_run_is_not_leased_from_until_resumed() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=False)
     assert not sched.has_pending() and sched.lease("w") is None
     sched.set_running(1, True)
@@ -172,7 +166,7 @@ def test_a_paused_run_is_not_leased_from_until_resumed() -> None:
 
 
 def test_a_lease_expires_exactly_at_its_deadline_and_the_job_is_leased_again() -> None:
-    sched, clock = make(Policy(lease_unknown_s=30.0))
+    sched, clock = make_scheduler(Policy(lease_unknown_s=30.0))
     sched.add(1, RunLoop(CONFIG), running=True)
     clock.t = 5.0
     job = sched.lease("a")
@@ -197,7 +191,7 @@ def test_the_measured_speed_sets_the_lease_never_the_claimed_one() -> None:
     lease is `lease_unknown_s` whatever it claims; later ones follow the time its last job
     took, lease to result, on the scheduler's clock."""
     policy = Policy(lease_min_s=1.0, lease_factor=10.0)
-    sched, clock = make(policy)
+    sched, clock = make_scheduler(policy)
     sched.join("a", speed=1e-300)
     sched.add(1, RunLoop(CONFIG), running=True)
     first = sched.lease("a")
@@ -214,7 +208,7 @@ def test_the_measured_speed_sets_the_lease_never_the_claimed_one() -> None:
 
 
 def test_duplicate_results_are_dropped_and_counted() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("a")
     assert job is not None
@@ -228,7 +222,7 @@ def test_duplicate_results_are_dropped_and_counted() -> None:
 
 
 def test_only_the_lease_holders_result_counts() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("holder")
     assert job is not None
@@ -240,7 +234,7 @@ def test_only_the_lease_holders_result_counts() -> None:
 
 
 def test_a_worker_asking_again_releases_what_it_held() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     first = sched.lease("a")
     again = sched.lease("a")  # its reply was lost: the same job, leased once
@@ -251,7 +245,7 @@ def test_a_worker_asking_again_releases_what_it_held() -> None:
 
 
 def test_leave_releases_at_once() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("a")
     assert job is not None
@@ -278,7 +272,7 @@ def lease_key(sched: Scheduler, worker: str, key: object) -> Job | None:
 def test_an_error_result_sends_its_job_to_another_credential_then_to_the_server() -> None:
     """Issue 38, attack 1: a worker's error fails no run. Its job is never leased to that
     credential again; once `max_attempts` credentials erred on it, the server evaluates it."""
-    sched, _ = make(Policy(max_attempts=2))
+    sched, _ = make_scheduler(Policy(max_attempts=2))
     for name in ("a", "a.pc-2", "b", "c"):
         sched.join(name)
     sched.add(1, RunLoop(CONFIG), running=True)
@@ -303,7 +297,7 @@ def test_an_error_result_sends_its_job_to_another_credential_then_to_the_server(
 def test_a_credential_whose_results_err_in_a_row_is_quarantined() -> None:
     """An error counts against its credential once another evaluates the job without one
     (the run's own failure counts against nobody); three in a row quarantine it."""
-    sched, _ = make(Policy(errors_quarantine=3, jobs_per_worker=5))
+    sched, _ = make_scheduler(Policy(errors_quarantine=3, jobs_per_worker=5))
     sched.join("b")
     sched.join("rogue")
     sched.add(1, RunLoop(CONFIG.model_copy(update={"population": 30})), running=True)
@@ -325,7 +319,7 @@ def test_a_credential_whose_results_err_in_a_row_is_quarantined() -> None:
 def test_a_job_erred_on_goes_to_the_server_when_the_other_workers_fell_silent() -> None:
     """A worker whose token lives on but that asks nothing (wedged) takes no job: once it was
     silent for `lease_max_s`, a job the others erred on goes to the server."""
-    sched, clock = make(Policy(lease_max_s=60.0))
+    sched, clock = make_scheduler(Policy(lease_max_s=60.0))
     sched.join("alice")
     sched.join("bob")
     sched.add(1, RunLoop(CONFIG), running=True)
@@ -349,7 +343,7 @@ def test_a_run_fails_only_when_the_servers_own_evaluation_fails(
         raise RuntimeError("the physics broke")
 
     monkeypatch.setattr("server.runs.evaluation.evaluate", broken)
-    sched, _ = make(Policy())
+    sched, _ = make_scheduler(Policy())
     sched.add(1, RunLoop(CONFIG), running=True)
     sched.add(2, RunLoop(CONFIG), running=True)
     job = sched.lease("a")
@@ -371,7 +365,7 @@ def test_a_run_fails_only_when_the_servers_own_evaluation_fails(
 
 
 def test_worker_statuses_and_gone_workers_are_kept_until_gone_keep_s() -> None:
-    sched, clock = make(Policy(gone_keep_s=60.0))
+    sched, clock = make_scheduler(Policy(gone_keep_s=60.0))
     sched.join("a", host="lab-1", speed=SLOW)
     sched.join("b")
     sched.add(1, RunLoop(CONFIG), running=True)
@@ -398,7 +392,7 @@ def test_worker_statuses_and_gone_workers_are_kept_until_gone_keep_s() -> None:
 
 
 def test_the_last_result_tells_the_loop_and_the_next_generation_is_installed() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     written: list[Written] = []
     for generation in range(CONFIG.generations):
@@ -416,7 +410,7 @@ def test_the_last_result_tells_the_loop_and_the_next_generation_is_installed() -
 
 
 def test_put_back_told_generations_come_first() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.add(1, RunLoop(CONFIG), running=True)
     written: list[Written] = []
     while len(written) < 2:
@@ -431,7 +425,7 @@ def test_put_back_told_generations_come_first() -> None:
 
 def test_real_evaluation_through_the_scheduler_equals_evolve_bit_for_bit() -> None:
     config = RunConfig(population=10, generations=3, trials=2, steps=8, job_size=3, seed=7)
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.join("a", speed=SLOW)
     sched.join("b", speed=SLOW)
     sched.add(1, RunLoop(config), running=True)
@@ -484,7 +478,7 @@ def span_step(
 
 
 def test_a_fast_worker_gets_the_whole_generation_as_a_span_that_matches_the_run() -> None:
-    sched, clock = make()
+    sched, clock = make_scheduler()
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(CONFIG), running=True)
     assert sched.counts() == {"pending": 1, "leased": 0, "done": 0}
@@ -507,7 +501,7 @@ def test_a_fast_worker_gets_the_whole_generation_as_a_span_that_matches_the_run(
 
 def test_the_last_generation_is_cut_per_worker_not_spanned() -> None:
     config = CONFIG.model_copy(update={"generations": 1})
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.join("fast", speed=FAST)
     sched.join("fast2", speed=FAST)
     sched.add(1, RunLoop(config), running=True)
@@ -515,7 +509,7 @@ def test_the_last_generation_is_cut_per_worker_not_spanned() -> None:
 
 
 def test_spans_need_every_live_worker_fast() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.join("fast", speed=FAST)
     sched.join("new")  # no speed yet
     sched.add(1, RunLoop(CONFIG), running=True)
@@ -529,7 +523,7 @@ def test_runs_as_many_as_workers_get_whole_generations_in_spans_however_slow() -
     """A study on few workers: each worker evolves a run of its own, so generations far above
     span_below_s are leased whole, in spans; one run on two workers is still sliced."""
     medium = 400.0  # CONFIG's generation in 0.1 s: sliced, not spanned, while runs are few
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.join("a", speed=medium)
     sched.join("b", speed=medium)
     sched.add(1, RunLoop(CONFIG), running=True)
@@ -553,7 +547,7 @@ def test_runs_as_many_as_workers_get_whole_generations_in_spans_however_slow() -
 
 @pytest.mark.parametrize("bad", ["missing", "wrong"])
 def test_a_span_generation_without_the_right_digest_is_an_error_and_ends_spans(bad: str) -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(CONFIG), running=True)
     job, loop = span_job(sched)
@@ -576,7 +570,7 @@ def test_a_span_generation_without_the_right_digest_is_an_error_and_ends_spans(b
 
 
 def test_pausing_ends_a_span_and_resuming_spans_from_the_recorded_generation() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(CONFIG), running=True)
     job, loop = span_job(sched)
@@ -595,7 +589,7 @@ def test_pausing_ends_a_span_and_resuming_spans_from_the_recorded_generation() -
 
 
 def test_a_span_result_of_several_generations_settles_each() -> None:
-    sched, _ = make()
+    sched, _ = make_scheduler()
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(CONFIG), running=True)
     job, loop = span_job(sched)
@@ -618,7 +612,7 @@ def test_no_speed_claim_gives_a_lease_outside_the_bounds(speed: float, robot_ste
     policy = Policy(lease_min_s=10.0, lease_max_s=3600.0)
     assert SPEED_MIN <= clamp_speed(speed) <= SPEED_MAX
     assert policy.lease_min_s <= policy.lease_seconds(robot_steps, speed) <= policy.lease_max_s
-    sched, clock = make(policy)
+    sched, clock = make_scheduler(policy)
     clock.t = 100.0
     sched.join("w", speed=speed)
     sched.add(1, RunLoop(CONFIG), running=True)
@@ -707,7 +701,7 @@ def store(sched: Scheduler) -> list[Written]:
 def test_any_interleaving_tells_the_same_generations_bit_for_bit(
     actions: list[tuple[str, int, float | None]],
 ) -> None:
-    sched, clock = make(Policy(lease_min_s=10.0, lease_unknown_s=20.0))
+    sched, clock = make_scheduler(Policy(lease_min_s=10.0, lease_unknown_s=20.0))
     workers = [FakeWorker(f"w{i}") for i in range(4)]
     sched.add(1, RunLoop(CONFIG), running=True)
     written: list[Written] = []
@@ -757,7 +751,7 @@ def test_any_interleaving_with_error_results_tells_what_evolve_tells(
     """Issue 38, attack 1, as a property: whichever of four credentials err on whichever
     jobs, leave or let time pass, no run fails and it tells `evolve`'s generations (the jobs
     every live credential erred on are evaluated by the server's referee)."""
-    sched, clock = make(Policy(span_below_s=0, errors_quarantine=3))
+    sched, clock = make_scheduler(Policy(span_below_s=0, errors_quarantine=3))
     sched.add(1, RunLoop(CONFIG), running=True)
     held: dict[int, Job | None] = dict.fromkeys(range(4))
     written: list[Written] = []
@@ -797,7 +791,7 @@ def test_a_run_whose_store_lags_leases_nothing_until_the_writes_are_in() -> None
     a told generation has waited `store_lag_s` nothing is leased, and `written` lets the run
     go on."""
     config = RunConfig(population=4, generations=6, trials=1, steps=5, job_size=4)
-    sched, clock = make(Policy(store_lag_s=0.25, write_now=2, span_below_s=0))
+    sched, clock = make_scheduler(Policy(store_lag_s=0.25, write_now=2, span_below_s=0))
     sched.add(1, RunLoop(config), running=True)
     for _ in range(2):
         job = sched.lease("w")
@@ -821,7 +815,7 @@ def test_a_span_ends_with_the_message_that_finds_its_store_lagging() -> None:
     """The generations a worker already evolved in one message all count; then its lease
     does not move on, so its next message is refused and the span ends."""
     config = RunConfig(population=8, generations=8, trials=1, steps=5, job_size=3)
-    sched, clock = make(Policy(store_lag_s=0.25))
+    sched, clock = make_scheduler(Policy(store_lag_s=0.25))
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(config), running=True)
     job, loop = span_job(sched)
@@ -897,7 +891,7 @@ def drain_honestly(sched: Scheduler, worker: str) -> list[Written]:
 
 
 def test_an_honest_result_passes_its_spot_check() -> None:
-    sched, _ = make(Policy(spot_checks=1))
+    sched, _ = make_scheduler(Policy(spot_checks=1))
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("w")
     assert job is not None
@@ -913,7 +907,7 @@ def test_an_honest_result_passes_its_spot_check() -> None:
 
 
 def test_a_forged_result_quarantines_its_worker_and_requeues_its_generation() -> None:
-    sched, _ = make(CHECKED)
+    sched, _ = make_scheduler(CHECKED)
     sched.add(1, RunLoop(CONFIG), running=True)
     first, other, last = sched.lease("rogue"), sched.lease("honest"), sched.lease("rogue2")
     assert first is not None and other is not None and last is not None
@@ -939,7 +933,7 @@ def test_a_forged_result_quarantines_its_worker_and_requeues_its_generation() ->
 
 
 def test_quarantine_outlives_gone_keep_and_the_worker_stays_listed() -> None:
-    sched, clock = make(Policy(spot_checks=3, gone_keep_s=1.0))
+    sched, clock = make_scheduler(Policy(spot_checks=3, gone_keep_s=1.0))
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("rogue")
     assert job is not None and not sched.settle(forged(job, "rogue")).accepted
@@ -954,7 +948,7 @@ def test_quarantine_outlives_gone_keep_and_the_worker_stays_listed() -> None:
 def test_quarantine_covers_every_name_of_the_credential() -> None:
     """Roles let zenoh user `lab` act as `lab` and `lab.*`: a forgery by one of its names
     stops them all, discards their results in flight, and a new name under it gets nothing."""
-    sched, _ = make(CHECKED)
+    sched, _ = make_scheduler(CHECKED)
     sched.add(1, RunLoop(CONFIG), running=True)
     sibling, rogue = sched.lease("lab.pc-1"), sched.lease("lab.pc-2")
     assert sibling is not None and rogue is not None
@@ -970,7 +964,7 @@ def test_quarantine_covers_every_name_of_the_credential() -> None:
 @pytest.mark.parametrize("what", ["components", "descriptors"])
 def test_forged_components_or_descriptors_quarantine_as_forged_fitness_does(what: str) -> None:
     """Quality-diversity strategies select on descriptors: they are checked bit for bit too."""
-    sched, _ = make(CHECKED)
+    sched, _ = make_scheduler(CHECKED)
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("rogue")
     assert job is not None
@@ -989,7 +983,7 @@ def test_descriptors_no_maze_gives_are_refused_as_forgery_with_spot_checks_off(
 ) -> None:
     """Descriptors are fractions of the maze: a claim outside [0, 1] (or not a number) is a
     forgery like a fitness beyond physics, refused, counted and its credential quarantined."""
-    sched, _ = make(Policy(spot_checks=0))
+    sched, _ = make_scheduler(Policy(spot_checks=0))
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("rogue")
     assert job is not None
@@ -1006,7 +1000,7 @@ def test_descriptors_no_maze_gives_are_refused_as_forgery_with_spot_checks_off(
 
 
 def test_with_spot_checks_off_a_forgery_is_accepted() -> None:
-    sched, _ = make(Policy(spot_checks=0))
+    sched, _ = make_scheduler(Policy(spot_checks=0))
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("w")
     assert job is not None and sched.settle(forged(job, "w")).accepted
@@ -1014,7 +1008,7 @@ def test_with_spot_checks_off_a_forgery_is_accepted() -> None:
 
 
 def test_the_servers_own_evaluators_are_not_spot_checked() -> None:
-    sched, _ = make(CHECKED)
+    sched, _ = make_scheduler(CHECKED)
     sched.join("local-0", spans=False, listed=False)
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("local-0")
@@ -1024,7 +1018,7 @@ def test_the_servers_own_evaluators_are_not_spot_checked() -> None:
 
 def test_a_spans_later_generations_are_checked_before_any_is_told() -> None:
     config = CONFIG.model_copy(update={"generations": 6})
-    sched, _ = make(CHECKED)
+    sched, _ = make_scheduler(CHECKED)
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(config), running=True)
     job = sched.lease("fast")
@@ -1044,7 +1038,7 @@ def test_a_spans_later_generations_are_checked_before_any_is_told() -> None:
 
 def test_a_span_message_is_checked_among_the_generations_it_can_complete() -> None:
     config = CONFIG.model_copy(update={"generations": 6})
-    sched, _ = make(CHECKED)
+    sched, _ = make_scheduler(CHECKED)
     sched.join("fast", speed=FAST)
     sched.add(1, RunLoop(config), running=True)
     job = sched.lease("fast")

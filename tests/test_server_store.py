@@ -293,6 +293,8 @@ def test_generations_are_cut_per_live_worker_and_the_run_matches_evolve(
     manager.flush()
     cuts = [sorted(first), sorted(second), third]
     assert cuts == [[(0, 5), (5, 10), (10, 12)], [(0, 6), (6, 12)], [(0, 12)]]
+    assert _run_row(manager, run_id) == ("running", SMALL.generations - 1)  # its champion's
+    drain(manager, "a")
     assert _run_row(manager, run_id) == ("completed", SMALL.generations)
     assert manager.best(run_id).sha256 == evolve(SMALL).best.sha256
 
@@ -515,7 +517,7 @@ def test_flush_writes_the_told_generations_in_one_transaction(
     manager: RunManager, engine: sa.Engine
 ) -> None:
     """Generations told between two flushes go into one commit; `stop` writes what is left
-    (no writer thread here); the last generation completes the run."""
+    (no writer thread here); the last generation, with its champion, completes the run."""
     whole = SMALL.model_copy(update={"job_size": SMALL.population, "generations": 4})
     run_id = manager.create_run(whole)
     commits: list[int] = []
@@ -544,6 +546,8 @@ def test_flush_writes_the_told_generations_in_one_transaction(
     assert _run_row(manager, run_id) == ("running", 3)
     tell_one()
     manager.flush()
+    assert _run_row(manager, run_id) == ("running", 3)  # its champion's stages are jobs
+    drain(manager)
     assert _run_row(manager, run_id) == ("completed", 4)
     assert manager.best(run_id).sha256 == evolve(whole).best.sha256
 
@@ -639,7 +643,7 @@ def test_a_span_moves_its_lease_on_each_generation_until_used_up(
     assert (job.key.generation, job.span) == (3, 3)  # capped at the run's end
     assert manager.scheduler.settle(_span_result(loop, job.key, "w", k=2)).accepted  # two at once
     assert manager.scheduler.settle(_span_result(loop, job.key, "w")).accepted
-    manager.flush()
+    drain(manager)  # its champion's stages
     assert _run_row(manager, run_id) == ("completed", 6)
     assert manager.best(run_id).sha256 == evolve(SPANNED).best.sha256
 

@@ -133,7 +133,7 @@ def test_a_frame_refuses_object_arrays_and_its_reserved_key() -> None:
 
 
 def test_the_protocol_and_its_keys() -> None:
-    assert PROTOCOL == 12 and JobRequest(worker="w").protocol == PROTOCOL
+    assert PROTOCOL == 13 and JobRequest(worker="w").protocol == PROTOCOL
     assert (next_key("w"), result_key("w")) == ("evocolony/jobs/next/w", "evocolony/jobs/result/w")
     assert next_key("w-1").startswith(KEY_JOB_NEXT.removesuffix("*"))
     assert result_key("w-1").startswith(KEY_JOB_RESULT.removesuffix("*"))
@@ -607,3 +607,109 @@ def test_genome_digest_sees_any_changed_bit_and_any_reordering() -> None:
     assert genome_digest(genomes) != genome_digest(swapped)
     assert genome_digest(genomes[:, :5]) != genome_digest(genomes[:5, :].T)
     make_result(digests=(genome_digest(genomes),))  # a valid digest for a Result
+
+
+# ------------------------------------------------------------------------- champion stages
+
+CHAMPION = CONFIG.model_copy(
+    update={"validation": CONFIG.validation.model_copy(update={"candidates": 6, "test_poses": 9})}
+)
+
+
+def stage_job(stage: str, start: int, stop: int, rows: int) -> Job:
+    key = JobKey(run_id=3, generation=CHAMPION.generations - 1, index=0, stage=stage)
+    genomes = np.arange(rows * W, dtype=np.float64).reshape(rows, W) / 7.0
+    return Job(key=key, start=start, stop=stop, config=CHAMPION, genomes=genomes)
+
+
+def stage_result(stage: str, scores: np.ndarray, start: int = 0) -> Result:
+    key = JobKey(run_id=3, generation=CHAMPION.generations - 1, index=0, stage=stage)
+    return Result(key=key, worker="w-1", start=start, stop=start + len(scores), scores=scores)
+
+
+def test_champion_stage_jobs_and_results_round_trip_bit_exact() -> None:
+    validate = stage_job("validate", 2, 5, rows=3)
+    test = stage_job("test", 0, 9, rows=1)
+    for job in (validate, test):
+        back = decode_next_reply(encode(job))
+        assert isinstance(back, Job) and back.key.stage == job.key.stage
+        assert_same(job, back)
+    assert "validate job 0" in validate.key.label() and "train" not in KEY.label()
+    scored = stage_result("validate", np.array([[3.5, 0.25, 0.5], [-1.0, 0.0, 1.0]]))
+    trials = stage_result("test", np.array([[1.0, 0.0, 0.0, 1.0, 2.5, 0.1]]), start=4)
+    for result in (scored, trials):
+        assert_same(result, decode(encode(result), Result))
+
+
+@pytest.mark.parametrize(
+    ("stage", "start", "stop", "rows", "message"),
+    [
+        ("validate", 4, 7, 3, "outside 6"),
+        ("validate", 0, 3, 2, "expected float64"),
+        ("test", 8, 10, 1, "outside 9"),
+        ("test", 0, 3, 3, "expected float64"),
+    ],
+)
+def test_a_champion_stage_job_must_fit_its_validation(
+    stage: str, start: int, stop: int, rows: int, message: str
+) -> None:
+    with pytest.raises(ValueError, match=message):
+        stage_job(stage, start, stop, rows)
+
+
+def test_a_champion_stage_job_is_of_the_last_generation_and_no_span() -> None:
+    job = stage_job("validate", 0, 2, rows=2)
+    with pytest.raises(ValueError, match="last generation"):
+        job.model_validate(job.model_dump() | {"key": job.key.model_copy(update={"generation": 0})})
+    with pytest.raises(ValueError, match="no span"):
+        job.model_validate(job.model_dump() | {"span": 2})
+
+
+@pytest.mark.parametrize(
+    ("stage", "scores", "message"),
+    [
+        ("validate", np.array([[1.0, 1.5, 0.0]]), r"\[0, 1\]"),
+        ("validate", np.array([[np.nan, 0.0, 0.0]]), "finite"),
+        ("validate", np.zeros((1, 6)), "float64"),
+        ("test", np.array([[0.5, 0.0, 0.0, 0.0, 1.0, 1.0]]), "0 or 1"),
+        ("test", np.array([[0.0, 0.0, 0.0, 0.0, -1.0, 1.0]]), "offset"),
+        ("test", np.array([[0.0, 0.0, 0.0, 0.0, 1.0, 2e6]]), "offset"),
+    ],
+)
+def test_a_champion_stage_result_refuses_impossible_scores(
+    stage: str, scores: np.ndarray, message: str
+) -> None:
+    with pytest.raises(ValueError, match=message):
+        stage_result(stage, scores)
+
+
+def test_a_stage_result_carries_scores_only_and_a_training_result_none() -> None:
+    key = JobKey(run_id=3, generation=CHAMPION.generations - 1, index=0, stage="validate")
+    with pytest.raises(ValueError, match="scores only"):
+        make_result(key=key, scores=np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="no scores"):
+        make_result(scores=np.zeros((4, 3)))
+
+
+def test_validation_off_refuses_its_stages_jobs_and_a_stage_is_one_of_three() -> None:
+    v = CHAMPION.validation.model_copy(update={"poses": 0, "test_poses": 0})
+    off = CHAMPION.model_copy(update={"validation": v})
+    for stage, rows in (("validate", 2), ("test", 1)):
+        key = JobKey(run_id=3, generation=off.generations - 1, index=0, stage=stage)
+        with pytest.raises(ValueError, match="outside 0"):
+            Job(key=key, start=0, stop=rows, config=off, genomes=np.zeros((rows, W)))
+    with pytest.raises(ValueError, match="stage"):
+        JobKey.model_validate({"run_id": 3, "generation": 1, "index": 0, "stage": "explore"})
+    assert JobKey(run_id=3, generation=1, index=0).stage == "train"
+
+
+def test_a_stage_result_carries_a_row_per_slice_member_and_an_error_none() -> None:
+    with pytest.raises(ValueError, match=r"float64\(2, 3\)"):
+        stage_result("validate", np.zeros((2, 6)))
+    key = JobKey(run_id=3, generation=CHAMPION.generations - 1, index=0, stage="test")
+    with pytest.raises(ValueError, match="needs its slice"):
+        Result(key=key, worker="w-1", scores=np.zeros((1, 6)))
+    with pytest.raises(ValueError, match="no fitness"):
+        Result(key=key, worker="w-1", start=0, stop=1, error="boom", scores=np.zeros((1, 6)))
+    erred = Result(key=key, worker="w-1", start=0, stop=1, error="boom")
+    assert_same(erred, decode(encode(erred), Result))

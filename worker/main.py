@@ -6,7 +6,8 @@ zenoh itself reconnects a live session after a server restart), a liveliness tok
 runs; a bad job or a failing evaluation becomes an error result, never a crash. A stop request
 (SIGINT, SIGTERM) lets the current job finish and its result go back, then the worker exits.
 A span is evolved here generation after generation by the run loop of `evorobotics`, the one
-the server drives.
+the server drives. A job of a finished run's champion (`Job.key.stage`) scores its candidates
+on the validation set or its test poses.
 
 Hierarchy:
     WorkerError          the worker's own errors
@@ -31,7 +32,7 @@ import numpy as np
 import zenoh
 
 from evorobotics.evaluate import robot_steps
-from evorobotics.evolution import RunLoop
+from evorobotics.evolution import RunLoop, champion_scores, stage_robot_steps
 from evorobotics.ga import GAState
 from schemas.answer import CONSOLIDATION, TARGET, one_answer
 from schemas.run import RunConfig
@@ -238,6 +239,8 @@ def _serve(link: _Link, host: str, evaluator: Evaluator, backoff: _Backoff) -> N
             job = _next_job(link, host, backoff)
         elif job.span > 1:
             job = _evolve_span(link, job, evaluator)
+        elif job.key.stage != "train":
+            job = _deliver(link, _score(link, job))
         else:
             job = _deliver(link, _evaluate(link, job, evaluator))
 
@@ -301,6 +304,35 @@ def _evaluate(
         fitness=fitness[np.newaxis],
         components=components[np.newaxis],
         descriptors=descriptors[np.newaxis],
+    )
+
+
+def _score(link: _Link, job: Job) -> Result:
+    """A champion stage's job (validation candidates or test poses) as a Result: the science
+    itself (`champion_scores`), whatever the evaluator."""
+    began = time.perf_counter()
+    try:
+        scores = champion_scores(job.config, job.key.stage, job.genomes, job.start, job.stop)
+    except Exception as exc:  # report it to the server instead of crashing the worker
+        log.exception("scoring %s failed", job.key.label())
+        link.stats.errors += 1
+        error = f"{type(exc).__name__}: {exc}"
+        return Result(
+            key=job.key, worker=link.settings.name, error=error, start=job.start, stop=job.stop
+        )
+    seconds = time.perf_counter() - began
+    steps = stage_robot_steps(job.config, job.key.stage, job.stop - job.start)
+    speed = steps / seconds if seconds > 0 else None
+    link.stats.jobs_done += 1
+    link.stats.robot_steps_per_s = speed
+    return Result(
+        key=job.key,
+        worker=link.settings.name,
+        start=job.start,
+        stop=job.stop,
+        robot_steps_per_s=speed or 0.0,
+        seconds=seconds,
+        scores=scores,
     )
 
 

@@ -2,33 +2,25 @@
 
 A run completes with its validated champion (`evorobotics.evolution.champion`: the final
 population's best on the run's validation set), stored in `controllers` and named by
-`runs.champion_sha256` in the transaction that writes the last generation. Its validation
-(seconds of simulation) runs in a thread of its own on the told generation, outside any
-transaction: meanwhile the writer (`server.runs.writer`) goes on writing the other runs'
-generations, so they never wait for it; the last generation joins the write after its champion
-is known.
+`runs.champion_sha256` (`store_champion`) in the transaction that writes the last generation.
+It is chosen by jobs like a generation's (`server.runs.choosing`), never simulated here.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics.document import ControllerDocument
-from evorobotics.evolution import RunLoop, best_document, champion
-from evorobotics.ga import rank
+from evorobotics.evolution import RunLoop, best_document
 from evorobotics.strategies import Archive, traits
 from schemas.run import RunConfig
 from server.core.errors import NotFoundError, UnconfirmedError
 from server.core.models import Run
 from server.runs import crud
 from server.runs.evaluation import repeats_claim
-from server.runs.outbox import Written
 
 log = logging.getLogger(__name__)
 
@@ -37,68 +29,12 @@ ARCHIVES_KEPT = 8
 
 
 class Champions:
-    """Validates the champions of runs' last generations, one at a time, in a thread of its
-    own; reads a run's best and archive from the store."""
+    """Reads a run's best controller and archive from the store."""
 
-    def __init__(
-        self,
-        sessions: sessionmaker[Session],
-        lock: threading.RLock,
-        told: threading.Event,
-        fail: Callable[[Session, int, str], None],
-    ) -> None:
+    def __init__(self, sessions: sessionmaker[Session]) -> None:
         self._sessions = sessions
-        self._lock = lock
-        """The manager's: the validated and validating runs are under it."""
-        self._told = told
-        """Set once a champion is known, so the writer writes its generation without delay."""
-        self._fail = fail
-        """Fails a run (in the session) whose validation failed, saying why."""
-        self._validator = ThreadPoolExecutor(1, thread_name_prefix="colony-champion")
-        """Validates the champions of runs' last generations, one at a time."""
-        self._validated: list[tuple[Written, ControllerDocument]] = []
-        """Last generations whose champion is known, for the next write (under `_lock`)."""
-        self._validating: set[int] = set()
-        """Runs whose last generation is with the validator (under `_lock`)."""
         self._archives: dict[tuple[int, int], Archive] = {}
         """(run id, generations) -> its archive replayed (`archive`), oldest first."""
-
-    def validate(self, item: Written) -> None:
-        """Compute the champion of a run's last generation in the validator's thread; the
-        writer writes that generation once it is known. A failure fails the run, saying why."""
-        if item.run_id in self._validating:
-            return
-        self._validating.add(item.run_id)
-
-        def validate() -> None:
-            try:
-                document = _champion(item)
-            except Exception as exc:
-                log.exception("run %d: champion validation failed", item.run_id)
-                with self._lock, self._sessions.begin() as session:
-                    self._validating.discard(item.run_id)
-                    self._fail(session, item.run_id, f"champion validation failed: {exc}")
-                return
-            with self._lock:
-                self._validating.discard(item.run_id)
-                self._validated.append((item, document))
-            self._told.set()
-
-        self._validator.submit(validate)
-
-    def take(self) -> list[tuple[Written, ControllerDocument]]:
-        """The last generations whose champion is known, for the write at hand (under the
-        manager's lock)."""
-        validated, self._validated = self._validated, []
-        return validated
-
-    def keep(self, validated: list[tuple[Written, ControllerDocument]]) -> None:
-        """Give back what `take` gave, for the next write (the store refused this one)."""
-        self._validated += validated
-
-    def wait(self) -> None:
-        """Return once the validations submitted so far are done."""
-        self._validator.submit(lambda: None).result()  # one thread: the ones before are done
 
     def archive(self, run_id: int) -> tuple[int, RunConfig, Archive]:
         """(generations, config, archive) of a map-elites, cma-me or novelty run after its
@@ -139,42 +75,17 @@ class Champions:
 
 
 def store_champion(
-    session: Session,
-    run: Run,
-    config: RunConfig,
-    document: ControllerDocument | None = None,
-) -> str | None:
-    """Store a finished run's champion and name it on the run, so it is fetched and pushed
-    by its sha256 after any restart; its sha256 (None without a committed generation).
-
-    `document` is the champion computed from the told last generation; without it, it is
-    computed from the stored one (the same document: ranks and genomes are stored bit for
-    bit). It replaces a document of the same sha256 that a push stored before without
-    the `validation` member."""
-    last = config.generations - 1
-    if document is None:
-        latest = crud.latest_generation(session, run_id=run.id)
-        if latest is None:
-            return None
-        last = latest.generation
-        found, genomes = crud.ranked(session, run_id=run.id, generation=last)
-        if traits(config).in_state:
-            order = np.arange(len(found))
-            document = champion(config, genomes, found.fitness, order, generation=last, run=run.id)
-        else:  # its candidates may be an archive: the loop replayed from what it was told
-            asked, fitness = np.empty_like(genomes), np.empty(len(found))
-            asked[found.index], fitness[found.index] = genomes, found.fitness
-            loop = RunLoop.resume(
-                config, crud.history(session, run_id=run.id, generations=last + 1)
-            )
-            chosen, scores = loop.candidates(asked, fitness)
-            document = champion(config, chosen, scores, rank(scores), generation=last, run=run.id)
+    session: Session, run: Run, config: RunConfig, document: ControllerDocument
+) -> str:
+    """Store a finished run's champion `document` and name it on the run, so it is fetched
+    and pushed by its sha256 after any restart; its sha256. It replaces a document of the
+    same sha256 that a push stored before without the `validation` member."""
     crud.put_controller(
         session,
         sha256=document.sha256,
         document=document.to_json(),
         run_id=run.id,
-        generation=last,
+        generation=config.generations - 1,
         fitness=document.fitness,
         replace=True,
     )
@@ -217,14 +128,4 @@ def confirmed_document(
     raise UnconfirmedError(
         f"run {run.id} generation {g}: {which} what the server's own evaluation gives; "
         "nothing is served on a claim it does not repeat"
-    )
-
-
-def _champion(item: Written) -> ControllerDocument:
-    """The champion of a run's last told generation, chosen among its candidates (seconds of
-    simulation: no transaction)."""
-    told = item.told
-    genomes, fitness = item.candidates or (told.genomes, told.fitness)
-    return champion(
-        item.config, genomes, fitness, rank(fitness), generation=told.generation, run=item.run_id
     )

@@ -14,7 +14,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
 from evorobotics.evaluate import evaluate
-from evorobotics.evolution import RunLoop, StrategyHistory
+from evorobotics.evolution import RunLoop, StrategyHistory, Told
 from evorobotics.strategies import traits
 from schemas.api import TERMINAL
 from schemas.run import RunConfig
@@ -159,6 +159,21 @@ def replay(session: Session, *, run: Run, config: RunConfig, generation: int) ->
         except ValueError as exc:
             raise ServerError(f"{where} {g}: stored fitness: {exc}") from exc
     return loop
+
+
+def retold(session: Session, *, run: Run, config: RunConfig) -> tuple[RunLoop, Told]:
+    """The loop of a run whose last generation is committed, and that generation as its loop
+    was told it (replayed, then told the stored fitness, components and descriptors): what its
+    champion is chosen from."""
+    last = config.generations - 1
+    loop = replay(session, run=run, config=config, generation=last)
+    frame = stored(session, run_id=run.id, generations=[last]).get(last)
+    if frame is None:
+        raise ServerError(f"run {run.id} lacks committed generation {last}")
+    try:
+        return loop, loop.tell(frame.fitness, frame.components, frame.descriptors)
+    except ValueError as exc:
+        raise ServerError(f"run {run.id} generation {last}: stored fitness: {exc}") from exc
 
 
 def ranked(

@@ -1,7 +1,8 @@
 """The server's own evaluations and its checks of a worker's result: a job (`run_job`: the
-in-process executors' and the referee's), a spot-check (`spot_check`: re-evaluate some of a
-result here), a span's digest (`digest_error`: the genomes it evaluated were those asked) and
-a stored claim before it is served (`repeats_claim`).
+in-process executors' and the referee's, a generation's or a champion's stage's), a spot-check
+(`spot_check`, `spot_check_scores` for a stage's: re-evaluate some of a result here), a span's
+digest (`digest_error`: the genomes it evaluated were those asked) and a stored claim before
+it is served (`repeats_claim`).
 
 Runs are deterministic, so a spot-check compares bit for bit; it draws the individuals with
 `secrets`, never the run's seed stream, so a worker cannot predict them.
@@ -16,7 +17,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from evorobotics.evaluate import evaluate, implausible, robot_steps
-from evorobotics.evolution import RunLoop
+from evorobotics.evolution import RunLoop, champion_scores, stage_robot_steps
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
 from server.runs.jobs import Lease, Run
@@ -31,6 +32,8 @@ def run_job(job: Job, worker: str) -> Result:
     own evaluation failing fails the run, it quarantines nobody."""
     began = time.perf_counter()
     try:
+        if job.key.stage != "train":
+            return _run_stage(job, worker, began)
         evaluation = evaluate(job.config, job.key.generation, job.genomes)
         why = implausible(
             job.config, evaluation.fitness, evaluation.components, evaluation.descriptors
@@ -59,6 +62,55 @@ def run_job(job: Job, worker: str) -> Result:
             stop=job.stop,
             error=f"{type(exc).__name__}: {exc}",
         )
+
+
+def _run_stage(job: Job, worker: str, began: float) -> Result:
+    """A champion stage's job: its rows' scores (`champion_scores`)."""
+    stage = job.key.stage
+    scores = champion_scores(job.config, stage, job.genomes, job.start, job.stop)
+    seconds = time.perf_counter() - began
+    steps = stage_robot_steps(job.config, stage, job.stop - job.start)
+    return Result(
+        key=job.key,
+        worker=worker,
+        start=job.start,
+        stop=job.stop,
+        robot_steps_per_s=steps / seconds if seconds > 0 else 0.0,
+        seconds=seconds,
+        scores=scores,
+    )
+
+
+def spot_check_scores(
+    result: Result, lease: Lease | None, run: Run | None, *, wanted: int, totals: dict[str, int]
+) -> str | None:
+    """`spot_check` of a champion stage's result: `wanted` of its rows (candidates or test
+    poses, drawn with `secrets`) scored again here, bit for bit."""
+    scores, choosing = result.scores, None if run is None else run.choosing
+    if (
+        wanted == 0
+        or scores is None
+        or lease is None
+        or run is None
+        or choosing is None
+        or lease.worker != result.worker
+        or (result.start, result.stop) != (lease.start, lease.stop)
+    ):
+        return None
+    config, stage = run.loop.config, run.stage
+    totals["results_checked"] += 1
+    n = lease.stop - lease.start
+    for row in sorted(_CHOOSE.sample(range(n), min(wanted, n))):
+        i = lease.start + row
+        again = champion_scores(config, stage, choosing.genomes_for(i, i + 1), i, i + 1)[0]
+        totals["individuals_checked"] += 1
+        totals["robot_steps_checked"] += run.robot_steps(1)
+        if not _same_bits(scores[row], again):
+            return (
+                f"worker {result.worker} run {run.run_id} {stage} row {i}: claimed scores "
+                f"{scores[row].tolist()!r}, recomputed {again.tolist()!r}"
+            )
+    return None
 
 
 def spot_check(

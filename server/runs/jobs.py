@@ -1,7 +1,9 @@
 """The scheduler's generations in flight: each live run's slots (its jobs) and their leases.
 
 A run's pending slots are a heap (the lowest is leased first); a slot remembers the credentials
-that erred on it and whose result filled it, so a quarantine can discard its result.
+that erred on it and whose result filled it, so a quarantine can discard its result. After its
+last generation a run's slots are its champion's stage (`server.runs.choosing`): candidates to
+validate or test poses, scored into `Run.scores`.
 """
 
 from __future__ import annotations
@@ -11,8 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from evorobotics.evolution import RunLoop, job_slices
-from schemas.wire import Job, JobKey
+from evorobotics.evolution import RunLoop, job_slices, stage_robot_steps
+from schemas.wire import Job, JobKey, Stage, score_columns
+from server.runs.choosing import Choosing
 from server.runs.workers import credential
 
 
@@ -49,6 +52,56 @@ class Run:
     """Sequence number of its last lease: the run served least recently goes first."""
     erred: bool = False
     """Some slot of this generation erred: leases skip the slots a credential erred on."""
+    stage: Stage = "train"
+    """What its slots are: the generation's individuals, or its champion's stage in hand."""
+    choosing: Choosing | None = None
+    """After the last generation: the champion being chosen, whose stage the slots are."""
+    scores: np.ndarray | None = None
+    """A stage's rows as scored (`Result.scores`), NaN until done."""
+
+    @property
+    def generation(self) -> int:
+        """The generation its jobs are of (a champion's stage: the last one)."""
+        return self.loop.generation if self.choosing is None else self.choosing.told.generation
+
+    def robot_steps(self, n: int) -> int:
+        """Robot-steps of a job of `n` rows of this run's slots."""
+        return stage_robot_steps(self.loop.config, self.stage, n)
+
+    def key(self, index: int) -> JobKey:
+        return JobKey(run_id=self.run_id, generation=self.generation, index=index, stage=self.stage)
+
+    @classmethod
+    def choose(
+        cls,
+        run_id: int,
+        loop: RunLoop,
+        choosing: Choosing,
+        *,
+        running: bool,
+        served: int,
+        parts: int,
+    ) -> Run:
+        """The stage in hand of `choosing` cut into about `parts` jobs, all pending."""
+        stage, n = choosing.stage, choosing.size
+        if stage is None:
+            raise ValueError(f"run {run_id}'s champion has no stage left to score")
+        slots = [Slot(a, b) for a, b in job_slices(n, -(-n // max(1, min(parts, n))))]
+        return cls(
+            run_id=run_id,
+            loop=loop,
+            running=running,
+            slots=slots,
+            pending=list(range(len(slots))),
+            fitness=np.empty(0),
+            components=np.empty(0),
+            descriptors=np.empty(0),
+            remaining=len(slots),
+            served=served,
+            stage=stage,
+            choosing=choosing,
+            scores=np.full((n, score_columns(stage)), np.nan),
+        )
 
     @classmethod
     def new(cls, run_id: int, loop: RunLoop, *, running: bool, served: int, size: int) -> Run:
@@ -72,8 +125,17 @@ class Run:
         """Slot `index` as a job (the whole run from its GA state when `span` > 1)."""
         slot = self.slots[index]
         loop = self.loop
+        if self.choosing is not None:
+            return Job(
+                key=self.key(index),
+                start=slot.start,
+                stop=slot.stop,
+                config=loop.config,
+                genomes=self.choosing.genomes_for(slot.start, slot.stop),
+                lease_s=lease_s,
+            )
         return Job(
-            key=JobKey(run_id=self.run_id, generation=loop.generation, index=index),
+            key=self.key(index),
             start=slot.start,
             stop=slot.stop,
             config=loop.config,
@@ -115,6 +177,22 @@ class Run:
         self.fitness[slot.start : slot.stop] = fitness
         self.components[slot.start : slot.stop] = components
         self.descriptors[slot.start : slot.stop] = descriptors
+        self._done(slot, worker)
+
+    def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> Choosing | None:
+        """Slot `index` of a champion's stage is done: `worker`'s scores of it. Once every slot
+        is, the choice moves on to its next stage (`Choosing.advance`) and is returned."""
+        if self.choosing is None or self.scores is None:
+            raise ValueError(f"run {self.run_id} is evolving: it has no champion's stage")
+        slot = self.slots[index]
+        self.scores[slot.start : slot.stop] = scores
+        self._done(slot, worker)
+        if self.remaining:
+            return None
+        self.choosing.advance(self.scores)
+        return self.choosing
+
+    def _done(self, slot: Slot, worker: str) -> None:
         slot.status = "done"
         slot.worker = worker
         self.remaining -= 1
@@ -125,8 +203,11 @@ class Run:
         discarded = 0
         for index, slot in enumerate(self.slots):
             if slot.status == "done" and slot.worker and credential(slot.worker) == banned:
-                self.fitness[slot.start : slot.stop] = np.nan
-                self.components[slot.start : slot.stop] = np.nan
+                if self.scores is not None:
+                    self.scores[slot.start : slot.stop] = np.nan
+                else:
+                    self.fitness[slot.start : slot.stop] = np.nan
+                    self.components[slot.start : slot.stop] = np.nan
                 self.remaining += 1
                 slot.worker = None
                 self.make_pending(index)

@@ -36,6 +36,7 @@ from server.core.models import Run, Study, utcnow
 from server.core.settings import Settings
 from server.runs import crud
 from server.runs.champions import Champions, store_champion
+from server.runs.choosing import Choosing
 from server.runs.policy import Policy
 from server.runs.scheduler import Scheduler
 from server.runs.writer import Writer
@@ -59,14 +60,12 @@ class RunManager:
         self.scheduler = Scheduler(Policy.from_settings(settings))
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._champions = Champions(
-            self.sessions, self._lock, self.scheduler.told_many, self._fail_id
-        )
-        """Validates the champions of runs' last generations; reads a run's best and archive."""
+        self._champions = Champions(self.sessions)
+        """Reads a run's best and archive."""
         self._writer = Writer(
             self.sessions, settings, self.scheduler, self._champions, self._finish
         )
-        """Writes the told generations (`_flush`)."""
+        """Writes the told generations (`flush`)."""
 
     # lifecycle of the manager -------------------------------------------------------------
 
@@ -109,7 +108,7 @@ class RunManager:
             self.scheduler.told_many.wait(WRITE_AFTER_S)
             self.scheduler.told_many.clear()
             try:
-                self._flush()
+                self.flush()
                 if time.monotonic() - housekept >= self.settings.housekeeping_seconds:
                     housekept = time.monotonic()
                     self.scheduler.expire()
@@ -124,13 +123,6 @@ class RunManager:
                 failing = None
 
     def flush(self) -> None:
-        """Write everything told, the last generations with their champions (this waits for
-        their validation): what `stop` and callers outside the writer thread want."""
-        self._flush()
-        self._champions.wait()
-        self._flush()
-
-    def _flush(self) -> None:
         """Write the told generations (`Writer.write`); then fail the runs whose jobs failed."""
         with self._lock:
             self._writer.write()
@@ -143,33 +135,45 @@ class RunManager:
 
     def recover(self) -> None:
         """Serve again the generation in flight of every live run (its results died with the
-        process); store the champion of a completed run that has none (one completed before
-        the store named champions)."""
+        process; a run choosing its champion evaluates its last generation again); choose
+        the champion of a completed run that has none (one completed before the store named
+        champions) from its stored last generation."""
         with self._lock, self.sessions.begin() as session:
             unnamed = session.scalars(
                 select(Run).where(Run.status == "completed", Run.champion_sha256.is_(None))
             )
             for run in unnamed:
-                sha = store_champion(session, run, RunConfig.model_validate_json(run.config))
-                context(log, run=run.id).info("run %d: champion %s stored", run.id, sha)
+                try:
+                    self._serve(session, run)
+                except ServerError as exc:  # it stays completed, unnamed: training rank 0
+                    context(log, run=run.id).warning(
+                        "run %d: its champion cannot be chosen: %s", run.id, exc
+                    )
             runs = session.scalars(select(Run).where(Run.status.in_(("running", "paused"))))
             for run in runs:
-                config = RunConfig.model_validate_json(run.config)
                 try:
                     with session.begin_nested():
-                        if run.generation >= config.generations:
-                            self._finish(session, run, config)
-                        else:
-                            self._serve(session, run)
+                        self._serve(session, run)
                 except ServerError as exc:  # a damaged row fails its run, not the server
                     self._fail(session, run, f"cannot resume: {exc}")
         self.promote()
 
     def _serve(self, session: Session, run: Run) -> None:
-        """Hand the run's loop, from its last committed generation, to the scheduler."""
+        """Hand the run's loop, from its last committed generation, to the scheduler; after
+        its last one (stored by an older server without its champion), its champion's
+        stages, the last generation told again from the store."""
         config = RunConfig.model_validate_json(run.config)
-        loop = crud.replay(session, run=run, config=config, generation=run.generation)
-        self.scheduler.add(run.id, loop, running=run.status == "running")
+        running = run.status in ("running", "completed")
+        if run.generation < config.generations:
+            loop = crud.replay(session, run=run, config=config, generation=run.generation)
+            self.scheduler.add(run.id, loop, running=running)
+            return
+        loop, told = crud.retold(session, run=run, config=config)
+        try:
+            choosing = Choosing.new(run.id, loop, told, stored=True)
+        except ValueError as exc:
+            raise ServerError(f"run {run.id}: {exc}") from exc
+        self.scheduler.choose(run.id, loop, choosing, running=running)
 
     # run lifecycle ---------------------------------------------------------------------------
 
@@ -272,10 +276,6 @@ class RunManager:
                     with session.begin_nested():
                         run.status = "running"
                         run.started_at = run.started_at or utcnow()
-                        config = RunConfig.model_validate_json(run.config)
-                        if run.generation >= config.generations:  # failed in validation
-                            self._finish(session, run, config)
-                            continue
                         self._serve(session, run)
                     context(log, run=run.id).info(
                         "run %d running from generation %d", run.id, run.generation
@@ -294,7 +294,7 @@ class RunManager:
         run stopped by a refused write is written first (the store's error propagates while it
         still refuses), so it resumes from a stored generation."""
         with self._lock:
-            self._flush()
+            self.flush()
             with self.sessions.begin() as session:
                 run = crud.find_run(session, run_id=run_id)
                 if run.status not in ("paused", "failed"):
@@ -314,7 +314,7 @@ class RunManager:
 
     def cancel(self, run_id: int) -> None:
         with self._lock:
-            self._flush()
+            self.flush()
             with self.sessions.begin() as session:
                 run = crud.find_run(session, run_id=run_id)
                 if run.status in TERMINAL:
@@ -328,7 +328,7 @@ class RunManager:
     def cancel_study(self, study_id: int) -> None:
         """Cancel the study's unfinished runs (one transaction); NotFoundError if none such."""
         with self._lock:
-            self._flush()
+            self.flush()
             with self.sessions.begin() as session:
                 if crud.get_study(session, study_id=study_id) is None:
                     raise NotFoundError(f"no study with id {study_id}")
@@ -347,7 +347,7 @@ class RunManager:
         """Cancel the run if it is live, then delete it and its generations; its controllers
         stay (robots may run them), no longer naming it."""
         with self._lock:
-            self._flush()
+            self.flush()
             with self.sessions.begin() as session:
                 run = crud.find_run(session, run_id=run_id)
                 live = run.status not in TERMINAL
@@ -362,7 +362,7 @@ class RunManager:
     def delete_study(self, study_id: int) -> None:
         """Cancel what still runs of the study, then delete it and its runs."""
         with self._lock:
-            self._flush()
+            self.flush()
             with self.sessions.begin() as session:
                 study = crud.get_study(session, study_id=study_id)
                 if study is None:
@@ -377,7 +377,7 @@ class RunManager:
 
     def _transition(self, run_id: int, allowed: set[str], target: str) -> None:
         with self._lock:
-            self._flush()
+            self.flush()
             with self.sessions.begin() as session:
                 run = crud.find_run(session, run_id=run_id)
                 if run.status not in allowed:
@@ -395,15 +395,14 @@ class RunManager:
     # ends of runs ----------------------------------------------------------------------------
 
     def _finish(
-        self,
-        session: Session,
-        run: Run,
-        config: RunConfig,
-        document: ControllerDocument | None = None,
+        self, session: Session, run: Run, config: RunConfig, document: ControllerDocument
     ) -> None:
-        run.status, run.finished_at = "completed", utcnow()
+        """Complete the run with its champion `document` (a run completed by an older server
+        without one: name it)."""
+        if run.status != "completed":
+            run.status, run.finished_at = "completed", utcnow()
+            crud.settle_study(session, study_id=run.study_id)
         sha = store_champion(session, run, config, document)
-        crud.settle_study(session, study_id=run.study_id)
         self._forget(run.id)
         context(log, run=run.id).info("run %d completed; champion %s", run.id, sha)
 

@@ -12,8 +12,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
+from evorobotics.document import ControllerDocument
 from evorobotics.evolution import Told
 from schemas.run import RunConfig
 from server.runs.policy import Policy
@@ -26,11 +25,17 @@ class Written:
     run_id: int
     config: RunConfig
     told: Told
-    last: bool = False
-    """The run's last generation: storing it completes the run."""
-    candidates: tuple[np.ndarray, np.ndarray] | None = None
-    """With `last`: the genomes and fitness the champion is chosen from (`RunLoop.candidates`:
-    the final generation, or a quality-diversity run's archive)."""
+    champion: ControllerDocument | None = None
+    """The run's champion (`server.runs.choosing`) with its last generation, whose storing
+    completes the run; None for any other generation."""
+    stored: bool = False
+    """The generation is in the store already (a run an older server completed, or stopped,
+    without naming its champion): only the champion is written."""
+
+    @property
+    def last(self) -> bool:
+        """The run's last generation: storing it completes the run."""
+        return self.champion is not None
 
 
 class Outbox:

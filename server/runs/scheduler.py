@@ -9,16 +9,19 @@ in-process executor and the run manager drive it, each call under one lock held 
 
 A job is a contiguous slice of a generation. Only its lease holder's result counts: a late or
 duplicate result is acknowledged as dropped. The result of the last job tells the run loop,
-which asks the next generation at once. A span lets the worker holding a generation's only
+which asks the next generation at once. After the last generation the run's jobs are its
+champion's stages (`server.runs.choosing`: candidates to validate, then test poses of the
+pick), leased, retried, refereed and spot-checked as a generation's are; the last generation
+goes to the store with the champion. A span lets the worker holding a generation's only
 job evolve the following ones itself (ask and tell are pure functions of the GA state and the
 seed): each accepted generation moves the lease on to the next, and the worker proves with a
 digest that it evaluated the genomes asked here.
 
-Spot-checks (`server.runs.evaluation`) re-evaluate `Policy.spot_checks` individuals of every
-result of a listed worker. A mismatch quarantines the worker's credential for the life of the
-process (`server.runs.workers`): its workers get no more jobs and its results in the
-generations in flight return to pending, so honest workers evaluate them (docs/reliability.md,
-"Spot-checks").
+Spot-checks (`server.runs.evaluation`) re-evaluate `Policy.spot_checks` individuals (a
+stage's: rows) of every result of a listed worker. A mismatch quarantines the worker's
+credential for the life of the process (`server.runs.workers`): its workers get no more jobs
+and its results in the generations (or the stage) in flight return to pending, so honest
+workers evaluate them (docs/reliability.md, "Spot-checks").
 
 Errors: a worker's error result says nothing about the run, only about that worker. Its job
 returns to pending for other credentials; once `Policy.max_attempts` credentials erred on it, or
@@ -38,13 +41,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from evorobotics.evaluate import implausible, robot_steps
+from evorobotics.evaluate import implausible
 from evorobotics.evolution import RunLoop
 from evorobotics.strategies import traits
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus
 from server.core.logs import context
-from server.runs.evaluation import digest_error, run_job, spot_check
+from server.runs.choosing import Choosing
+from server.runs.evaluation import digest_error, run_job, spot_check, spot_check_scores
 from server.runs.jobs import Lease, Run, Slot
 from server.runs.outbox import Outbox, Written
 from server.runs.policy import Policy, clamp_speed
@@ -111,6 +115,14 @@ class Scheduler:
         with self._lock:
             self._drop_leases(run_id)
             self._install(run_id, loop, running, served=self._sequence)
+        self._announce()
+
+    def choose(self, run_id: int, loop: RunLoop, choosing: Choosing, *, running: bool) -> None:
+        """Serve the champion's stages of a run whose `loop` is done (`choosing`, rebuilt from
+        the store after a restart), replacing anything of the run in flight."""
+        with self._lock:
+            self._drop_leases(run_id)
+            self._choose(run_id, loop, choosing, running=running, served=self._sequence)
         self._announce()
 
     def set_running(self, run_id: int, running: bool) -> None:
@@ -229,7 +241,12 @@ class Scheduler:
             loop = chosen.loop
             config = loop.config
             span = 1
-            if record.spans and len(chosen.slots) == 1 and traits(config).in_state:
+            if (
+                record.spans
+                and len(chosen.slots) == 1
+                and chosen.choosing is None
+                and traits(config).in_state
+            ):
                 wanted = self.policy.span_generations(config, record.speed, crowded=self._crowded())
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._lease(chosen, index, worker, span_left=span - 1)
@@ -290,18 +307,14 @@ class Scheduler:
                 self._runs[key.run_id].make_pending(key.index)  # asked here next time
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
-            fitness, components, descriptors = result.fitness, result.components, result.descriptors
-            if fitness is None or components is None or descriptors is None:  # handled above
-                break
-            run = self._runs.get(key.run_id)
-            if run is not None:  # before a span's lease moves on at this speed
-                took = max(self._clock() - lease.leased_at, 1e-6)
-                steps = robot_steps(run.loop.config, lease.stop - lease.start)
-                record.measured = clamp_speed(steps / took)
-            self._complete(key, lease, fitness[i], components[i], descriptors[i])
+            run = self._runs[key.run_id]
+            took = max(self._clock() - lease.leased_at, 1e-6)  # before a span's lease moves on
+            record.measured = clamp_speed(run.robot_steps(lease.stop - lease.start) / took)
+            self._accept(key, lease, result, i)
             self._workers.accepted(result.worker)
             record.jobs_done += 1
-            record.evaluations += lease.stop - lease.start
+            if key.stage == "train":  # a stage's rows are no controllers' fitness
+                record.evaluations += lease.stop - lease.start
             ack = Ack(key=result.key, accepted=True)
             following = key.at(key.generation + 1)
         if ack.accepted and self._outbox.lags(result.key.run_id):
@@ -402,20 +415,31 @@ class Scheduler:
         """Lease slot `index` of the run's generation to `worker`; the lease's seconds, from
         the slot's robot-steps and the worker's speed."""
         slot = run.slots[index]
-        config = run.loop.config
         lease_s = self.policy.lease_seconds(
-            robot_steps(config, slot.stop - slot.start), self._workers[worker].measured
+            run.robot_steps(slot.stop - slot.start), self._workers[worker].measured
         )
         slot.status = "leased"
         self._sequence += 1
         run.served = self._sequence
-        key = JobKey(run_id=run.run_id, generation=run.loop.generation, index=index)
+        key = run.key(index)
         now = self._clock()
         self._leases[key] = Lease(
             key, worker, now + lease_s, slot.start, slot.stop, now, span_left, asked_by_worker
         )
         self._totals["leased"] += 1
         return lease_s
+
+    def _accept(self, key: JobKey, lease: Lease, result: Result, i: int) -> None:
+        """Generation `i` of `result` (or a stage's scores) fills the slot `lease` held."""
+        if result.scores is not None:
+            self._complete_stage(key, lease, result.scores)
+        elif (
+            result.fitness is not None
+            and result.components is not None
+            and result.descriptors is not None
+        ):
+            fitness, components, descriptors = result.fitness, result.components, result.descriptors
+            self._complete(key, lease, fitness[i], components[i], descriptors[i])
 
     def _complete(
         self,
@@ -433,11 +457,15 @@ class Scheduler:
             return
         loop = run.loop
         told = loop.tell(run.fitness, run.components, run.descriptors)
-        candidates = loop.candidates(told.genomes, told.fitness) if loop.done else None
-        self._outbox.tell(Written(run.run_id, loop.config, told, loop.done, candidates))
         if loop.done:
-            del self._runs[run.run_id]
+            try:
+                choosing = Choosing.new(run.run_id, loop, told)
+            except ValueError as exc:
+                self._fail_choice(run.run_id, exc)
+                return
+            self._choose(run.run_id, loop, choosing, running=run.running, served=run.served)
             return
+        self._outbox.tell(Written(run.run_id, loop.config, told))
         self._install(run.run_id, loop, run.running, served=run.served)
         following = self._runs[run.run_id]
         if lease.span_left > 0 and following.running and len(following.slots) == 1:
@@ -464,15 +492,57 @@ class Scheduler:
                 )
         return None
 
+    def _complete_stage(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
+        run = self._runs[key.run_id]
+        self._count_errors(run.slots[key.index])
+        try:
+            choosing = run.fill_scores(key.index, lease.worker, scores)
+        except ValueError as exc:
+            self._fail_choice(run.run_id, exc)
+            return
+        self._totals["done"] += 1
+        if choosing is not None:
+            self._choose(run.run_id, run.loop, choosing, running=run.running, served=run.served)
+
+    def _choose(
+        self, run_id: int, loop: RunLoop, choosing: Choosing, *, running: bool, served: int
+    ) -> None:
+        """Serve `choosing`'s stage in hand, cut into a job per live worker (`jobs_per_worker`
+        each); once none is left, the last generation goes to the store with its champion."""
+        if choosing.stage is None:
+            try:
+                written = choosing.written()
+            except ValueError as exc:
+                self._fail_choice(run_id, exc)
+                return
+            self._outbox.tell(written)
+            self._runs.pop(run_id, None)
+            return
+        parts = len(self._live()) * self.policy.jobs_per_worker
+        self._runs[run_id] = Run.choose(
+            run_id, loop, choosing, running=running, served=served, parts=parts
+        )
+
+    def _fail_choice(self, run_id: int, exc: ValueError) -> None:
+        """The run's champion cannot be chosen (no candidate, or a bug): the run fails."""
+        log.error("run %d: its champion cannot be chosen: %s", run_id, exc)
+        self._outbox.fail(run_id, f"its champion cannot be chosen: {exc}")
+        self._drop_run(run_id)
+
     def _spot_check(self, result: Result, record: Worker) -> str | None:
         """`spot_check` `result`, unless this process's own evaluator sent it (it runs this
         process's code)."""
         if not record.listed:
             return None
+        lease, run = self._leases.get(result.key), self._runs.get(result.key.run_id)
+        if result.scores is not None:
+            return spot_check_scores(
+                result, lease, run, wanted=self.policy.spot_checks, totals=self._spot
+            )
         return spot_check(
             result,
-            self._leases.get(result.key),
-            self._runs.get(result.key.run_id),
+            lease,
+            run,
             wanted=self.policy.spot_checks,
             job_size=self._job_size,
             totals=self._spot,
@@ -574,17 +644,10 @@ class Scheduler:
                 if self._leases.get(job.key) is not lease:
                     return
                 del self._leases[job.key]
-                if (
-                    result.fitness is None
-                    or result.components is None
-                    or result.descriptors is None
-                ):
-                    self._fail_run(job.key, result.error or "no evaluation")
+                if result.error is not None:
+                    self._fail_run(job.key, result.error)
                 else:
-                    self._complete(
-                        job.key, lease, result.fitness[0], result.components[0],
-                        result.descriptors[0],
-                    )  # fmt: skip
+                    self._accept(job.key, lease, result, 0)
         except Exception as exc:  # a bug here must fail the run, not leave its job held
             log.exception("the server's evaluation of run %d could not be recorded", job.key.run_id)
             with self._lock:
@@ -606,7 +669,7 @@ class Scheduler:
         for lease in released:
             del self._leases[lease.key]
             run = self._runs.get(lease.key.run_id)
-            if run is not None and run.loop.generation == lease.key.generation:
+            if run is not None and run.key(lease.key.index) == lease.key:
                 run.make_pending(lease.key.index)
         self._totals["requeued"] += len(released)
         return [lease.key for lease in released]

@@ -1,12 +1,13 @@
 """The writer of told generations: what the scheduler told goes into the store, in one
-transaction a write (`RunManager._flush`: every `WRITE_AFTER_S` and before a lifecycle change).
+transaction a write (`RunManager.flush`: every `WRITE_AFTER_S` and before a lifecycle change).
 
 The write path uses SQLAlchemy Core statements (the manager's lifecycle changes use the ORM).
 A generation is one row holding its statistics and what it was told (`server.runs.population`);
 every `Settings.checkpoint_every`-th and the last also hold the GA state, genomes and
-components, from which the generations after it are replayed. A run's last generation waits
-for its champion (`server.runs.champions`) and completes the run in the transaction that
-writes it.
+components, from which the generations after it are replayed. A run's last generation comes
+with its champion (`server.runs.choosing`) and completes the run in the transaction that
+writes it; a last generation an older server stored without its champion gets the champion
+alone (`Written.stored`).
 """
 
 from __future__ import annotations
@@ -79,12 +80,11 @@ class Writer:
         settings: Settings,
         scheduler: Scheduler,
         champions: Champions,
-        finish: Callable[[Session, Run, RunConfig, ControllerDocument | None], None],
+        finish: Callable[[Session, Run, RunConfig, ControllerDocument], None],
     ) -> None:
         self._sessions = sessions
         self._settings = settings
         self._scheduler = scheduler
-        self._champions = champions
         self._finish = finish
         """Completes a run (in the session) after its last generation, with its champion."""
         self._write_failures: dict[int, str] = {}
@@ -108,23 +108,16 @@ class Writer:
         self._logged_at.pop(run_id, None)
 
     def write(self) -> None:
-        """Write the told generations, oldest first, in one transaction (a run's last one once
-        its champion is validated). If the store refuses, the runs concerned stop leasing
+        """Write the told generations, oldest first, in one transaction (a run's last one with
+        its champion). If the store refuses, the runs concerned stop leasing
         (what is leased may still complete) and the write is retried at the next call; once it
         is in, they are paused with the reason in `error`, so an operator sees it and
         resumes."""
-        taken = self._scheduler.take_told()
-        validated = self._champions.take()
-        told = [item for item in taken if not item.last] + [i for i, _ in validated]
-        champions = {item.run_id: document for item, document in validated}
-        for item in taken:
-            if item.last and item.run_id not in champions:
-                self._champions.validate(item)
+        told = self._scheduler.take_told()
         try:
-            self._write(told, champions)
+            self._write(told)
         except Exception as exc:
-            self._champions.keep([(i, champions[i.run_id]) for i in told if i.last])
-            self._scheduler.put_back([i for i in told if not i.last])
+            self._scheduler.put_back(told)
             self._stall(told, exc)
             raise
         self._scheduler.written(told)
@@ -132,18 +125,18 @@ class Writer:
             self._tracker.written(told)
         self._settle_write_failures()
 
-    def _write(self, told: list[Written], champions: dict[int, ControllerDocument]) -> None:
+    def _write(self, told: list[Written]) -> None:
         if not told:
             return
         try:
             with self._sessions.begin() as session:
                 for item in told:
-                    self._write_generation(session, item, champions.get(item.run_id))
+                    self._write_generation(session, item)
         except RunOverError:  # some run ended meanwhile: one transaction each instead
             for item in told:
                 try:
                     with self._sessions.begin() as session:
-                        self._write_generation(session, item, champions.get(item.run_id))
+                        self._write_generation(session, item)
                 except RunOverError as exc:
                     context(log, run=item.run_id).info(
                         "run %d generation %d not written: %s",
@@ -180,16 +173,17 @@ class Writer:
                     )
         self._write_failures.clear()
 
-    def _write_generation(
-        self, session: Session, item: Written, document: ControllerDocument | None = None
-    ) -> None:
+    def _write_generation(self, session: Session, item: Written) -> None:
         """Store generation g (statistics and what it was told; at a checkpoint also its GA
         state, genomes and components) and move the run to g + 1; complete the run after its
-        last generation, with `document` (its champion) as the run's best.
+        last generation, with its champion (`Written.champion`).
 
         A checkpoint is every `checkpoint_every`-th generation and the last: the others are
         rebuilt by replaying from the one before (`crud.replay`).
         """
+        if item.stored:
+            self._name_champion(session, item)
+            return
         run_id, told, config = item.run_id, item.told, item.config
         g, genomes, fitness, metrics = told.generation, told.genomes, told.fitness, told.metrics
         top = float(fitness[metrics.order[0]])
@@ -245,5 +239,19 @@ class Writer:
             metrics.best,
             metrics.mean,
         )
-        if item.last:
-            self._finish(session, crud.find_run(session, run_id=run_id), config, document)
+        if item.champion is not None:
+            self._finish(session, crud.find_run(session, run_id=run_id), config, item.champion)
+
+    def _name_champion(self, session: Session, item: Written) -> None:
+        """Complete with its champion a run whose last generation is stored already (a
+        completed run without a champion: name it)."""
+        run = session.get(Run, item.run_id)
+        if (
+            item.champion is None
+            or run is None
+            or run.generation != item.told.generation + 1
+            or run.status not in ("running", "paused", "completed")
+            or run.champion_sha256 is not None
+        ):
+            raise RunOverError(f"run {item.run_id} is not waiting for its champion")
+        self._finish(session, run, item.config, item.champion)
