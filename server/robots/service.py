@@ -36,7 +36,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime, timedelta
-from typing import Any, get_args
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -52,7 +52,6 @@ from evorobotics.evaluate import DESCRIPTORS
 from evorobotics.evolution import StrategyHistory, rank_in_world, ranking_validation
 from evorobotics.strategies import Archive
 from schemas.robots import (
-    DEFAULT_REPLACEMENT,
     ESCAPE,
     KEY_ACKS,
     KEY_REPLACE,
@@ -65,7 +64,6 @@ from schemas.robots import (
     FieldStats,
     FieldWindow,
     LedgerController,
-    PolicySource,
     PushAck,
     PushOut,
     Replacement,
@@ -92,10 +90,11 @@ from schemas.robots import (
 )
 from schemas.run import RunConfig
 from schemas.wire import WireError
-from schemas.world import MAX_GAP_ROBOTS, World
+from schemas.world import MAX_GAP_ROBOTS
 from server.core.errors import NotFoundError, ServerError, UnconfirmedError
 from server.core.logs import context
 from server.core.models import Controller, Robot, Run, aware, utcnow
+from server.robots.settings import POLICIES, RobotSettings, effective_policy
 from server.robots.signing import Signer
 from server.robots.store import (
     FieldStatsRow,
@@ -103,6 +102,9 @@ from server.robots.store import (
     StuckEventRow,
     TraceRow,
     check_trace,
+    field_row,
+    serve,
+    served,
     trace_checksum,
 )
 from server.runs import crud
@@ -110,9 +112,6 @@ from server.runs.champions import confirmed_document
 from server.runs.evaluation import repeats_claim
 
 log = logging.getLogger(__name__)
-
-POLICIES: tuple[ReplacementPolicy, ...] = get_args(ReplacementPolicy)
-
 
 RANKINGS_KEPT = 32
 """Validated rankings kept in memory, one per (robot calibration or none, run, generation)."""
@@ -164,47 +163,6 @@ class RobotOnlineError(ServerError):
     """The robot holds a liveliness token: it cannot be forgotten while it runs (HTTP 409)."""
 
     status_code = 409
-
-
-@dataclass(frozen=True)
-class RobotSettings:
-    """Retention and timing of the robot side."""
-
-    retention_samples: int = 36_000
-    """Trace samples kept per robot (one hour at 10 Hz), beyond those of `retention_window_s`."""
-    retention_window_s: float = 3600.0
-    """Samples that arrived within this long are never evicted: no burst of a robot's
-    credential evicts what it had acknowledged (its arrivals are bounded by its clock)."""
-    push_timeout: float = 3.0
-    """Seconds a push waits for the robot's acknowledgement (it applies at a step boundary)."""
-    recent_failures: int = 5
-    """A stuck robot gets no controller it failed with in its last this-many stuck events."""
-    dt: float = World().dt
-    """Seconds of one control step, for robot-hours and the plausibility of trace steps."""
-    max_backlog: int = 36_000
-    """Samples an agent may buffer before the server hears of its boot (its buffer_samples)."""
-    request_slack: float = 5.0
-    """Seconds a trace batch may spend in flight (the agent's request timeout, with margin)."""
-    replacement: ReplacementPolicy = DEFAULT_REPLACEMENT
-    """The colony's replacement policy: a robot without its own gets this one."""
-    stuck_burst: int = 20
-    stuck_per_s: float = 1.0
-    """Stuck requests a robot may send at once, and then per second (a token bucket): an honest
-    agent sends one per escape (1.4 s at 10 Hz); beyond, a request is refused unrecorded."""
-    stuck_retention: int = 10_000
-    """Stuck events kept per robot (the oldest go first): the field ledger's depth."""
-
-    def __post_init__(self) -> None:
-        if self.replacement not in POLICIES:
-            raise ValueError(f"replacement must be one of {POLICIES}, got {self.replacement!r}")
-        if min(self.retention_samples, self.recent_failures, self.max_backlog) < 1:
-            raise ValueError("retention_samples, recent_failures and max_backlog must be >= 1")
-        if not self.retention_window_s >= 0:
-            raise ValueError(f"retention_window_s must be >= 0, got {self.retention_window_s}")
-        if not self.push_timeout > 0 or not self.dt > 0 or not self.request_slack >= 0:
-            raise ValueError("push_timeout and dt must be > 0, request_slack >= 0")
-        if min(self.stuck_burst, self.stuck_retention) < 1 or not self.stuck_per_s > 0:
-            raise ValueError("stuck_burst and stuck_retention must be >= 1, stuck_per_s > 0")
 
 
 MAX_STEPS = 2**32
@@ -439,7 +397,7 @@ class RobotService:
                 if row is not None:
                     row.controller_sha256 = ack.sha256
                     if waiter is not None and waiter.sha is not None and waiter.sha == ack.sha256:
-                        _serve(row, waiter.sha)
+                        serve(row, waiter.sha)
         if waiter is not None:
             waiter.ack = ack
             waiter.done.set()
@@ -570,10 +528,10 @@ class RobotService:
         )
         row.checksum = trace_checksum(row)
         db.add(row)
-        served = _served(db.get(Robot, batch.robot))
+        given = served(db.get(Robot, batch.robot))
         for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
-            if index != ESCAPE and batch.controllers[int(index)] in served:
-                _field_row(db, batch.controllers[int(index)]).steps += int(count)
+            if index != ESCAPE and batch.controllers[int(index)] in given:
+                field_row(db, batch.controllers[int(index)]).steps += int(count)
 
     def _forget_cache(self, robot: str) -> None:
         """Drop what is cached of `robot`: it is read again from the database when needed."""
@@ -743,7 +701,9 @@ class RobotService:
     def _replace(self, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
         with self.sessions.begin() as db:
             robot = db.get(Robot, request.robot)
-            policy, _ = _effective(robot.replacement if robot else None, self.settings.replacement)
+            policy, _ = effective_policy(
+                robot.replacement if robot else None, self.settings.replacement
+            )
             state = db.get(RobotStateRow, request.robot)
             if state is None:
                 state = RobotStateRow(
@@ -762,14 +722,14 @@ class RobotService:
             db.add(event)
             _trim_events(db, request.robot, self.settings.stuck_retention)
             state.stuck_events += 1
-            if request.sha256 is not None and request.sha256 in _served(robot):
-                _field_row(db, request.sha256).stuck_events += 1
+            if request.sha256 is not None and request.sha256 in served(robot):
+                field_row(db, request.sha256).stuck_events += 1
             db.flush()
             doc, reason = self._pick(db, request, policy)
             event.replacement_sha256 = doc.sha256 if doc else None
             event.answer = reason
             if doc is not None and robot is not None:
-                _serve(robot, doc.sha256)
+                serve(robot, doc.sha256)
         context(log, robot=request.robot).info(
             "robot %s stuck at step %d (%s) with %s; policy %s, replacement %s: %s",
             request.robot,
@@ -1376,16 +1336,6 @@ def _bits(values: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(values, dtype="<f8").view("<u8")
 
 
-def _effective(
-    own: str | None, colony: ReplacementPolicy
-) -> tuple[ReplacementPolicy, PolicySource]:
-    """The policy a robot's stuck requests get: its own if it has one, else the colony's."""
-    for policy in POLICIES:
-        if own == policy:
-            return policy, "robot"
-    return colony, "colony"
-
-
 def _close_previous(db: Session, request: StuckRequest, boot: int) -> None:
     """Fill in the steps the robot's previous stuck event's outcome ran, if `request` shows the
     robot was still running it (the replacement sent, or without one the same controller) in the
@@ -1442,17 +1392,9 @@ def _event_out(row: StuckEventRow) -> StuckEventOut:
     )
 
 
-SERVED_KEPT = 64
 WAITERS_KEPT = 256
 """Pushes remembered for their acknowledgement, answered or not (a few minutes of a colony's
 pushes: a robot acknowledges within a step)."""
-"""Controllers a robot's `served` list remembers: far more than it runs between reports."""
-
-
-def _served(robot: Robot | None) -> list[str]:
-    """The controllers the server gave `robot` (oldest first): only their steps and stuck
-    events count in field statistics, whatever a robot names."""
-    return [] if robot is None or not robot.served else list(json.loads(robot.served))
 
 
 def with_colony_gap(db: Session, config: RunConfig) -> RunConfig:
@@ -1476,20 +1418,6 @@ def with_colony_gap(db: Session, config: RunConfig) -> RunConfig:
         )
     world = config.world.model_copy(update={"gap_robots": robots})
     return RunConfig.model_validate({**config.model_dump(), "world": world.model_dump()})
-
-
-def _serve(robot: Robot, sha256: str) -> None:
-    """Note that the server gave `robot` the controller `sha256`."""
-    served = [s for s in _served(robot) if s != sha256] + [sha256]
-    robot.served = json.dumps(served[-SERVED_KEPT:])
-
-
-def _field_row(db: Session, sha256: str) -> FieldStatsRow:
-    row = db.get(FieldStatsRow, sha256)
-    if row is None:
-        row = FieldStatsRow(sha256=sha256, steps=0, stuck_events=0)
-        db.add(row)
-    return row
 
 
 def _trim_events(db: Session, robot: str, keep: int) -> None:
@@ -1673,7 +1601,7 @@ def _summary(
     row: Robot, state: RobotStateRow | None, online: bool, colony: ReplacementPolicy
 ) -> RobotOut:
     last = state.updated_at if state else row.last_seen
-    policy, source = _effective(row.replacement, colony)
+    policy, source = effective_policy(row.replacement, colony)
     return RobotOut(
         id=row.id,
         online=online,
