@@ -15,8 +15,6 @@ import logging
 import queue
 import threading
 import time
-import uuid
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
 from datetime import datetime
@@ -36,7 +34,6 @@ from schemas.robots import (
     KEY_TRACES,
     KEY_TRACKER,
     CalibrationOut,
-    ControllerPush,
     FieldStats,
     FieldWindow,
     LedgerController,
@@ -48,14 +45,12 @@ from schemas.robots import (
     RobotCalibration,
     RobotDetail,
     RobotOut,
-    StopCommand,
     StuckEventOut,
     StuckEventsOut,
     StuckRequest,
     TraceAck,
     TracesOut,
     TrackerPose,
-    command_key,
     decode_message,
     decode_trace,
     encode_message,
@@ -67,8 +62,9 @@ from schemas.wire import WireError
 from schemas.world import MAX_GAP_ROBOTS
 from server.core.errors import NotFoundError, ServerError
 from server.core.logs import context
-from server.core.models import Controller, Robot, Run, aware, utcnow
-from server.robots.replacement import Replacements, stored_document
+from server.core.models import Controller, Robot, aware, utcnow
+from server.robots.pushes import Pushes
+from server.robots.replacement import Replacements
 from server.robots.settings import POLICIES, RobotSettings, effective_policy
 from server.robots.signing import Signer
 from server.robots.store import (
@@ -76,33 +72,16 @@ from server.robots.store import (
     RobotStateRow,
     StuckEventRow,
     TraceRow,
-    serve,
 )
 from server.robots.traces import TraceIngest, TraceRefusedError, recent_samples, replay_stored
-from server.runs import crud
-from server.runs.champions import confirmed_document
 
 log = logging.getLogger(__name__)
-
-
-class RobotOfflineError(ServerError):
-    """The robot has no liveliness token: nothing can be pushed to it (HTTP 409)."""
-
-    status_code = 409
 
 
 class RobotOnlineError(ServerError):
     """The robot holds a liveliness token: it cannot be forgotten while it runs (HTTP 409)."""
 
     status_code = 409
-
-
-class _Waiter:
-    def __init__(self, sha: str | None) -> None:
-        self.sha = sha
-        """What was pushed (None: a stop): an acknowledgement of it makes it served."""
-        self.done = threading.Event()
-        self.ack: PushAck | None = None
 
 
 class RobotService:
@@ -117,8 +96,6 @@ class RobotService:
         archives: Callable[[int], tuple[int, RunConfig, Archive]] | None = None,
     ) -> None:
         self.settings = settings or RobotSettings()
-        self.signer = signer
-        """Signs pushes, stops and replacements (docs/security.md); None sends them unsigned."""
         self._zenoh = session
         self.sessions = (
             engine_or_sessionmaker
@@ -128,19 +105,19 @@ class RobotService:
         self._inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._online: set[str] = set()
-        self.poses_dropped = 0
-        """Tracker poses dropped: malformed, out of order, or of a robot not online."""
-        self._waiters: OrderedDict[str, _Waiter] = OrderedDict()
-        """push id -> its waiter, kept after its caller stops waiting (the last `WAITERS_KEPT`):
-        an acknowledgement that comes late still makes its controller served."""
-        self._ingest = TraceIngest(self.sessions, self.settings, self.is_online)
         self._stuck_tokens: dict[str, tuple[float, float]] = {}
         """Per robot: stuck-request tokens left and when they were counted (service thread)."""
         self._entities: list[Any] = []
         self._thread: threading.Thread | None = None
-        self._replacements = Replacements(self.sessions, self.settings, archives)
+        self.poses_dropped = 0
+        """Tracker poses dropped: malformed, out of order, or of a robot not online."""
         self.traces_received = 0
         """Trace samples stored (duplicates excluded); for benchmarks."""
+        self._ingest = TraceIngest(self.sessions, self.settings, self.is_online)
+        self._replacements = Replacements(self.sessions, self.settings, archives)
+        self._pushes = Pushes(
+            self.sessions, self.settings, signer, self._replacements, self.is_online, self._publish
+        )
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -247,18 +224,7 @@ class RobotService:
             robot_log.info("robot %s accepted push %s (%s)", ack.robot, ack.push_id, ack.sha256)
         else:
             robot_log.warning("robot %s rejected push %s: %s", ack.robot, ack.push_id, ack.reason)
-        with self._lock:
-            waiter = self._waiters.pop(ack.push_id, None)
-        if ack.accepted:
-            with self.sessions.begin() as db:
-                row = db.get(Robot, ack.robot)
-                if row is not None:
-                    row.controller_sha256 = ack.sha256
-                    if waiter is not None and waiter.sha is not None and waiter.sha == ack.sha256:
-                        serve(row, waiter.sha)
-        if waiter is not None:
-            waiter.ack = ack
-            waiter.done.set()
+        self._pushes.acknowledged(ack)
 
     def _on_trace(self, query: zenoh.Query) -> None:
         with query:
@@ -307,7 +273,7 @@ class RobotService:
                 return
             doc, reason = self._replacements.replace(request)
             text = doc.to_json() if doc else None
-            seq, signature = self._sign("replacement", request.robot, request.nonce, text)
+            seq, signature = self._pushes.sign("replacement", request.robot, request.nonce, text)
             reply = Replacement(
                 robot=request.robot,
                 document=text,
@@ -325,6 +291,9 @@ class RobotService:
         allowed = tokens >= 1.0
         self._stuck_tokens[robot] = (tokens - 1.0 if allowed else tokens, now)
         return allowed
+
+    def _publish(self, key: str, payload: bytes) -> None:
+        self._zenoh.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     # ------------------------------------------------------------------ API operations
 
@@ -484,104 +453,15 @@ class RobotService:
         fit: bool = False,
         timeout: float | None = None,
     ) -> PushOut:
-        """Push a stored controller (sha256) or a run's controller; wait for the ack.
-
-        A run's `rank` is that training rank of its latest committed generation, its `elite`
-        that entry of its archive (`RunManager.archive`), each only if the server's own
-        evaluation repeats its claim (else UnconfirmedError); `fit` its candidate that roams
-        most in the robot's calibrated world (waiting for the ranking); without any, the run's
-        best: its validated champion once completed, else the best training rank whose claim
-        the server's evaluation repeats (`confirmed_document`)."""
-        if sha256 is not None and run_id is not None:
-            raise ValueError("give exactly one of sha256 or run_id")
-        chosen_elite = (
-            None
-            if elite is None or run_id is None
-            else self._replacements.elite(run_id, elite, confirm=True)
+        """Push a stored controller (sha256) or a run's controller; wait for the ack
+        (`Pushes.push`)."""
+        return self._pushes.push(
+            robot_id, sha256=sha256, run_id=run_id, rank=rank, elite=elite, fit=fit, timeout=timeout
         )
-        with self.sessions.begin() as db:
-            if db.get(Robot, robot_id) is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            if sha256 is not None:
-                row = crud.find_controller(db, sha256=sha256)
-                text, sha = row.document, row.sha256
-            elif run_id is None:
-                raise ValueError("give exactly one of sha256 or run_id")
-            else:
-                run = db.get(Run, run_id)
-                if run is None:
-                    raise NotFoundError(f"no run with id {run_id}")
-                plain = rank is None and elite is None and not fit
-                best = crud.champion(db, run=run) if plain else None
-                if fit:
-                    ranking = self._replacements.ranking(db, run_id, robot_id, wait=True)
-                    assert ranking is not None  # waited for
-                    doc = self._replacements.candidate_document(db, ranking, ranking.candidates[0])
-                    text, sha = doc.to_json(), doc.sha256
-                elif chosen_elite is not None:
-                    doc = stored_document(db, run_id, *chosen_elite)
-                    text, sha = doc.to_json(), doc.sha256
-                elif best is not None:
-                    text, sha = best.document, best.sha256
-                else:
-                    config = RunConfig.model_validate_json(run.config)
-                    doc = stored_document(db, run_id, *confirmed_document(db, run, config, rank))
-                    text, sha = doc.to_json(), doc.sha256
-        push_id = uuid.uuid4().hex
-        seq, signature = self._sign("push", robot_id, push_id, text)
-        message = ControllerPush(
-            push_id=push_id, sha256=sha, document=text, seq=seq, signature=signature
-        )
-        return self._send(robot_id, push_id, encode_message(message), sha, timeout)
-
-    def _sign(self, kind: str, robot: str, push_id: str, document: str | None) -> tuple[int, str]:
-        """(seq, signature) of a command, or (0, "") without a signer."""
-        if self.signer is None:
-            return 0, ""
-        return self.signer.sign(kind=kind, robot=robot, push_id=push_id, document=document)
 
     def stop_robot(self, robot_id: str, timeout: float | None = None) -> PushOut:
         """Stop the robot's motors until the next push."""
-        with self.sessions() as db:
-            if db.get(Robot, robot_id) is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-        push_id = uuid.uuid4().hex
-        seq, signature = self._sign("stop", robot_id, push_id, None)
-        payload = encode_message(StopCommand(push_id=push_id, seq=seq, signature=signature))
-        return self._send(robot_id, push_id, payload, None, timeout)
-
-    def _send(
-        self, robot: str, push_id: str, payload: bytes, sha: str | None, timeout: float | None
-    ) -> PushOut:
-        if not self.is_online(robot):
-            raise RobotOfflineError(f"robot {robot} is offline")
-        waiter = _Waiter(sha)
-        with self._lock:
-            self._waiters[push_id] = waiter
-            while len(self._waiters) > WAITERS_KEPT:
-                self._waiters.popitem(last=False)
-        self._zenoh.put(
-            command_key(robot), payload, congestion_control=zenoh.CongestionControl.BLOCK
-        )
-        waiter.done.wait(self.settings.push_timeout if timeout is None else timeout)
-        ack = waiter.ack
-        if ack is None:
-            return PushOut(
-                robot=robot,
-                push_id=push_id,
-                sha256=sha,
-                acknowledged=False,
-                accepted=False,
-                reason="no acknowledgement within the timeout",
-            )
-        return PushOut(
-            robot=robot,
-            push_id=push_id,
-            sha256=ack.sha256,
-            acknowledged=True,
-            accepted=ack.accepted,
-            reason=ack.reason,
-        )
+        return self._pushes.stop(robot_id, timeout)
 
     def traces(self, robot_id: str, limit: int = 1000) -> TracesOut:
         """The newest `limit` stored samples, oldest first."""
@@ -645,11 +525,6 @@ def _event_out(row: StuckEventRow) -> StuckEventOut:
         answer=row.answer,
         steps_run=row.steps_run,
     )
-
-
-WAITERS_KEPT = 256
-"""Pushes remembered for their acknowledgement, answered or not (a few minutes of a colony's
-pushes: a robot acknowledges within a step)."""
 
 
 def with_colony_gap(db: Session, config: RunConfig) -> RunConfig:
