@@ -85,8 +85,9 @@ class Ranking:
 
 
 class Replacements:
-    """Answers stuck robots (on the robot service's thread) and ranks runs' candidates (on a
-    thread of its own), between construction and `close()`."""
+    """Answers stuck robots (on the robot service's thread) and gives pushes a run's elites
+    and rankings (from any thread); rankings are computed on a thread of their own until
+    `close()`."""
 
     def __init__(
         self,
@@ -367,9 +368,8 @@ class Replacements:
                 )
                 continue
             doc = _elite_document(run_id, generations, config, archive, k)
-            return stored_document(
-                db, run_id, generations - 1, doc
-            ), f"elite {k} of run {run_id}'s archive, {why}"
+            reason = f"elite {k} of run {run_id}'s archive, {why}"
+            return stored_document(db, run_id, generations - 1, doc), reason
         return None, (
             f"every elite of run {run_id}'s archive failed recently on this robot or rests on a "
             "claim the server's own evaluation does not repeat"
