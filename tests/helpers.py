@@ -35,7 +35,8 @@ if TYPE_CHECKING:
     from robot_agent.emulator import BasicXEmulator
     from schemas.wire import Result
     from server.core.settings import Settings
-    from server.robots.service import RobotService, RobotSettings
+    from server.robots.service import RobotService
+    from server.robots.settings import RobotSettings
     from server.robots.signing import Signer
     from server.runs.dispatch import DispatchSettings
     from server.runs.lifecycle import RunManager
@@ -493,7 +494,8 @@ def robot_link(
     import zenoh
 
     from server.core.db import make_engine
-    from server.robots.service import RobotService, RobotSettings
+    from server.robots.service import RobotService
+    from server.robots.settings import RobotSettings
 
     port = port or free_port()
     engine = make_engine(colony.db_url)

@@ -16,7 +16,7 @@ from evorobotics.evolution import RunLoop, champion
 from schemas.run import RunConfig, ValidationConfig
 from server.core.db import make_engine, upgrade
 from server.core.settings import Settings
-from server.robots.service import ranked_document
+from server.robots.replacement import ranked_document
 from server.runs import crud
 from server.runs.lifecycle import RunManager
 from tests.helpers import (

@@ -68,7 +68,8 @@ from schemas.wire import (
     result_key,
 )
 from server.core.db import make_engine, upgrade
-from server.robots.service import RobotService, RobotSettings
+from server.robots.service import RobotService
+from server.robots.settings import RobotSettings
 from server.runs.dispatch import Dispatcher, DispatchSettings
 from server.runs.policy import Policy
 from server.runs.scheduler import Scheduler

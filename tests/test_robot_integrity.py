@@ -53,7 +53,8 @@ from server.core.db import make_engine, upgrade
 from server.core.keys import load_or_create_key
 from server.core.models import Robot
 from server.core.settings import Settings
-from server.robots.service import RobotService, RobotSettings
+from server.robots.service import RobotService
+from server.robots.settings import RobotSettings
 from server.robots.signing import Signer
 from server.robots.store import FieldStatsRow, RobotStateRow, TraceRow
 from server.runs import crud

@@ -44,8 +44,9 @@ from schemas.wire import WireError
 from schemas.world import World
 from server.core.models import Robot, Run
 from server.core.settings import Settings
-from server.robots.service import RobotSettings, replay_trace
+from server.robots.settings import RobotSettings
 from server.robots.store import FieldStatsRow, StuckEventRow, TraceRow, trace_checksum
+from server.robots.traces import replay_trace
 from server.runs import crud
 from tests.helpers import (
     QUICK,

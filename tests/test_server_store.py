@@ -35,7 +35,7 @@ from server.core.errors import NotFoundError, ServerError
 from server.core.integrity import unseal
 from server.core.models import Generation
 from server.core.settings import Settings
-from server.robots.service import ranked_document
+from server.robots.replacement import ranked_document
 from server.runs import crud
 from server.runs.evaluation import run_job
 from server.runs.lifecycle import RunManager

@@ -12,8 +12,8 @@ from sqlalchemy.orm import Session
 from evorobotics.maze import load_maze
 from schemas.robots import ColonyMapOut, MapMaze, MapRobot, MapStuck
 from server.core.models import Robot, aware
-from server.robots.service import trace_poses
 from server.robots.store import StuckEventRow, TraceRow
+from server.robots.traces import trace_poses
 
 PATH_SAMPLES = 600
 """Samples of recent path per robot by default: one minute at 10 Hz."""

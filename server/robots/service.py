@@ -1,71 +1,39 @@
-"""The robot side of the server: registry, traces, pushes, replacements and the replay check.
+"""The robot side of the server on its zenoh session: `RobotService`, and its app hook.
 
 `RobotService` lives on the server's one zenoh session (router mode). Zenoh callbacks only
 enqueue; one service thread stores traces, answers replacement requests, tracks liveliness and
-resolves push acknowledgements, so the database sees one writer from here.
-
-Replacement (a stuck robot asks on KEY_REPLACE): the failure is recorded against the
-controller, and the robot's policy (its own, else the colony's `RobotSettings.replacement`)
-chooses the reply. `off`: none. `rank`: the run's validated champion, else the best of the
-server's own validated ranking of the run's candidates (`rank_in_world` in the run's world)
-that this robot has not failed with in its last `recent_failures` stuck events (its current
-one included); none while that ranking is computed (on a thread of its own, once per run and
-generation), for a controller that came from no run, or when every candidate failed
-recently. `archive`: the elite of that run's archive farthest in behaviour from the stuck
-controller's entry (the fittest when it is not an elite), skipping recent failures; none when
-the run keeps no archive. `fit`: the same ranking in the robot's calibrated world (`rank`'s
-choice meanwhile, or for an uncalibrated robot). Without a replacement
-the agent's scripted escape carries on and its controller resumes. Each stuck event keeps the policy that served it,
-and the next stuck event of the robot fills in how many steps the previous one's outcome ran.
-
-Retention: the newest `retention_samples` trace samples per robot are kept (whole batches are
-deleted oldest first). Field statistics (steps run, stuck events per controller) are counters
-updated as traces arrive, so they outlive the traces.
+resolves push acknowledgements, so the database sees one writer from here. It checks that each
+message comes from the robot it names and rate-limits stuck requests; its parts do the rest:
+`traces.TraceIngest` (trace batches, tracker poses), `replacement.Replacements` (what a stuck
+robot gets), `pushes.Pushes` (pushes, stops, acknowledgements) and `registry` (the robots as
+the API shows them).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
 import time
-import uuid
-from collections import OrderedDict, deque
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
-from datetime import UTC, datetime, timedelta
-from typing import Any, get_args
+from dataclasses import replace
+from typing import Any
 
-import numpy as np
 import zenoh
 from fastapi import FastAPI
-from sqlalchemy import Engine, delete, func, select
+from sqlalchemy import Engine, delete, select
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
-from evorobotics import network
-from evorobotics.document import ControllerDocument, controller_sha256
-from evorobotics.errors import ControllerDocumentError
-from evorobotics.evaluate import DESCRIPTORS
-from evorobotics.evolution import StrategyHistory, rank_in_world, ranking_validation
 from evorobotics.strategies import Archive
 from schemas.robots import (
-    DEFAULT_REPLACEMENT,
-    ESCAPE,
     KEY_ACKS,
     KEY_REPLACE,
     KEY_ROBOTS_ALIVE,
     KEY_TRACES,
     KEY_TRACKER,
-    TRACKER_MAX_AGE_S,
     CalibrationOut,
-    ControllerPush,
     FieldStats,
-    FieldWindow,
-    LedgerController,
-    PolicySource,
     PushAck,
     PushOut,
     Replacement,
@@ -74,16 +42,11 @@ from schemas.robots import (
     RobotCalibration,
     RobotDetail,
     RobotOut,
-    StopCommand,
-    StuckEventOut,
     StuckEventsOut,
     StuckRequest,
     TraceAck,
-    TraceBatch,
-    TraceSample,
     TracesOut,
     TrackerPose,
-    command_key,
     decode_message,
     decode_trace,
     encode_message,
@@ -92,166 +55,30 @@ from schemas.robots import (
 )
 from schemas.run import RunConfig
 from schemas.wire import WireError
-from schemas.world import MAX_GAP_ROBOTS, World
-from server.core.errors import NotFoundError, ServerError, UnconfirmedError
+from server.core.errors import NotFoundError, ServerError
 from server.core.logs import context
-from server.core.models import Controller, Robot, Run, aware, utcnow
-from server.robots.signing import Signer
-from server.robots.store import (
-    FieldStatsRow,
-    RobotStateRow,
-    StuckEventRow,
-    TraceRow,
-    check_trace,
-    trace_checksum,
+from server.core.models import Robot, utcnow
+from server.robots.pushes import Pushes
+from server.robots.registry import (
+    calibration_of,
+    field_stats,
+    robot_detail,
+    robot_summaries,
+    stuck_ledger,
 )
-from server.runs import crud
-from server.runs.champions import confirmed_document
-from server.runs.evaluation import repeats_claim
+from server.robots.replacement import Replacements
+from server.robots.settings import POLICIES, RobotSettings
+from server.robots.signing import Signer
+from server.robots.store import RobotStateRow, StuckEventRow, TraceRow
+from server.robots.traces import TraceIngest, TraceRefusedError, recent_samples, replay_stored
 
 log = logging.getLogger(__name__)
-
-POLICIES: tuple[ReplacementPolicy, ...] = get_args(ReplacementPolicy)
-
-
-RANKINGS_KEPT = 32
-"""Validated rankings kept in memory, one per (robot calibration or none, run, generation)."""
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """One of a run's candidates as the server itself scored it."""
-
-    sha256: str
-    rank: int | None
-    """Its training rank in the run's latest generation, or None for an archive elite."""
-    elite: int | None
-    """Its entry in the run's archive, or None for a training rank."""
-    roaming: float
-    score: float
-
-
-@dataclass(frozen=True)
-class Ranking:
-    """A run's candidates ranked by the server's own validation, best first: in a robot's
-    calibrated world (`fit`), or with `robot` None in the run's world (`rank`)."""
-
-    robot: str | None
-    run_id: int
-    poses: int
-    steps: int
-    candidates: tuple[Candidate, ...]
-
-    @property
-    def world(self) -> str:
-        return "the run's world" if self.robot is None else f"robot {self.robot}'s calibrated world"
-
-    def reason(self, c: Candidate) -> str:
-        which = f"rank {c.rank}" if c.elite is None else f"elite {c.elite}"
-        return (
-            f"{which} of run {self.run_id}, roaming on {100 * c.roaming:.0f} % of {self.poses} "
-            f"validation trials of {self.steps} steps in {self.world}"
-        )
-
-
-class RobotOfflineError(ServerError):
-    """The robot has no liveliness token: nothing can be pushed to it (HTTP 409)."""
-
-    status_code = 409
 
 
 class RobotOnlineError(ServerError):
     """The robot holds a liveliness token: it cannot be forgotten while it runs (HTTP 409)."""
 
     status_code = 409
-
-
-@dataclass(frozen=True)
-class RobotSettings:
-    """Retention and timing of the robot side."""
-
-    retention_samples: int = 36_000
-    """Trace samples kept per robot (one hour at 10 Hz), beyond those of `retention_window_s`."""
-    retention_window_s: float = 3600.0
-    """Samples that arrived within this long are never evicted: no burst of a robot's
-    credential evicts what it had acknowledged (its arrivals are bounded by its clock)."""
-    push_timeout: float = 3.0
-    """Seconds a push waits for the robot's acknowledgement (it applies at a step boundary)."""
-    recent_failures: int = 5
-    """A stuck robot gets no controller it failed with in its last this-many stuck events."""
-    dt: float = World().dt
-    """Seconds of one control step, for robot-hours and the plausibility of trace steps."""
-    max_backlog: int = 36_000
-    """Samples an agent may buffer before the server hears of its boot (its buffer_samples)."""
-    request_slack: float = 5.0
-    """Seconds a trace batch may spend in flight (the agent's request timeout, with margin)."""
-    replacement: ReplacementPolicy = DEFAULT_REPLACEMENT
-    """The colony's replacement policy: a robot without its own gets this one."""
-    stuck_burst: int = 20
-    stuck_per_s: float = 1.0
-    """Stuck requests a robot may send at once, and then per second (a token bucket): an honest
-    agent sends one per escape (1.4 s at 10 Hz); beyond, a request is refused unrecorded."""
-    stuck_retention: int = 10_000
-    """Stuck events kept per robot (the oldest go first): the field ledger's depth."""
-
-    def __post_init__(self) -> None:
-        if self.replacement not in POLICIES:
-            raise ValueError(f"replacement must be one of {POLICIES}, got {self.replacement!r}")
-        if min(self.retention_samples, self.recent_failures, self.max_backlog) < 1:
-            raise ValueError("retention_samples, recent_failures and max_backlog must be >= 1")
-        if not self.retention_window_s >= 0:
-            raise ValueError(f"retention_window_s must be >= 0, got {self.retention_window_s}")
-        if not self.push_timeout > 0 or not self.dt > 0 or not self.request_slack >= 0:
-            raise ValueError("push_timeout and dt must be > 0, request_slack >= 0")
-        if min(self.stuck_burst, self.stuck_retention) < 1 or not self.stuck_per_s > 0:
-            raise ValueError("stuck_burst and stuck_retention must be >= 1, stuck_per_s > 0")
-
-
-MAX_STEPS = 2**32
-"""Steps of one boot beyond any agent's life (13 years at 10 Hz)."""
-STEP_RATE_MARGIN = 1.25
-"""An agent runs at most one step per dt (its loop never bursts to catch up); the margin covers
-the clocks' disagreement, and makes a bound that is too tight catch up with a real robot."""
-SLACK_STEPS = 100
-"""Steps of slack on every time bound (transit, a step due at the instant of a batch)."""
-MIN_BOOT_SECONDS = 0.1
-"""An agent start takes longer than this: boot numbers cannot rise faster."""
-TRACKED_POSES = 3000
-"""Tracker poses kept per robot (5 min at 10 Hz): a trace batch arrives seconds after its
-samples, so they are matched while the tracker's poses of that time are still here."""
-TRACKED_ROBOTS = 64
-"""Robots whose tracker poses are kept (online robots only): the memory of a lab's tracker."""
-MAX_CLOCK_AHEAD = 300.0
-"""Seconds a robot's clock may run ahead of the server's: a sample time beyond is refused."""
-
-
-class TraceRefusedError(ValueError):
-    """A trace batch the robot's agent could not have sent; nothing of it is stored."""
-
-
-@dataclass(frozen=True)
-class _Boot:
-    """What is committed of one (robot, boot), and the bound on its steps.
-
-    Steps run at most `STEP_RATE_MARGIN / dt` a second from (`anchor_step`, `anchor_at`), plus
-    `backlog` samples the agent may hold from before the server heard of the boot.
-    """
-
-    last: int
-    """Last step stored; -1 none."""
-    at: float
-    """Monotonic time `last` was committed."""
-    anchor_step: int
-    anchor_at: float
-    backlog: int
-
-
-class _Waiter:
-    def __init__(self, sha: str | None) -> None:
-        self.sha = sha
-        """What was pushed (None: a stop): an acknowledgement of it makes it served."""
-        self.done = threading.Event()
-        self.ack: PushAck | None = None
 
 
 class RobotService:
@@ -266,10 +93,6 @@ class RobotService:
         archives: Callable[[int], tuple[int, RunConfig, Archive]] | None = None,
     ) -> None:
         self.settings = settings or RobotSettings()
-        self.signer = signer
-        """Signs pushes, stops and replacements (docs/security.md); None sends them unsigned."""
-        self._archives = archives
-        """run id -> (generations, config, archive) of a QD run (`RunManager.archive`)."""
         self._zenoh = session
         self.sessions = (
             engine_or_sessionmaker
@@ -279,30 +102,19 @@ class RobotService:
         self._inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._online: set[str] = set()
-        self._tracked: dict[str, deque[tuple[float, float, float, float]]] = {}
-        """robot -> its tracker poses (at, x, y, theta), oldest first (service thread only)."""
-        self.poses_dropped = 0
-        """Tracker poses dropped: malformed, out of order, or of a robot not online."""
-        self._waiters: OrderedDict[str, _Waiter] = OrderedDict()
-        """push id -> its waiter, kept after its caller stops waiting (the last `WAITERS_KEPT`):
-        an acknowledgement that comes late still makes its controller served."""
-        self._stored: dict[str, int] = {}
-        self._allowance: dict[str, tuple[float, float]] = {}
-        """robot -> (new samples it may send at once, when): every boot together runs at most
-        one step per dt (a token bucket of `max_backlog` samples), so new boots in a burst
-        cannot add samples faster than one robot's clock."""
-        """Samples stored per robot, as committed."""
-        self._boots: dict[tuple[str, int], _Boot] = {}
-        """Per (robot, boot), as committed."""
         self._stuck_tokens: dict[str, tuple[float, float]] = {}
         """Per robot: stuck-request tokens left and when they were counted (service thread)."""
         self._entities: list[Any] = []
         self._thread: threading.Thread | None = None
-        self._ranker = ThreadPoolExecutor(1, thread_name_prefix="fit-ranking")
-        """Validates candidates for the `rank` and `fit` policies off the service thread."""
-        self._rankings: dict[tuple[str, str, int, int], Future[Ranking]] = {}
+        self.poses_dropped = 0
+        """Tracker poses dropped: malformed, out of order, or of a robot not online."""
         self.traces_received = 0
         """Trace samples stored (duplicates excluded); for benchmarks."""
+        self._ingest = TraceIngest(self.sessions, self.settings, self.is_online)
+        self._replacements = Replacements(self.sessions, self.settings, archives)
+        self._pushes = Pushes(
+            self.sessions, self.settings, signer, self._replacements, self.is_online, self._publish
+        )
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -337,7 +149,7 @@ class RobotService:
             if self._thread.is_alive():
                 raise RuntimeError("robot service thread did not stop")
             self._thread = None
-        self._ranker.shutdown(wait=False, cancel_futures=True)
+        self._replacements.close()
 
     # ------------------------------------------------------------------ service thread
 
@@ -381,7 +193,7 @@ class RobotService:
             context(log, robot=robot).info("robot %s %s", robot, "online" if online else "offline")
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
-        """Keep a tracker's pose of an online robot (service thread: `_add` reads them)."""
+        """Keep a tracker's pose of an online robot, to be matched with its trace samples."""
         try:
             pose = decode_message(sample.payload.to_bytes())
             if not isinstance(pose, TrackerPose) or str(sample.key_expr) != tracker_key(pose.robot):
@@ -390,30 +202,8 @@ class RobotService:
             self.poses_dropped += 1
             log.debug("dropping a tracker pose: %s", exc)
             return
-        track = self._tracked.get(pose.robot)
-        if track is None:
-            with self._lock:
-                online = pose.robot in self._online
-            if not online or len(self._tracked) >= TRACKED_ROBOTS:
-                self.poses_dropped += 1
-                return
-            track = self._tracked[pose.robot] = deque(maxlen=TRACKED_POSES)
-        if track and pose.at <= track[-1][0]:  # out of order, or a replay
+        if not self._ingest.track(pose):
             self.poses_dropped += 1
-            return
-        track.append((pose.at, pose.x, pose.y, pose.theta))
-
-    def _tracker_poses(self, robot: str, times: np.ndarray) -> np.ndarray | None:
-        """The tracker's pose of `robot` at each sample time (the newest at or before it), or
-        None unless every sample has one at most TRACKER_MAX_AGE_S old."""
-        track = self._tracked.get(robot)
-        if not track:
-            return None
-        poses = np.array(track, dtype=np.float64)
-        index = np.searchsorted(poses[:, 0], times, side="right") - 1
-        if index[0] < 0 or not (times - poses[index, 0] <= TRACKER_MAX_AGE_S).all():
-            return None
-        return poses[index, 1:]
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         try:
@@ -431,18 +221,7 @@ class RobotService:
             robot_log.info("robot %s accepted push %s (%s)", ack.robot, ack.push_id, ack.sha256)
         else:
             robot_log.warning("robot %s rejected push %s: %s", ack.robot, ack.push_id, ack.reason)
-        with self._lock:
-            waiter = self._waiters.pop(ack.push_id, None)
-        if ack.accepted:
-            with self.sessions.begin() as db:
-                row = db.get(Robot, ack.robot)
-                if row is not None:
-                    row.controller_sha256 = ack.sha256
-                    if waiter is not None and waiter.sha is not None and waiter.sha == ack.sha256:
-                        _serve(row, waiter.sha)
-        if waiter is not None:
-            waiter.ack = ack
-            waiter.done.set()
+        self._pushes.acknowledged(ack)
 
     def _on_trace(self, query: zenoh.Query) -> None:
         with query:
@@ -453,7 +232,7 @@ class RobotService:
                 query.reply_err(f"malformed: {exc}".encode())
                 return
             try:
-                last = self._store(batch)
+                last, added = self._ingest.store(batch)
             except TraceRefusedError as exc:
                 context(log, robot=batch.robot).warning(
                     "refusing a trace batch of robot %s (boot %d, steps %d-%d): %s",
@@ -469,6 +248,7 @@ class RobotService:
                 context(log, robot=batch.robot).error("storing traces failed: %s", exc)
                 query.reply_err(b"not stored: the database failed; send the samples again")
                 return
+            self.traces_received += added
             ack = TraceAck(robot=batch.robot, last=last)
             query.reply(query.key_expr, encode_message(ack))
 
@@ -488,9 +268,9 @@ class RobotService:
                     f"{self.settings.stuck_per_s:g} a second; not recorded".encode()
                 )
                 return
-            doc, reason = self._replace(request)
+            doc, reason = self._replacements.replace(request)
             text = doc.to_json() if doc else None
-            seq, signature = self._sign("replacement", request.robot, request.nonce, text)
+            seq, signature = self._pushes.sign("replacement", request.robot, request.nonce, text)
             reply = Replacement(
                 robot=request.robot,
                 document=text,
@@ -509,480 +289,8 @@ class RobotService:
         self._stuck_tokens[robot] = (tokens - 1.0 if allowed else tokens, now)
         return allowed
 
-    # ------------------------------------------------------------------ traces
-
-    def _store(self, batch: TraceBatch) -> int:
-        """Store the samples not seen before; the last step stored for (robot, boot), once
-        committed. TraceRefusedError for an implausible batch (nothing stored); a failed commit
-        raises and leaves the caches as the database is, so the agent's re-sent samples land."""
-        robot, key = batch.robot, (batch.robot, batch.boot)
-        now = time.monotonic()
-        try:
-            with self.sessions.begin() as db:
-                boot = self._boots.get(key) or self._load_boot(db, batch, now)
-                self._check_plausible(batch, boot, now)
-                new = batch.steps > boot.last
-                allowance = self._spend(robot, int(new.sum()), now)
-                self._report(db, batch)
-                steps = batch.steps[new]
-                if steps.shape[0] == 0:  # all seen before (a lost ack): acknowledged again
-                    stored = self._stored.get(robot)
-                else:
-                    self._add(db, batch, new)
-                    stored = self._retain(db, robot, int(steps.shape[0]))
-        except TraceRefusedError:
-            raise
-        except Exception:
-            self._forget_cache(robot)
-            raise
-        # committed: only now may the caches (and so the acknowledgement) include the samples
-        if steps.shape[0] > 0:
-            boot = replace(boot, last=int(steps[-1]), at=time.monotonic())
-            self.traces_received += int(steps.shape[0])
-        self._allowance[robot] = (allowance, now)
-        self._boots[key] = boot
-        if stored is not None:
-            self._stored[robot] = stored
-        return boot.last
-
-    def _add(self, db: Session, batch: TraceBatch, new: np.ndarray) -> None:
-        """The `new` samples of `batch` as a row, and their steps in the field statistics."""
-        steps, controller = batch.steps[new], batch.controller[new]
-        poses, source = batch.poses[new], batch.pose_source
-        tracked = self._tracker_poses(batch.robot, batch.times[new])
-        if tracked is not None:  # from outside the robot: what calibration trusts
-            poses, source = tracked, "tracker"
-        row = TraceRow(
-            robot_id=batch.robot,
-            boot=batch.boot,
-            first=int(steps[0]),
-            last=int(steps[-1]),
-            count=int(steps.shape[0]),
-            controllers=json.dumps(list(batch.controllers)),
-            steps=steps.astype("<i8").tobytes(),
-            whiskers=batch.whiskers[new].tobytes(),
-            motors=batch.motors[new].astype("<f8").tobytes(),
-            controller=controller.astype("<i4").tobytes(),
-            fresh=batch.fresh[new].tobytes(),
-            times=batch.times[new].astype("<f8").tobytes(),
-            poses=poses.astype("<f8").tobytes(),
-            pose_source=source,
-        )
-        row.checksum = trace_checksum(row)
-        db.add(row)
-        served = _served(db.get(Robot, batch.robot))
-        for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
-            if index != ESCAPE and batch.controllers[int(index)] in served:
-                _field_row(db, batch.controllers[int(index)]).steps += int(count)
-
-    def _forget_cache(self, robot: str) -> None:
-        """Drop what is cached of `robot`: it is read again from the database when needed."""
-        self._stored.pop(robot, None)
-        for key in list(self._boots):  # a snapshot: the HTTP thread may call this too
-            if key[0] == robot:
-                self._boots.pop(key, None)
-
-    def _load_boot(self, db: Session, batch: TraceBatch, now: float) -> _Boot:
-        """What the database says of (robot, boot), with the bound its steps must keep."""
-        robot, wall = batch.robot, time.time()
-
-        def monotonic(at: datetime) -> float:
-            stamp = (at if at.tzinfo else at.replace(tzinfo=UTC)).timestamp()
-            return now - max(0.0, wall - stamp)
-
-        mine = TraceRow.robot_id == robot
-        this_boot = mine & (TraceRow.boot == batch.boot)
-        latest = db.execute(
-            select(TraceRow.last, TraceRow.received_at)
-            .where(this_boot)
-            .order_by(TraceRow.first.desc())
-            .limit(1)
-        ).first()
-        if latest is not None:  # a known boot (the server restarted): the loosest bound
-            earliest = db.execute(
-                select(TraceRow.first, TraceRow.received_at)
-                .where(this_boot)
-                .order_by(TraceRow.first)
-                .limit(1)
-            ).first()
-            assert earliest is not None
-            return _Boot(
-                last=int(latest[0]),
-                at=monotonic(latest[1]),
-                anchor_step=int(earliest[0]),
-                anchor_at=monotonic(earliest[1]),
-                backlog=self.settings.max_backlog,
-            )
-        newest = db.execute(
-            select(func.max(TraceRow.boot), func.max(TraceRow.received_at)).where(mine)
-        ).first()
-        if newest is None or newest[1] is None:  # the robot's first batch ever
-            return _Boot(-1, now, batch.first, now, self.settings.max_backlog)
-        # a new boot starts after the robot's previous process last reported: its steps
-        # cannot run ahead of the time since
-        heard = monotonic(newest[1])
-        starts = 1 + int((now - heard) / MIN_BOOT_SECONDS)
-        if batch.boot > int(newest[0]) + starts:
-            raise TraceRefusedError(
-                f"boot {batch.boot} jumps from {newest[0]}: at most {starts} agent starts "
-                f"fit in the {now - heard:.1f} s since that boot last reported"
-            )
-        return _Boot(-1, heard, 0, heard, 0)
-
-    def _spend(self, robot: str, samples: int, now: float) -> float:
-        """The robot's allowance after `samples` new ones at `now` (committed by the caller);
-        TraceRefusedError if its clock cannot have made that many."""
-        rate = STEP_RATE_MARGIN / self.settings.dt
-        full = float(self.settings.max_backlog + SLACK_STEPS)
-        left, at = self._allowance.get(robot, (full, now))
-        left = min(full, left + (now - at) * rate)
-        if samples > left:
-            raise TraceRefusedError(
-                f"{samples} new samples, more than the robot's clock allows now ({int(left)}): "
-                f"all its boots together run at most {rate:g} steps a second"
-            )
-        return left - samples
-
-    def _check_plausible(self, batch: TraceBatch, boot: _Boot, now: float) -> None:
-        """TraceRefusedError unless the agent could have sent `batch` (docs/robots.md)."""
-        if np.any(np.diff(batch.steps) != 1):
-            raise TraceRefusedError("steps are not consecutive: an agent sends consecutive samples")
-        if batch.last >= MAX_STEPS:
-            raise TraceRefusedError(f"step {batch.last} is beyond {MAX_STEPS} of one boot")
-        ahead_s = float(batch.times[-1]) - time.time()
-        if ahead_s > MAX_CLOCK_AHEAD:
-            raise TraceRefusedError(
-                f"sample time is {ahead_s:.0f} s ahead of the server's clock (at most "
-                f"{MAX_CLOCK_AHEAD:.0f} s)"
-            )
-        rate = STEP_RATE_MARGIN / self.settings.dt
-        ahead = boot.anchor_step + boot.backlog + SLACK_STEPS + (now - boot.anchor_at) * rate
-        if batch.last > ahead:
-            raise TraceRefusedError(
-                f"step {batch.last} is ahead of the robot's clock: at most {int(ahead)} for "
-                f"boot {batch.boot} now"
-            )
-        if boot.last < 0:
-            return
-        lost = SLACK_STEPS + (now - boot.at + self.settings.request_slack) * rate
-        if batch.first > boot.last + 1 + lost:
-            raise TraceRefusedError(
-                f"steps are not contiguous: step {batch.first} follows {boot.last}, and at most "
-                f"{int(lost)} samples can have been dropped since"
-            )
-
-    def _report(self, db: Session, batch: TraceBatch) -> None:
-        state = db.get(RobotStateRow, batch.robot)
-        if state is None:
-            state = RobotStateRow(robot_id=batch.robot, stuck_events=0)
-            db.add(state)
-        status = batch.status
-        state.state, state.steps, state.boot = status.state, status.steps, batch.boot
-        state.whiskers = "".join(str(int(b)) for b in batch.whiskers[-1])
-        state.controller_sha256, state.serial_ok = status.sha256, status.serial_ok
-        state.status, state.updated_at = status.model_dump_json(), utcnow()
-        robot = db.get(Robot, batch.robot)
-        if robot is None:
-            robot = Robot(id=batch.robot, status="online")
-            db.add(robot)
-        robot.controller_sha256, robot.last_seen = status.sha256, utcnow()
-
-    def _retain(self, db: Session, robot: str, added: int) -> int:
-        """Delete the robot's oldest batches beyond `retention_samples` (newest batch kept, and
-        every batch that arrived within `retention_window_s`); the samples it then has stored."""
-        if robot in self._stored:
-            stored = self._stored[robot] + added
-        else:  # autoflush puts the new batch in the sum
-            total = db.scalar(select(func.sum(TraceRow.count)).where(TraceRow.robot_id == robot))
-            stored = int(total or 0)
-        recent = utcnow() - timedelta(seconds=self.settings.retention_window_s)
-        while stored > self.settings.retention_samples:
-            oldest = db.execute(
-                select(TraceRow.boot, TraceRow.first, TraceRow.count, TraceRow.received_at)
-                .where(TraceRow.robot_id == robot)
-                .order_by(TraceRow.boot, TraceRow.first)
-                .limit(1)
-            ).first()
-            if oldest is None or stored - int(oldest[2]) < 1:
-                break
-            arrived = aware(oldest[3])
-            if arrived is not None and arrived > recent:
-                break
-            db.execute(
-                delete(TraceRow).where(
-                    TraceRow.robot_id == robot,
-                    TraceRow.boot == oldest[0],
-                    TraceRow.first == oldest[1],
-                )
-            )
-            stored -= int(oldest[2])
-        return stored
-
-    # ------------------------------------------------------------------ replacement
-
-    def _elite(
-        self, run_id: int, elite: int, *, confirm: bool = False
-    ) -> tuple[int, ControllerDocument]:
-        """(generation, document) of entry `elite` of the run's archive; with `confirm`, only
-        if the server's own evaluation repeats its archived claim (`_elite_holds`), else
-        UnconfirmedError."""
-        if self._archives is None:
-            raise NotFoundError("this server keeps no archives")
-        generations, config, archive = self._archives(run_id)
-        document = _elite_document(run_id, generations, config, archive, elite)
-        if confirm:
-            with self.sessions() as db:
-                history = crud.history(db, run_id=run_id, generations=generations)
-            if not _elite_holds(config, history, archive, elite):
-                raise UnconfirmedError(
-                    f"run {run_id}'s elite {elite}: its archived fitness and descriptors are "
-                    "not what the server's own evaluation gives; not served"
-                )
-        return generations - 1, document
-
-    def _replace(self, request: StuckRequest) -> tuple[ControllerDocument | None, str]:
-        with self.sessions.begin() as db:
-            robot = db.get(Robot, request.robot)
-            policy, _ = _effective(robot.replacement if robot else None, self.settings.replacement)
-            state = db.get(RobotStateRow, request.robot)
-            if state is None:
-                state = RobotStateRow(
-                    robot_id=request.robot, state="escaping", stuck_events=0, boot=0
-                )
-                db.add(state)
-            _close_previous(db, request, state.boot)
-            event = StuckEventRow(
-                robot_id=request.robot,
-                controller_sha256=request.sha256,
-                reason=request.reason,
-                step=request.step,
-                policy=policy,
-                boot=state.boot,
-            )
-            db.add(event)
-            _trim_events(db, request.robot, self.settings.stuck_retention)
-            state.stuck_events += 1
-            if request.sha256 is not None and request.sha256 in _served(robot):
-                _field_row(db, request.sha256).stuck_events += 1
-            db.flush()
-            doc, reason = self._pick(db, request, policy)
-            event.replacement_sha256 = doc.sha256 if doc else None
-            event.answer = reason
-            if doc is not None and robot is not None:
-                _serve(robot, doc.sha256)
-        context(log, robot=request.robot).info(
-            "robot %s stuck at step %d (%s) with %s; policy %s, replacement %s: %s",
-            request.robot,
-            request.step,
-            request.reason,
-            request.sha256,
-            policy,
-            doc.sha256 if doc else None,
-            reason,
-        )
-        return doc, reason
-
-    def _pick(
-        self, db: Session, request: StuckRequest, policy: ReplacementPolicy
-    ) -> tuple[ControllerDocument | None, str]:
-        """The reply to a stuck request under `policy` (one branch per policy), with its reason."""
-        if policy == "off":
-            return None, "replacement is off for this robot"
-        failed = db.get(Controller, request.sha256) if request.sha256 else None
-        if failed is None or failed.run_id is None:
-            return None, "the failed controller comes from no stored run"
-        recent = set(
-            db.scalars(
-                select(StuckEventRow.controller_sha256)
-                .where(StuckEventRow.robot_id == request.robot)
-                .order_by(StuckEventRow.id.desc())
-                .limit(self.settings.recent_failures)
-            )
-        )
-        if policy == "archive":
-            return self._pick_elite(db, failed.run_id, request.sha256, recent)
-        if policy == "fit":
-            try:
-                ranking = self._ranking(db, failed.run_id, request.robot, wait=False)
-            except NotFoundError as exc:
-                doc, reason = self._pick_rank(db, failed.run_id, recent)
-                return doc, f"{exc}; {reason}"
-            if ranking is not None:
-                return self._pick_ranked(db, ranking, recent)
-            doc, reason = self._pick_rank(db, failed.run_id, recent)
-            return doc, f"the fit ranking is being computed; {reason}"
-        return self._pick_rank(db, failed.run_id, recent)
-
-    def _pick_rank(
-        self, db: Session, run_id: int, recent: set[str | None]
-    ) -> tuple[ControllerDocument | None, str]:
-        """The run's validated champion, else the best of the server's own validated ranking
-        of its candidates that did not fail recently (none while that is being computed):
-        nothing served rests on a worker's claimed fitness alone."""
-        run = db.get(Run, run_id)
-        best = None if run is None else crud.champion(db, run=run)
-        if best is not None and best.sha256 not in recent:  # chosen on unseen poses, tested
-            return ControllerDocument.from_json(best.document), (
-                f"the validated champion of run {run_id}"
-            )
-        try:
-            ranking = self._ranking(db, run_id, None, wait=False)
-        except NotFoundError as exc:
-            return None, str(exc)
-        if ranking is None:
-            return None, f"run {run_id}'s candidates are being validated: ask again"
-        return self._pick_ranked(db, ranking, recent)
-
-    def _pick_ranked(
-        self, db: Session, ranking: Ranking, recent: set[str | None]
-    ) -> tuple[ControllerDocument | None, str]:
-        """The ranking's first candidate that did not fail recently on this robot."""
-        for candidate in ranking.candidates:
-            if candidate.sha256 not in recent:
-                return self._ranked_document(db, ranking, candidate), ranking.reason(candidate)
-        return None, f"every candidate of run {ranking.run_id} failed recently on this robot"
-
-    def _ranked_document(
-        self, db: Session, ranking: Ranking, candidate: Candidate
-    ) -> ControllerDocument:
-        """The candidate's document, stored: the champion's own (with its validation and test)
-        when it is the champion."""
-        run = db.get(Run, ranking.run_id)
-        best = None if run is None else crud.champion(db, run=run)
-        if best is not None and best.sha256 == candidate.sha256:
-            return ControllerDocument.from_json(best.document)
-        if candidate.elite is None:
-            return ranked_document(db, ranking.run_id, candidate.rank or 0)
-        generations, doc = self._elite(ranking.run_id, candidate.elite)
-        if doc.sha256 != candidate.sha256:  # the archive moved on since the ranking
-            raise NotFoundError(f"run {ranking.run_id}'s archive changed: ask again")
-        return _stored(db, ranking.run_id, generations, doc)
-
-    def _ranking(
-        self, db: Session, run_id: int, robot_id: str | None, *, wait: bool
-    ) -> Ranking | None:
-        """The run's candidates ranked by the server's validation, in the robot's calibrated
-        world or (robot None) the run's, computed once per calibration and committed
-        generation on the ranking thread; None while it is being computed unless `wait`.
-        NotFoundError: no robot, no calibration, no run, no generation."""
-        calibration, calibrated = None, ""
-        if robot_id is not None:
-            robot = db.get(Robot, robot_id)
-            if robot is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            if robot.calibration is None or robot.calibrated_at is None:
-                raise NotFoundError(f"robot {robot_id} has no calibration (colony robot calibrate)")
-            calibration = RobotCalibration.model_validate_json(robot.calibration)
-            calibrated = robot.calibrated_at.isoformat()
-        if db.get(Run, run_id) is None:
-            raise NotFoundError(f"no run with id {run_id}")
-        latest = crud.latest_generation(db, run_id=run_id)
-        if latest is None:
-            raise NotFoundError(f"run {run_id} has no completed generation yet")
-        key = (robot_id or "", calibrated, run_id, latest.generation)
-        with self._lock:
-            future = self._rankings.get(key)
-            if future is None:
-                future = self._ranker.submit(
-                    self._rank, robot_id, run_id, latest.generation, calibration
-                )
-                self._rankings[key] = future
-                while len(self._rankings) > RANKINGS_KEPT:
-                    self._rankings.pop(next(iter(self._rankings)))
-        if not wait and not future.done():
-            return None
-        return future.result()
-
-    def _rank(
-        self,
-        robot_id: str | None,
-        run_id: int,
-        generation: int,
-        calibration: RobotCalibration | None,
-    ) -> Ranking:
-        """Score the run's candidates on its validation poses in the robot's calibrated world,
-        or without one the run's world (no reality gap either way): its `validation.candidates`
-        fittest training ranks of `generation` and as many of its archive's fittest elites;
-        best first by roaming, then mean Eq 12, then candidate order."""
-        with self.sessions() as db:
-            run = db.get(Run, run_id)
-            assert run is not None  # checked by the caller; runs are never deleted under it
-            config = RunConfig.model_validate_json(run.config)
-            _, genomes = crud.ranked(db, run_id=run_id, generation=generation)
-        v = ranking_validation(config)
-        top = np.asarray(genomes[: v.candidates])
-        labels: list[tuple[int | None, int | None]] = [(r, None) for r in range(len(top))]
-        if self._archives is not None:
-            try:
-                _, _, archive = self._archives(run_id)
-            except NotFoundError:
-                pass  # a strategy without an archive
-            else:
-                fittest = np.argsort(-np.nan_to_num(archive.fitness, nan=-np.inf), kind="stable")
-                elites = [int(k) for k in fittest[: v.candidates]]
-                top = np.concatenate([top, archive.genomes[elites]])
-                labels += [(None, k) for k in elites]
-        world = config.world if calibration is None else calibration.world(config.world)
-        order, scored = rank_in_world(config, top, world)
-        seen: set[str] = set()
-        candidates = []
-        for k in (int(i) for i in order):
-            sha = controller_sha256(config.network_spec, top[k])
-            if sha not in seen:
-                seen.add(sha)
-                rank, elite = labels[k]
-                roaming, score = float(scored.roaming[k]), float(scored.score[k])
-                candidates.append(Candidate(sha, rank, elite, roaming, score))
-        ranking = Ranking(robot_id, run_id, v.poses, v.steps, tuple(candidates))
-        log.info(
-            "run %d's %d candidates validated in %s; the best roams %.0f %%",
-            run_id, len(candidates), ranking.world, 100 * candidates[0].roaming,
-        )  # fmt: skip
-        return ranking
-
-    def _pick_elite(
-        self, db: Session, run_id: int, failed: str | None, recent: set[str | None]
-    ) -> tuple[ControllerDocument | None, str]:
-        """The elite of the run's archive farthest, in its descriptors, from the failed
-        controller's entry (the fittest first when the failed one is not in the archive),
-        skipping those that failed recently on this robot and those whose archived claim the
-        server's own evaluation does not repeat (`_elite_holds`, logged): an archive is made of
-        workers' claims, so no forged fitness or descriptor alone chooses what is served."""
-        try:
-            if self._archives is None:
-                raise NotFoundError("this server keeps no archives")
-            generations, config, archive = self._archives(run_id)
-        except NotFoundError as exc:
-            return None, str(exc)
-        history = crud.history(db, run_id=run_id, generations=generations)
-        spec = config.network_spec
-        shas = [controller_sha256(spec, genome) for genome in archive.genomes]
-        if failed in shas:
-            origin = archive.descriptors[shas.index(failed)]
-            order = np.argsort(-np.linalg.norm(archive.descriptors - origin, axis=1), kind="stable")
-            why = "farthest in behaviour"
-        else:
-            order = np.argsort(-np.nan_to_num(archive.fitness, nan=-np.inf), kind="stable")
-            why = "fittest (the stuck controller is not in it)"
-        for k in (int(i) for i in order):
-            if shas[k] in recent:
-                continue
-            if not _elite_holds(config, history, archive, k):
-                log.warning(
-                    "run %d elite %d: its archived fitness and descriptors are not what the "
-                    "server's own evaluation gives; not served",
-                    run_id,
-                    k,
-                )
-                continue
-            doc = _elite_document(run_id, generations, config, archive, k)
-            return _stored(
-                db, run_id, generations - 1, doc
-            ), f"elite {k} of run {run_id}'s archive, {why}"
-        return None, (
-            f"every elite of run {run_id}'s archive failed recently on this robot or rests on a "
-            "claim the server's own evaluation does not repeat"
-        )
+    def _publish(self, key: str, payload: bytes) -> None:
+        self._zenoh.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     # ------------------------------------------------------------------ API operations
 
@@ -996,61 +304,9 @@ class RobotService:
 
     def robot(self, robot_id: str) -> RobotDetail:
         with self.sessions() as db:
-            row = db.get(Robot, robot_id)
-            if row is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            state = db.get(RobotStateRow, robot_id)
-            summary = self._summary(row, state)
-            origin: dict[str, Any] = {}
-            if summary.controller_sha256:
-                ctrl = db.get(Controller, summary.controller_sha256)
-                if ctrl is not None:
-                    origin = json.loads(ctrl.document).get("provenance", {})
-                    origin["run"] = ctrl.run_id
-                    origin["generation"] = ctrl.generation
-            status = json.loads(state.status) if state else {}
-            calibrated: dict[str, Any] = {}
-            if row.calibration is not None and row.calibrated_at is not None:
-                at = row.calibrated_at
-                calibrated = {
-                    "calibration": RobotCalibration.model_validate_json(row.calibration),
-                    "calibrated_at": aware(at),
-                    "before_calibration": self._window(db, robot_id, None, at),
-                    "since_calibration": self._window(db, robot_id, at, None),
-                }
-            return RobotDetail(
-                **summary.model_dump(),
-                controller_run=_int_or_none(origin.get("run")),
-                controller_rank=_int_or_none(origin.get("rank")),
-                controller_generation=_int_or_none(origin.get("generation")),
-                whiskers=state.whiskers if state else "00000",
-                boot=state.boot if state else 0,
-                link={"zenoh": "online" if summary.online else "offline", **status},
-                **calibrated,
+            return robot_detail(
+                db, robot_id=robot_id, is_online=self.is_online, settings=self.settings
             )
-
-    def _window(
-        self, db: Session, robot_id: str, since: datetime | None, until: datetime | None
-    ) -> FieldWindow:
-        """The robot's retained samples and stuck events that arrived in [since, until)."""
-        samples = select(func.coalesce(func.sum(TraceRow.count), 0)).where(
-            TraceRow.robot_id == robot_id
-        )
-        events = select(func.count(StuckEventRow.id)).where(StuckEventRow.robot_id == robot_id)
-        if since is not None:
-            samples = samples.where(TraceRow.received_at >= since)
-            events = events.where(StuckEventRow.at >= since)
-        if until is not None:
-            samples = samples.where(TraceRow.received_at < until)
-            events = events.where(StuckEventRow.at < until)
-        hours = int(db.scalar(samples) or 0) * self.settings.dt / 3600.0
-        stuck = int(db.scalar(events) or 0)
-        return FieldWindow(
-            robot_hours=hours, stuck_events=stuck, stuck_per_hour=stuck / hours if hours else None
-        )
-
-    def _summary(self, row: Robot, state: RobotStateRow | None) -> RobotOut:
-        return _summary(row, state, self.is_online(row.id), self.settings.replacement)
 
     def set_replacement(self, robot_id: str, policy: ReplacementPolicy | None) -> RobotDetail:
         """Give the robot its own replacement policy, or None to follow the colony's."""
@@ -1068,37 +324,13 @@ class RobotService:
 
     def stuck_events(self, robot_id: str, limit: int = 1000) -> StuckEventsOut:
         """The robot's newest `limit` stuck events, oldest first: the field ledger."""
-        if limit < 1:
-            raise ValueError(f"limit must be >= 1, got {limit}")
         with self.sessions() as db:
-            if db.get(Robot, robot_id) is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            rows = list(
-                db.scalars(
-                    select(StuckEventRow)
-                    .where(StuckEventRow.robot_id == robot_id)
-                    .order_by(StuckEventRow.id.desc())
-                    .limit(limit)
-                )
-            )
-        events = [_event_out(r) for r in reversed(rows)]
-        return StuckEventsOut(
-            robot=robot_id, events=events, controllers=_ledger(events, self.settings.dt)
-        )
+            return stuck_ledger(db, robot_id=robot_id, limit=limit, dt=self.settings.dt)
 
     def calibration(self, robot_id: str) -> CalibrationOut:
         """The robot's stored calibration; NotFoundError for an unknown or uncalibrated robot."""
         with self.sessions() as db:
-            row = db.get(Robot, robot_id)
-            if row is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            if row.calibration is None or row.calibrated_at is None:
-                raise NotFoundError(f"robot {robot_id} has no calibration (colony robot calibrate)")
-            return CalibrationOut(
-                robot=robot_id,
-                stored_at=aware(row.calibrated_at),
-                calibration=RobotCalibration.model_validate_json(row.calibration),
-            )
+            return calibration_of(db, robot_id=robot_id)
 
     def set_calibration(self, robot_id: str, calibration: RobotCalibration) -> CalibrationOut:
         """Store the robot's fitted physics (replacing any earlier fit)."""
@@ -1128,7 +360,7 @@ class RobotService:
             for table in (TraceRow, StuckEventRow, RobotStateRow):
                 db.execute(delete(table).where(table.robot_id == robot_id))
             db.execute(delete(Robot).where(Robot.id == robot_id))
-        self._forget_cache(robot_id)
+        self._ingest.forget(robot_id)
         context(log, robot=robot_id).info("robot %s forgotten", robot_id)
 
     def push(
@@ -1142,370 +374,30 @@ class RobotService:
         fit: bool = False,
         timeout: float | None = None,
     ) -> PushOut:
-        """Push a stored controller (sha256) or a run's controller; wait for the ack.
-
-        A run's `rank` is that training rank of its latest committed generation, its `elite`
-        that entry of its archive (`RunManager.archive`), each only if the server's own
-        evaluation repeats its claim (else UnconfirmedError); `fit` its candidate that roams
-        most in the robot's calibrated world (waiting for the ranking); without any, the run's
-        best: its validated champion once completed, else the best training rank whose claim
-        the server's evaluation repeats (`confirmed_document`)."""
-        if sha256 is not None and run_id is not None:
-            raise ValueError("give exactly one of sha256 or run_id")
-        chosen_elite = (
-            None if elite is None or run_id is None else self._elite(run_id, elite, confirm=True)
+        """Push a stored controller (sha256) or a run's controller; wait for the ack
+        (`Pushes.push`)."""
+        return self._pushes.push(
+            robot_id, sha256=sha256, run_id=run_id, rank=rank, elite=elite, fit=fit, timeout=timeout
         )
-        with self.sessions.begin() as db:
-            if db.get(Robot, robot_id) is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            if sha256 is not None:
-                row = crud.find_controller(db, sha256=sha256)
-                text, sha = row.document, row.sha256
-            elif run_id is None:
-                raise ValueError("give exactly one of sha256 or run_id")
-            else:
-                run = db.get(Run, run_id)
-                if run is None:
-                    raise NotFoundError(f"no run with id {run_id}")
-                plain = rank is None and elite is None and not fit
-                best = crud.champion(db, run=run) if plain else None
-                if fit:
-                    ranking = self._ranking(db, run_id, robot_id, wait=True)
-                    assert ranking is not None  # waited for
-                    doc = self._ranked_document(db, ranking, ranking.candidates[0])
-                    text, sha = doc.to_json(), doc.sha256
-                elif chosen_elite is not None:
-                    doc = _stored(db, run_id, *chosen_elite)
-                    text, sha = doc.to_json(), doc.sha256
-                elif best is not None:
-                    text, sha = best.document, best.sha256
-                else:
-                    config = RunConfig.model_validate_json(run.config)
-                    doc = _stored(db, run_id, *confirmed_document(db, run, config, rank))
-                    text, sha = doc.to_json(), doc.sha256
-        push_id = uuid.uuid4().hex
-        seq, signature = self._sign("push", robot_id, push_id, text)
-        message = ControllerPush(
-            push_id=push_id, sha256=sha, document=text, seq=seq, signature=signature
-        )
-        return self._send(robot_id, push_id, encode_message(message), sha, timeout)
-
-    def _sign(self, kind: str, robot: str, push_id: str, document: str | None) -> tuple[int, str]:
-        """(seq, signature) of a command, or (0, "") without a signer."""
-        if self.signer is None:
-            return 0, ""
-        return self.signer.sign(kind=kind, robot=robot, push_id=push_id, document=document)
 
     def stop_robot(self, robot_id: str, timeout: float | None = None) -> PushOut:
         """Stop the robot's motors until the next push."""
-        with self.sessions() as db:
-            if db.get(Robot, robot_id) is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-        push_id = uuid.uuid4().hex
-        seq, signature = self._sign("stop", robot_id, push_id, None)
-        payload = encode_message(StopCommand(push_id=push_id, seq=seq, signature=signature))
-        return self._send(robot_id, push_id, payload, None, timeout)
-
-    def _send(
-        self, robot: str, push_id: str, payload: bytes, sha: str | None, timeout: float | None
-    ) -> PushOut:
-        if not self.is_online(robot):
-            raise RobotOfflineError(f"robot {robot} is offline")
-        waiter = _Waiter(sha)
-        with self._lock:
-            self._waiters[push_id] = waiter
-            while len(self._waiters) > WAITERS_KEPT:
-                self._waiters.popitem(last=False)
-        self._zenoh.put(
-            command_key(robot), payload, congestion_control=zenoh.CongestionControl.BLOCK
-        )
-        waiter.done.wait(self.settings.push_timeout if timeout is None else timeout)
-        ack = waiter.ack
-        if ack is None:
-            return PushOut(
-                robot=robot,
-                push_id=push_id,
-                sha256=sha,
-                acknowledged=False,
-                accepted=False,
-                reason="no acknowledgement within the timeout",
-            )
-        return PushOut(
-            robot=robot,
-            push_id=push_id,
-            sha256=ack.sha256,
-            acknowledged=True,
-            accepted=ack.accepted,
-            reason=ack.reason,
-        )
+        return self._pushes.stop(robot_id, timeout)
 
     def traces(self, robot_id: str, limit: int = 1000) -> TracesOut:
         """The newest `limit` stored samples, oldest first."""
-        if limit < 1:
-            raise ValueError(f"limit must be >= 1, got {limit}")
         with self.sessions() as db:
-            if db.get(Robot, robot_id) is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            rows = list(
-                db.scalars(
-                    select(TraceRow)
-                    .where(TraceRow.robot_id == robot_id)
-                    .order_by(TraceRow.boot.desc(), TraceRow.first.desc())
-                )
-            )
-        samples: list[TraceSample] = []
-        for row in rows:
-            samples = _samples(row) + samples
-            if len(samples) >= limit:
-                break
-        return TracesOut(robot=robot_id, samples=samples[-limit:])
+            return recent_samples(db, robot_id=robot_id, limit=limit)
 
     def replay(self, robot_id: str) -> ReplayOut:
         """Feed the stored whiskers into the same controllers; compare motor commands bitwise."""
         with self.sessions() as db:
-            if db.get(Robot, robot_id) is None:
-                raise NotFoundError(f"no robot with id {robot_id}")
-            rows = list(
-                db.scalars(
-                    select(TraceRow)
-                    .where(TraceRow.robot_id == robot_id)
-                    .order_by(TraceRow.boot, TraceRow.first)
-                )
-            )
-            docs: dict[str, ControllerDocument | None] = {}
-            for row in rows:
-                for sha in json.loads(row.controllers):
-                    if sha not in docs:
-                        stored = crud.get_controller(db, sha256=sha)
-                        docs[sha] = _document(stored.document) if stored else None
-        return replay_trace(robot_id, rows, docs)
+            return replay_stored(db, robot_id=robot_id)
 
     def field_stats(self, sha256: str) -> FieldStats | None:
         """Robot-hours and stuck events of a controller over the colony; None if never run."""
         with self.sessions() as db:
-            row = db.get(FieldStatsRow, sha256.lower())
-            if row is None:
-                return None
-            hours = row.steps * self.settings.dt / 3600.0
-            return FieldStats(
-                sha256=row.sha256,
-                robot_hours=hours,
-                stuck_events=row.stuck_events,
-                stuck_per_hour=row.stuck_events / hours if hours > 0 else None,
-            )
-
-
-def _elite_document(
-    run_id: int, generation: int, config: RunConfig, archive: Archive, elite: int
-) -> ControllerDocument:
-    """The controller of entry `elite` of a run's archive after `generation` generations."""
-    if not 0 <= elite < len(archive.fitness):
-        raise NotFoundError(
-            f"run {run_id}'s archive has {len(archive.fitness)} entries, not {elite + 1}"
-        )
-    value = float(archive.fitness[elite])
-    return ControllerDocument(
-        spec=config.network_spec,
-        weights=np.array(archive.genomes[elite], dtype=np.float64),
-        fitness=value if np.isfinite(value) else None,
-        provenance={
-            "seed": config.seed,
-            "generation": generation - 1,
-            "elite": elite,
-            "run": run_id,
-        },
-        world=config.world,
-    )
-
-
-def ranked_document(db: Session, run_id: int, rank: int) -> ControllerDocument:
-    """The controller of rank `rank` in the run's latest generation, stored in `controllers`."""
-    run = db.get(Run, run_id)
-    latest = crud.latest_generation(db, run_id=run_id)
-    if run is None or latest is None:
-        raise NotFoundError(f"run {run_id} has no completed generation yet")
-    found, genomes = crud.ranked(db, run_id=run_id, generation=latest.generation, rank=rank)
-    config = RunConfig.model_validate_json(run.config)
-    doc = ControllerDocument(
-        spec=config.network_spec,
-        weights=genomes[0],
-        fitness=found.fitness_of(rank),
-        provenance={
-            "seed": config.seed,
-            "generation": latest.generation,
-            "rank": rank,
-            "run": run_id,
-        },
-        world=config.world,
-    )
-    return _stored(db, run_id, latest.generation, doc)
-
-
-def _stored(
-    db: Session, run_id: int, generation: int, doc: ControllerDocument
-) -> ControllerDocument:
-    """`doc`, a controller of the run's `generation`, stored in `controllers` (once)."""
-    crud.put_controller(
-        db,
-        sha256=doc.sha256,
-        document=doc.to_json(),
-        run_id=run_id,
-        generation=generation,
-        fitness=doc.fitness,
-    )
-    return doc
-
-
-def _elite_holds(config: RunConfig, history: StrategyHistory, archive: Archive, elite: int) -> bool:
-    """Whether the server's own evaluation of entry `elite`, in a generation that was told its
-    archived fitness and descriptors, repeats them bit for bit (`repeats_claim`; usually one
-    evaluation of one controller)."""
-    axes = [DESCRIPTORS.index(a) for a in config.strategy_settings.axes]
-    fitness, descriptors = archive.fitness[elite], archive.descriptors[elite]
-    told = (_bits(history.fitness) == _bits(fitness)) & (
-        _bits(history.descriptors[..., axes]) == _bits(descriptors)
-    ).all(axis=-1)
-    return any(
-        repeats_claim(config, g, archive.genomes[elite], float(fitness), (axes, descriptors))
-        for g in sorted({int(g) for g in np.nonzero(told)[0]})
-    )
-
-
-def _bits(values: np.ndarray) -> np.ndarray:
-    """float64 values as their bits, so equal means identical (NaN too)."""
-    return np.ascontiguousarray(values, dtype="<f8").view("<u8")
-
-
-def _effective(
-    own: str | None, colony: ReplacementPolicy
-) -> tuple[ReplacementPolicy, PolicySource]:
-    """The policy a robot's stuck requests get: its own if it has one, else the colony's."""
-    for policy in POLICIES:
-        if own == policy:
-            return policy, "robot"
-    return colony, "colony"
-
-
-def _close_previous(db: Session, request: StuckRequest, boot: int) -> None:
-    """Fill in the steps the robot's previous stuck event's outcome ran, if `request` shows the
-    robot was still running it (the replacement sent, or without one the same controller) in the
-    same boot, whose step counter both share."""
-    previous = db.scalars(
-        select(StuckEventRow)
-        .where(StuckEventRow.robot_id == request.robot)
-        .order_by(StuckEventRow.id.desc())
-        .limit(1)
-    ).first()
-    if previous is None or previous.steps_run is not None or previous.boot != boot:
-        return
-    ran = previous.replacement_sha256 or previous.controller_sha256
-    if ran is not None and ran == request.sha256 and request.step > previous.step:
-        previous.steps_run = request.step - previous.step
-
-
-def _ledger(events: list[StuckEventOut], dt: float) -> list[LedgerController]:
-    """Per controller of `events`: the steps run after the events that left the robot with
-    it, and the events in which it stuck; longest run first."""
-    steps: dict[str, int] = {}
-    stuck: dict[str, int] = {}
-    for e in events:
-        ran = e.replacement_sha256 or e.controller_sha256
-        if ran is not None and e.steps_run is not None:
-            steps[ran] = steps.get(ran, 0) + e.steps_run
-        if e.controller_sha256 is not None:
-            stuck[e.controller_sha256] = stuck.get(e.controller_sha256, 0) + 1
-    shas = sorted(steps.keys() | stuck.keys(), key=lambda s: (-steps.get(s, 0), s))
-    return [
-        LedgerController(
-            sha256=s,
-            steps_run=steps.get(s, 0),
-            seconds_run=steps.get(s, 0) * dt,
-            stuck_events=stuck.get(s, 0),
-        )
-        for s in shas
-    ]
-
-
-def _event_out(row: StuckEventRow) -> StuckEventOut:
-    policy = next((p for p in POLICIES if p == row.policy), None)
-    at = aware(row.at)
-    return StuckEventOut(
-        id=row.id,
-        at=at.timestamp() if at else 0.0,
-        step=row.step,
-        reason=row.reason,
-        controller_sha256=row.controller_sha256,
-        policy=policy,
-        replacement_sha256=row.replacement_sha256,
-        answer=row.answer,
-        steps_run=row.steps_run,
-    )
-
-
-SERVED_KEPT = 64
-WAITERS_KEPT = 256
-"""Pushes remembered for their acknowledgement, answered or not (a few minutes of a colony's
-pushes: a robot acknowledges within a step)."""
-"""Controllers a robot's `served` list remembers: far more than it runs between reports."""
-
-
-def _served(robot: Robot | None) -> list[str]:
-    """The controllers the server gave `robot` (oldest first): only their steps and stuck
-    events count in field statistics, whatever a robot names."""
-    return [] if robot is None or not robot.served else list(json.loads(robot.served))
-
-
-def with_colony_gap(db: Session, config: RunConfig) -> RunConfig:
-    """`config` with the colony's calibrated robots as its gap when it asks for `reality_gap:
-    "colony"` and names none (stored with the run: it stays a function of its config);
-    NotFoundError when no robot is calibrated."""
-    if config.reality_gap != "colony" or config.world.gap_robots:
-        return config
-    rows = db.scalars(
-        select(Robot).where(Robot.calibration.is_not(None)).order_by(Robot.id).limit(MAX_GAP_ROBOTS)
-    ).all()
-    robots = tuple(
-        RobotCalibration.model_validate_json(r.calibration).gap_robot(r.id)
-        for r in rows
-        if r.calibration is not None
-    )
-    if not robots:
-        raise NotFoundError(
-            "reality_gap 'colony' draws from the calibrated robots, and no robot is calibrated: "
-            "colony robot calibrate ROBOT"
-        )
-    world = config.world.model_copy(update={"gap_robots": robots})
-    return RunConfig.model_validate({**config.model_dump(), "world": world.model_dump()})
-
-
-def _serve(robot: Robot, sha256: str) -> None:
-    """Note that the server gave `robot` the controller `sha256`."""
-    served = [s for s in _served(robot) if s != sha256] + [sha256]
-    robot.served = json.dumps(served[-SERVED_KEPT:])
-
-
-def _field_row(db: Session, sha256: str) -> FieldStatsRow:
-    row = db.get(FieldStatsRow, sha256)
-    if row is None:
-        row = FieldStatsRow(sha256=sha256, steps=0, stuck_events=0)
-        db.add(row)
-    return row
-
-
-def _trim_events(db: Session, robot: str, keep: int) -> None:
-    """Delete the robot's stuck events older than its newest `keep` (the one being added
-    included)."""
-    cutoff = db.scalar(
-        select(StuckEventRow.id)
-        .where(StuckEventRow.robot_id == robot)
-        .order_by(StuckEventRow.id.desc())
-        .offset(keep - 1)
-        .limit(1)
-    )
-    if cutoff is not None:
-        db.execute(
-            delete(StuckEventRow).where(StuckEventRow.robot_id == robot, StuckEventRow.id < cutoff)
-        )
+            return field_stats(db, sha256=sha256, dt=self.settings.dt)
 
 
 def _check_sender(robot: str, query: zenoh.Query) -> None:
@@ -1518,120 +410,6 @@ def _check_sender(robot: str, query: zenoh.Query) -> None:
 
 def _payload(query: zenoh.Query) -> bytes:
     return query.payload.to_bytes() if query.payload is not None else b""
-
-
-def _int_or_none(value: object) -> int | None:
-    return value if isinstance(value, int) and not isinstance(value, bool) else None
-
-
-def _document(text: str) -> ControllerDocument | None:
-    try:
-        return ControllerDocument.from_json(text)
-    except ControllerDocumentError:
-        return None
-
-
-def _arrays(row: TraceRow) -> tuple[np.ndarray, ...]:
-    check_trace(row)
-    n = row.count
-    return (
-        np.frombuffer(row.steps, "<i8"),
-        np.frombuffer(row.whiskers, "|u1").reshape(n, 5),
-        np.frombuffer(row.motors, "<f8").reshape(n, 2),
-        np.frombuffer(row.controller, "<i4"),
-        np.frombuffer(row.fresh, "|b1"),
-    )
-
-
-def trace_poses(row: TraceRow) -> tuple[np.ndarray, np.ndarray] | None:
-    """The batch's sample times (n,) and poses (n, 3); None for a batch stored without."""
-    if row.times is None or row.poses is None:
-        return None
-    check_trace(row)
-    return np.frombuffer(row.times, "<f8"), np.frombuffer(row.poses, "<f8").reshape(row.count, 3)
-
-
-def _samples(row: TraceRow) -> list[TraceSample]:
-    shas = json.loads(row.controllers)
-    steps, whiskers, motors, controller, fresh = _arrays(row)
-    located = trace_poses(row)
-    return [
-        TraceSample(
-            boot=row.boot,
-            step=int(steps[i]),
-            whiskers="".join(str(int(b)) for b in whiskers[i]),
-            motors=(float(motors[i, 0]), float(motors[i, 1])),
-            controller_sha256=None if controller[i] == ESCAPE else shas[int(controller[i])],
-            fresh=bool(fresh[i]),
-            at=None if located is None else float(located[0][i]),
-            pose=None if located is None else _pose(located[1][i]),
-            pose_source=None if located is None else row.pose_source,
-        )
-        for i in range(row.count)
-    ]
-
-
-def _pose(values: np.ndarray) -> tuple[float, float, float]:
-    return float(values[0]), float(values[1]), float(values[2])
-
-
-def replay_trace(
-    robot: str, rows: list[TraceRow], docs: dict[str, ControllerDocument | None]
-) -> ReplayOut:
-    """The replay check over stored batches in (boot, first) order, with their controllers.
-
-    A controller's run is replayed from its fresh sample on; see docs/robots.md.
-    """
-    checked = segments = skipped = mismatches = 0
-    first: dict[str, object] | None = None
-    doc: ControllerDocument | None = None
-    state = np.empty(0)
-    prev: tuple[int, int] | None = None
-    for row in rows:
-        shas = json.loads(row.controllers)
-        steps, whiskers, motors, controller, fresh = _arrays(row)
-        for i in range(row.count):
-            here = (row.boot, int(steps[i]))
-            contiguous = prev is not None and here == (prev[0], prev[1] + 1)
-            prev = here
-            if controller[i] == ESCAPE:
-                doc = None
-                skipped += 1
-                continue
-            sha = shas[int(controller[i])]
-            if fresh[i]:
-                doc = docs.get(sha)
-                if doc is not None:
-                    state = network.reset(doc.spec, 1)
-                    segments += 1
-            elif doc is None or doc.sha256 != sha or not contiguous:
-                doc = None  # its fresh start was not retained, or samples were lost
-            if doc is None:
-                skipped += 1
-                continue
-            weights = doc.weights[np.newaxis, :]
-            out, state = network.step(doc.spec, weights, whiskers[i : i + 1].astype(float), state)
-            expected = network.motor_commands(doc.spec, out)[0]
-            checked += 1
-            if expected.tobytes() != motors[i].tobytes():
-                mismatches += 1
-                if first is None:
-                    first = {
-                        "boot": row.boot,
-                        "step": here[1],
-                        "sent": motors[i].tolist(),
-                        "replayed": expected.tolist(),
-                        "controller_sha256": sha,
-                    }
-    return ReplayOut(
-        robot=robot,
-        identical=checked > 0 and mismatches == 0,
-        checked=checked,
-        segments=segments,
-        skipped=skipped,
-        mismatches=mismatches,
-        first_mismatch=first,
-    )
 
 
 def robot_service(
@@ -1657,31 +435,3 @@ def robot_service(
         return close
 
     return install
-
-
-def robot_summaries(
-    db: Session, is_online: Callable[[str], bool], colony: ReplacementPolicy
-) -> list[RobotOut]:
-    """Every robot ever seen, by id: the one robot view of /api/robots and /api/colony;
-    `colony` is the colony's replacement policy."""
-    rows = list(db.scalars(select(Robot).order_by(Robot.id)))
-    states = {s.robot_id: s for s in db.scalars(select(RobotStateRow))}
-    return [_summary(r, states.get(r.id), is_online(r.id), colony) for r in rows]
-
-
-def _summary(
-    row: Robot, state: RobotStateRow | None, online: bool, colony: ReplacementPolicy
-) -> RobotOut:
-    last = state.updated_at if state else row.last_seen
-    policy, source = _effective(row.replacement, colony)
-    return RobotOut(
-        id=row.id,
-        online=online,
-        state=(state.state if state else "idle") if online else "offline",
-        controller_sha256=row.controller_sha256,
-        steps=state.steps if state else 0,
-        stuck_events=state.stuck_events if state else 0,
-        last_seen=aware(last),
-        replacement=policy,
-        replacement_source=source,
-    )

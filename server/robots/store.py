@@ -2,18 +2,23 @@
 
 Defined on `server.models.Base` so one metadata (and alembic revision 0002) covers them. Arrays
 are raw little-endian bytes as everywhere in the store; a trace batch keeps its samples together
-because they arrive, are replayed and expire together.
+because they arrive, are replayed and expire together. `served`, `serve` and `field_row` keep
+what the server gave each robot and the field statistics that only those controllers earn.
 """
 
 from __future__ import annotations
 
+import json
 from datetime import datetime
 
 from sqlalchemy import BigInteger, Boolean, DateTime, Index, Integer, LargeBinary, String, Text
-from sqlalchemy.orm import Mapped, mapped_column
+from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from server.core.integrity import DamagedRowError, checksum
-from server.core.models import Base, utcnow
+from server.core.models import Base, Robot, utcnow
+
+SERVED_KEPT = 64
+"""Controllers a robot's `served` list remembers: far more than it runs between reports."""
 
 
 class TraceRow(Base):
@@ -118,3 +123,23 @@ class FieldStatsRow(Base):
     steps: Mapped[int] = mapped_column(BigInteger, default=0)
     """Control steps driven by this controller (escape steps excluded)."""
     stuck_events: Mapped[int] = mapped_column(Integer, default=0)
+
+
+def served(robot: Robot | None) -> list[str]:
+    """The controllers the server gave `robot` (oldest first): only their steps and stuck
+    events count in field statistics, whatever a robot names."""
+    return [] if robot is None or not robot.served else list(json.loads(robot.served))
+
+
+def serve(robot: Robot, sha256: str) -> None:
+    """Note that the server gave `robot` the controller `sha256`."""
+    kept = [s for s in served(robot) if s != sha256] + [sha256]
+    robot.served = json.dumps(kept[-SERVED_KEPT:])
+
+
+def field_row(db: Session, sha256: str) -> FieldStatsRow:
+    row = db.get(FieldStatsRow, sha256)
+    if row is None:
+        row = FieldStatsRow(sha256=sha256, steps=0, stuck_events=0)
+        db.add(row)
+    return row

@@ -11,7 +11,8 @@ from fastapi.responses import JSONResponse
 from schemas.api import ColonyOut, HealthOut, JobCounts
 from schemas.robots import ColonyMapOut
 from server.robots.map import PATH_SAMPLES, colony_map
-from server.robots.service import RobotService, robot_summaries
+from server.robots.registry import robot_summaries
+from server.robots.service import RobotService
 from server.routes.deps import SessionDep, WorkersDep
 from server.routes.runs import run_out
 from server.runs import crud

@@ -25,7 +25,7 @@ from schemas.run import RunConfig
 from server.core.auth import run_limit_error
 from server.core.errors import NotFoundError
 from server.core.models import Run, aware
-from server.robots.service import with_colony_gap
+from server.robots.registry import with_colony_gap
 from server.routes.deps import ManagerDep, SessionDep
 from server.runs import crud
 
