@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
 from evorobotics.errors import EvoError
 from evorobotics.maze import is_shipped_or_generated, load_maze
+from schemas.api import ErrorOut
 from server.routes.deps import EvaluationsDep, ManagerDep, SessionDep
 from server.runs import crud
 from server.studies.evaluation import Evaluations, MapParams, Params
@@ -30,6 +31,11 @@ MAX_ROBUSTNESS_ROBOT_STEPS = 100_000
 REPORT_WAIT_S = 60.0
 """How long a request waits for its report's jobs before a 503 (they go on: asked again, the
 report is the cached one)."""
+_WAITED: dict[str, Any] = {
+    "model": ErrorOut,
+    "description": f"the report's jobs took over {REPORT_WAIT_S:.0f} s (Retry-After), or it "
+    "failed (the server's own evaluation, or the server stopping)",
+}
 
 
 @router.get(
@@ -63,7 +69,8 @@ def get_controller(request: Request, session: SessionDep, sha256: Sha) -> Respon
             "content": {"application/json": {}},
             "description": "the controller's exploration report (evorobotics.explore, "
             "docs/explore.md) plus its `sha256`",
-        }
+        },
+        503: _WAITED,
     },
 )
 def get_evaluation(
@@ -98,7 +105,8 @@ def get_evaluation(
             "description": "the controller's robustness map (evorobotics.robustness, "
             "docs/explore.md): roaming and stuck per whisker range x wheel gain ratio, plus "
             "its `sha256`",
-        }
+        },
+        503: _WAITED,
     },
 )
 def get_robustness(
