@@ -228,6 +228,20 @@ def test_a_report_is_cut_per_worker_leased_before_runs_and_assembled_bit_for_bit
         again.result(0)
 
 
+def test_a_bad_report_is_refused_before_any_job() -> None:
+    sched, _ = make_scheduler()
+    sched.join("a", speed=SLOW)
+    config, weights = config_of(ROAMER), ROAMER.weights
+    with pytest.raises(ValueError, match="maze"):
+        sched.report("explore", config.model_copy(update={"maze": "nowhere"}), SPEC, weights)
+    with pytest.raises(ValueError, match="limit of 20000000 robot steps"):
+        sched.report("robustness", config, ReportSpec(poses=300, steps=2000), weights)
+    with pytest.raises(ValueError, match="weights for a network"):
+        sched.report("explore", config, SPEC, weights[:-1])
+    assert not sched.has_pending() and sched.lease("a") is None
+    sched.close()
+
+
 def test_a_report_job_that_errs_goes_to_another_credential_then_to_the_server() -> None:
     sched, _ = make_scheduler(Policy(max_attempts=2))
     for name in ("a", "b"):

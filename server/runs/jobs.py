@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from evorobotics.errors import EvoError
 from evorobotics.evolution import RunLoop, job_slices, stage_robot_steps
+from evorobotics.maze import load_maze
 from evorobotics.reports import Report as Assembled
 from evorobotics.reports import assemble
 from schemas.run import RunConfig
@@ -317,7 +319,8 @@ class Report(Slotted):
         parts: int,
     ) -> Report:
         """The report cut into about `parts` jobs, all pending; its number is a digest of
-        what it computes, so the same report asked twice (or after a restart) is one."""
+        what it computes, so the same report asked twice (or after a restart) is one.
+        ValueError for a bad maze, weights or size."""
         genome = np.ascontiguousarray(weights, dtype="<f8").reshape(1, -1)
         if genome.shape[1] != config.network_spec.weight_count:
             raise ValueError(
@@ -327,6 +330,10 @@ class Report(Slotted):
             "\n".join([stage, config.model_dump_json(), spec.model_dump_json()]).encode()
             + genome.tobytes()
         ).digest()
+        try:
+            load_maze(config.maze)  # a bad maze fails the asker now, not every worker later
+        except EvoError as exc:
+            raise ValueError(f"maze: {exc}") from exc
         n = report_trials(stage, spec.poses)
         if n * spec.steps > REPORT_ROBOT_STEPS:
             raise ValueError(
