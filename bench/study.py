@@ -6,16 +6,17 @@ server keeps busy (prints figures; no assertions).
    REST and zenoh on loopback) against the same configs and seeds as `colony evolve --out DIR`
    processes one after another, alternately `--repeats` times in one run. The study's time is
    the server's clock from the study's creation to its last run's completion: the champions'
-   exploration figures, which the server computes afterwards, are not awaited. The champions'
-   sha256 must be the same on both sides.
+   exploration figures, which the workers compute afterwards (report jobs), are not awaited.
+   The champions' sha256 must be the same on both sides.
 2. The server process's CPU (/proc/PID/stat utime + stime, not its worker children) and its
    local workers' CPU, sampled while the study's runs evolve (from 10 % of their generations
    until the first run reaches its last one: no run starts, or is validated, in that window),
-   per generation; the server's CPU per
-   run (all of it from creation to the champions' exploration figures, over the runs). A study
-   of `--big-seeds` runs with ten times the trial length (`steps` x 10) gives the same at that
-   scale. N = workers' CPU per generation / server CPU per generation: how many workers one
-   server keeps busy (docs/deployment.md, "Sizing a lab").
+   per generation; the server's and the workers' CPU per run (all of it from creation to the
+   champions' exploration figures, over the runs) and the server's share of the study's CPU
+   (server / (server + workers)). A study of `--big-seeds` runs with ten times the trial
+   length (`steps` x 10) gives the same at that scale. N = workers' CPU per generation /
+   server CPU per generation: how many workers one server keeps busy (docs/deployment.md,
+   "Sizing a lab").
 
     .venv/bin/python bench/study.py [--seeds 8] [--repeats 3] [--generations 350]
         [--big-seeds 4] [--big-generations 20] [--quick]
@@ -137,11 +138,10 @@ class Server:
             if all(r[1] == "completed" for r in runs):
                 break
             self.tick.wait(TICK_S)
-        workers_end = cpu_seconds(self.workers)
         began = datetime.fromisoformat(study["created_at"]).replace(tzinfo=None)
         ended = max(datetime.fromisoformat(str(r[4])).replace(tzinfo=None) for r in runs)
         self._explored(study["id"])
-        server_end = cpu_seconds([self.process.pid])
+        server_end, workers_end = cpu_seconds([self.process.pid]), cpu_seconds(self.workers)
         middle = [s for s in samples if s[0] >= 0.1 * generations]
         window = middle if len(middle) > 1 else samples or [(0, 0.0, 0.0)]
         first, last = window[0], window[-1]
@@ -210,6 +210,8 @@ def sizing(label: str, figures: list[StudyFigures], config: RunConfig) -> None:
         f"CPU per run ({config.generations} generations, champion validation and exploration "
         f"included): server {per_run:.2f} s, workers {workers_run:.2f} s"
     )
+    share = per_run / (per_run + workers_run) if per_run + workers_run > 0 else 0.0
+    print(f"  the server's share of the study's CPU: {100 * share:.1f} %")
     busy = workers / server if server > 0 else float("inf")
     print(f"  one server keeps about {busy:.0f} workers busy at {label}")
 

@@ -29,9 +29,10 @@ from evorobotics.evaluate import draw_gap, start_poses
 from evorobotics.fitness import fitness
 from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose
-from evorobotics.sim import SimResult, simulate
+from evorobotics.sim import Gap, SimResult, simulate
 from schemas.network import NetworkSpec
 from schemas.run import FitnessWeights
+from schemas.wire import REPORT_ROBOT_STEPS
 from schemas.world import World
 
 CONFINED_STEPS = 100
@@ -44,7 +45,7 @@ PAPER_TRIAL = 40
 """The paper's training trial: 40 steps (section 4)."""
 HORIZONS = (40, 200)
 """Stuck fractions and offsets are also reported at these steps (when within the horizon)."""
-MAX_ROBOT_STEPS = 20_000_000
+MAX_ROBOT_STEPS = REPORT_ROBOT_STEPS
 """Upper bound on poses x steps of one report, so no request can exhaust memory: 24 bytes a
 robot-step of recorded poses (0.5 GB at the bound), 40 more with the per-step gap model."""
 
@@ -135,48 +136,121 @@ def confined(poses: np.ndarray, stuck_step: np.ndarray) -> np.ndarray:
     )
 
 
-def report(result: SimResult, weights: FitnessWeights, steps: int) -> dict[str, Any]:
-    """The measures of one recorded batch of trials (see the module docstring)."""
+TRIAL_COLUMNS = ("stuck_step", "confined", "offset_40", "offset", "coverage", "curve_40", "net_40")
+"""Columns of `trials`' rows, one trial each: the step it stuck on (-1: never), confined (0 or
+1), its largest offset by step min(40, H) and by H (m), the cells it covered, and the curve
+length and net offset of its first min(40, H) steps (Eq 12's terms of the paper's trial)."""
+
+
+def trials(result: SimResult, steps: int) -> np.ndarray:
+    """(B, TRIAL_COLUMNS) float64 of one recorded batch of trials: every row depends on its
+    own trial alone, so rows of any slices of the poses concatenate to the whole batch's."""
     if result.poses is None:
         raise ValueError("report needs a recorded simulation (record=True)")
     poses = result.poses
     start = poses[:, :1, :2]
     offsets = np.hypot(*(poses[:, :, :2] - start).transpose(2, 0, 1))
-    stuck_step = result.stuck_step
+    h = min(PAPER_TRIAL, steps)
+    cells = np.floor(poses[:, :, :2] / COVERAGE_CELL).astype(np.int64)
+    keys = cells[:, :, 0] * 1_000_003 + cells[:, :, 1]
+    moves = np.hypot(*np.diff(poses[:, : h + 1, :2], axis=1).transpose(2, 0, 1))
+    return np.stack(
+        [
+            result.stuck_step.astype(np.float64),
+            confined(poses, result.stuck_step).astype(np.float64),
+            offsets[:, : h + 1].max(axis=1),
+            offsets.max(axis=1),
+            np.array([len(np.unique(row)) for row in keys], dtype=np.float64),
+            moves.sum(axis=1),
+            offsets[:, h],
+        ],
+        axis=1,
+    )
+
+
+def measures(rows: np.ndarray, weights: FitnessWeights, steps: int) -> dict[str, Any]:
+    """The report's measures (see the module docstring) from the rows of all its trials
+    (`trials`), in pose order."""
+    if rows.ndim != 2 or rows.shape[1] != len(TRIAL_COLUMNS) or not len(rows):
+        raise ValueError(f"rows {rows.shape} are not trials of {len(TRIAL_COLUMNS)} columns")
+    stuck_step, near, far, coverage, curve, net = (
+        np.ascontiguousarray(rows[:, i]) for i in (0, 2, 3, 4, 5, 6)
+    )
+    is_confined = rows[:, 1] == 1.0
     stuck = {
         h: float(np.mean((stuck_step >= 0) & (stuck_step <= h)))
         for h in (*HORIZONS, steps)
         if h <= steps
     }
-    is_confined = confined(poses, stuck_step)
-    roaming = float(np.mean(~is_confined & (stuck_step < 0)))
-    max_offset = {
-        h: float(np.mean(offsets[:, : h + 1].max(axis=1)))
-        for h in (PAPER_TRIAL, steps)
-        if h <= steps
-    }
-    cells = np.floor(poses[:, :, :2] / COVERAGE_CELL).astype(np.int64)
-    keys = cells[:, :, 0] * 1_000_003 + cells[:, :, 1]
-    coverage = float(np.mean([len(np.unique(row)) for row in keys]))
     h = min(PAPER_TRIAL, steps)
-    moves = np.hypot(*np.diff(poses[:, : h + 1, :2], axis=1).transpose(2, 0, 1))
-    first = np.stack(
-        [
-            moves.sum(axis=1),
-            offsets[:, h],
-            offsets[:, : h + 1].max(axis=1),
-            ((stuck_step >= 0) & (stuck_step <= h)).astype(np.float64),
-        ],
-        axis=-1,
-    )
+    stuck_h = ((stuck_step >= 0) & (stuck_step <= h)).astype(np.float64)
     return {
         "stuck": stuck,
         "confined": float(np.mean(is_confined)),
-        "roaming": roaming,
-        "max_offset": max_offset,
-        "coverage": coverage,
-        "fitness_40": float(np.mean(fitness(first, weights))),
+        "roaming": float(np.mean(~is_confined & (stuck_step < 0))),
+        "max_offset": {
+            h: float(np.mean(far if h == steps else near))
+            for h in (PAPER_TRIAL, steps)
+            if h <= steps
+        },
+        "coverage": float(np.mean(coverage)),
+        "fitness_40": float(
+            np.mean(fitness(np.stack([curve, net, near, stuck_h], axis=-1), weights))
+        ),
     }
+
+
+def report(result: SimResult, weights: FitnessWeights, steps: int) -> dict[str, Any]:
+    """The measures of one recorded batch of trials (see the module docstring)."""
+    return measures(trials(result, steps), weights, steps)
+
+
+def exploration_trials(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    start: int,
+    stop: int,
+    *,
+    poses: int,
+    steps: int,
+    maze: str,
+    seed: int,
+    reality_gap: bool,
+    world: World,
+) -> np.ndarray:
+    """`trials` rows of poses start:stop of `explore`'s report: a job of a report sliced
+    among workers (`evorobotics.reports`); every slice's rows are the whole report's."""
+    if not 0 <= start < stop <= poses:
+        raise ValueError(f"poses {start}:{stop} outside the report's {poses}")
+    check_size(poses, steps)
+    loaded = load_maze(maze)
+    starts = start_poses(loaded, seed, 0, poses, world, Purpose.EXPLORATION)[start:stop]
+    gap = None
+    if reality_gap:
+        drawn = draw_gap(seed, 0, poses, world, Purpose.EXPLORATION_GAP, steps)
+        gap = Gap(drawn.whisker_range[start:stop], drawn.motor_gain[start:stop])
+    w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
+    result = simulate(
+        spec,
+        np.repeat(w, stop - start, axis=0),
+        loaded,
+        starts,
+        steps,
+        params=world,
+        gap=gap,
+        record=True,
+    )
+    return trials(result, steps)
+
+
+def check_size(poses: int, steps: int) -> None:
+    """ValueError unless 1 <= poses, steps and poses x steps <= MAX_ROBOT_STEPS."""
+    if poses < 1 or steps < 1:
+        raise ValueError(f"poses and steps must be >= 1, got {poses} and {steps}")
+    if poses * steps > MAX_ROBOT_STEPS:
+        raise ValueError(
+            f"poses x steps = {poses * steps} exceeds the limit of {MAX_ROBOT_STEPS} robot steps"
+        )
 
 
 def explore(
@@ -192,26 +266,31 @@ def explore(
     fitness_weights: FitnessWeights | None = None,
 ) -> Exploration:
     """The exploration report of one controller (see the module docstring)."""
-    world = world or World()
-    if poses < 1 or steps < 1:
-        raise ValueError(f"poses and steps must be >= 1, got {poses} and {steps}")
-    if poses * steps > MAX_ROBOT_STEPS:
-        raise ValueError(
-            f"poses x steps = {poses * steps} exceeds the limit of {MAX_ROBOT_STEPS} robot steps"
-        )
-    w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
-    loaded = load_maze(maze)
-    starts = start_poses(loaded, seed, 0, poses, world, Purpose.EXPLORATION)
-    gap = draw_gap(seed, 0, poses, world, Purpose.EXPLORATION_GAP, steps) if reality_gap else None
-    result = simulate(
+    check_size(poses, steps)
+    rows = exploration_trials(
         spec,
-        np.repeat(w, poses, axis=0),
-        loaded,
-        starts,
-        steps,
-        params=world,
-        gap=gap,
-        record=True,
+        weights,
+        0,
+        poses,
+        poses=poses,
+        steps=steps,
+        maze=maze,
+        seed=seed,
+        reality_gap=reality_gap,
+        world=world or World(),
     )
-    measured = report(result, fitness_weights or FitnessWeights(), steps)
-    return Exploration(poses, steps, loaded.name, seed, reality_gap, **measured)
+    return exploration(rows, steps, maze, seed, reality_gap, fitness_weights)
+
+
+def exploration(
+    rows: np.ndarray,
+    steps: int,
+    maze: str,
+    seed: int,
+    reality_gap: bool,
+    fitness_weights: FitnessWeights | None = None,
+) -> Exploration:
+    """The report from the rows of all its trials (`exploration_trials` of every pose, in
+    order, wherever they were simulated): `explore`'s, bit for bit."""
+    measured = measures(rows, fitness_weights or FitnessWeights(), steps)
+    return Exploration(len(rows), steps, load_maze(maze).name, seed, reality_gap, **measured)

@@ -19,13 +19,16 @@ from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose
 from evorobotics.sim import Gap, simulate
 from schemas.network import NetworkSpec
+from schemas.wire import REPORT_ROBOT_STEPS
 from schemas.world import N_WHISKERS, World
 
 WHISKER_RANGES = (0.025, 0.0375, 0.05, 0.0625, 0.075, 0.0875, 0.1)
 """Whisker trigger distances in m: the paper's measured 25-100 mm in seven steps."""
 GAIN_RATIOS = (0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15)
 """Left/right wheel gain ratios: the paper's 15 % either way."""
-MAX_ROBOT_STEPS = 20_000_000
+CELLS = len(WHISKER_RANGES) * len(GAIN_RATIOS)
+"""Cells of a map: 49."""
+MAX_ROBOT_STEPS = REPORT_ROBOT_STEPS
 """Upper bound on cells x poses x steps of one map (a row is recorded at a time)."""
 
 
@@ -57,6 +60,58 @@ def wheel_gains(ratio: float, world: World) -> np.ndarray:
     return np.array([left * half, right / half])
 
 
+def check_size(poses: int, steps: int) -> None:
+    """ValueError unless 1 <= poses, steps and CELLS x poses x steps <= MAX_ROBOT_STEPS."""
+    if poses < 1 or steps < 1:
+        raise ValueError(f"poses and steps must be >= 1, got {poses} and {steps}")
+    if CELLS * poses * steps > MAX_ROBOT_STEPS:
+        raise ValueError(
+            f"{CELLS} cells x {poses} poses x {steps} steps exceeds the limit of "
+            f"{MAX_ROBOT_STEPS} robot steps"
+        )
+
+
+def map_trials(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    start: int,
+    stop: int,
+    *,
+    poses: int,
+    steps: int,
+    maze: str,
+    seed: int,
+    world: World,
+) -> np.ndarray:
+    """(stop - start, 2) float64: trials start:stop of the map, each roaming and stuck (0 or
+    1). Trial t is pose t % poses in cell t // poses (whisker range cell // 7, gain ratio
+    cell % 7); a row depends on its trial alone, so any slices concatenate to the map's."""
+    check_size(poses, steps)
+    if not 0 <= start < stop <= CELLS * poses:
+        raise ValueError(f"trials {start}:{stop} outside the map's {CELLS * poses}")
+    loaded = load_maze(maze)
+    starts = start_poses(loaded, seed, 0, poses, world, Purpose.ROBUSTNESS)
+    t = np.arange(start, stop)
+    cell, pose = t // poses, t % poses
+    ratios = np.stack([wheel_gains(r, world) for r in GAIN_RATIOS])
+    ranges = np.repeat(np.array(WHISKER_RANGES)[cell // len(GAIN_RATIOS), None], N_WHISKERS, 1)
+    w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
+    run = simulate(
+        spec,
+        np.repeat(w, stop - start, axis=0),
+        loaded,
+        starts[pose],
+        steps,
+        params=world,
+        gap=Gap(ranges, ratios[cell % len(GAIN_RATIOS)]),
+        record=True,
+    )
+    if run.poses is None:
+        raise ValueError("the simulation was not recorded")
+    roams = ~confined(run.poses, run.stuck_step) & ~run.stuck
+    return np.stack([roams, run.stuck], axis=1).astype(np.float64)
+
+
 def robustness(
     spec: NetworkSpec,
     weights: np.ndarray,
@@ -70,52 +125,32 @@ def robustness(
 ) -> RobustnessMap:
     """The map over WHISKER_RANGES x GAIN_RATIOS, one trial per pose and cell, a row of cells
     per slice on `threads` threads (the same figures whatever the count)."""
+    check_size(poses, steps)
     world = world or World()
-    cells = len(WHISKER_RANGES) * len(GAIN_RATIOS)
-    if poses < 1 or steps < 1:
-        raise ValueError(f"poses and steps must be >= 1, got {poses} and {steps}")
-    if cells * poses * steps > MAX_ROBOT_STEPS:
-        raise ValueError(
-            f"{cells} cells x {poses} poses x {steps} steps exceeds the limit of "
-            f"{MAX_ROBOT_STEPS} robot steps"
-        )
-    loaded = load_maze(maze)
-    starts = start_poses(loaded, seed, 0, poses, world, Purpose.ROBUSTNESS)
-    w = np.repeat(np.asarray(weights, dtype=np.float64).reshape(1, -1), poses, axis=0)
-    n_ratios = len(GAIN_RATIOS)
-
-    def row(i: int) -> tuple[list[float], list[float]]:
-        batch = n_ratios * poses
-        ranges = np.full((batch, N_WHISKERS), WHISKER_RANGES[i])
-        gains = np.repeat(np.stack([wheel_gains(r, world) for r in GAIN_RATIOS]), poses, axis=0)
-        run = simulate(
-            spec,
-            np.tile(w, (n_ratios, 1)),
-            loaded,
-            np.tile(starts, (n_ratios, 1)),
-            steps,
-            params=world,
-            gap=Gap(ranges, gains),
-            record=True,
-        )
-        assert run.poses is not None
-        roams = (~confined(run.poses, run.stuck_step) & ~run.stuck).reshape(n_ratios, poses)
-        stuck = run.stuck.reshape(n_ratios, poses)
-        return roams.mean(axis=1).tolist(), stuck.mean(axis=1).tolist()
-
+    per_row = len(GAIN_RATIOS) * poses
     rows = map_slices(
-        lambda a, b: [row(i) for i in range(a, b)],
-        [(i, i + 1) for i in range(len(WHISKER_RANGES))],
+        lambda a, b: map_trials(
+            spec, weights, a, b, poses=poses, steps=steps, maze=maze, seed=seed, world=world
+        ),
+        [(i * per_row, (i + 1) * per_row) for i in range(len(WHISKER_RANGES))],
         threads,
     )
-    flat = [r for part in rows for r in part]
+    return robustness_map(np.concatenate(rows), poses, steps, maze, seed)
+
+
+def robustness_map(rows: np.ndarray, poses: int, steps: int, maze: str, seed: int) -> RobustnessMap:
+    """The map from the rows of all its trials (`map_trials` of every trial, in order,
+    wherever they were simulated): `robustness`'s, bit for bit."""
+    if rows.shape != (CELLS * poses, 2):
+        raise ValueError(f"rows {rows.shape} are not the map's {CELLS * poses} trials x 2")
+    grid = rows.reshape(len(WHISKER_RANGES), len(GAIN_RATIOS), poses, 2).mean(axis=2)
     return RobustnessMap(
-        maze=loaded.name,
+        maze=load_maze(maze).name,
         poses=poses,
         steps=steps,
         seed=seed,
         whisker_ranges=list(WHISKER_RANGES),
         gain_ratios=list(GAIN_RATIOS),
-        roaming=[r for r, _ in flat],
-        stuck=[s for _, s in flat],
+        roaming=grid[..., 0].tolist(),
+        stuck=grid[..., 1].tolist(),
     )

@@ -27,9 +27,11 @@ import numpy as np
 import orjson
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from schemas.network import NetworkSpec
 from schemas.run import RunConfig
+from schemas.world import World
 
-PROTOCOL = 13
+PROTOCOL = 14
 """Wire protocol version, sent in every job request and robot trace batch; the server idles
 workers and refuses robots' traces of other versions."""
 
@@ -230,11 +232,45 @@ def _first_line(exc: ValidationError) -> str:
     return f"{where}: {errors[0]['msg']}" if errors else str(exc)
 
 
-Stage = Literal["train", "validate", "test"]
-"""What a job simulates: individuals of a generation (`train`), or, once a run's last
-generation is told, slices of its champion's choice: candidates on the validation set
-(`validate`, `evorobotics.evolution.validate`) and the pick's held-out test poses (`test`,
-`evorobotics.evolution.held_out_trials`)."""
+Stage = Literal["train", "validate", "test", "explore", "robustness"]
+"""What a job simulates: individuals of a generation (`train`); once a run's last generation
+is told, slices of its champion's choice: candidates on the validation set (`validate`,
+`evorobotics.evolution.validate`) and the pick's held-out test poses (`test`,
+`evorobotics.evolution.held_out_trials`); or trials of a controller's report (REPORT_STAGES)."""
+ReportStage = Literal["explore", "robustness"]
+REPORT_STAGES: tuple[ReportStage, ...] = ("explore", "robustness")
+"""A controller's reports, whoever asked (a study, the REST API): an exploration report's
+poses (`explore`, `evorobotics.explore.exploration_trials`) or a robustness map's trials
+(`robustness`, `evorobotics.robustness.map_trials`)."""
+REPORT_ROBOT_STEPS = 20_000_000
+"""Most robot-steps of one report (its trials x steps): a report job's trials are drawn whole
+before its slice is cut, so this bounds what one job can ask of a worker."""
+MAP_CELLS = 49
+"""Cells of a robustness map (7 whisker ranges x 7 gain ratios, `evorobotics.robustness`)."""
+
+
+def report_trials(stage: Stage, poses: int) -> int:
+    """Trials of a report of `poses` poses: one per pose, or per pose and map cell."""
+    return MAP_CELLS * poses if stage == "robustness" else poses
+
+
+class ReportSpec(BaseModel):
+    """A report's size besides its job's config (the controller's network and world, the
+    report's maze and seed): `colony evaluate`'s poses, steps and reality gap."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    poses: int = Field(ge=1, le=REPORT_ROBOT_STEPS)
+    steps: int = Field(ge=1, le=100_000)
+    reality_gap: bool = Field(False, description="draw each trial's robot from the world's gap")
+
+
+def report_config(network: NetworkSpec, world: World, maze: str, seed: int) -> RunConfig:
+    """A report job's config: the controller's network and world with the report's maze and
+    seed (the rest is RunConfig's default and unused; a colony world's gap robots need its
+    'colony' gap)."""
+    gap = "colony" if world.gap_robots else "off"
+    return RunConfig(network=network, world=world, maze=maze, seed=seed, reality_gap=gap)
 
 
 class JobKey(BaseModel):
@@ -249,7 +285,15 @@ class JobKey(BaseModel):
     stage: Stage = "train"
     """A champion stage's jobs carry the run's last generation."""
 
+    @property
+    def report(self) -> bool:
+        """A report's job: `run_id` is then the report's number (`server.runs.jobs.Report`)
+        and `generation` 0."""
+        return self.stage in REPORT_STAGES
+
     def label(self) -> str:
+        if self.report:
+            return f"report {self.run_id} {self.stage} job {self.index}"
         stage = "" if self.stage == "train" else f" {self.stage}"
         return f"run {self.run_id} gen {self.generation}{stage} job {self.index}"
 
@@ -258,12 +302,19 @@ class JobKey(BaseModel):
         return JobKey(run_id=self.run_id, generation=generation, index=self.index, stage=self.stage)
 
 
+EXPLORE_COLUMNS = 7
+"""An exploration trial's row: stuck step (-1: never), confined, largest offset by step
+min(40, H) and by H, coverage, curve length and net offset of the first min(40, H) steps
+(`evorobotics.explore.TRIAL_COLUMNS`)."""
+
+
 def score_columns(stage: Stage) -> int:
-    """Columns of a champion stage's `Result.scores`: validate's (score, stuck, roaming),
-    test's (roaming, stuck, offset) in the nominal world then in the test gap's."""
+    """Columns of a stage's `Result.scores`: validate's (score, stuck, roaming), test's
+    (roaming, stuck, offset) in the nominal world then in the test gap's, explore's
+    EXPLORE_COLUMNS, robustness's (roaming, stuck)."""
     if stage == "train":
         raise ValueError("a training job's result carries fitness, not scores")
-    return 3 if stage == "validate" else 6
+    return {"validate": 3, "test": 6, "explore": EXPLORE_COLUMNS, "robustness": 2}[stage]
 
 
 def _worker_name(value: str) -> str:
@@ -303,7 +354,9 @@ class Job(_Message):
     """One evaluation job: individuals start..stop of a generation, with their genomes; with
     `span` > 1 the whole generation, evolved `span` generations on by the worker itself from
     `state` (the GA state before this generation's `tell`). A champion stage's job (`key.stage`)
-    is validation candidates start..stop, or test poses start..stop of the one genome."""
+    is validation candidates start..stop, or test poses start..stop of the one genome; a
+    report's job, trials start..stop of its `report` of the one genome (`config`:
+    `report_config`)."""
 
     ARRAYS: ClassVar[tuple[str, ...]] = ("genomes", "state")
     kind: Literal["job"] = "job"
@@ -315,12 +368,16 @@ class Job(_Message):
     span: int = Field(1, ge=1)
     ack: Ack | None = None
     """Set when the job answers a result that asked for the next job: that result's Ack."""
+    report: ReportSpec | None = None
+    """A report's job's, and only theirs."""
     genomes: np.ndarray
     """(stop - start, n_weights) float64."""
     state: dict[str, np.ndarray] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> Job:
+        if (self.report is not None) != self.key.report:
+            raise ValueError("a report's job, and only a report's, brings its report")
         if self.key.stage != "train":
             return self._check_stage()
         config, genomes = self.config, self.genomes
@@ -349,9 +406,12 @@ class Job(_Message):
         validate = self.key.stage == "validate"
         if self.span != 1 or self.state is not None:
             raise ValueError(f"a {self.key.stage} job is no span")
-        if self.key.generation != config.generations - 1:
+        if self.report is not None:
+            most = self._check_report(self.report)
+        elif self.key.generation != config.generations - 1:
             raise ValueError(f"a {self.key.stage} job is of the last generation")
-        most = v.candidates if validate and v.poses else v.test_poses if not validate else 0
+        else:
+            most = v.candidates if validate and v.poses else v.test_poses if not validate else 0
         if not 0 <= self.start < self.stop <= most:
             raise ValueError(f"{self.key.stage} slice {self.start}:{self.stop} outside {most}")
         shape = (self.stop - self.start if validate else 1, config.network_spec.weight_count)
@@ -360,6 +420,21 @@ class Job(_Message):
         if not np.isfinite(genomes).all():
             raise ValueError("genomes contain NaN or infinity")
         return self
+
+    def _check_report(self, report: ReportSpec) -> int:
+        """The trials of a report's job, once it checks out."""
+        stage = self.key.stage
+        if self.key.generation != 0:
+            raise ValueError(f"a report's job is of generation 0, got {self.key.generation}")
+        trials = report_trials(stage, report.poses)
+        if trials * report.steps > REPORT_ROBOT_STEPS:
+            raise ValueError(
+                f"a report of {trials} trials x {report.steps} steps exceeds "
+                f"{REPORT_ROBOT_STEPS} robot-steps"
+            )
+        if stage == "robustness" and report.reality_gap:
+            raise ValueError("a robustness map sets the gap per cell: no reality_gap")
+        return trials
 
 
 class Result(_Message):
@@ -458,6 +533,12 @@ class Result(_Message):
             raise ValueError(f"scores {scores.dtype}{scores.shape} must be float64{shape}")
         if not np.isfinite(scores).all():
             raise ValueError("scores must be finite")
+        if stage == "explore":
+            return self._check_exploration(scores)
+        if stage == "robustness":
+            if ((scores != 0.0) & (scores != 1.0)).any() or (scores.sum(axis=1) > 1.0).any():
+                raise ValueError("a map's trial roams or sticks or neither: 0 or 1, not both")
+            return self
         fractions = scores[:, 1:] if stage == "validate" else scores[:, :4]
         if not ((fractions >= 0.0) & (fractions <= 1.0)).all():
             raise ValueError("stuck and roaming must lie in [0, 1]")
@@ -465,6 +546,24 @@ class Result(_Message):
             raise ValueError("a test trial roams or not and sticks or not: 0 or 1")
         if stage == "test" and not ((scores[:, 4:] >= 0.0) & (scores[:, 4:] <= 1e6)).all():
             raise ValueError("a test trial's offset must lie in [0, 1e6] m")
+        return self
+
+    def _check_exploration(self, scores: np.ndarray) -> Result:
+        """Bounds any exploration trial keeps, whatever its steps (the scheduler checks
+        those that depend on them: `evorobotics.reports.implausible`)."""
+        stuck, confined, near, far, coverage, curve, net = scores.T
+        if not ((stuck == np.round(stuck)) & ((stuck == -1.0) | (stuck >= 1.0))).all():
+            raise ValueError("an exploration trial's stuck step is -1 or a step >= 1")
+        if ((confined != 0.0) & (confined != 1.0)).any():
+            raise ValueError("an exploration trial is confined or not: 0 or 1")
+        if not ((net >= 0.0) & (net <= near) & (near <= far) & (far <= 1e6)).all():
+            raise ValueError(
+                "an exploration trial's offsets need 0 <= net <= by 40 <= max <= 1e6 m"
+            )
+        if not ((curve >= 0.0) & (curve <= 1e6)).all():
+            raise ValueError("an exploration trial's curve length must lie in [0, 1e6] m")
+        if not ((coverage == np.round(coverage)) & (coverage >= 1.0)).all():
+            raise ValueError("an exploration trial covers a whole number of cells, at least 1")
         return self
 
     @property

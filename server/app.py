@@ -43,6 +43,7 @@ from server.runs.dispatch import Dispatcher, DispatchSettings
 from server.runs.executor import InProcessExecutor
 from server.runs.lifecycle import RunManager
 from server.runs.policy import Policy
+from server.studies.evaluation import Evaluations
 from worker.local import LocalWorkers, local_endpoint
 
 log = logging.getLogger(__name__)
@@ -121,6 +122,7 @@ def create_app(
             manager.start()
             stack.callback(manager.stop)
             app.state.manager = manager
+            app.state.evaluations = Evaluations(manager.scheduler)
             app.state.zenoh = None
             app.state.dispatcher = None
             if dispatch is not None:

@@ -210,7 +210,7 @@ def test_a_stage_job_the_server_cannot_score_fails_the_run(
     def broken(*args: object) -> np.ndarray:
         raise RuntimeError("simulated scoring crash")
 
-    monkeypatch.setattr("server.runs.evaluation.champion_scores", broken)
+    monkeypatch.setattr("server.runs.evaluation.stage_scores", broken)
     sched, _ = make_scheduler(Policy(max_attempts=1))
     sched.join("a", speed=SLOW)
     sched.add(RUN, RunLoop(CONFIG), running=True)
@@ -388,7 +388,7 @@ def test_a_server_with_a_worker_stores_colony_evolves_champion(
     def broken(*args: object) -> np.ndarray:
         raise RuntimeError("the server scored a stage")
 
-    monkeypatch.setattr("server.runs.evaluation.champion_scores", broken)
+    monkeypatch.setattr("server.runs.evaluation.stage_scores", broken)
     zport = free_port()
     settings = Settings(
         db_url=f"sqlite:///{tmp_path / 'colony.db'}",

@@ -26,9 +26,10 @@ import zenoh
 
 from evorobotics.document import ControllerDocument
 from evorobotics.evaluate import evaluate, implausible, trial_steps
-from evorobotics.evolution import champion_scores, evolve
+from evorobotics.evolution import evolve
 from evorobotics.fitness import mean_fitness
 from evorobotics.maze import load_maze
+from evorobotics.reports import stage_scores
 from schemas.robots import (
     ControllerPush,
     PushAck,
@@ -160,9 +161,9 @@ def rogue_worker(
                 continue
             if until is not None and job.key.generation > until:
                 return
-            if job.key.stage != "train":  # a champion's stage: scored honestly
-                scores = champion_scores(
-                    job.config, job.key.stage, job.genomes, job.start, job.stop
+            if job.key.stage != "train":  # a champion's stage or a report: scored honestly
+                scores = stage_scores(
+                    job.config, job.key.stage, job.genomes, job.start, job.stop, job.report
                 )
                 stage = Result(
                     key=job.key, worker=name, start=job.start, stop=job.stop, scores=scores

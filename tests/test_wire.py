@@ -133,7 +133,7 @@ def test_a_frame_refuses_object_arrays_and_its_reserved_key() -> None:
 
 
 def test_the_protocol_and_its_keys() -> None:
-    assert PROTOCOL == 13 and JobRequest(worker="w").protocol == PROTOCOL
+    assert PROTOCOL == 14 and JobRequest(worker="w").protocol == PROTOCOL
     assert (next_key("w"), result_key("w")) == ("evocolony/jobs/next/w", "evocolony/jobs/result/w")
     assert next_key("w-1").startswith(KEY_JOB_NEXT.removesuffix("*"))
     assert result_key("w-1").startswith(KEY_JOB_RESULT.removesuffix("*"))
@@ -691,7 +691,7 @@ def test_a_stage_result_carries_scores_only_and_a_training_result_none() -> None
         make_result(scores=np.zeros((4, 3)))
 
 
-def test_validation_off_refuses_its_stages_jobs_and_a_stage_is_one_of_three() -> None:
+def test_validation_off_refuses_its_stages_jobs_and_a_stage_is_one_of_five() -> None:
     v = CHAMPION.validation.model_copy(update={"poses": 0, "test_poses": 0})
     off = CHAMPION.model_copy(update={"validation": v})
     for stage, rows in (("validate", 2), ("test", 1)):
@@ -699,7 +699,7 @@ def test_validation_off_refuses_its_stages_jobs_and_a_stage_is_one_of_three() ->
         with pytest.raises(ValueError, match="outside 0"):
             Job(key=key, start=0, stop=rows, config=off, genomes=np.zeros((rows, W)))
     with pytest.raises(ValueError, match="stage"):
-        JobKey.model_validate({"run_id": 3, "generation": 1, "index": 0, "stage": "explore"})
+        JobKey.model_validate({"run_id": 3, "generation": 1, "index": 0, "stage": "tune"})
     assert JobKey(run_id=3, generation=1, index=0).stage == "train"
 
 

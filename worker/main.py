@@ -7,7 +7,8 @@ runs; a bad job or a failing evaluation becomes an error result, never a crash. 
 (SIGINT, SIGTERM) lets the current job finish and its result go back, then the worker exits.
 A span is evolved here generation after generation by the run loop of `evorobotics`, the one
 the server drives. A job of a finished run's champion (`Job.key.stage`) scores its candidates
-on the validation set or its test poses.
+on the validation set or its test poses; a report's job, trials of a controller's exploration
+report or robustness map.
 
 Hierarchy:
     WorkerError          the worker's own errors
@@ -32,8 +33,9 @@ import numpy as np
 import zenoh
 
 from evorobotics.evaluate import robot_steps
-from evorobotics.evolution import RunLoop, champion_scores, stage_robot_steps
+from evorobotics.evolution import RunLoop
 from evorobotics.ga import GAState
+from evorobotics.reports import stage_scores, stage_steps
 from schemas.answer import CONSOLIDATION, TARGET, one_answer
 from schemas.run import RunConfig
 from schemas.security import ZenohClientAuth
@@ -308,11 +310,12 @@ def _evaluate(
 
 
 def _score(link: _Link, job: Job) -> Result:
-    """A champion stage's job (validation candidates or test poses) as a Result: the science
-    itself (`champion_scores`), whatever the evaluator."""
+    """A champion stage's job (validation candidates or test poses) or a report's (trials) as
+    a Result: the science itself (`stage_scores`), whatever the evaluator."""
     began = time.perf_counter()
+    stage, report = job.key.stage, job.report
     try:
-        scores = champion_scores(job.config, job.key.stage, job.genomes, job.start, job.stop)
+        scores = stage_scores(job.config, stage, job.genomes, job.start, job.stop, report)
     except Exception as exc:  # report it to the server instead of crashing the worker
         log.exception("scoring %s failed", job.key.label())
         link.stats.errors += 1
@@ -321,7 +324,7 @@ def _score(link: _Link, job: Job) -> Result:
             key=job.key, worker=link.settings.name, error=error, start=job.start, stop=job.stop
         )
     seconds = time.perf_counter() - began
-    steps = stage_robot_steps(job.config, job.key.stage, job.stop - job.start)
+    steps = stage_steps(job.config, stage, job.stop - job.start, report)
     speed = steps / seconds if seconds > 0 else None
     link.stats.jobs_done += 1
     link.stats.robot_steps_per_s = speed

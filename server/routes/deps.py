@@ -1,5 +1,5 @@
 """Annotated dependencies of the routes: the manager, a read session, the worker table, the
-study service."""
+reports' cache, the study service."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 
 from schemas.api import WorkerOut
 from server.runs.lifecycle import RunManager
+from server.studies.evaluation import Evaluations
 from server.studies.service import StudyService
 
 
@@ -54,11 +55,20 @@ def get_workers(request: Request) -> list[WorkerOut]:
 WorkersDep = Annotated[list[WorkerOut], Depends(get_workers)]
 
 
-def get_studies(request: Request, manager: ManagerDep) -> StudyService:
+def get_evaluations(request: Request) -> Evaluations:
+    """The app's reports (exploration reports and robustness maps of stored controllers)."""
+    evaluations: Evaluations = request.app.state.evaluations
+    return evaluations
+
+
+EvaluationsDep = Annotated[Evaluations, Depends(get_evaluations)]
+
+
+def get_studies(request: Request, manager: ManagerDep, evaluations: EvaluationsDep) -> StudyService:
     """The app's study service, made on first use for the app's manager."""
     service: StudyService | None = getattr(request.app.state, "studies", None)
     if service is None or service.manager is not manager:
-        service = StudyService(manager)
+        service = StudyService(manager, evaluations)
         request.app.state.studies = service
     return service
 

@@ -1,6 +1,7 @@
 """The server's own evaluations and its checks of a worker's result: a job (`run_job`: the
-in-process executors' and the referee's, a generation's or a champion's stage's), a spot-check
-(`spot_check`, `spot_check_scores` for a stage's: re-evaluate some of a result here), a span's
+in-process executors' and the referee's, a generation's, a champion's stage's or a report's), a
+spot-check (`spot_check`, `spot_check_scores` for a stage's or a report's: re-evaluate some of
+a result here), a span's
 digest (`digest_error`: the genomes it evaluated were those asked) and a stored claim before
 it is served (`repeats_claim`).
 
@@ -17,10 +18,12 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from evorobotics.evaluate import evaluate, implausible, robot_steps
-from evorobotics.evolution import RunLoop, champion_scores, stage_robot_steps
+from evorobotics.evolution import RunLoop
+from evorobotics.reports import implausible as implausible_rows
+from evorobotics.reports import stage_scores, stage_steps
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
-from server.runs.jobs import Lease, Run
+from server.runs.jobs import Lease, Run, Work
 
 _CHOOSE = secrets.SystemRandom()
 """Picks the individuals to re-evaluate: a worker cannot predict them from the run's seed."""
@@ -65,11 +68,15 @@ def run_job(job: Job, worker: str) -> Result:
 
 
 def _run_stage(job: Job, worker: str, began: float) -> Result:
-    """A champion stage's job: its rows' scores (`champion_scores`)."""
-    stage = job.key.stage
-    scores = champion_scores(job.config, stage, job.genomes, job.start, job.stop)
+    """A champion stage's or a report's job: its rows' scores (`stage_scores`); rows the
+    scheduler would refuse as implausible are an error."""
+    stage, report = job.key.stage, job.report
+    scores = stage_scores(job.config, stage, job.genomes, job.start, job.stop, report)
+    why = None if report is None else implausible_rows(job.config, stage, report, scores)
+    if why is not None:
+        raise ValueError(f"the report's rows are implausible: {why}")
     seconds = time.perf_counter() - began
-    steps = stage_robot_steps(job.config, stage, job.stop - job.start)
+    steps = stage_steps(job.config, stage, job.stop - job.start, report)
     return Result(
         key=job.key,
         worker=worker,
@@ -82,32 +89,33 @@ def _run_stage(job: Job, worker: str, began: float) -> Result:
 
 
 def spot_check_scores(
-    result: Result, lease: Lease | None, run: Run | None, *, wanted: int, totals: dict[str, int]
+    result: Result, lease: Lease | None, work: Work | None, *, wanted: int, totals: dict[str, int]
 ) -> str | None:
-    """`spot_check` of a champion stage's result: `wanted` of its rows (candidates or test
-    poses, drawn with `secrets`) scored again here, bit for bit."""
-    scores, choosing = result.scores, None if run is None else run.choosing
+    """`spot_check` of a champion stage's or a report's result: `wanted` of its rows
+    (candidates, test poses or a report's trials, drawn with `secrets`) scored again here, bit
+    for bit."""
+    scores = result.scores
     if (
         wanted == 0
         or scores is None
         or lease is None
-        or run is None
-        or choosing is None
+        or work is None
+        or work.scores is None
         or lease.worker != result.worker
         or (result.start, result.stop) != (lease.start, lease.stop)
     ):
         return None
-    config, stage = run.loop.config, run.stage
+    config, stage, report = work.config, work.stage, work.report
     totals["results_checked"] += 1
     n = lease.stop - lease.start
     for row in sorted(_CHOOSE.sample(range(n), min(wanted, n))):
         i = lease.start + row
-        again = champion_scores(config, stage, choosing.genomes_for(i, i + 1), i, i + 1)[0]
+        again = stage_scores(config, stage, work.genomes_for(i, i + 1), i, i + 1, report)[0]
         totals["individuals_checked"] += 1
-        totals["robot_steps_checked"] += run.robot_steps(1)
+        totals["robot_steps_checked"] += work.robot_steps(1)
         if not _same_bits(scores[row], again):
             return (
-                f"worker {result.worker} run {run.run_id} {stage} row {i}: claimed scores "
+                f"worker {result.worker} {work.label} {stage} row {i}: claimed scores "
                 f"{scores[row].tolist()!r}, recomputed {again.tolist()!r}"
             )
     return None

@@ -1,20 +1,39 @@
-"""The scheduler's generations in flight: each live run's slots (its jobs) and their leases.
+"""The scheduler's work in flight: each live run's slots (its jobs), each report's, and their
+leases.
 
-A run's pending slots are a heap (the lowest is leased first); a slot remembers the credentials
-that erred on it and whose result filled it, so a quarantine can discard its result. After its
-last generation a run's slots are its champion's stage (`server.runs.choosing`): candidates to
-validate or test poses, scored into `Run.scores`.
+A run's or a report's pending slots are a heap (the lowest is leased first); a slot remembers
+the credentials that erred on it and whose result filled it, so a quarantine can discard its
+result. After its last generation a run's slots are its champion's stage
+(`server.runs.choosing`): candidates to validate or test poses, scored into `Run.scores`. A
+report's slots are trials of a controller's exploration report or robustness map
+(`evorobotics.reports`), scored into `Report.scores` and assembled into its `future`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import heapq
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from evorobotics.errors import EvoError
 from evorobotics.evolution import RunLoop, job_slices, stage_robot_steps
-from schemas.wire import Job, JobKey, Stage, score_columns
+from evorobotics.maze import load_maze
+from evorobotics.reports import Report as Assembled
+from evorobotics.reports import assemble
+from schemas.run import RunConfig
+from schemas.wire import (
+    REPORT_ROBOT_STEPS,
+    Job,
+    JobKey,
+    ReportSpec,
+    ReportStage,
+    Stage,
+    report_trials,
+    score_columns,
+)
 from server.runs.choosing import Choosing
 from server.runs.workers import credential
 
@@ -34,30 +53,126 @@ class Slot:
     """Whose result filled it (done): discarded if that worker fails a spot-check."""
 
 
-@dataclass
-class Run:
+@dataclass(kw_only=True)
+class Slotted:
+    """Work cut into slots, leased lowest first: a run's generation or stage, or a report."""
+
+    slots: list[Slot]
+    pending: list[int]
+    """Heap of pending slot indices: the lowest is leased first."""
+    remaining: int
+    running: bool = True
+    served: int = 0
+    """Sequence number of its last lease: the work served least recently goes first."""
+    erred: bool = False
+    """Some slot erred: leases skip the slots a credential erred on."""
+    stage: Stage = "train"
+    """What its slots are: a generation's individuals, a champion's stage, or a report's."""
+    scores: np.ndarray | None = None
+    """A stage's rows as scored (`Result.scores`), NaN until done."""
+
+    def pick(self, excluded: str | None) -> int | None:
+        """The lowest pending slot not erred on by the credential `excluded`."""
+        if not self.erred or excluded is None:
+            return self.pending[0] if self.pending else None
+        return min((i for i in self.pending if excluded not in self.slots[i].erred), default=None)
+
+    def unpend(self, index: int) -> None:
+        if self.pending[0] == index:
+            heapq.heappop(self.pending)
+        else:
+            self.pending.remove(index)
+            heapq.heapify(self.pending)
+
+    def make_pending(self, index: int) -> None:
+        slot = self.slots[index]
+        if slot.status != "pending":
+            slot.status = "pending"
+            heapq.heappush(self.pending, index)
+
+    def _done(self, slot: Slot, worker: str) -> None:
+        slot.status = "done"
+        slot.worker = worker
+        self.remaining -= 1
+
+    def _fill_scores(self, index: int, worker: str, scores: np.ndarray) -> bool:
+        """Slot `index` of a stage is done: `worker`'s scores of it; whether every slot is."""
+        if self.scores is None:
+            raise ValueError(f"{self.stage} slots carry no scores")
+        slot = self.slots[index]
+        self.scores[slot.start : slot.stop] = scores
+        self._done(slot, worker)
+        return not self.remaining
+
+    def _clear(self, slot: Slot) -> None:
+        """Forget what a done slot's result said."""
+        if self.scores is not None:
+            self.scores[slot.start : slot.stop] = np.nan
+
+    def discard(self, banned: str) -> int:
+        """Return to pending each done slot a worker of the credential `banned` filled; how
+        many."""
+        discarded = 0
+        for index, slot in enumerate(self.slots):
+            if slot.status == "done" and slot.worker and credential(slot.worker) == banned:
+                self._clear(slot)
+                self.remaining += 1
+                slot.worker = None
+                self.make_pending(index)
+                discarded += 1
+        return discarded
+
+    def stranded(self, max_attempts: int, takers: set[str] | None) -> list[int]:
+        """Pending slots that erred on `max_attempts` credentials or on each of `takers` (the
+        live credentials; None: one takes any job)."""
+        return [
+            index
+            for index in self.pending
+            if (erred := self.slots[index].erred)
+            and (len(erred) >= max_attempts or (takers is not None and not takers - erred.keys()))
+        ]
+
+
+def _stage_slots(n: int, parts: int) -> list[Slot]:
+    """`n` rows of a stage in about `parts` slots."""
+    return [Slot(a, b) for a, b in job_slices(n, -(-n // max(1, min(parts, n))))]
+
+
+@dataclass(kw_only=True)
+class Run(Slotted):
     """A live run's generation in flight, cut into slots."""
 
     run_id: int
     loop: RunLoop
-    running: bool
-    slots: list[Slot]
-    pending: list[int]
-    """Heap of pending slot indices: the lowest is leased first."""
     fitness: np.ndarray
     components: np.ndarray
     descriptors: np.ndarray
-    remaining: int
-    served: int = 0
-    """Sequence number of its last lease: the run served least recently goes first."""
-    erred: bool = False
-    """Some slot of this generation erred: leases skip the slots a credential erred on."""
-    stage: Stage = "train"
-    """What its slots are: the generation's individuals, or its champion's stage in hand."""
     choosing: Choosing | None = None
     """After the last generation: the champion being chosen, whose stage the slots are."""
-    scores: np.ndarray | None = None
-    """A stage's rows as scored (`Result.scores`), NaN until done."""
+
+    @property
+    def config(self) -> RunConfig:
+        return self.loop.config
+
+    @property
+    def label(self) -> str:
+        return f"run {self.run_id}"
+
+    @property
+    def order(self) -> tuple[int, int, int]:
+        """Leases go to the lowest: reports first, then the run served least recently."""
+        return (1, self.served, self.run_id)
+
+    @property
+    def report(self) -> ReportSpec | None:
+        """A run's jobs are no report's."""
+        return None
+
+    def genomes_for(self, start: int, stop: int) -> np.ndarray:
+        """The genomes of a stage's rows start:stop (`Choosing.genomes_for`)."""
+        if self.choosing is None:
+            raise ValueError(f"run {self.run_id} is evolving: it has no champion's stage")
+        return self.choosing.genomes_for(start, stop)
 
     @property
     def generation(self) -> int:
@@ -86,7 +201,7 @@ class Run:
         stage, n = choosing.stage, choosing.size
         if stage is None:
             raise ValueError(f"run {run_id}'s champion has no stage left to score")
-        slots = [Slot(a, b) for a, b in job_slices(n, -(-n // max(1, min(parts, n))))]
+        slots = _stage_slots(n, parts)
         return cls(
             run_id=run_id,
             loop=loop,
@@ -145,25 +260,6 @@ class Run:
             lease_s=lease_s,
         )
 
-    def pick(self, excluded: str | None) -> int | None:
-        """The lowest pending slot not erred on by the credential `excluded`."""
-        if not self.erred or excluded is None:
-            return self.pending[0] if self.pending else None
-        return min((i for i in self.pending if excluded not in self.slots[i].erred), default=None)
-
-    def unpend(self, index: int) -> None:
-        if self.pending[0] == index:
-            heapq.heappop(self.pending)
-        else:
-            self.pending.remove(index)
-            heapq.heapify(self.pending)
-
-    def make_pending(self, index: int) -> None:
-        slot = self.slots[index]
-        if slot.status != "pending":
-            slot.status = "pending"
-            heapq.heappush(self.pending, index)
-
     def fill(
         self,
         index: int,
@@ -184,45 +280,127 @@ class Run:
         is, the choice moves on to its next stage (`Choosing.advance`) and is returned."""
         if self.choosing is None or self.scores is None:
             raise ValueError(f"run {self.run_id} is evolving: it has no champion's stage")
-        slot = self.slots[index]
-        self.scores[slot.start : slot.stop] = scores
-        self._done(slot, worker)
-        if self.remaining:
+        if not self._fill_scores(index, worker, scores):
             return None
         self.choosing.advance(self.scores)
         return self.choosing
 
-    def _done(self, slot: Slot, worker: str) -> None:
-        slot.status = "done"
-        slot.worker = worker
-        self.remaining -= 1
+    def _clear(self, slot: Slot) -> None:
+        if self.scores is not None:
+            super()._clear(slot)
+        else:
+            self.fitness[slot.start : slot.stop] = np.nan
+            self.components[slot.start : slot.stop] = np.nan
 
-    def discard(self, banned: str) -> int:
-        """Return to pending each done slot a worker of the credential `banned` filled; how
-        many."""
-        discarded = 0
-        for index, slot in enumerate(self.slots):
-            if slot.status == "done" and slot.worker and credential(slot.worker) == banned:
-                if self.scores is not None:
-                    self.scores[slot.start : slot.stop] = np.nan
-                else:
-                    self.fitness[slot.start : slot.stop] = np.nan
-                    self.components[slot.start : slot.stop] = np.nan
-                self.remaining += 1
-                slot.worker = None
-                self.make_pending(index)
-                discarded += 1
-        return discarded
 
-    def stranded(self, max_attempts: int, takers: set[str] | None) -> list[int]:
-        """Pending slots that erred on `max_attempts` credentials or on each of `takers` (the
-        live credentials; None: one takes any job)."""
-        return [
-            index
-            for index in self.pending
-            if (erred := self.slots[index].erred)
-            and (len(erred) >= max_attempts or (takers is not None and not takers - erred.keys()))
-        ]
+@dataclass(kw_only=True)
+class Report(Slotted):
+    """A controller's report in flight (`evorobotics.reports`): its trials cut into slots,
+    scored into `scores`, assembled into `future` once all are."""
+
+    report_id: int
+    config: RunConfig
+    """`schemas.wire.report_config`: the controller's network and world, the report's maze
+    and seed."""
+    spec: ReportSpec
+    genome: np.ndarray
+    """(1, n_weights): the controller's weights."""
+    future: Future[Assembled] = field(default_factory=Future)
+
+    @classmethod
+    def new(
+        cls,
+        stage: ReportStage,
+        config: RunConfig,
+        spec: ReportSpec,
+        weights: np.ndarray,
+        *,
+        served: int,
+        parts: int,
+    ) -> Report:
+        """The report cut into about `parts` jobs, all pending; its number is a digest of
+        what it computes, so the same report asked twice (or after a restart) is one.
+        ValueError for a bad maze, weights or size."""
+        genome = np.ascontiguousarray(weights, dtype="<f8").reshape(1, -1)
+        if genome.shape[1] != config.network_spec.weight_count:
+            raise ValueError(
+                f"{genome.shape[1]} weights for a network of {config.network_spec.weight_count}"
+            )
+        digest = hashlib.sha256(
+            "\n".join([stage, config.model_dump_json(), spec.model_dump_json()]).encode()
+            + genome.tobytes()
+        ).digest()
+        try:
+            load_maze(config.maze)  # a bad maze fails the asker now, not every worker later
+        except EvoError as exc:
+            raise ValueError(f"maze: {exc}") from exc
+        n = report_trials(stage, spec.poses)
+        if n * spec.steps > REPORT_ROBOT_STEPS:
+            raise ValueError(
+                f"a report of {n} trials x {spec.steps} steps exceeds the limit of "
+                f"{REPORT_ROBOT_STEPS} robot steps"
+            )
+        slots = _stage_slots(n, parts)
+        return cls(
+            report_id=int.from_bytes(digest[:8], "little") >> 1,
+            config=config,
+            spec=spec,
+            genome=genome,
+            slots=slots,
+            pending=list(range(len(slots))),
+            remaining=len(slots),
+            served=served,
+            stage=stage,
+            scores=np.full((n, score_columns(stage)), np.nan),
+        )
+
+    @property
+    def label(self) -> str:
+        return f"report {self.report_id}"
+
+    @property
+    def order(self) -> tuple[int, int, int]:
+        """Reports before runs (someone waits for each), least recently served first."""
+        return (0, self.served, self.report_id)
+
+    @property
+    def report(self) -> ReportSpec:
+        return self.spec
+
+    def key(self, index: int) -> JobKey:
+        return JobKey(run_id=self.report_id, generation=0, index=index, stage=self.stage)
+
+    def robot_steps(self, n: int) -> int:
+        """Robot-steps of a job of `n` trials."""
+        return n * self.spec.steps
+
+    def genomes_for(self, start: int, stop: int) -> np.ndarray:
+        """Every trial runs the one controller."""
+        return self.genome
+
+    def job(self, index: int, lease_s: float, *, span: int = 1) -> Job:
+        """Slot `index` as a job (never a span)."""
+        slot = self.slots[index]
+        return Job(
+            key=self.key(index),
+            start=slot.start,
+            stop=slot.stop,
+            config=self.config,
+            genomes=self.genome,
+            report=self.spec,
+            lease_s=lease_s,
+        )
+
+    def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> Assembled | None:
+        """Slot `index` is done: `worker`'s rows of it; once every slot is, the report
+        (ValueError if it cannot be assembled)."""
+        if not self._fill_scores(index, worker, scores) or self.scores is None:
+            return None
+        return assemble(self.config, self.stage, self.spec, self.scores)
+
+
+Work = Run | Report
+"""What the scheduler has in flight."""
 
 
 @dataclass

@@ -12,7 +12,10 @@ duplicate result is acknowledged as dropped. The result of the last job tells th
 which asks the next generation at once. After the last generation the run's jobs are its
 champion's stages (`server.runs.choosing`: candidates to validate, then test poses of the
 pick), leased, retried, refereed and spot-checked as a generation's are; the last generation
-goes to the store with the champion. A span lets the worker holding a generation's only
+goes to the store with the champion. A controller's report (`report`: an exploration report
+or a robustness map, `evorobotics.reports`) is cut into jobs of its trials the same way, leased
+before any run's, and assembled into the future its asker waits on (resolved outside the
+lock). A span lets the worker holding a generation's only
 job evolve the following ones itself (ask and tell are pure functions of the GA state and the
 seed): each accepted generation moves the lease on to the next, and the worker proves with a
 digest that it evaluated the genomes asked here.
@@ -36,20 +39,22 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
 from evorobotics.evaluate import implausible
 from evorobotics.evolution import RunLoop
+from evorobotics.reports import Report as Assembled
+from evorobotics.reports import implausible as implausible_rows
 from evorobotics.strategies import traits
 from schemas.run import RunConfig
-from schemas.wire import Ack, Job, JobKey, Result, WorkerStatus
+from schemas.wire import Ack, Job, JobKey, ReportSpec, ReportStage, Result, WorkerStatus
 from server.core.logs import context
 from server.runs.choosing import Choosing
 from server.runs.evaluation import digest_error, run_job, spot_check, spot_check_scores
-from server.runs.jobs import Lease, Run, Slot
+from server.runs.jobs import Lease, Report, Run, Slot, Work
 from server.runs.outbox import Outbox, Written
 from server.runs.policy import Policy, clamp_speed
 from server.runs.workers import Worker, Workers, credential
@@ -78,6 +83,10 @@ class Scheduler:
         self._clock = clock
         self._lock = threading.Lock()
         self._runs: dict[int, Run] = {}
+        self._reports: dict[int, Report] = {}
+        self._resolved: list[tuple[Future[Assembled], Assembled | Exception]] = []
+        """Reports finished or failed under the lock, resolved once it is released."""
+        self._closed = False
         self._leases: dict[JobKey, Lease] = {}
         self._workers = Workers(self.policy, clock=clock, wall=wall)
         self._referee = ThreadPoolExecutor(1, thread_name_prefix="colony-referee")
@@ -95,8 +104,14 @@ class Scheduler:
         return self._clock()
 
     def close(self) -> None:
-        """Finish the server's own evaluation in hand; no more after."""
+        """Finish the server's own evaluation in hand; no more after. Reports in flight fail
+        (their askers stop waiting)."""
         self._referee.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            self._closed = True
+            for report_id in list(self._reports):
+                self._fail_report(report_id, "the server is stopping")
+        self._resolve()
 
     # runs ------------------------------------------------------------------------------------
 
@@ -162,7 +177,30 @@ class Scheduler:
 
     def has_pending(self) -> bool:
         with self._lock:
-            return any(self._leasable(run) for run in self._runs.values())
+            return any(self._leasable(work) for work in self._work())
+
+    # reports ---------------------------------------------------------------------------------
+
+    def report(
+        self, stage: ReportStage, config: RunConfig, spec: ReportSpec, weights: np.ndarray
+    ) -> Future[Assembled]:
+        """A controller's report (`evorobotics.reports`: `config` is
+        `schemas.wire.report_config`) computed by jobs cut per live worker, leased before any
+        run's; the future of the assembled report (or of the error that failed it: the
+        server's own evaluation of one of its jobs, or the server stopping). The same report
+        asked while in flight is the same future. ValueError for a bad request."""
+        with self._lock:
+            parts = len(self._live()) * self.policy.jobs_per_worker
+            report = Report.new(stage, config, spec, weights, served=self._sequence, parts=parts)
+            found = self._reports.get(report.report_id)
+            if found is not None:
+                return found.future
+            if self._closed:
+                report.future.set_exception(RuntimeError("the server is stopping"))
+                return report.future
+            self._reports[report.report_id] = report
+        self._announce()
+        return report.future
 
     # workers ---------------------------------------------------------------------------------
 
@@ -224,29 +262,26 @@ class Scheduler:
                 return None
             self._referee_stranded()
             excluded = credential(worker) if record.listed else None
-            chosen: Run | None = None
+            chosen: Work | None = None
             index = 0
-            for run in self._runs.values():
-                if not self._leasable(run) or (
-                    chosen is not None
-                    and (run.served, run.run_id) >= (chosen.served, chosen.run_id)
-                ):
+            for work in self._work():
+                if not self._leasable(work) or (chosen is not None and work.order >= chosen.order):
                     continue
-                pick = run.pick(excluded)
+                pick = work.pick(excluded)
                 if pick is not None:
-                    chosen, index = run, pick
+                    chosen, index = work, pick
             if chosen is None:
                 return None
             chosen.unpend(index)
-            loop = chosen.loop
-            config = loop.config
             span = 1
             if (
-                record.spans
+                isinstance(chosen, Run)
+                and record.spans
                 and len(chosen.slots) == 1
                 and chosen.choosing is None
-                and traits(config).in_state
+                and traits(chosen.config).in_state
             ):
+                loop, config = chosen.loop, chosen.config
                 wanted = self.policy.span_generations(config, record.speed, crowded=self._crowded())
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._lease(chosen, index, worker, span_left=span - 1)
@@ -257,6 +292,7 @@ class Scheduler:
         (a span's lease then moves on); an error is retried or fails the run."""
         with self._lock:
             ack = self._settle(result)
+        self._resolve()
         self._announce()
         return ack
 
@@ -298,18 +334,20 @@ class Scheduler:
                 self._erred(key, record, result.error)
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
-            wrong = digest_error(result, i, lease, self._runs[key.run_id].loop)
+            work = self._find(key)
+            if work is None:  # a lease never outlives its run or report
+                raise ValueError(f"{key.label()} is leased but not in flight")
+            wrong = None if isinstance(work, Report) else digest_error(result, i, lease, work.loop)
             if wrong is not None:
                 record.spans = False
                 context(log, worker=result.worker).warning(
                     "worker %s: %s; no more spans for it", result.worker, wrong
                 )
-                self._runs[key.run_id].make_pending(key.index)  # asked here next time
+                work.make_pending(key.index)  # asked here next time
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
-            run = self._runs[key.run_id]
             took = max(self._clock() - lease.leased_at, 1e-6)  # before a span's lease moves on
-            record.measured = clamp_speed(run.robot_steps(lease.stop - lease.start) / took)
+            record.measured = clamp_speed(work.robot_steps(lease.stop - lease.start) / took)
             self._accept(key, lease, result, i)
             self._workers.accepted(result.worker)
             record.jobs_done += 1
@@ -357,8 +395,8 @@ class Scheduler:
         """Jobs of the generations in flight by status: pending, leased, done."""
         counts = {"pending": 0, "leased": 0, "done": 0}
         with self._lock:
-            for run in self._runs.values():
-                for slot in run.slots:
+            for work in self._work():
+                for slot in work.slots:
                     counts[slot.status] += 1
         return counts
 
@@ -367,14 +405,35 @@ class Scheduler:
     def _announce(self) -> None:
         with self._lock:
             listeners = list(self._listeners)
-            ready = any(self._leasable(run) for run in self._runs.values())
+            ready = any(self._leasable(work) for work in self._work())
         if ready:
             for listener in listeners:
                 listener()
 
-    def _leasable(self, run: Run) -> bool:
-        """Running, with a job pending, and its store keeping up."""
-        return run.running and bool(run.pending) and not self._outbox.lags(run.run_id)
+    def _resolve(self) -> None:
+        """Hand the reports finished or failed meanwhile to their askers (outside the lock:
+        a future's callbacks run here)."""
+        with self._lock:
+            resolved, self._resolved = self._resolved, []
+        for future, outcome in resolved:
+            if isinstance(outcome, Exception):
+                future.set_exception(outcome)
+            else:
+                future.set_result(outcome)
+
+    def _work(self) -> Iterator[Work]:
+        """Everything in flight: reports, then runs."""
+        yield from self._reports.values()
+        yield from self._runs.values()
+
+    def _find(self, key: JobKey) -> Work | None:
+        """The report or run whose job `key` is, if in flight."""
+        return self._reports.get(key.run_id) if key.report else self._runs.get(key.run_id)
+
+    def _leasable(self, work: Work) -> bool:
+        """Running, with a job pending, and (a run's) its store keeping up."""
+        lags = isinstance(work, Run) and self._outbox.lags(work.run_id)
+        return work.running and bool(work.pending) and not lags
 
     def _install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:
         size = self._job_size(loop.config, loop.generation, run_id if running else None)
@@ -405,7 +464,7 @@ class Scheduler:
 
     def _lease(
         self,
-        run: Run,
+        run: Work,
         index: int,
         worker: str,
         *,
@@ -431,7 +490,9 @@ class Scheduler:
 
     def _accept(self, key: JobKey, lease: Lease, result: Result, i: int) -> None:
         """Generation `i` of `result` (or a stage's scores) fills the slot `lease` held."""
-        if result.scores is not None:
+        if result.scores is not None and key.report:
+            self._complete_report(key, lease, result.scores)
+        elif result.scores is not None:
             self._complete_stage(key, lease, result.scores)
         elif (
             result.fitness is not None
@@ -478,8 +539,13 @@ class Scheduler:
         """Why a generation of `result` claims what its run's trials cannot produce
         (`implausible`), naming worker, run and generation; None if none does, or it carries
         no evaluation or its run is not in flight. Judged before any lease or spot-check, so a
-        forgery counts against its credential even when it comes late."""
-        run = self._runs.get(result.key.run_id)
+        forgery counts against its credential even when it comes late. A report's rows: by
+        `evorobotics.reports.implausible`."""
+        report = self._reports.get(result.key.run_id) if result.key.report else None
+        if report is not None and result.scores is not None:
+            why = implausible_rows(report.config, report.stage, report.spec, result.scores)
+            return None if why is None else f"worker {result.worker} {report.label}: {why}"
+        run = None if result.key.report else self._runs.get(result.key.run_id)
         fitness, components, descriptors = result.fitness, result.components, result.descriptors
         if run is None or fitness is None or components is None or descriptors is None:
             return None
@@ -491,6 +557,27 @@ class Scheduler:
                     f"{result.key.generation + i}: {why}"
                 )
         return None
+
+    def _complete_report(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
+        report = self._reports[key.run_id]
+        self._count_errors(report.slots[key.index])
+        try:
+            assembled = report.fill_scores(key.index, lease.worker, scores)
+        except ValueError as exc:
+            self._fail_report(report.report_id, f"it cannot be assembled: {exc}")
+            return
+        self._totals["done"] += 1
+        if assembled is not None:
+            self._resolved.append((report.future, assembled))
+            del self._reports[report.report_id]
+
+    def _fail_report(self, report_id: int, why: str) -> None:
+        """The report fails (its asker gets the error); its jobs are dropped."""
+        report = self._reports.pop(report_id)
+        log.warning("%s failed: %s", report.label, why)
+        self._resolved.append((report.future, RuntimeError(f"{report.label} failed: {why}")))
+        for key in [k for k in self._leases if k.report and k.run_id == report_id]:
+            del self._leases[key]
 
     def _complete_stage(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
         run = self._runs[key.run_id]
@@ -534,11 +621,12 @@ class Scheduler:
         process's code)."""
         if not record.listed:
             return None
-        lease, run = self._leases.get(result.key), self._runs.get(result.key.run_id)
+        lease, work = self._leases.get(result.key), self._find(result.key)
         if result.scores is not None:
             return spot_check_scores(
-                result, lease, run, wanted=self.policy.spot_checks, totals=self._spot
+                result, lease, work, wanted=self.policy.spot_checks, totals=self._spot
             )
+        run = work if isinstance(work, Run) else None
         return spot_check(
             result,
             lease,
@@ -553,7 +641,7 @@ class Scheduler:
         of them in the generations in flight return to pending."""
         banned = self._workers.ban(name, why)
         released = self._release_where(lambda lease: credential(lease.worker) == banned)
-        discarded = sum(run.discard(banned) for run in self._runs.values())
+        discarded = sum(work.discard(banned) for work in self._work())
         context(log, worker=name).warning(
             "worker %s quarantined: %s; %d leases and %d results of it returned to pending",
             name,
@@ -566,22 +654,20 @@ class Scheduler:
         """`record`'s evaluation of the job `key` erred: the run fails if it is the server's
         own; else the job goes to another credential, or to the referee when none is left. The
         error counts against the credential once someone evaluates the job without one."""
-        run = self._runs.get(key.run_id)
-        if run is None:
+        work = self._find(key)
+        if work is None:
             return
         if not record.listed:  # an in-process executor: this process's own evaluation
             self._fail_run(key, error)
             return
-        slot = run.slots[key.index]
+        slot = work.slots[key.index]
         slot.erred[credential(record.name)] = (record.name, error)
-        run.erred = True
-        run.make_pending(key.index)
+        work.erred = True
+        work.make_pending(key.index)
         context(log, run=key.run_id, worker=record.name).warning(
-            "worker %s: error result for run %d job %d/%d, which returns to other workers: %s",
+            "worker %s: error result for %s, which returns to other workers: %s",
             record.name,
-            key.run_id,
-            key.generation,
-            key.index,
+            key.label(),
             error,
         )
         self._referee_stranded()
@@ -594,6 +680,10 @@ class Scheduler:
         slot.erred = {}
 
     def _fail_run(self, key: JobKey, error: str) -> None:
+        """The server's own evaluation of job `key` failed: its run (or report) fails."""
+        if key.report:
+            self._fail_report(key.run_id, f"the server's own evaluation failed: {error}")
+            return
         self._outbox.fail(
             key.run_id,
             f"job {key.generation}/{key.index} failed in the server's own evaluation: {error}",
@@ -605,12 +695,12 @@ class Scheduler:
         that no live worker may take (each live credential erred on it)."""
         live = self._live()  # an in-process executor takes any job
         takers = None if any(not w.listed for w in live) else {credential(w.name) for w in live}
-        for run in self._runs.values():
-            if run.erred and run.running:
-                for index in run.stranded(self.policy.max_attempts, takers):
-                    self._refer(run, index)
+        for work in self._work():
+            if work.erred and work.running:
+                for index in work.stranded(self.policy.max_attempts, takers):
+                    self._refer(work, index)
 
-    def _refer(self, run: Run, index: int) -> None:
+    def _refer(self, run: Work, index: int) -> None:
         """Lease pending slot `index` to the referee, whose thread evaluates it here (it
         stays pending if the referee has stopped: the scheduler is closing)."""
         slot = run.slots[index]
@@ -624,12 +714,8 @@ class Scheduler:
         run.unpend(index)
         slot.status = "leased"
         self._leases[key] = lease
-        context(log, run=run.run_id).info(
-            "run %d job %d/%d erred on %s: the server evaluates it",
-            run.run_id,
-            key.generation,
-            index,
-            ", ".join(sorted(slot.erred)),
+        context(log, run=key.run_id).info(
+            "%s erred on %s: the server evaluates it", key.label(), ", ".join(sorted(slot.erred))
         )
 
     def _judge(self, job: Job, lease: Lease) -> None:
@@ -649,10 +735,11 @@ class Scheduler:
                 else:
                     self._accept(job.key, lease, result, 0)
         except Exception as exc:  # a bug here must fail the run, not leave its job held
-            log.exception("the server's evaluation of run %d could not be recorded", job.key.run_id)
+            log.exception("the server's evaluation of %s could not be recorded", job.key.label())
             with self._lock:
-                if job.key.run_id in self._runs:
+                if self._find(job.key) is not None:
                     self._fail_run(job.key, f"the server's evaluation could not be recorded: {exc}")
+        self._resolve()
         self._announce()
 
     def _drop_run(self, run_id: int) -> None:
@@ -661,15 +748,15 @@ class Scheduler:
         self._drop_leases(run_id)
 
     def _drop_leases(self, run_id: int) -> None:
-        for key in [k for k in self._leases if k.run_id == run_id]:
+        for key in [k for k in self._leases if k.run_id == run_id and not k.report]:
             del self._leases[key]
 
     def _release_where(self, condition: Callable[[Lease], bool]) -> list[JobKey]:
         released = [lease for lease in self._leases.values() if condition(lease)]
         for lease in released:
             del self._leases[lease.key]
-            run = self._runs.get(lease.key.run_id)
-            if run is not None and run.key(lease.key.index) == lease.key:
-                run.make_pending(lease.key.index)
+            work = self._find(lease.key)
+            if work is not None and work.key(lease.key.index) == lease.key:
+                work.make_pending(lease.key.index)
         self._totals["requeued"] += len(released)
         return [lease.key for lease in released]

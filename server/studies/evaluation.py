@@ -1,8 +1,11 @@
-"""Exploration reports and robustness maps of stored controllers, computed once and kept.
+"""Exploration reports and robustness maps of stored controllers, computed by jobs and kept.
 
 One cache serves `GET /api/controllers/{sha}/evaluation`, `.../robustness` and the studies'
-final metrics (`server.studies.service`), keyed by the document's text and the parameters: a report
-is a pure function of them, and the dashboard, the CLI and a study asking again cost nothing.
+final metrics (`server.studies.service`), keyed by the document's text and the parameters: a
+report is a pure function of them, and the dashboard, the CLI and a study asking again cost
+nothing. A report missing from it is the scheduler's (`Scheduler.report`): jobs of its trials
+that workers take like a run's (the in-process executors without workers), so the server
+simulates none of it but a spot-check; asked again while in flight, it is the same report.
 """
 
 from __future__ import annotations
@@ -10,11 +13,14 @@ from __future__ import annotations
 import json
 import threading
 from collections import OrderedDict
+from concurrent.futures import Future
 from typing import NamedTuple
 
 from evorobotics.document import ControllerDocument
-from evorobotics.explore import explore
-from evorobotics.robustness import robustness
+from evorobotics.reports import Report
+from schemas.wire import ReportSpec, report_config
+from schemas.world import World
+from server.runs.scheduler import Scheduler
 
 EVALUATION_CACHE = 1024
 """Reports kept (a few kB each plus the document's text): every champion of the largest
@@ -42,43 +48,65 @@ class MapParams(NamedTuple):
     seed: int = 0
 
 
-class Evaluations:
-    """A thread-safe LRU of report JSON by (document text, Params or MapParams)."""
+_Key = tuple[str, Params | MapParams]
 
-    def __init__(self, size: int = EVALUATION_CACHE) -> None:
+
+class Evaluations:
+    """A thread-safe LRU of report JSON by (document text, Params or MapParams), filled by
+    the scheduler's report jobs."""
+
+    def __init__(self, scheduler: Scheduler, size: int = EVALUATION_CACHE) -> None:
+        self._scheduler = scheduler
         self._size = size
         self._lock = threading.Lock()
-        self._reports: OrderedDict[tuple[str, Params | MapParams], str] = OrderedDict()
+        self._reports: OrderedDict[_Key, str] = OrderedDict()
 
     def peek(self, document: str, params: Params | MapParams) -> str | None:
-        """The report if it is known, without computing it."""
+        """The report if it is known, without asking for it."""
         with self._lock:
             found = self._reports.get((document, params))
             if found is not None:
                 self._reports.move_to_end((document, params))
             return found
 
-    def report(self, document: str, params: Params | MapParams) -> str:
-        """The report's JSON (the exploration or the map, plus the controller's `sha256`);
-        CPU-bound on a miss (about 1 s of one core at the defaults). EvoError or ValueError
-        on bad input."""
+    def request(self, document: str, params: Params | MapParams) -> Future[str]:
+        """The future of the report's JSON (the exploration or the map, plus the controller's
+        `sha256`): done at once when known, else when its jobs are (or fail: the server's own
+        evaluation, or the server stopping). EvoError or ValueError on bad input."""
+        known = Future[str]()
         found = self.peek(document, params)
         if found is not None:
-            return found
+            known.set_result(found)
+            return known
         doc = ControllerDocument.from_json(document)
+        config = report_config(doc.spec, doc.world or World(), params.maze, params.seed)
         if isinstance(params, MapParams):
-            found_map = robustness(doc.spec, doc.weights, world=doc.world, **params._asdict())
-            body = {**found_map.as_dict(), "sha256": doc.sha256}
+            spec = ReportSpec(poses=params.poses, steps=params.steps)
+            asked = self._scheduler.report("robustness", config, spec, doc.weights)
         else:
-            report = explore(doc.spec, doc.weights, world=doc.world, **params._asdict())
-            body = {**report.as_dict(), "sha256": doc.sha256}
-        text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
-        with self._lock:
-            self._reports[(document, params)] = text
-            while len(self._reports) > self._size:
-                self._reports.popitem(last=False)
-        return text
+            spec = ReportSpec(
+                poses=params.poses, steps=params.steps, reality_gap=params.reality_gap
+            )
+            asked = self._scheduler.report("explore", config, spec, doc.weights)
 
+        def done(future: Future[Report]) -> None:
+            try:
+                body = {**future.result().as_dict(), "sha256": doc.sha256}
+            except Exception as exc:  # the report failed: so does its JSON
+                known.set_exception(exc)
+                return
+            text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+            with self._lock:
+                self._reports[(document, params)] = text
+                while len(self._reports) > self._size:
+                    self._reports.popitem(last=False)
+            known.set_result(text)
 
-EVALUATIONS = Evaluations()
-"""The server's one cache (a process serves one store)."""
+        asked.add_done_callback(done)
+        return known
+
+    def report(self, document: str, params: Params | MapParams, timeout: float) -> str:
+        """The report's JSON, waiting at most `timeout` s for its jobs: TimeoutError past it
+        (the jobs go on, and the report is kept once done); EvoError or ValueError on bad
+        input, RuntimeError if it failed."""
+        return self.request(document, params).result(timeout)

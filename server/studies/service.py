@@ -10,9 +10,10 @@ A completed run's metrics come from its champion: `validation_score` from the do
 `validation` member, `gap_roaming` and `gap_stuck` from its held-out `test` under the reality
 gap; `roaming`, `stuck` (by the report's horizon), `max_offset` and `coverage`
 from its exploration report on unseen start poses at `colony evaluate`'s defaults (not from
-the validation poses: the champion was chosen on those, so they flatter it) (`server.studies.evaluation`, the cache that serves
-`GET /api/controllers/{sha}/evaluation`). A report costs about a second of one core, so it is
-computed by one background thread; until then those metrics are None.
+the validation poses: the champion was chosen on those, so they flatter it)
+(`server.studies.evaluation`, the cache that serves `GET /api/controllers/{sha}/evaluation`).
+A report costs about a second of one core: the first read that finds the run completed asks
+the scheduler for it, as jobs that workers take, and until it is known those metrics are None.
 """
 
 from __future__ import annotations
@@ -20,10 +21,10 @@ from __future__ import annotations
 import json
 import logging
 import math
-import queue
 import threading
 import time
 from collections.abc import Hashable, Sequence
+from concurrent.futures import Future
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -38,7 +39,7 @@ from server.core.errors import NotFoundError, ServerError
 from server.core.models import Controller, Generation, Study, aware
 from server.runs import crud
 from server.runs.lifecycle import RunManager
-from server.studies.evaluation import EVALUATIONS, Evaluations, Params
+from server.studies.evaluation import Evaluations, Params
 
 log = logging.getLogger(__name__)
 
@@ -108,16 +109,13 @@ def _summary_dict(summary: Summary) -> dict[str, Any]:
 class StudyService:
     """Creates, reads, cancels and deletes studies through the run manager."""
 
-    def __init__(self, manager: RunManager, evaluations: Evaluations = EVALUATIONS) -> None:
+    def __init__(self, manager: RunManager, evaluations: Evaluations) -> None:
         self.manager = manager
         self.evaluations = evaluations
         self._lock = threading.Lock()
         self._cache: dict[int, _Cached] = {}
-        self._queued: set[str] = set()
-        """Documents whose report is queued, being computed, or failed (never retried)."""
-        self._todo: queue.Queue[str] = queue.Queue()
-        self._thread = threading.Thread(target=self._explore, name="study-explore", daemon=True)
-        self._thread.start()
+        self._asked: set[str] = set()
+        """Documents whose report is being computed, or failed (never asked again)."""
 
     # lifecycle ---------------------------------------------------------------------------
 
@@ -338,7 +336,7 @@ class StudyService:
             found["gap_stuck"] = _finite(test["gap"]["stuck"]["value"])
         report = self.evaluations.peek(document, EXPLORATION)
         if report is None:
-            self._queue(document)
+            self._ask(document)
         else:
             exploration = json.loads(report)
             found["roaming"] = _finite(exploration["roaming"])
@@ -347,28 +345,25 @@ class StudyService:
             found["coverage"] = _finite(exploration["coverage"])
         return found
 
-    # exploration in the background ------------------------------------------------------
+    # exploration by jobs ----------------------------------------------------------------
 
-    def _queue(self, document: str) -> None:
+    def _ask(self, document: str) -> None:
+        """Ask for a champion's exploration report, once (`Evaluations.request`)."""
         with self._lock:
-            if document in self._queued:
+            if document in self._asked:
                 return
-            self._queued.add(document)
-        self._todo.put(document)
+            self._asked.add(document)
+        try:
+            asked = self.evaluations.request(document, EXPLORATION)
+        except (EvoError, ValueError) as exc:  # its metrics stay None, as it stays asked
+            log.warning("study champion exploration refused: %s", exc)
+            return
+        asked.add_done_callback(lambda future: self._explored(document, future))
 
-    def _explore(self) -> None:
-        """Compute queued reports until the manager stops (a report is the manager's data)."""
-        while True:
-            try:
-                document = self._todo.get(timeout=0.5)
-            except queue.Empty:
-                if not self.manager.alive():
-                    return
-                continue
-            try:
-                self.evaluations.report(document, EXPLORATION)
-            except (EvoError, ValueError) as exc:  # its metrics stay None, as it stays queued
-                log.warning("study champion exploration failed: %s", exc)
-                continue
-            with self._lock:
-                self._queued.discard(document)
+    def _explored(self, document: str, future: Future[str]) -> None:
+        """A report is known (the next read shows it), or failed (its metrics stay None)."""
+        if future.exception() is not None:
+            log.warning("study champion exploration failed: %s", future.exception())
+            return
+        with self._lock:
+            self._asked.discard(document)
