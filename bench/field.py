@@ -21,13 +21,14 @@ refused, as robot_agent.sim_body does. The controller is the default run's champ
   the same with a tracker: the detector is given each step's true position.
 - The loop pays (`loop_pays`): per seed, 8 robots with hidden gap physics run the champion
   pushed blind for `--minutes` (10), then the `fit` choice after calibrating from those traces.
-  Stuck events per robot-hour before and after, their ratio over `--seeds` (10) with a
+  Stuck events per robot-hour before and after, their ratio over `--seeds` (30: one robot
+  trapped in a loop can dominate a seed, so ten seeds cannot tell the arms apart) with a
   bootstrap CI over seeds, and the same for the champion of a run trained for the colony
   (`reality_gap: "colony"` on the 8 calibrations, `colony run start --for-colony`). Target: at
   most 1/5.
 
     .venv/bin/python bench/field.py [--robots 10] [--horizons 1200 6000] [--hours 1] [--seed 3]
-        [--seeds 10] [--minutes 10] [--candidates 100] [--figure docs/img/field-loop.png]
+        [--seeds 30] [--minutes 10] [--candidates 100] [--figure docs/img/field-loop.png]
 """
 
 from __future__ import annotations
@@ -311,7 +312,7 @@ def main() -> None:
     parser.add_argument("--horizons", type=int, nargs="+", default=[1200, 6000])
     parser.add_argument("--hours", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=3)
-    parser.add_argument("--seeds", type=int, default=10, help="runs for the loop-pays figure")
+    parser.add_argument("--seeds", type=int, default=30, help="runs for the loop-pays figure")
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument(
         "--candidates", type=int, default=RunConfig().validation.candidates, help="fit among"

@@ -262,9 +262,12 @@ def robot_calibrate(
     from schemas.world import World
 
     try:
-        start = None if since is None else datetime.fromisoformat(since).timestamp()
+        when = None if since is None else datetime.fromisoformat(since)
     except ValueError:
         raise typer.BadParameter(f"--since {since!r} is not an ISO 8601 time") from None
+    if when is not None and when.tzinfo is None:  # the traces' times are UTC, as the API's
+        when = when.replace(tzinfo=UTC)
+    start = None if when is None else when.timestamp()
     samples = call_server(ctx, server, token, "GET", f"/api/robots/{robot}/traces?limit={limit}")[
         "samples"
     ]
@@ -303,10 +306,10 @@ def robot_calibrate(
     stored = call_server(
         ctx, server, token, "POST", f"/api/robots/{robot}/calibration", fit.as_dict()
     )
-    if as_json:
-        print_json(stored)
-        return
     c = stored["calibration"]
+    if as_json:  # the fit's members at the top, with whose it is and when it was stored
+        print_json({"robot": stored["robot"], "stored_at": stored["stored_at"], **c})
+        return
     table = Table(title=f"calibration of {robot} from {c['samples']} samples")
     for column in ("", "left", "", "centre", "", "right"):
         table.add_column(column, justify="right")

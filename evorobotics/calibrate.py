@@ -187,7 +187,12 @@ def _fit_gains(
         np.concatenate([moved, moved])
     ]
     y = np.concatenate([total, diff])[np.concatenate([moved, moved])]
-    fit, *_ = np.linalg.lstsq(a, y, rcond=None)
+    fit, _, rank, _ = np.linalg.lstsq(a, y, rcond=None)
+    if rank < 2:
+        raise CalibrationError(
+            "the traces never drove one of the wheels while the robot moved: its gain cannot "
+            "be fitted"
+        )
     # a real link is not lockstep: a command can take effect a step late, and such steps lie
     # far off the fit; they are dropped (beyond 4 median absolute residuals) and it is redone
     res = np.abs(a @ fit - y)
@@ -195,6 +200,11 @@ def _fit_gains(
     if keep.sum() >= 2 and not keep.all():
         a, y = a[keep], y[keep]
         fit, *_ = np.linalg.lstsq(a, y, rcond=None)
+    if not (np.isfinite(fit).all() and (fit > 0).all()):
+        raise CalibrationError(
+            f"the fit gives wheel gains {fit.round(4).tolist()}, not positive: the traces "
+            "do not follow the drive model (a wheel wired backwards, or poses of another robot?)"
+        )
     dof = max(len(y) - 2, 1)
     sigma2 = float(np.sum((a @ fit - y) ** 2)) / dof
     cov = sigma2 * np.linalg.pinv(a.T @ a)

@@ -119,3 +119,17 @@ def test_too_little_or_uninformative_data_is_refused_by_name() -> None:
     poses, bits, motors = drive(body, 200, 1)
     with pytest.raises(CalibrationError, match="non-finite"):
         calibrate(MAZE, poses * np.nan, bits, motors, world)
+
+
+def test_traces_the_drive_model_cannot_explain_are_refused_by_name() -> None:
+    """A fit that is not a robot's: one wheel never driven, or poses that move against the
+    commands (a wheel wired backwards, another robot's poses). Nothing comes back to store."""
+    world = World()
+    body = SimBody(MAZE, np.array([1.0, 1.0, 0.0]), Gap(np.full((1, 5), 0.05), np.ones((1, 2))))
+    poses, bits, motors = drive(body, 200, 1)
+    one_wheel = motors.copy()
+    one_wheel[:, 0] = 0.0
+    with pytest.raises(CalibrationError, match="never drove one of the wheels"):
+        calibrate(MAZE, poses, bits, one_wheel, world)
+    with pytest.raises(CalibrationError, match="not positive"):
+        calibrate(MAZE, poses, bits, -motors, world)

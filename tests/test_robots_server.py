@@ -490,8 +490,13 @@ def test_calibrate_fits_an_emulated_robots_hidden_physics_from_its_traces(
             cli, ["robot", "calibrate", "r-cal", "--server", colony.url, "--json"]
         )
         assert done.exit_code == 0, done.stderr  # a whisker never at a wall: bounded above
-        fit = json.loads(done.stdout)["calibration"]
+        printed = json.loads(done.stdout)  # the contract: the fit's members on top
+        assert {"whisker_range", "motor_gain", "uncertainty", "samples", "residuals"} <= set(
+            printed
+        ) and printed["robot"] == "r-cal"
         stored = httpx.get(f"{colony.url}/api/robots/r-cal/calibration").json()
+        fit = stored["calibration"]
+        assert {k: printed[k] for k in fit} == fit
         delivered = agent.delivered
         assert agent.wait_for(lambda: agent.delivered >= delivered + 200, WAIT)
         detail = httpx.get(f"{colony.url}/api/robots/r-cal").json()  # what the Colony page shows
@@ -845,7 +850,10 @@ def test_the_field_loop_end_to_end(colony: Colony, tmp_path: Path) -> None:
             cli, ["robot", "calibrate", "r-loop", "--server", colony.url, "--json"]
         )
         assert calibrated.exit_code == 0, calibrated.stderr
-        fit = RobotCalibration.model_validate(json.loads(calibrated.stdout)["calibration"])
+        printed = json.loads(calibrated.stdout)
+        fit = RobotCalibration.model_validate(
+            {k: printed[k] for k in RobotCalibration.model_fields}
+        )
         assert np.allclose(fit.motor_gain, hidden.motor_gain[0], atol=0.005)
         _, config, genomes = latest_candidates(link, run_id)
         key = validated_order(config, genomes, fit.world(config.world))
