@@ -30,6 +30,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from colony.client import rich_console
 from colony.robot_cli import robots_table, workers_table
 from colony.run_cli import follow_run
 
@@ -206,7 +207,7 @@ def demo_command(
     ] = False,
 ) -> None:
     """Evolve the paper's controller on a local colony, drive virtual EvBots with it, summarise."""
-    console = Console()
+    console = rich_console()
     out = out.resolve()
     (out / "logs").mkdir(parents=True, exist_ok=True)
     children = Children()

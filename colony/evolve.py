@@ -23,7 +23,13 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from colony.options import NominalOpt
-from colony.run_inputs import ConfigError, maze_value, network_value, validation_message
+from colony.run_inputs import (
+    ConfigError,
+    maze_value,
+    name_maze_file,
+    network_value,
+    validation_message,
+)
 
 if TYPE_CHECKING:
     from evorobotics.document import ControllerDocument
@@ -53,6 +59,7 @@ def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunCo
             raise ConfigError(f"config file {config_file}: expected a JSON object")
         data.update(loaded)
     given = {k: v for k, v in overrides.items() if v is not None}
+    maze = given.get("maze")
     if "maze" in given:
         given["maze"] = maze_value(given["maze"])
     if "network" in given:
@@ -65,7 +72,7 @@ def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunCo
     try:
         check_config(config)
     except (EvoError, ValueError) as err:
-        raise ConfigError(f"maze: {err}") from None
+        raise ConfigError(name_maze_file(f"maze: {err}", maze)) from None
     return config
 
 
