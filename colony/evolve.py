@@ -39,6 +39,9 @@ if TYPE_CHECKING:
 
 LOG_LINES = 20
 """Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
+COMPILING = "compiling the simulator, once per machine: about 15 s"
+"""Said before a run whose kernels are not compiled yet (`evorobotics.sim.kernel_cached`):
+else the first generation would keep the progress bar at 0 that long without a word."""
 
 
 def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunConfig:
@@ -359,6 +362,7 @@ def _evolve(
     with _importing():
         from evorobotics.evaluate import available_cores, trial_steps
         from evorobotics.evolution import evolve
+        from evorobotics.sim import kernel_cached
 
         try:
             cfg = resolve_config(config, overrides)  # loads the compiled kernels
@@ -372,6 +376,8 @@ def _evolve(
         f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}, "
         f"strategy {cfg.strategy}, {workers} threads"
     )
+    if not kernel_cached(spec):
+        typer.echo(COMPILING)
     started = time.perf_counter()
     events = None
     if tensorboard is not None:

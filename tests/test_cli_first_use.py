@@ -1,6 +1,7 @@
-"""What a new user meets on the CLI against a real server: runs named and tagged, exports that
-rerun, a server URL given with /api, maze files named as files, piped tables kept whole, and
-`colony server --help` with its defaults and environment variables."""
+"""What a new user meets on the CLI: `colony evolve` saying when it compiles the simulator;
+against a real server, runs named and tagged, exports that rerun, a server URL given with /api,
+maze files named as files, piped tables kept whole; `colony server --help` with its defaults
+and environment variables."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from server.core.settings import Settings
 from tests.helpers import QUICK, Served, completed_run, serve
 
 COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
+COMPILING = "compiling the simulator, once per machine: about 15 s"
 BAD_CHARACTER = "#####\n#..x#\n#####\n"
 NO_ROOM = "#####\n#...#\n#####\n"
 
@@ -33,6 +35,30 @@ def colony(*args: str) -> tuple[int, str]:
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     with serve(tmp_path_factory.mktemp("first-use")) as served:
         yield served
+
+
+# ----------------------------------------------------------------------------- first run
+
+
+def test_evolve_says_so_while_it_compiles_the_simulator(tmp_path: Path) -> None:
+    """A kernel cache of its own: the first run compiles, as on a new machine; the next does
+    not, and says nothing."""
+    args = [*COLONY, "evolve", "--population", "8", "--generations", "2", "--steps", "10"]
+    env = {**os.environ, "EVOCOLONY_KERNEL_CACHE": str(tmp_path / "kernels")}
+    outputs = []
+    for run in ("first", "second"):
+        done = subprocess.run(
+            [*args, "--out", str(tmp_path / run)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env=env,
+        )
+        assert done.returncode == 0, done.stderr
+        outputs.append(done.stdout.splitlines())
+    first, second = outputs
+    assert first[0].startswith("evolving: ") and first[1] == COMPILING
+    assert second[0].startswith("evolving: ") and COMPILING not in second
 
 
 # ---------------------------------------------------------------------- naming and exports
@@ -88,8 +114,7 @@ def test_a_server_url_ending_in_api_is_named(server: Served) -> None:
     code, out = colony("run", "list", "--server", f"{server.url}/api")
     assert code == 1
     assert out.strip() == (
-        "error 404: Not Found (the server URL is the base, without /api: "
-        f"--server {server.url})"
+        f"error 404: Not Found (the server URL is the base, without /api: --server {server.url})"
     )
     code, out = colony("evaluate", "--server", f"{server.url}/api/", "--run", "1")
     assert code != 0 and f"without /api: --server {server.url})" in out
