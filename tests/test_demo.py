@@ -147,8 +147,12 @@ def test_keep_running_keeps_the_dashboard_until_ctrl_c_and_says_it_compiles(
                 "stopped the server and its 1 worker; nothing is left running; demo took"
             )
             assert demo.wait(timeout=60) == 0
-        finally:
+        finally:  # Ctrl-C, so the demo stops its children (each in its own session)
             if demo.poll() is None:
-                demo.kill()
+                demo.send_signal(signal.SIGINT)
+                try:
+                    demo.wait(timeout=60)
+                except subprocess.TimeoutExpired:
+                    demo.kill()
     assert processes_mentioning(f"127.0.0.1:{zenoh_port}") == []
     assert processes_mentioning(str(out)) == []
