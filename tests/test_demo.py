@@ -15,6 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
+import pytest
 
 from tests.helpers import free_port
 
@@ -37,8 +38,8 @@ def processes_mentioning(text: str) -> list[str]:
     return found
 
 
-def demo_args(out: Path, zenoh_port: int) -> list[str]:
-    """A small demo: 5 generations of 12, 2 robots exploring 3 s, one worker."""
+def demo_args(out: Path, zenoh_port: int, robots: int = 2) -> list[str]:
+    """A small demo: 5 generations of 12, `robots` exploring 3 s, one worker."""
     return [
         sys.executable,
         "-c",
@@ -49,7 +50,7 @@ def demo_args(out: Path, zenoh_port: int) -> list[str]:
         "--population",
         "12",
         "--robots",
-        "2",
+        str(robots),
         "--explore-seconds",
         "3",
         "--workers",
@@ -118,6 +119,7 @@ def wait_line(lines: queue.Queue[str | None], start: str, seen: list[str], timeo
     return line
 
 
+@pytest.mark.timeout(240)  # it compiles the kernels, as on a new machine
 def test_keep_running_keeps_the_dashboard_until_ctrl_c_and_says_it_compiles(
     tmp_path: Path,
 ) -> None:
@@ -130,7 +132,7 @@ def test_keep_running_keeps_the_dashboard_until_ctrl_c_and_says_it_compiles(
         "PYTHONUNBUFFERED": "1",
         "EVOCOLONY_KERNEL_CACHE": str(tmp_path / "kernels"),
     }
-    args = [*demo_args(out, zenoh_port), "--keep-running"]
+    args = [*demo_args(out, zenoh_port, robots=1), "--keep-running"]
     seen: list[str] = []
     with (
         subprocess.Popen(args, stdout=subprocess.PIPE, text=True, env=env) as demo,
@@ -138,7 +140,7 @@ def test_keep_running_keeps_the_dashboard_until_ctrl_c_and_says_it_compiles(
     ):
         try:
             wait_line(lines, COMPILING, seen, timeout=60)
-            up = wait_line(lines, "stopped 2 robots; still running: the server and", seen, 100)
+            up = wait_line(lines, "stopped 1 robot; still running: the server and", seen, 200)
             dashboard = up.split("dashboard ")[1].split()[0]
             assert httpx.get(dashboard, timeout=30).status_code == 200
             demo.send_signal(signal.SIGINT)
