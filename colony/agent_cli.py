@@ -4,17 +4,25 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import re
 import signal
 import threading
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import FrameType
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import httpx
 import typer
 
-from colony.client import DEFAULT_SERVER, ServerOpt, TokenOpt, call_server
+from colony.client import DEFAULT_SERVER, ServerOpt, TokenOpt, base_url_hint, call_server
 from colony.options import LogFormatOpt, LogLevelOpt, ZenohPasswordOpt, ZenohRootCaOpt, ZenohUserOpt
+
+if TYPE_CHECKING:
+    from robot_agent.agent import AgentSettings
+    from robot_agent.sim_body import SimBody
+    from schemas.security import ZenohClientAuth
 
 
 def agent_command(
@@ -103,66 +111,42 @@ def agent_command(
     log_level: LogLevelOpt = "INFO",
     log_format: LogFormatOpt = "text",
 ) -> None:
-    """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck."""
-    from dataclasses import replace
+    """Run an EvBot: the pushed controller at 10 Hz, traces to the server, ask when stuck.
 
+    Every flag is checked before anything is fetched, pinned or started: a bad one is one line
+    naming it, exit status 2. Another agent already running this robot id: exit status 1."""
     import zenoh
 
-    from evorobotics.sim import DEFAULT_WORLD
-    from robot_agent.agent import Agent, AgentSettings
+    from robot_agent.agent import Agent
     from robot_agent.driver import BasicXDriver
     from robot_agent.emulator import BasicXEmulator, FirmwareConfig
     from robot_agent.errors import AgentError
-    from robot_agent.sim_body import SimBody
     from robot_agent.tracker import EmulatedTracker
-    from schemas.security import ZenohClientAuth
-    from schemas.world import world_from_json
-    from server.core.logs import as_format, configure
 
-    try:
-        configure(log_level, as_format(log_format), ids={"robot": robot_id})
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    if (serial is None) == (not emulate):
-        raise typer.BadParameter("give exactly one of --serial PORT or --emulate")
-    if tracker and not emulate:
-        raise typer.BadParameter("--tracker emulates a tracker of the --emulate body")
-    if zenoh_user is not None and zenoh_user != robot_id:
-        raise typer.BadParameter(
-            f"the zenoh user {zenoh_user} may only act as robot {zenoh_user}, not {robot_id}"
-        )
-    try:
-        auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
-        probe = AgentSettings(robot_id=robot_id, state_dir=state_dir)
-        key = _server_key(server_key, probe.state_path, server, insecure_no_verify)
-        settings = AgentSettings(
-            robot_id=robot_id,
-            connect=tuple(connect),
-            state_dir=state_dir,
-            server_key=key,
-            require_signature=not insecure_no_verify,
-            auth=auth,
-            start_pose=_pose(start_pose),
-            return_after_steps=return_after,
-        )
-        tracker_auth = ZenohClientAuth(
-            user=tracker_user, password=tracker_password, root_ca=zenoh_root_ca
-        )
-        emulator = (
-            BasicXEmulator(
-                SimBody.create(
-                    maze,
-                    seed=seed,
-                    index=index,
-                    world=DEFAULT_WORLD if world is None else world_from_json(world.read_bytes()),
-                ),
-                FirmwareConfig(pose_request=not tracker),
-            ).start()
-            if emulate
-            else None
-        )
-    except (ValueError, OSError) as exc:
-        raise typer.BadParameter(str(exc)) from exc
+    flags = _checked(
+        robot_id=robot_id,
+        serial=serial,
+        connect=connect,
+        state_dir=state_dir,
+        emulate=emulate,
+        maze=maze,
+        seed=seed,
+        index=index,
+        world=world,
+        tracker=tracker,
+        tracker_user=tracker_user,
+        tracker_password=tracker_password,
+        baud=baud,
+        return_after=return_after,
+        start_pose=start_pose,
+        server_key=server_key,
+        insecure_no_verify=insecure_no_verify,
+        zenoh_user=zenoh_user,
+        zenoh_password=zenoh_password,
+        zenoh_root_ca=zenoh_root_ca,
+        log_level=log_level,
+        log_format=log_format,
+    )
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
@@ -170,31 +154,209 @@ def agent_command(
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    port = emulator.port_path if emulator else str(serial)
     try:
         with contextlib.ExitStack() as stack:
+            emulator = None
+            if flags.body is not None:
+                firmware = FirmwareConfig(pose_request=not tracker)
+                emulator = stack.enter_context(BasicXEmulator(flags.body, firmware))
+            port = emulator.port_path if emulator else str(serial)
+            try:
+                driver = stack.enter_context(BasicXDriver.open(port, baud))
+            except (OSError, ValueError) as exc:
+                if emulator is not None:
+                    raise
+                _refuse("--serial", f"cannot open {port}: {exc}")
+            settings = replace(
+                flags.settings,
+                server_key=_server_key(
+                    server_key, flags.settings.state_path, server, insecure_no_verify
+                ),
+            )
             if tracker and emulator is not None:  # its own session: the robot's may not say
-                session = stack.enter_context(
-                    zenoh.open(replace(settings, auth=tracker_auth).zenoh_config())
-                )
+                try:
+                    session = stack.enter_context(
+                        zenoh.open(replace(settings, auth=flags.tracker_auth).zenoh_config())
+                    )
+                except zenoh.ZError as exc:
+                    typer.echo(
+                        f"error: --tracker: the emulated tracker cannot reach the router at "
+                        f"{' or '.join(connect)}: {_zenoh_reason(exc)}",
+                        err=True,
+                    )
+                    raise typer.Exit(1) from None
                 stack.enter_context(EmulatedTracker(session, robot_id, emulator))
-            driver = stack.enter_context(BasicXDriver.open(port, baud))
             agent = stack.enter_context(Agent(settings, driver))
             typer.echo(f"agent {robot_id} on {port}, server {' '.join(connect)}")
-            while not stop.wait(1.0):
+            while not stop.wait(0.2) and agent.other_agent is None:
                 pass
             status = agent.status()
-        typer.echo(
-            f"agent {robot_id}: {status.steps} steps, {agent.delivered} samples delivered, "
-            f"{status.stuck_events} stuck events"
-        )
-    except (AgentError, OSError, zenoh.ZError) as exc:
+    except (AgentError, OSError) as exc:
         typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(1) from exc
-    finally:
-        if emulator is not None:
-            with contextlib.suppress(RuntimeError):
-                emulator.stop()
+        raise typer.Exit(1) from None
+    if agent.other_agent is not None:
+        typer.echo(
+            f"error: --robot-id {robot_id}: another agent runs this robot, at "
+            f"{agent.other_agent} (HOST:PID): stop it, or give this one another --robot-id",
+            err=True,
+        )
+        raise typer.Exit(1)
+    typer.echo(
+        f"agent {robot_id}: {status.steps} steps, {agent.delivered} samples delivered, "
+        f"{status.stuck_events} stuck events"
+    )
+
+
+@dataclass(frozen=True)
+class _Flags:
+    """`colony agent`'s flags, checked."""
+
+    settings: AgentSettings
+    """Without the server key: it is fetched (trust on first use) once every flag is good."""
+    tracker_auth: ZenohClientAuth
+    body: SimBody | None
+    """The --emulate robot's body, in its maze and world."""
+
+
+def _refuse(flag: str, problem: object) -> NoReturn:
+    """A bad flag: one line naming it and the problem, exit status 2 (a usage error)."""
+    typer.echo(f"error: {flag}: {problem}", err=True)
+    raise typer.Exit(2)
+
+
+def _zenoh_reason(exc: Exception) -> str:
+    """zenoh's error text without where in zenoh's Rust sources it was raised."""
+    return re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc)).strip()
+
+
+def _checked(
+    *,
+    robot_id: str,
+    serial: str | None,
+    connect: list[str],
+    state_dir: Path | None,
+    emulate: bool,
+    maze: str,
+    seed: int,
+    index: int,
+    world: Path | None,
+    tracker: bool,
+    tracker_user: str | None,
+    tracker_password: str | None,
+    baud: int,
+    return_after: int,
+    start_pose: str,
+    server_key: Path | None,
+    insecure_no_verify: bool,
+    zenoh_user: str | None,
+    zenoh_password: str | None,
+    zenoh_root_ca: Path | None,
+    log_level: str,
+    log_format: str,
+) -> _Flags:
+    """Every flag of `colony agent` checked, and the logs configured; `_refuse` on the first
+    bad one. Nothing is fetched, pinned or started here (the state dir is created)."""
+    import zenoh
+    from pydantic import ValidationError
+
+    from colony.run_inputs import validation_message
+    from evorobotics.errors import EvoError
+    from evorobotics.sim import DEFAULT_WORLD
+    from robot_agent.agent import AgentSettings
+    from robot_agent.sim_body import SimBody
+    from robot_agent.verify import load_public_key
+    from schemas.robots import check_robot_id
+    from schemas.security import ZenohClientAuth
+    from schemas.world import world_from_json
+    from server.core.logs import as_format, configure
+
+    try:
+        check_robot_id(robot_id)
+    except ValueError as exc:
+        _refuse("--robot-id", exc)
+    try:
+        fmt = as_format(log_format)
+    except ValueError as exc:
+        _refuse("--log-format", exc)
+    try:
+        configure(log_level, fmt, ids={"robot": robot_id})
+    except ValueError as exc:
+        _refuse("--log-level", exc)
+    if (serial is None) == (not emulate):
+        _refuse("--serial/--emulate", "give exactly one: --serial PORT (an EvBot) or --emulate")
+    if tracker and not emulate:
+        _refuse("--tracker", "it emulates a tracker of the --emulate body")
+    if zenoh_user is not None and zenoh_user != robot_id:
+        _refuse("--zenoh-user", f"the zenoh user {zenoh_user} may only act as robot {zenoh_user}")
+    for endpoint in connect:
+        protocol, slash, address = endpoint.partition("/")
+        if not (protocol and slash and address):
+            _refuse("--connect", f"{endpoint!r} is not PROTOCOL/ADDRESS, e.g. tcp/SERVER:7447")
+    for flag, path in (("--zenoh-root-ca", zenoh_root_ca), ("--server-key", server_key)):
+        if path is not None and not path.is_file():
+            _refuse(f"{flag} {path}", "no such file")
+    try:
+        auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
+    except ValueError as exc:
+        _refuse("--zenoh-user/--zenoh-password", exc)
+    try:
+        tracker_auth = ZenohClientAuth(
+            user=tracker_user, password=tracker_password, root_ca=zenoh_root_ca
+        )
+    except ValueError as exc:
+        _refuse("--tracker-user/--tracker-password", exc)
+    try:
+        pose = _pose(start_pose)
+    except ValueError as exc:
+        _refuse("--start-pose", exc)
+    for flag, value, low in (("--return-after", return_after, 0), ("--baud", baud, 1)):
+        if value < low:
+            _refuse(flag, f"must be >= {low}, got {value}")
+    settings = AgentSettings(
+        robot_id=robot_id,
+        connect=tuple(connect),
+        state_dir=state_dir,
+        require_signature=not insecure_no_verify,
+        auth=auth,
+        start_pose=pose,
+        return_after_steps=return_after,
+    )
+    try:
+        settings.zenoh_config()
+    except zenoh.ZError as exc:
+        _refuse("--connect", _zenoh_reason(exc))
+    state = settings.state_path
+    try:
+        state.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _refuse("--state-dir", f"cannot create {state}: {exc.strerror}")
+    if not os.access(state, os.W_OK):
+        _refuse("--state-dir", f"cannot write in {state}")
+    if server_key is not None:
+        try:
+            load_public_key(server_key.read_bytes())
+        except (OSError, ValueError) as exc:
+            _refuse(f"--server-key {server_key}", exc)
+    body = None
+    if emulate:
+        for flag, value in (("--seed", seed), ("--index", index)):
+            if value < 0:
+                _refuse(flag, f"must be >= 0, got {value}")
+        body_world = DEFAULT_WORLD
+        if world is not None:
+            try:
+                body_world = world_from_json(world.read_bytes())
+            except OSError as exc:
+                _refuse(f"--world {world}", f"cannot read it: {exc.strerror}")
+            except ValidationError as exc:
+                _refuse(f"--world {world}", validation_message(exc))
+            except ValueError as exc:
+                _refuse(f"--world {world}", exc)
+        try:
+            body = SimBody.create(maze, seed=seed, index=index, world=body_world)
+        except (EvoError, ValueError, OSError) as exc:
+            _refuse(f"--maze {maze}", exc)
+    return _Flags(settings, tracker_auth, body)
 
 
 def _server_key(path: Path | None, state_dir: Path, server: str, insecure: bool) -> bytes | None:
@@ -208,15 +370,17 @@ def _server_key(path: Path | None, state_dir: Path, server: str, insecure: bool)
         return None
     try:
         response = httpx.get(f"{server.rstrip('/')}/api/server-key", timeout=10.0)
-        response.raise_for_status()
-    except httpx.HTTPError as exc:
+        if response.is_error:
+            why = f"{response.status_code} {response.reason_phrase}"
+            raise ValueError(why + base_url_hint(server, response.status_code))
+        load_public_key(response.content)
+    except (httpx.HTTPError, ValueError) as exc:
         typer.echo(
             f"warning: no server key pinned and none fetched from {server} ({exc}): every "
             "push is refused until the agent restarts with --server-key FILE",
             err=True,
         )
         return None
-    load_public_key(response.content)
     typer.echo(f"pinned the server key fetched from {server} in {state_dir}")
     return response.content
 
@@ -251,12 +415,12 @@ def register(app: typer.Typer) -> None:
 
 
 def _pose(text: str) -> tuple[float, float, float]:
-    """`X,Y,HEADING` as three finite floats; ValueError naming the option otherwise."""
+    """`X,Y,HEADING` as three finite floats; ValueError otherwise."""
     parts = text.split(",")
     try:
         x, y, theta = (float(p) for p in parts)
     except ValueError:
-        raise ValueError(f"--start-pose must be X,Y,HEADING (3 numbers), got {text!r}") from None
+        raise ValueError(f"must be X,Y,HEADING (3 numbers), got {text!r}") from None
     if not all(math.isfinite(v) for v in (x, y, theta)):
-        raise ValueError(f"--start-pose must be finite, got {text!r}")
+        raise ValueError(f"must be finite, got {text!r}")
     return x, y, theta

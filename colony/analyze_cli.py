@@ -32,10 +32,11 @@ def _steps(value: int | None) -> str:
 
 def print_table(a: Analysis) -> None:
     """Baseline, settling per contact and duration, distinct responses and memory."""
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console()
+    from colony.client import rich_console
+
+    console = rich_console()
     period = f" (period {a.baseline.period})" if a.baseline.kind == "cycle" else ""
     console.print(
         f"controller {a.sha256[:12]}  baseline after {a.warmup} zero steps: "

@@ -30,6 +30,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from colony.client import rich_console
 from colony.robot_cli import robots_table, workers_table
 from colony.run_cli import follow_run
 
@@ -81,8 +82,9 @@ class Children:
         self.processes.append((name, proc, out))
         return proc
 
-    def stop(self, names: Callable[[str], bool] = lambda _: True) -> None:
-        """SIGINT the chosen children, wait, SIGKILL stragglers, reap, close their logs."""
+    def stop(self, names: Callable[[str], bool] = lambda _: True) -> list[str]:
+        """SIGINT the chosen children, wait, SIGKILL stragglers, reap, close their logs; the
+        names of those stopped."""
         chosen = [p for p in reversed(self.processes) if names(p[0])]
         for _, proc, _ in chosen:
             if proc.poll() is None:
@@ -96,6 +98,21 @@ class Children:
                 proc.wait()
             out.close()
         self.processes = [p for p in self.processes if p not in chosen]
+        return [name for name, _, _ in chosen]
+
+
+def _plural(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
+def _stopped(names: list[str], workers: int, then: str) -> str:
+    """What `Children.stop` stopped, in words (its robots, then the server with its workers),
+    and `then`."""
+    robots = sum(name != "server" for name in names)
+    parts = [_plural(robots, "robot")] if robots else []
+    if "server" in names:
+        parts.append(f"the server and its {_plural(workers, 'worker')}")
+    return f"stopped {', then '.join(parts)}; {then}" if parts else then
 
 
 def _sigterm(_signum: int, _frame: FrameType | None) -> None:
@@ -206,7 +223,7 @@ def demo_command(
     ] = False,
 ) -> None:
     """Evolve the paper's controller on a local colony, drive virtual EvBots with it, summarise."""
-    console = Console()
+    console = rich_console()
     out = out.resolve()
     (out / "logs").mkdir(parents=True, exist_ok=True)
     children = Children()
@@ -232,8 +249,9 @@ def demo_command(
         console.print(f"[red]colony demo: {exc}[/red]")
         raise typer.Exit(1) from None
     finally:
-        children.stop()
-        console.print(f"stopped; demo took {time.perf_counter() - started:.1f} s")
+        took = time.perf_counter() - started
+        then = f"nothing is left running; demo took {took:.1f} s (its files stay in {out})"
+        console.print(_stopped(children.stop(), workers, then), highlight=False)
 
 
 def _demo(
@@ -250,6 +268,10 @@ def _demo(
     keep_running: bool,
 ) -> None:
     from rich.progress import BarColumn, Progress, TimeElapsedColumn
+
+    from colony.evolve import COMPILING
+    from evorobotics.sim import kernel_cached
+    from schemas.run import RunConfig
 
     logs = out / "logs"
     url = f"http://127.0.0.1:{port}"
@@ -290,6 +312,8 @@ def _demo(
             f"run {run['id']}: population {run['config']['population']}, "
             f"{run['generations']} generations (the paper's experiment unless overridden)"
         )
+        if not kernel_cached(RunConfig.model_validate(run["config"]).network_spec):
+            console.print(COMPILING)  # by the workers, which share this machine's cache
         run = follow_run(client, run["id"], console, alive)
         if run["status"] != "completed":
             raise DemoError(f"run {run['id']} {run['status']}: {run['error']}")
@@ -348,11 +372,21 @@ def _demo(
             console.print(table)
         files = write_plots(client, run, out)
         console.print("wrote " + ", ".join(str(f) for f in files))
-        console.print(f"dashboard: {url}/   metrics: {url}/metrics")
-        if keep_running:
-            children.stop(lambda name: name != "server")
-            console.print("server and dashboard up; Ctrl-C stops them")
-            tick = threading.Event()
+        if not keep_running:
+            console.print(
+                "the dashboard stops with the server; `colony demo --keep-running` keeps them up",
+                highlight=False,
+            )
+            return
+        up = (
+            f"still running: the server and its {_plural(workers, 'worker')}, dashboard "
+            f"{url}/ and metrics {url}/metrics, until Ctrl-C"
+        )
+        console.print(_stopped(children.stop(lambda name: name != "server"), workers, up))
+        tick = threading.Event()
+        try:
             while True:
                 alive()
                 tick.wait(1.0)
+        except KeyboardInterrupt:  # the way this mode ends, not a failure
+            return

@@ -7,6 +7,7 @@ from pathlib import Path
 import httpx
 from pydantic import ValidationError
 
+from colony.client import base_url_hint
 from evorobotics.document import ControllerDocument
 from evorobotics.errors import ControllerDocumentError
 from schemas.robots import CalibrationOut
@@ -27,7 +28,8 @@ def _get(server: str, path: str) -> bytes:
             detail = response.json()["detail"]
         except (ValueError, KeyError, TypeError):
             detail = response.text
-        raise ValueError(f"GET {url}: {response.status_code} {detail}")
+        hint = base_url_hint(server, response.status_code)
+        raise ValueError(f"GET {url}: {response.status_code} {detail}{hint}")
     return response.content
 
 

@@ -56,12 +56,12 @@ def _percent(x: float) -> str:
 
 def print_table(doc: ControllerDocument, e: Exploration, world: str) -> None:
     """One row per measure, then the document's training fitness and validation, labelled."""
-    from rich.console import Console
     from rich.table import Table
 
+    from colony.client import rich_console
     from evorobotics.explore import COVERAGE_CELL, PAPER_TRIAL
 
-    console = Console()
+    console = rich_console()
     gap = ", reality gap" if e.reality_gap else ""
     console.print(
         f"controller {doc.sha256[:12]} in maze {e.maze!r}, {_world_label(world)}{gap}: {e.poses} unseen start "
@@ -100,10 +100,11 @@ def _world_label(world: str) -> str:
 
 def print_map(doc: ControllerDocument, m: RobustnessMap, world: str) -> None:
     """Two tables, roaming then stuck: a row per whisker range, a column per gain ratio."""
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console()
+    from colony.client import rich_console
+
+    console = rich_console()
     console.print(
         f"controller {doc.sha256[:12]} in maze {m.maze!r}, {_world_label(world)}: {m.poses} unseen start "
         f"poses (robustness stream, seed {m.seed}) x {m.steps} steps in every cell"

@@ -23,7 +23,13 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from colony.options import NominalOpt
-from colony.run_inputs import ConfigError, maze_value, network_value, validation_message
+from colony.run_inputs import (
+    ConfigError,
+    maze_value,
+    name_maze_file,
+    network_value,
+    validation_message,
+)
 
 if TYPE_CHECKING:
     from evorobotics.document import ControllerDocument
@@ -33,6 +39,9 @@ if TYPE_CHECKING:
 
 LOG_LINES = 20
 """Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
+COMPILING = "compiling the simulator, once per machine: about 15 s"
+"""Said before a run whose kernels are not compiled yet (`evorobotics.sim.kernel_cached`):
+else the first generation would keep the progress bar at 0 that long without a word."""
 
 
 def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunConfig:
@@ -53,6 +62,7 @@ def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunCo
             raise ConfigError(f"config file {config_file}: expected a JSON object")
         data.update(loaded)
     given = {k: v for k, v in overrides.items() if v is not None}
+    maze = given.get("maze")
     if "maze" in given:
         given["maze"] = maze_value(given["maze"])
     if "network" in given:
@@ -65,7 +75,7 @@ def resolve_config(config_file: Path | None, overrides: dict[str, Any]) -> RunCo
     try:
         check_config(config)
     except (EvoError, ValueError) as err:
-        raise ConfigError(f"maze: {err}") from None
+        raise ConfigError(name_maze_file(f"maze: {err}", maze)) from None
     return config
 
 
@@ -352,6 +362,7 @@ def _evolve(
     with _importing():
         from evorobotics.evaluate import available_cores, trial_steps
         from evorobotics.evolution import evolve
+        from evorobotics.sim import kernel_cached
 
         try:
             cfg = resolve_config(config, overrides)  # loads the compiled kernels
@@ -365,6 +376,8 @@ def _evolve(
         f"{cfg.trials} x {trial_steps(cfg)} steps, {spec.weight_count} weights, seed {cfg.seed}, "
         f"strategy {cfg.strategy}, {workers} threads"
     )
+    if not kernel_cached(spec):
+        typer.echo(COMPILING)
     started = time.perf_counter()
     events = None
     if tensorboard is not None:

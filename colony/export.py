@@ -227,16 +227,29 @@ def export_study(study: Row, fetch: Fetch, out: Path) -> list[Path]:
     return [*written, out / "fitness.png", out / "metrics.png"]
 
 
-def export_run(run: Row, study: str | None, fetch: Fetch, out: Path) -> list[Path]:
+def export_run(
+    run: Row, study: str | None, fetch: Fetch, out: Path, best: bytes | None
+) -> list[Path]:
     """A RunOut's generations and latest generation's individuals (CSV and Parquet) in `out`
-    (created); `study` names its study, if any. The paths written."""
+    (created), beside `config.json` and `best.json` (the document `best`, if the run has one)
+    as `colony evolve --out` writes them, so `colony evolve --config config.json` reruns it;
+    `study` names its study, if any. The paths written."""
+    from schemas.run import RunConfig
+
     out.mkdir(parents=True, exist_ok=True)
     key = run_key(run, study)
     history = fetch(f"/api/runs/{run['id']}/generations")
     individuals = (
         individual_rows(key, fetch(f"/api/runs/{run['id']}/individuals")) if history else []
     )
+    config = out / "config.json"
+    config.write_text(RunConfig.model_validate(run["config"]).model_dump_json(indent=2) + "\n")
+    written = [config]
+    if best is not None:
+        written.append(out / "best.json")
+        written[-1].write_bytes(best)
     return [
+        *written,
         *write_table(
             out, Table("generations", GENERATION_COLUMNS, tuple(generation_rows(key, history)))
         ),

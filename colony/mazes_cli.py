@@ -22,9 +22,9 @@ def mazes_command(
 ) -> None:
     """The shipped mazes: size, free cells, steps of one crossing and what each is for; with
     --png, draw one (walls in metres)."""
-    from rich.console import Console
     from rich.table import Table
 
+    from colony.client import rich_console
     from evorobotics.errors import EvoError
     from evorobotics.evaluate import crossing_steps
     from evorobotics.maze import load_maze, maze_names, maze_note
@@ -62,4 +62,4 @@ def mazes_command(
             str(crossing_steps(m)),
             maze_note(spec) if spec in shipped else "",
         )
-    Console().print(table)
+    rich_console().print(table)

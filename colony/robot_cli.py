@@ -9,7 +9,6 @@ from typing import Annotated, Any
 
 import httpx
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from colony.client import (
@@ -20,8 +19,10 @@ from colony.client import (
     TokenOpt,
     call_server,
     cell,
+    checked,
     open_client,
     print_json,
+    rich_console,
 )
 from colony.run_cli import runs_table
 
@@ -101,7 +102,7 @@ def status(
     if as_json:
         print_json(colony)
         return
-    console = Console()
+    console = rich_console()
     counts = ", ".join(f"{k} {v}" for k, v in sorted(colony["runs"].items())) or "none"
     jobs = colony["jobs"]
     console.print(f"runs: {counts}")
@@ -125,7 +126,7 @@ def workers_command(
     if as_json:
         print_json(workers)
     else:
-        Console().print(workers_table(workers))
+        rich_console().print(workers_table(workers))
 
 
 def robots_command(
@@ -139,7 +140,7 @@ def robots_command(
     if as_json:
         print_json(robots)
     else:
-        Console().print(robots_table(robots))
+        rich_console().print(robots_table(robots))
 
 
 robot_app = typer.Typer(help="Inspect and command one robot.", no_args_is_help=True)
@@ -221,7 +222,7 @@ def robot_stuck(
             (e["replacement_sha256"] or "-")[:SHORT_SHA],
             cell(e["steps_run"]),
         )
-    Console().print(table)
+    rich_console().print(table)
     runs = Table(title=f"controllers in these events of {robot}")
     for column in ("controller", "time run", "stuck events", "stuck per hour"):
         runs.add_column(column)
@@ -233,7 +234,7 @@ def robot_stuck(
             str(c["stuck_events"]),
             f"{c['stuck_events'] / hours:.0f}" if hours > 0 else "-",
         )
-    Console().print(runs)
+    rich_console().print(runs)
 
 
 CALIBRATION_POSES = ("sim", "tracker")
@@ -317,7 +318,7 @@ def robot_calibrate(
     errs = [f"+-{1000 * e:.1f}" for e in c["uncertainty"]["whisker_range"]]
     table.add_row("whisker range, mm", *ranges)
     table.add_row("uncertainty, mm", *errs)
-    Console().print(table)
+    rich_console().print(table)
     for k in c.get("bounded", []):
         middle, half = c["whisker_range"][k], c["uncertainty"]["whisker_range"][k]
         typer.echo(
@@ -414,9 +415,7 @@ def robot_forget(
     except httpx.HTTPError as exc:
         typer.echo(f"error: cannot reach {server}: {exc}", err=True)
         raise typer.Exit(1) from exc
-    if response.is_error:
-        typer.echo(f"error {response.status_code}: {response.json().get('detail')}", err=True)
-        raise typer.Exit(1)
+    checked(response, server)
     typer.echo(f"robot {robot} forgotten")
 
 

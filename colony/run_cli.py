@@ -24,6 +24,7 @@ from colony.client import (
     open_client,
     print_json,
     request,
+    rich_console,
 )
 from colony.options import NominalOpt
 
@@ -154,6 +155,13 @@ def run_start(
         str | None,
         typer.Option(help="paper-ga, cma-es, sep-cma-es, map-elites, cma-me or novelty [paper-ga]"),
     ] = None,
+    name: Annotated[
+        str | None, typer.Option("--name", help="what `run list` and the dashboard call it")
+    ] = None,
+    tags: Annotated[
+        list[str] | None,
+        typer.Option("--tag", metavar="TAG", help="a label to find it by, repeatable"),
+    ] = None,
     follow: Annotated[
         bool, typer.Option("--follow", help="show a progress bar until the run ends")
     ] = False,
@@ -164,7 +172,7 @@ def run_start(
     """Start a run; unset fields default to the paper's experiment (validated by the server).
 
     With --follow, exit status 1 unless the run completes."""
-    from colony.run_inputs import ConfigError, maze_value, network_value
+    from colony.run_inputs import ConfigError, maze_value, name_maze_file, network_value
 
     if nominal and for_colony:
         typer.echo("error: --nominal and --for-colony choose opposite worlds: give one", err=True)
@@ -196,9 +204,13 @@ def run_start(
         "reality_gap": "off" if nominal else "colony" if for_colony else None,
         "job_size": job_size,
         "strategy": strategy,
+        "name": name,
+        "tags": tags or None,
     }
     body.update({k: v for k, v in flags.items() if v is not None})
-    run = call_server(ctx, server, token, "POST", "/api/runs", body)
+    run = call_server(
+        ctx, server, token, "POST", "/api/runs", body, explain=lambda d: name_maze_file(d, maze)
+    )
     if follow:
         _follow(ctx, server, token, run["id"], as_json)
     elif as_json:
@@ -221,7 +233,7 @@ def _follow(ctx: typer.Context, server: str, token: str | None, run_id: int, as_
     re-attaches."""
     with open_client(ctx, server, token) as client:
         try:
-            run = follow_run(client, run_id, Console(stderr=as_json))
+            run = follow_run(client, run_id, rich_console(stderr=as_json))
         except httpx.HTTPError as exc:
             typer.echo(f"error: lost {server}: {exc}", err=True)
             raise typer.Exit(1) from exc
@@ -264,7 +276,7 @@ def run_list(
     if as_json:
         print_json(runs)
     else:
-        Console().print(runs_table(runs, "runs"))
+        rich_console().print(runs_table(runs, "runs"))
 
 
 @run_app.command("show")
@@ -281,7 +293,7 @@ def run_show(
     if as_json:
         print_json({**run, "history": generations})
         return
-    console = Console()
+    console = rich_console()
     console.print(runs_table([run], f"run {run_id}"))
     if run["error"]:
         console.print(f"{run['status']}: {run['error']}", highlight=False)
@@ -301,16 +313,20 @@ def run_export(
     server: ServerOpt = DEFAULT_SERVER,
     token: TokenOpt = None,
 ) -> None:
-    """The run's generations and its latest generation's individuals, as CSV and Parquet."""
+    """The run's generations and its latest generation's individuals, as CSV and Parquet, with
+    its config.json and best.json (a completed run's champion) as `colony evolve` writes them."""
     from colony.export import export_run
 
     run = call_server(ctx, server, token, "GET", f"/api/runs/{run_id}")
     study = None
     if run.get("study_id") is not None:
         study = call_server(ctx, server, token, "GET", f"/api/studies/{run['study_id']}")["name"]
+    best = None
+    if run["generation"] > 0:  # a best controller exists once a generation is committed
+        best = request(ctx, server, token, "GET", f"/api/runs/{run_id}/best").content
     try:
         with fetching(ctx, server, token) as fetch:
-            written = export_run(run, study, fetch, out)
+            written = export_run(run, study, fetch, out, best)
     except OSError as exc:
         typer.echo(f"error: cannot write {out}: {exc}", err=True)
         raise typer.Exit(1) from exc
@@ -343,7 +359,7 @@ def run_archive(
             "-" if elite["fitness"] is None else f"{elite['fitness']:.3f}",
             elite["sha256"],
         )
-    Console().print(table)
+    rich_console().print(table)
 
 
 @run_app.command("best")

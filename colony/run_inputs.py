@@ -12,6 +12,9 @@ from pydantic import ValidationError
 
 from schemas.network import PRESETS, NetworkSpec
 
+TEXT_MAZE = "maze '<text>'"
+"""How `evorobotics.maze` names a maze given as text, which is how a maze file travels."""
+
 
 class ConfigError(Exception):
     """A flag, config file, maze or network is invalid; the message is one line for the user."""
@@ -57,3 +60,11 @@ def maze_value(value: str) -> str:
         ) from None
     except OSError as err:
         raise ConfigError(f"maze file {value}: cannot read it: {err.strerror}") from None
+
+
+def name_maze_file(message: str, maze: str | None) -> str:
+    """`message` about the maze text read from file `maze` (the `--maze` value) naming that
+    file, as the user knows it, instead of the text."""
+    if maze is None or not Path(maze).is_file():
+        return message
+    return message.replace(TEXT_MAZE, f"maze file {maze}")

@@ -17,66 +17,89 @@ if TYPE_CHECKING:
 
 
 def serve(
-    db: Annotated[str | None, typer.Option("--db", help="SQLAlchemy URL [COLONY_DB_URL]")] = None,
-    host: Annotated[str | None, typer.Option(help="bind address [COLONY_HOST]")] = None,
-    port: Annotated[int | None, typer.Option(help="HTTP port [COLONY_PORT]")] = None,
+    db: Annotated[
+        str | None,
+        typer.Option("--db", help="SQLAlchemy URL [COLONY_DB_URL; default: sqlite:///colony.db]"),
+    ] = None,
+    host: Annotated[
+        str | None, typer.Option(help="bind address [COLONY_HOST; default: 127.0.0.1]")
+    ] = None,
+    port: Annotated[int | None, typer.Option(help="HTTP port [COLONY_PORT; default: 8000]")] = None,
     zenoh_listen: Annotated[
         list[str] | None,
         typer.Option(
             "--zenoh-listen",
-            help="zenoh endpoint to listen on, repeatable (default tcp/127.0.0.1:7447; off "
-            "loopback it needs a lab's users and roles) [COLONY_ZENOH_LISTEN, a JSON list]",
+            help="zenoh endpoint to listen on, repeatable (off loopback it needs a lab's users "
+            "and roles) [COLONY_ZENOH_LISTEN, a JSON list; default: tcp/127.0.0.1:7447]",
         ),
     ] = None,
     zenoh_connect: Annotated[
         list[str] | None,
         typer.Option(
             "--zenoh-connect",
-            help="a lab zenohd to join, e.g. tcp/HOST:7447; repeatable [COLONY_ZENOH_CONNECT]",
+            help="a lab zenohd to join, e.g. tcp/HOST:7447; repeatable [COLONY_ZENOH_CONNECT; "
+            "default: none]",
         ),
     ] = None,
     workers: Annotated[
         int | None,
         typer.Option(
-            help="local worker processes; 0 waits for remote ones (default: one per spare "
-            "core) [COLONY_WORKERS]"
+            help="local worker processes; 0 waits for remote ones [COLONY_WORKERS; "
+            "default: one per spare core]"
         ),
     ] = None,
     no_zenoh: Annotated[
         bool,
         typer.Option(
             "--no-zenoh",
-            help="no zenoh at all: evaluate in-process threads (--executors) [COLONY_ZENOH]",
+            help="no zenoh at all: evaluate in-process threads (--executors) [COLONY_ZENOH=false]",
         ),
     ] = False,
     executors: Annotated[
         int | None,
         typer.Option(
-            help="in-process evaluation threads (default: 0 with zenoh, 1 with --no-zenoh) "
-            "[COLONY_EXECUTORS]"
+            help="in-process evaluation threads [COLONY_EXECUTORS; "
+            "default: 0 with zenoh, 1 with --no-zenoh]"
         ),
     ] = None,
     log_level: Annotated[
-        str | None, typer.Option(help="DEBUG, INFO, WARNING or ERROR [COLONY_LOG_LEVEL]")
+        str | None,
+        typer.Option(help="DEBUG, INFO, WARNING or ERROR [COLONY_LOG_LEVEL; default: INFO]"),
     ] = None,
     log_format: Annotated[
         str | None,
-        typer.Option(help="text, or json for one JSON object per line [COLONY_LOG_FORMAT]"),
+        typer.Option(
+            help="text, or json for one JSON object per line [COLONY_LOG_FORMAT; default: text]"
+        ),
     ] = None,
     token: Annotated[
         str | None,
-        typer.Option("--token", help="API bearer token, required off loopback [COLONY_API_TOKEN]"),
+        typer.Option(
+            "--token",
+            help="API bearer token, required off loopback [COLONY_API_TOKEN; "
+            "default: none, writes from loopback only]",
+        ),
     ] = None,
     read_closed: Annotated[
-        bool, typer.Option("--read-closed", help="reads need the token too [COLONY_READ_OPEN]")
+        bool,
+        typer.Option(
+            "--read-closed",
+            help="reads need the token too [COLONY_READ_OPEN=false; default: reads are open]",
+        ),
     ] = False,
     server_key: Annotated[
         Path | None,
-        typer.Option(help="Ed25519 key signing robot pushes [COLONY_SERVER_KEY]"),
+        typer.Option(
+            help="Ed25519 key signing robot pushes [COLONY_SERVER_KEY; "
+            "default: server-key.pem beside the SQLite file]"
+        ),
     ] = None,
     zenoh_users: Annotated[
         Path | None,
-        typer.Option(help="zenoh user:password file clients must match [COLONY_ZENOH_USERS_FILE]"),
+        typer.Option(
+            help="zenoh user:password file clients must match [COLONY_ZENOH_USERS_FILE; "
+            "default: none, loopback only]"
+        ),
     ] = None,
     zenoh_roles: Annotated[
         Path | None,
@@ -85,20 +108,24 @@ def serve(
         ),
     ] = None,
     zenoh_tls_cert: Annotated[
-        Path | None, typer.Option(help="PEM certificate for tls/ endpoints")
+        Path | None,
+        typer.Option(help="PEM certificate for tls/ endpoints [COLONY_ZENOH_TLS_CERTIFICATE]"),
     ] = None,
-    zenoh_tls_key: Annotated[Path | None, typer.Option(help="its PEM private key")] = None,
+    zenoh_tls_key: Annotated[
+        Path | None, typer.Option(help="its PEM private key [COLONY_ZENOH_TLS_PRIVATE_KEY]")
+    ] = None,
     replacement: Annotated[
         str | None,
         typer.Option(
-            help="what a stuck robot without its own policy gets: off or rank [COLONY_REPLACEMENT]"
+            help="what a stuck robot without its own policy gets: off or rank "
+            "[COLONY_REPLACEMENT; default: rank]"
         ),
     ] = None,
     maze: Annotated[
         str | None,
         typer.Option(
             help="the lab maze the Colony page maps robots in: NAME, gen:SIZE:SEED or FILE "
-            "(default paper) [COLONY_MAZE]"
+            "[COLONY_MAZE; default: paper]"
         ),
     ] = None,
 ) -> None:

@@ -19,7 +19,15 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from colony.client import DEFAULT_SERVER, JsonOpt, ServerOpt, TokenOpt, fetching, request
+from colony.client import (
+    DEFAULT_SERVER,
+    JsonOpt,
+    ServerOpt,
+    TokenOpt,
+    fetching,
+    request,
+    rich_console,
+)
 from colony.export import METRIC_ORDER, export_study
 from colony.run_cli import FINAL, stopped_following
 
@@ -194,7 +202,7 @@ def study_table(study: dict[str, Any]) -> Table:
 
 
 def _print_study(study: dict[str, Any]) -> None:
-    console = Console()
+    console = rich_console()
     console.print(study_table(study))
     for line in study["verdicts"]:
         console.print(line, highlight=False)
@@ -258,7 +266,7 @@ def _finish(
 ) -> None:
     if follow:
         try:
-            study = follow_study(ctx, server, token, study["id"], Console(stderr=True))
+            study = follow_study(ctx, server, token, study["id"], rich_console(stderr=True))
         except KeyboardInterrupt:
             sid = study["id"]
             stopped_following(f"study {sid}", f"colony study show {sid} --follow", server)
@@ -366,7 +374,7 @@ def study_list(
             f"{_done(s)}/{len(s['runs'])}",
             str(s["created_at"]),
         )
-    Console().print(table)
+    rich_console().print(table)
 
 
 @study_app.command("export")

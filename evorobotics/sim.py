@@ -1139,6 +1139,21 @@ def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
     return cast(Callable[..., None], module.episodes)
 
 
+def kernel_cached(spec: NetworkSpec) -> bool:
+    """Whether `simulate`'s kernel for `spec` is compiled already: loaded in this process, or
+    in numba's disk cache for this machine's CPU. False: the first `simulate` compiles it
+    (about 15 s, once per machine), which a command says rather than sit silent. Reads numba's
+    cache index only (no machine code is loaded)."""
+    kernel: Any = _episode_kernel(spec)  # a numba dispatcher
+    if kernel.overloads:
+        return True
+    index = kernel._cache._cache_file._load_index()  # {} when absent or stale
+    if not index:
+        return False
+    cpu = kernel.targetctx.codegen().magic_tuple()
+    return any(key[1] == cpu for key in index)  # keys: (signature, cpu, code hashes)
+
+
 def simulate(
     spec: NetworkSpec,
     weights: np.ndarray,

@@ -6,9 +6,11 @@ Two threads per robot, so the network can never stall the wheels:
   boundary, read the whiskers, `evorobotics.network.step` (batch 1, the simulator's own code),
   send the motor commands, record the sample, feed the stuck detector. Deadline-based: step k
   is due at start + k * period on the monotonic clock, so lateness never accumulates.
-- link: opens the zenoh client session (retrying with backoff), declares the robot's liveliness
-  token, takes pushes from the command subscriber, acknowledges them once applied, asks the
-  server for a replacement when stuck, and delivers buffered trace batches until acknowledged.
+- link: opens the zenoh client session (retrying with backoff; a missing router is logged
+  once, then at a falling rate), makes sure no other agent runs this robot (or stops the
+  agent, naming the other's HOST:PID), declares the robot's liveliness token, takes pushes
+  from the command subscriber, acknowledges them once applied, asks the server for a
+  replacement when stuck, and delivers buffered trace batches until acknowledged.
 
 The robot keeps running its controller without the network. Traces wait in a bounded buffer
 (oldest dropped first, counted) and go out after reconnection. The last accepted controller is
@@ -27,7 +29,9 @@ import json
 import logging
 import os
 import queue
+import re
 import secrets
+import socket
 import threading
 import time
 from collections import deque
@@ -63,6 +67,7 @@ from schemas.robots import (
     TraceBatch,
     TrackerPose,
     ack_key,
+    agent_key,
     alive_key,
     check_robot_id,
     clamp_poses,
@@ -99,6 +104,18 @@ class RobotIO(Protocol):
 
 def default_state_dir(robot_id: str) -> Path:
     return Path.home() / ".evocolony" / f"agent-{check_robot_id(robot_id)}"
+
+
+_AGENTS = itertools.count(1)
+"""Agents made in this process (tests run several)."""
+
+
+def _next_address() -> str:
+    """HOST:PID of this process, and -N for its Nth agent after the first: the name of a new
+    agent's `agent_key` token (one key chunk)."""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "_", socket.gethostname()) or "host"
+    n = next(_AGENTS)
+    return f"{host}:{os.getpid()}" + (f"-{n}" if n > 1 else "")
 
 
 @dataclass(frozen=True)
@@ -232,6 +249,55 @@ class _Backoff:
         self._delay = self._initial
 
 
+NO_ROUTER_REPORT_S = 5.0
+"""Seconds without a router before the first reminder; each later one waits twice as long."""
+
+
+class _Outage:
+    """The log of a missing router, calm: the first failed attempt, then a reminder after 5 s,
+    10 s, 20 s... (a falling rate), each naming the router's address; zenoh's own error text
+    (long, the same every time) at DEBUG only."""
+
+    def __init__(self, robot: str, routers: tuple[str, ...]) -> None:
+        self._robot, self._routers = robot, " or ".join(routers)
+        self._since: float | None = None
+        self._attempts = 0
+        self._remind = NO_ROUTER_REPORT_S
+
+    def failed(self, exc: Exception) -> None:
+        now = time.monotonic()
+        self._attempts += 1
+        log.debug("robot %s: %s", self._robot, exc)
+        if self._since is None:
+            self._since = now
+            log.warning(
+                "robot %s: no router at %s; retrying (next report in %.0f s, then less and "
+                "less often); the robot drives on and keeps its traces",
+                self._robot,
+                self._routers,
+                self._remind,
+            )
+        elif now - self._since >= self._remind:
+            log.info(
+                "robot %s: still no router at %s after %.0f s (%d attempts)",
+                self._robot,
+                self._routers,
+                now - self._since,
+                self._attempts,
+            )
+            self._remind *= 2
+
+    def connected(self) -> None:
+        if self._since is not None:
+            log.info(
+                "robot %s: connected to the router at %s after %.0f s",
+                self._robot,
+                self._routers,
+                time.monotonic() - self._since,
+            )
+        self._since, self._attempts, self._remind = None, 0, NO_ROUTER_REPORT_S
+
+
 class Agent:
     """One EvBot's daemon between `start()` and `stop()` (or `with`)."""
 
@@ -286,6 +352,11 @@ class Agent:
         """Set while the zenoh session is open."""
         self.delivered = 0
         """Trace samples the server acknowledged."""
+        self.address = _next_address()
+        """HOST:PID (-N after the first agent of a process), its `agent_key` token's name."""
+        self.other_agent: str | None = None
+        """HOST:PID of another agent found running this robot; this one then stopped itself
+        (notified on `changed`)."""
         self.boot = self._next_boot()
         if settings.server_key is not None:
             pin_key(settings.state_path, settings.server_key)
@@ -574,16 +645,15 @@ class Agent:
 
     def _link_loop(self) -> None:
         backoff = _Backoff(self.settings.backoff_initial, self.settings.backoff_max)
+        outage = _Outage(self.settings.robot_id, self.settings.connect)
         while not self._halt.is_set():
             try:
                 session = self._open_session()
             except zenoh.ZError as exc:
-                delay = backoff.next()
-                log.info(
-                    "robot %s: no router (%s); retry in %.1f s", self.settings.robot_id, exc, delay
-                )
-                self._serve_offline(delay)
+                outage.failed(exc)
+                self._serve_offline(backoff.next())
                 continue
+            outage.connected()
             backoff.reset()
             try:
                 self._serve(session)
@@ -600,6 +670,40 @@ class Agent:
             self._wake.clear()
 
     def _serve(self, session: zenoh.Session) -> None:
+        """Claim the robot (`agent_key`) and serve it, unless another agent has claimed it."""
+        claim = session.liveliness().declare_token(agent_key(self.settings.robot_id, self.address))
+        try:
+            other = self._other_agent(session)
+            if other is None:
+                self._serve_robot(session)
+            else:
+                self._stand_down(other)
+        finally:
+            claim.undeclare()  # type: ignore[no-untyped-call]
+
+    def _other_agent(self, session: zenoh.Session) -> str | None:
+        """HOST:PID of another agent whose token claims this robot, or None. Each agent
+        declares its own token before it looks, so of two agents starting together at most one
+        runs (perhaps neither: then start one again)."""
+        mine = agent_key(self.settings.robot_id, self.address)
+        replies = session.liveliness().get(
+            agent_key(self.settings.robot_id), timeout=self.settings.request_timeout
+        )
+        for reply in replies:
+            if reply.ok is not None and str(reply.ok.key_expr) != mine:
+                return str(reply.ok.key_expr).rsplit("/", 1)[1]
+        return None
+
+    def _stand_down(self, other: str) -> None:
+        """Another agent runs this robot: stop both threads (motors off on `stop`); the owner
+        reads `other_agent` and says so (`colony agent` in one line)."""
+        with self._lock:
+            self.other_agent = other
+            self._halt.set()
+            self.changed.notify_all()
+
+    def _serve_robot(self, session: zenoh.Session) -> None:
+        """The robot's side of the link while the session lasts (`_serve`)."""
         robot = self.settings.robot_id
         inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
 

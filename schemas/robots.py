@@ -8,6 +8,7 @@ compares them bit for bit with what the same controller computes from the same w
 | key | kind | declared by |
 | --- | --- | --- |
 | `evocolony/robots/{id}/alive` | liveliness token | agent |
+| `evocolony/robots/{id}/agent/{host}:{pid}` | liveliness token (which process runs the robot) | agent |
 | `evocolony/robots/{id}/command` | subscriber (pushes, stop) | agent |
 | `evocolony/robots/{id}/ack` | publication (push acknowledgements) | agent |
 | `evocolony/robots/{id}/traces` | queryable `*` (trace batches, acknowledged) | server |
@@ -70,6 +71,13 @@ def check_robot_id(robot_id: str) -> str:
 
 def alive_key(robot_id: str) -> str:
     return f"evocolony/robots/{check_robot_id(robot_id)}/alive"
+
+
+def agent_key(robot_id: str, where: str = "*") -> str:
+    """The token of the agent process that runs robot `robot_id`, `where` = HOST:PID: an agent
+    declares it before anything else, and refuses to run when another agent's token is there
+    (docs/robots.md). The default `*` matches every agent of the robot."""
+    return f"evocolony/robots/{check_robot_id(robot_id)}/agent/{where}"
 
 
 def traces_key(robot_id: str) -> str:

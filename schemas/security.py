@@ -97,7 +97,8 @@ class ZenohRoles:
 
     Everything not allowed here is denied, so an authenticated client can only do its role's
     part: worker `W` (and its processes `W.anything`) asks on its own job keys and declares its
-    own liveliness token; robot `R` declares `evocolony/robots/R/alive`, subscribes to its own
+    own liveliness token; robot `R` declares `evocolony/robots/R/alive` and its agent's
+    `evocolony/robots/R/agent/*` token and looks for other agents' there, subscribes to its own
     commands and its own tracker poses, publishes its own acks and asks on its own trace and
     replace keys; a tracker
     publishes robots' poses (`evocolony/tracker/*`) and nothing else. Only the server, inside
@@ -155,10 +156,11 @@ class ZenohRoles:
         for n, robot in enumerate(self.robots):
             key = {kind: f"evocolony/robots/{robot}/{kind}" for kind in _ROBOT_KEYS}
             asks = [key["traces"], key["replace"]]
+            agents = f"evocolony/robots/{robot}/agent/*"
             parts = ("alive", "sub", "cmd", "ack", "ask", "reply", "see", "where", "seen")
-            ids = [f"r{n}-{part}" for part in parts]
+            ids = [f"r{n}-{part}" for part in (*parts, "look", "found")]
             rules += [
-                _allow(ids[0], ["liveliness_token"], "ingress", [key["alive"]]),
+                _allow(ids[0], ["liveliness_token"], "ingress", [key["alive"], agents]),
                 _allow(ids[1], ["declare_subscriber"], "ingress", [key["command"]]),
                 _allow(ids[2], ["put"], "egress", [key["command"]]),
                 _allow(ids[3], ["put"], "ingress", [key["ack"]]),
@@ -167,6 +169,8 @@ class ZenohRoles:
                 _allow(ids[6], ["declare_queryable"], "egress", list(_SERVER_ROBOT_QUERYABLES)),
                 _allow(ids[7], ["declare_subscriber"], "ingress", [f"evocolony/tracker/{robot}"]),
                 _allow(ids[8], ["put"], "egress", [f"evocolony/tracker/{robot}"]),
+                _allow(ids[9], ["liveliness_query"], "ingress", [agents]),
+                _allow(ids[10], ["liveliness_token"], "egress", [agents]),
             ]
             subjects.append({"id": f"r{n}", "usernames": [robot]})
             policies.append({"id": f"r{n}", "rules": ids, "subjects": [f"r{n}"]})

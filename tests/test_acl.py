@@ -232,6 +232,20 @@ def test_only_the_tracker_credential_gives_a_robot_its_poses(
     assert len({tuple(s["pose"]) for s in samples}) > 10  # it moves, and the poses follow
 
 
+def test_a_second_agent_of_a_robot_is_refused_under_its_role(
+    lab: LabServer, tmp_path: Path
+) -> None:
+    """The robot role may claim its own robot (`agent_key`) and look for other claims: a
+    second agent with bot1's credentials finds the first and stops; the first runs on."""
+    with robot(lab, "bot1", tmp_path / "first") as (first, _):
+        assert first.connected.wait(WAIT)
+        with robot(lab, "bot1", tmp_path / "second") as (second, _):
+            assert second.wait_for(lambda: second.other_agent is not None, WAIT)
+            assert second.other_agent == first.address
+            assert not second.connected.is_set()
+        assert first.connected.is_set() and first.other_agent is None
+
+
 def test_a_public_zenoh_listen_needs_a_lab(tmp_path: Path) -> None:
     public = Settings(db_url=f"sqlite:///{tmp_path / 'c.db'}", zenoh_listen=["tcp/0.0.0.0:7447"])
     from server.app import create_app
