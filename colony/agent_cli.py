@@ -62,6 +62,14 @@ def agent_command(
             help="--emulate: the body's world, a JSON world or a run's config.json / best.json"
         ),
     ] = None,
+    gap: Annotated[
+        bool,
+        typer.Option(
+            "--gap/--no-gap",
+            help="--emulate: the body's whiskers and wheels drawn from the world's reality gap "
+            "(by --seed and --index), or exactly the world's whisker_range and motor_gain",
+        ),
+    ] = True,
     tracker: Annotated[
         bool,
         typer.Option(
@@ -133,6 +141,7 @@ def agent_command(
         seed=seed,
         index=index,
         world=world,
+        gap=gap,
         tracker=tracker,
         tracker_user=tracker_user,
         tracker_password=tracker_password,
@@ -240,6 +249,7 @@ def _checked(
     seed: int,
     index: int,
     world: Path | None,
+    gap: bool,
     tracker: bool,
     tracker_user: str | None,
     tracker_password: str | None,
@@ -353,7 +363,7 @@ def _checked(
             except ValueError as exc:
                 _refuse(f"--world {world}", exc)
         try:
-            body = SimBody.create(maze, seed=seed, index=index, world=body_world)
+            body = SimBody.create(maze, seed=seed, index=index, gap=gap, world=body_world)
         except (EvoError, ValueError, OSError) as exc:
             _refuse(f"--maze {maze}", exc)
     return _Flags(settings, tracker_auth, body)

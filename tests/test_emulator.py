@@ -174,6 +174,17 @@ def test_a_virtual_robot_takes_the_world_of_a_run_config_or_champion(tmp_path: P
     assert exc.value.code == 2
 
 
+def test_a_world_without_the_gap_is_the_bodys_hidden_physics_exactly() -> None:
+    """`colony agent --emulate --world FILE --no-gap` (and the emulator's `--no-gap`): each
+    whisker's range and each wheel's gain are the world's, as a lab sets a robot it wants."""
+    world = World(whisker_range=(0.03, 0.045, 0.06, 0.075, 0.09), motor_gain=(0.9, 1.1))
+    body = SimBody.create("paper", seed=3, index=1, gap=False, world=world)
+    assert body.gap.whisker_range.tolist() == [list(world.whisker_ranges)]
+    assert body.gap.motor_gain.tolist() == [[0.9, 1.1]]
+    drawn = SimBody.create("paper", seed=3, index=1, world=world)
+    assert drawn.gap.motor_gain.tolist() != [[0.9, 1.1]]  # the gap draws around the world's
+
+
 def test_a_virtual_robot_under_the_step_gap_model_draws_its_whiskers_every_step() -> None:
     world = World(gap_model="step")
     a, b = (SimBody.create("paper", seed=5, index=2, world=world) for _ in range(2))
