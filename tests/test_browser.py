@@ -147,10 +147,13 @@ HIDDEN_HEADERS = """() => [...document.querySelectorAll('#runs-table thead th')]
 def test_runs_table_and_run_page_fit_every_width_and_print_no_null(
     served: Served, browser: Any, shots: Path
 ) -> None:
-    """At 1024, 1400 and 1920 px every column header of the runs table is whole on screen,
-    the page scrolls no sideways, and the run page of a run whose steps are left to the
-    crossing rule gives the steps it trains with, and nowhere says null."""
+    """At 1024, 1400 and 1920 px every column header of the runs table is whole on screen and
+    no cell runs past the table's box (a long name, a six-digit generation count), the page
+    scrolls no sideways, and the run page of a run whose steps are left to the crossing rule
+    gives the steps it trains with, and nowhere says null."""
     with httpx.Client(base_url=served.url, timeout=30) as client:
+        wide = {**QUICK, "generations": 100_000, "name": "a long name that ends in an ellipsis"}
+        client.post(f"/api/runs/{client.post('/api/runs', json=wide).json()['id']}/cancel")
         body = {"population": 8, "generations": 2, "job_size": 4, "name": "steps by crossings"}
         run_id = client.post("/api/runs", json=body).json()["id"]
         run = wait_completed(client, run_id)
@@ -166,6 +169,8 @@ def test_runs_table_and_run_page_fit_every_width_and_print_no_null(
             page.locator("[data-testid=run-validation]").filter(has_text="Champion").wait_for()
             page.wait_for_selector("#paths-img:not([hidden])")
             assert page.evaluate(HIDDEN_HEADERS) == [], width
+            box = page.locator(".runs-scroll")
+            assert box.evaluate("(e) => e.scrollWidth <= e.clientWidth"), width
             assert page.evaluate("document.documentElement.scrollWidth") <= width
             meta = page.inner_text("#run-meta")
             assert f"3 trials × {run['trial_steps']} steps" in meta, meta
