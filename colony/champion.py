@@ -5,10 +5,12 @@ validation, with its held-out test figures)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from colony.client import SHORT_SHA
-from schemas.run import HeldOutScore, Proportion, ValidationScore
+
+if TYPE_CHECKING:  # schemas.run builds its models when imported: not at `colony --help`
+    from schemas.run import HeldOutScore, Proportion, ValidationScore
 
 
 def training_progress(best_so_far: float | None, latest: float | None) -> str:
@@ -60,12 +62,16 @@ def champion_lines(
 
 
 def _test(champion: dict[str, Any]) -> HeldOutScore | None:
+    from schemas.run import HeldOutScore
+
     test = champion.get("test")
     return None if test is None else HeldOutScore.model_validate(test)
 
 
 def run_champion_lines(run: dict[str, Any]) -> list[str]:
     """A RunOut's champion lines, or one line saying why it has none."""
+    from schemas.run import ValidationScore
+
     c = run.get("champion")
     if c is not None:
         validation = c.get("validation")
