@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 RUNTIME := $(VENV)/.runtime-installed
 DEV := $(VENV)/.dev-installed
 
-.PHONY: demo test bench chaos load lint clean
+.PHONY: demo test bench chaos load lint screenshots clean
 
 # The product's dependencies only: enough for demo, bench and load.
 $(RUNTIME): pyproject.toml
@@ -36,6 +36,10 @@ chaos: $(DEV)
 
 load: $(RUNTIME)
 	$(BIN)/python chaos/load.py $(if $(SECONDS),--seconds $(SECONDS))
+
+# The dashboard's pictures in docs/img, retaken from a colony started for them (headless Chromium).
+screenshots: $(DEV)
+	$(BIN)/python tools/screenshots.py
 
 # bench/ gets its own mypy run: bench/colony.py would clash with the colony package.
 lint: $(DEV)

@@ -30,6 +30,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from colony.champion import held_out_cells, run_champion_lines
 from colony.client import rich_console
 from colony.robot_cli import robots_table, workers_table
 from colony.run_cli import follow_run
@@ -189,15 +190,18 @@ def summary_tables(
 ) -> list[Table]:
     """The colony at the end: its robots, the workers and the run."""
     run_table = Table(title="run")
-    for column in ("id", "status", "generations", "evaluations", "best fitness"):
+    for column in ("id", "status", "generations", "evaluations", "best training fitness"):
         run_table.add_column(column)
-    best = run["best_fitness"]
+    for column in ("champion", "roaming nominal / gap", "stuck nominal / gap"):
+        run_table.add_column(column)
+    best = run.get("best_fitness_so_far")
     run_table.add_row(
         str(run["id"]),
         run["status"],
         f"{run['generation']}/{run['generations']}",
         str(run["evaluations"]),
         "-" if best is None else f"{best:.4f}",
+        *held_out_cells(run.get("champion")),
     )
     return [robots_table(robots), workers_table(workers), run_table]
 
@@ -317,9 +321,9 @@ def _demo(
         run = follow_run(client, run["id"], console, alive)
         if run["status"] != "completed":
             raise DemoError(f"run {run['id']} {run['status']}: {run['error']}")
-        console.print(
-            f"evolved in {time.perf_counter() - t0:.1f} s, best {run['best_fitness']:.4f}"
-        )
+        console.print(f"evolved in {time.perf_counter() - t0:.1f} s", highlight=False)
+        for line in run_champion_lines(run):
+            console.print(line, highlight=False)
 
         ids = [f"evbot-{i + 1}" for i in range(robots)]
         for index, robot in enumerate(ids):

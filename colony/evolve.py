@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import gc
 import json
+import math
 import multiprocessing
 import os
 import sys
@@ -22,6 +23,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from colony.champion import champion_lines, training_progress
 from colony.options import NominalOpt
 from colony.run_inputs import (
     ConfigError,
@@ -32,10 +34,9 @@ from colony.run_inputs import (
 )
 
 if TYPE_CHECKING:
-    from evorobotics.document import ControllerDocument
     from evorobotics.evolution import EvolutionResult, GenerationSummary
     from evorobotics.strategies import Archive
-    from schemas.run import Proportion, RunConfig
+    from schemas.run import RunConfig
 
 LOG_LINES = 20
 """Roughly how many progress lines a non-terminal run prints (plus the last generation)."""
@@ -108,36 +109,6 @@ def write_archive_csv(path: Path, config: RunConfig, archive: Archive) -> None:
                     controller_sha256(spec, genome),
                 ]
             )
-
-
-def champion_summary(best: ControllerDocument) -> str:
-    """One line: training fitness, and the validation the champion was chosen on."""
-    training = "n/a" if best.fitness is None else f"{best.fitness:.4f}"
-    v = best.validation
-    if v is None:
-        return f"training fitness {training} (rank 0; validation off)"
-    return (
-        f"training fitness {training} (rank {v.training_rank}); validation on {v.poses} poses x "
-        f"{v.steps} steps: score {v.score:.4f}, stuck {v.stuck:.0%}, roaming {v.roaming:.0%}"
-    )
-
-
-def held_out_summary(best: ControllerDocument) -> str | None:
-    """One line: the champion's held-out test, the figures to quote about it (None: no test)."""
-    t = best.test
-    if t is None:
-        return None
-
-    def part(name: str, p: Proportion) -> str:
-        return f"{name} {p.value:.0%} [{p.low:.0%}, {p.high:.0%}]"
-
-    worlds = [
-        f"{label}: {part('roaming', w.roaming)}, {part('stuck', w.stuck)}"
-        for label, w in (("under the reality gap", t.gap), ("nominal", t.nominal))
-    ]
-    return f"held-out test on {t.poses} unseen poses x {t.steps} steps (95 % CI), " + "; ".join(
-        worlds
-    )
 
 
 @contextmanager
@@ -252,16 +223,27 @@ def write_outputs(
     return list(files.values())
 
 
-def _line(s: GenerationSummary, total: int) -> str:
+def _line(s: GenerationSummary, total: int, best_so_far: float) -> str:
     return (
-        f"generation {s.generation + 1}/{total} best {s.best:.4f} mean {s.mean:.4f} "
-        f"worst {s.worst:.4f}" + (f" nan {s.nan_count}" if s.nan_count else "")
+        f"generation {s.generation + 1}/{total} training fitness: best {s.best:.4f} "
+        f"mean {s.mean:.4f} worst {s.worst:.4f}"
+        + (f" nan {s.nan_count}" if s.nan_count else "")
+        + f"; best so far {best_so_far:.4f}"
     )
 
 
 @contextmanager
 def _progress(total: int) -> Iterator[Callable[[GenerationSummary], None]]:
-    """A rich bar on a terminal; otherwise a plain line every ~total/LOG_LINES generations."""
+    """A rich bar on a terminal; otherwise a plain line every ~total/LOG_LINES generations.
+    Both give the best training fitness so far beside the generation's best, which falls
+    as well as rises (every generation trains on new start poses)."""
+    top = -math.inf
+
+    def best_so_far(s: GenerationSummary) -> float:
+        nonlocal top
+        top = max(top, s.best)
+        return top
+
     if sys.stdout.isatty():
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
@@ -274,15 +256,17 @@ def _progress(total: int) -> Iterator[Callable[[GenerationSummary], None]]:
             task = bar.add_task("evolving", total=total)
 
             def tick(s: GenerationSummary) -> None:
-                bar.update(task, advance=1, description=f"best {s.best:.3f} mean {s.mean:.3f}")
+                label = training_progress(best_so_far(s), s.best)
+                bar.update(task, advance=1, description=label)
 
             yield tick
         return
     every = max(1, total // LOG_LINES)
 
     def log(s: GenerationSummary) -> None:
+        so_far = best_so_far(s)
         if (s.generation + 1) % every == 0 or s.generation + 1 == total:
-            print(_line(s, total), flush=True)
+            print(_line(s, total, so_far), flush=True)
 
     yield log
 
@@ -408,10 +392,9 @@ def _evolve(
     evolved = time.perf_counter() - started
     files = write_outputs(out, cfg, result, plotter)
     total = time.perf_counter() - started
-    typer.echo(f"champion {result.best.sha256[:12]}: {champion_summary(result.best)}")
-    held_out = held_out_summary(result.best)
-    if held_out is not None:
-        typer.echo(held_out)
+    best = result.best
+    for line in champion_lines(best.sha256, best.fitness, best.validation, best.test):
+        typer.echo(line)
     typer.echo(f"wrote {', '.join(str(p) for p in files)}")
     typer.echo(
         f"wall time {total:.2f} s (evolution {evolved:.2f} s, of which validation "

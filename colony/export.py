@@ -279,11 +279,12 @@ def _save(plt: Any, fig: Any, path: Path) -> None:
 
 
 def fitness_plot(summary: Sequence[Row], path: Path) -> None:
-    """Per condition, the median best fitness over generations with its 95 % CI band (over the
-    condition's runs that reached each generation)."""
+    """Per condition, the median best of generation (training fitness) over generations with
+    its 95 % CI band (over the condition's runs that reached each generation); the legend
+    beside the axes, never over a band."""
     plt = _pyplot()
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(8, 4))
     for s in summary:
         rows = s["generations"]
         if not rows:
@@ -300,10 +301,10 @@ def fitness_plot(summary: Sequence[Row], path: Path) -> None:
         )
     ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_xlabel("generation")
-    ax.set_ylabel("best fitness (Eq 12), median and 95 % CI")
-    ax.set_title("training performance per condition")
+    ax.set_ylabel("best of generation (training fitness)\nmedian and 95 % CI")
+    ax.set_title("training fitness per condition")
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="best")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     else:
         ax.text(0.5, 0.5, "no generation yet", ha="center", va="center", transform=ax.transAxes)
     ax.grid(alpha=0.3)

@@ -13,6 +13,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from colony.champion import held_out_cells, run_champion_lines, training_progress
 from colony.client import (
     DEFAULT_SERVER,
     JsonOpt,
@@ -58,12 +59,16 @@ def _study(run: dict[str, Any]) -> str:
 
 
 def runs_table(runs: list[dict[str, Any]], title: str) -> Table:
+    """One row a run: what it is, how far it got, its best training fitness so far, and its
+    champion with the champion's held-out test (nominal world / under the reality gap)."""
     table = Table(title=title)
     for column in ("id", "name", "status", "network", "maze", "seed", "strategy", "study"):
         # on a narrow terminal the long texts fold; the status and numbers stay whole
         table.add_column(column, no_wrap=column in ("id", "status", "seed"), overflow="fold")
-    table.add_column("generation", no_wrap=True)
-    table.add_column("best", no_wrap=True)
+    for column in ("generation", "best training fitness", "champion"):
+        table.add_column(column, no_wrap=column != "best training fitness", overflow="fold")
+    for column in ("roaming nominal / gap", "stuck nominal / gap"):
+        table.add_column(column, overflow="fold")
     for run in runs:
         config = run["config"]
         table.add_row(
@@ -76,7 +81,8 @@ def runs_table(runs: list[dict[str, Any]], title: str) -> Table:
             str(config.get("strategy") or "paper-ga"),
             _study(run),
             f"{run['generation']}/{run['generations']}",
-            cell(run["best_fitness"]),
+            cell(run.get("best_fitness_so_far")),
+            *held_out_cells(run.get("champion")),
         )
     return table
 
@@ -88,8 +94,9 @@ def follow_run(
     alive: Callable[[], None] = lambda: None,
     poll_s: float = FOLLOW_POLL_S,
 ) -> dict[str, Any]:
-    """A progress bar of committed generations with the best fitness, until the run ends
-    (completed, failed or cancelled); returns the final RunOut. `alive` may raise to abort."""
+    """A progress bar of committed generations with the best training fitness so far and the
+    last generation's best, until the run ends (completed, failed or cancelled); returns the
+    final RunOut. `alive` may raise to abort."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     tick = threading.Event()
@@ -105,8 +112,9 @@ def follow_run(
             response = client.get(f"/api/runs/{run_id}")
             response.raise_for_status()
             run: dict[str, Any] = response.json()
-            best = run["best_fitness"]
-            text = f"run {run_id}" + ("" if best is None else f" best {best:.3f}")
+            text = f"run {run_id} " + training_progress(
+                run.get("best_fitness_so_far"), run["best_fitness"]
+            )
             bar.update(
                 task, total=run["generations"], completed=run["generation"], description=text
             )
@@ -244,8 +252,9 @@ def _follow(ctx: typer.Context, server: str, token: str | None, run_id: int, as_
     if run["status"] == "failed":
         typer.echo(f"run {run['id']} failed: {run['error'] or 'no reason recorded'}", err=True)
     elif not as_json:
-        best = "" if run["best_fitness"] is None else f" best {run['best_fitness']:.4f}"
-        typer.echo(f"run {run['id']} {run['status']}{best}")
+        typer.echo(f"run {run['id']} {run['status']}")
+        for line in run_champion_lines(run):
+            typer.echo(line)
     if run["status"] != "completed":
         raise typer.Exit(1)
 
@@ -279,15 +288,40 @@ def run_list(
         rich_console().print(runs_table(runs, "runs"))
 
 
+SHOWN_GENERATIONS = 10
+"""Generations `colony run show` lists without --all-generations: evenly spaced, with the best."""
+
+
+def shown_generations(generations: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """About SHOWN_GENERATIONS evenly spaced generations, always the first, the last and the
+    one whose best reached the best training fitness so far."""
+    n = len(generations)
+    if n <= SHOWN_GENERATIONS:
+        return generations
+    picked = {round(k * (n - 1) / (SHOWN_GENERATIONS - 1)) for k in range(SHOWN_GENERATIONS)}
+    finite = [k for k, g in enumerate(generations) if g["best"] is not None]
+    if finite:
+        picked.add(max(finite, key=lambda k: generations[k]["best"]))
+    return [generations[k] for k in sorted(picked)]
+
+
 @run_app.command("show")
 def run_show(
     ctx: typer.Context,
     run_id: int,
+    all_generations: Annotated[
+        bool,
+        typer.Option(
+            "--all-generations",
+            help=f"list every generation, not about {SHOWN_GENERATIONS} of them",
+        ),
+    ] = False,
     server: ServerOpt = DEFAULT_SERVER,
     token: TokenOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """One run with its fitness per generation."""
+    """One run, its champion with the champion's held-out test, and its training fitness per
+    generation (about ten generations: the first, the last, the best, evenly between)."""
     run = call_server(ctx, server, token, "GET", f"/api/runs/{run_id}")
     generations = call_server(ctx, server, token, "GET", f"/api/runs/{run_id}/generations")
     if as_json:
@@ -297,10 +331,16 @@ def run_show(
     console.print(runs_table([run], f"run {run_id}"))
     if run["error"]:
         console.print(f"{run['status']}: {run['error']}", highlight=False)
-    table = Table(title="generations")
-    for column in ("generation", "best", "mean", "worst"):
+    for line in run_champion_lines(run):
+        console.print(line, highlight=False)
+    shown = generations if all_generations else shown_generations(generations)
+    title = "training fitness per generation"
+    if len(shown) < len(generations):
+        title += f" ({len(shown)} of {len(generations)}; --all-generations lists every one)"
+    table = Table(title=title)
+    for column in ("generation", "best of generation", "mean", "worst"):
         table.add_column(column)
-    for g in generations:
+    for g in shown:
         table.add_row(str(g["generation"]), cell(g["best"]), cell(g["mean"]), cell(g["worst"]))
     console.print(table)
 

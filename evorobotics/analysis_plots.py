@@ -111,7 +111,7 @@ def network_before_after_plot(doc: ControllerDocument, seed: int, path: Path) ->
     before = initial_controller(doc.spec, seed)
     after = np.asarray(doc.weights, dtype=np.float64)
     scale = float(max(np.abs(before).max(), np.abs(after).max())) or 1.0
-    width = 2.0 + 1.6 * len(doc.spec.sizes)
+    width = 4.0 + 1.6 * len(doc.spec.sizes)  # as plots.network_figure: room for the names
     fig, axes = plt.subplots(1, 2, figsize=(2 * width, 5.2))
     score = "" if doc.fitness is None else f", training fitness {doc.fitness:.3g}"
     titles = (

@@ -17,6 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from evorobotics.document import ControllerDocument
@@ -39,21 +40,32 @@ def _save(fig: Any, path: Path) -> None:
     plt.close(fig)
 
 
-def fitness_plot(history: Sequence[GenerationSummary], path: Path) -> None:
-    """Best, mean and worst fitness against generation (Fig 4)."""
+def fitness_figure(history: Sequence[GenerationSummary]) -> Figure:
+    """`fitness_plot`'s figure."""
     if not history:
         raise ValueError("history is empty: nothing to plot")
     gens = np.array([h.generation for h in history])
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, style in (("best", "-"), ("mean", "--"), ("worst", ":")):
-        ax.plot(gens, [getattr(h, name) for h in history], style, color="black", label=name)
+    best = np.array([h.best for h in history])
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.plot(gens, best, "-", color="black", label="best of generation")
+    ax.plot(gens, [h.mean for h in history], "--", color="black", label="mean")
+    ax.plot(gens, [h.worst for h in history], ":", color="black", label="worst")
+    so_far = np.fmax.accumulate(best)
+    ax.plot(gens, so_far, "-", color="tab:blue", linewidth=1.0, label="best so far")
     ax.set_xlabel("generation")
-    ax.set_ylabel("fitness (Eq 12)")
-    ax.set_title("training performance")
-    ax.legend(loc="lower right")
+    ax.set_ylabel("training fitness (Eq 12)")
+    ax.set_title("training fitness per generation")
+    # outside the axes: the worst curve runs along the bottom, the best along the top
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    return fig
+
+
+def fitness_plot(history: Sequence[GenerationSummary], path: Path) -> None:
+    """Training fitness against generation (Fig 4): the best of each generation, the mean, the
+    worst, and the best so far; the legend beside the axes, never over a curve."""
+    _save(fitness_figure(history), path)
 
 
 def _curve(p0: np.ndarray, p1: np.ndarray, bend: float, points: int = 16) -> np.ndarray:
@@ -72,21 +84,45 @@ def _curve(p0: np.ndarray, p1: np.ndarray, bend: float, points: int = 16) -> np.
 KIND_COLOURS = {"feed-forward": "black", "delayed": "tab:blue", "recurrent": "tab:red"}
 
 
-def network_plot(spec: NetworkSpec, weights: np.ndarray, path: Path) -> None:
-    """Neurons in layer columns; line width proportional to |w| (Figs 1, 5).
+WHISKER_NAMES = (
+    "whisker 0 (far left)",
+    "whisker 1 (left)",
+    "whisker 2 (centre)",
+    "whisker 3 (right)",
+    "whisker 4 (far right)",
+)
+"""The five inputs as the robot numbers its whiskers, left to right (docs/serial-protocol.md)."""
+WHEEL_NAMES = ("left wheel", "right wheel")
+"""The two outputs: the motor commands `M <l> <r>`."""
 
-    Feed-forward (t = 0, s = 0) lines are straight black, delayed ones (t >= 1) blue arcs
-    bending more with the lag, recurrent ones (s >= 1) red arcs back from deeper layers or
-    loops on the same layer. Biases are the grey node under each source column.
-    """
-    fig, ax = plt.subplots(figsize=(2.0 + 1.6 * len(spec.sizes), 5))
+
+def neuron_names(count: int, names: Sequence[str], kind: str) -> list[str]:
+    """The robot's names for a layer of the shape it has, else `kind k`."""
+    return list(names) if count == len(names) else [f"{kind} {k}" for k in range(count)]
+
+
+def network_figure(spec: NetworkSpec, weights: np.ndarray) -> Figure:
+    """`network_plot`'s figure."""
+    fig, ax = plt.subplots(figsize=(4.0 + 1.6 * len(spec.sizes), 5))
     draw_network(ax, spec, weights)
     ax.set_title(
         f"{layout(spec).n_weights} weights, T={spec.delays}, S={spec.recurrence} (width ~ |w|)",
         pad=22,
     )
     fig.tight_layout()
-    _save(fig, path)
+    return fig
+
+
+def network_plot(spec: NetworkSpec, weights: np.ndarray, path: Path) -> None:
+    """Neurons in layer columns; line width proportional to |w| (Figs 1, 5).
+
+    The inputs are named as the robot's whiskers and the outputs as its wheels, the first at
+    the top: seen from above with the robot heading right, its left side is up. Feed-forward
+    (t = 0, s = 0) lines are straight black, delayed ones (t >= 1) blue arcs bending more with
+    the lag, recurrent ones (s >= 1) red arcs back from deeper layers or loops on the same
+    layer. Biases are the grey node under each source column.
+    """
+    _save(network_figure(spec, weights), path)
 
 
 def draw_network(
@@ -102,10 +138,11 @@ def draw_network(
 
     def pos(layer: int, k: int) -> np.ndarray:
         n = sizes[layer]
-        return np.array([float(layer), (k - (n - 1) / 2) / max(max(sizes) - 1, 1)])
+        return np.array([float(layer), ((n - 1) / 2 - k) / max(max(sizes) - 1, 1)])
 
     def bias_pos(layer: int) -> np.ndarray:
-        return np.asarray(pos(layer, 0) - [0.0, 1.0 / max(max(sizes) - 1, 1) + 0.05])
+        lowest = pos(layer, sizes[layer] - 1)
+        return np.asarray(lowest - [0.0, 1.0 / max(max(sizes) - 1, 1) + 0.05])
 
     if scale is None:
         scale = float(np.max(np.abs(w))) or 1.0
@@ -138,10 +175,34 @@ def draw_network(
         if layer < len(sizes) - 1:
             bx, by = bias_pos(layer)
             ax.scatter([bx], [by], s=60, color="lightgrey", edgecolors="grey", zorder=3)
+            ax.annotate(
+                "bias",
+                (bx, by),
+                xytext=(0, -12),
+                textcoords="offset points",
+                ha="center",
+                fontsize=7,
+                color="grey",
+            )
+    last = len(sizes) - 1
+    for layer, names, towards in (
+        (0, neuron_names(spec.inputs, WHISKER_NAMES, "input"), -1),
+        (last, neuron_names(spec.outputs, WHEEL_NAMES, "output"), 1),
+    ):
+        for k, name in enumerate(names):
+            ax.annotate(
+                name,
+                pos(layer, k),
+                xytext=(10 * towards, 0),
+                textcoords="offset points",
+                ha="left" if towards > 0 else "right",
+                va="center",
+                fontsize=8,
+            )
     names = ["inputs", *[f"hidden {k}" for k in range(1, len(spec.hidden) + 1)], "outputs"]
     ax.set_xticks(range(len(sizes)), names)
     ax.set_yticks([])
-    ax.set_xlim(-0.4, len(sizes) - 0.4)
+    ax.set_xlim(-1.1, len(sizes) - 0.2)
     for side in ("top", "right", "left"):
         ax.spines[side].set_visible(False)
     ax.legend(
@@ -164,15 +225,18 @@ def _body_outline(pose: np.ndarray, length: float, width: float) -> np.ndarray:
     return np.asarray(corners @ np.array([[c, s], [-s, c]]) + [x, y])
 
 
-def paths_plot(
-    config: RunConfig,
-    best: ControllerDocument,
-    path: Path,
-    paths: SimResult | None = None,
-) -> None:
-    """The best controller driving from UNSEEN start poses (Fig 6): `paths`, by default
-    `evaluate.unseen_paths(config, best.weights)`, which a caller may simulate elsewhere (the
-    drawing needs no simulator). Dotted path, start dot, final body outline."""
+PATH_MARKS: dict[str, dict[str, Any]] = {
+    "path": {"color": "tab:blue", "linewidth": 1.8},
+    "start": {"marker": "o", "color": "tab:green", "markersize": 8, "markeredgecolor": "black"},
+    "end": {"color": "tab:red", "linewidth": 2.0},
+}
+"""How `paths_plot` draws a trial's path, its start and the body at its last step."""
+
+
+def paths_figure(
+    config: RunConfig, best: ControllerDocument, paths: SimResult | None = None
+) -> Figure:
+    """`paths_plot`'s figure."""
     if paths is None:
         paths = unseen_paths(config, best.weights)
     if paths.poses is None or len(paths.poses) == 0:
@@ -182,14 +246,14 @@ def paths_plot(
     rows, cols = maze.grid.shape
     extent = (0.0, cols * maze.cell_size, 0.0, rows * maze.cell_size)
     trials = len(paths.poses)
-    fig, axes = plt.subplots(1, trials, figsize=(4.2 * trials, 4.4))
+    fig, axes = plt.subplots(1, trials, figsize=(4.2 * trials, 4.9))
     for k, ax in enumerate(np.atleast_1d(axes)):
         poses = paths.poses[k]
         ax.imshow(maze.grid, cmap="Greys", extent=extent, origin="upper", vmin=0, vmax=1.4)
-        ax.plot(poses[:, 0], poses[:, 1], ":", color="tab:blue", linewidth=1.2)
-        ax.plot(poses[0, 0], poses[0, 1], "o", color="tab:green", markersize=4)
+        ax.plot(poses[:, 0], poses[:, 1], "-", **PATH_MARKS["path"])
         outline = _body_outline(poses[-1], params.body_length, params.body_width)
-        ax.plot(outline[:, 0], outline[:, 1], "-", color="tab:red", linewidth=1.5)
+        ax.plot(outline[:, 0], outline[:, 1], "-", **PATH_MARKS["end"])
+        ax.plot(poses[0, 0], poses[0, 1], linestyle="none", zorder=4, **PATH_MARKS["start"])
         stuck = " (stuck)" if paths.stuck[k] else ""
         ax.set_title(f"start {k + 1}: max offset {float(paths.max_offset[k]):.2f} m{stuck}")
         ax.set_xlim(extent[0], extent[1])
@@ -198,16 +262,46 @@ def paths_plot(
         ax.set_yticks([])
     score = "n/a" if best.fitness is None else f"{best.fitness:.3f}"
     steps = paths.poses.shape[1] - 1
-    title = f"champion, {steps} steps from unseen start poses: training fitness {score}"
-    if best.validation is not None:
-        v = best.validation
+    v = best.validation
+    who = "champion" if v is not None else f"best of generation {best.provenance.get('generation')}"
+    title = f"{who}, {steps} steps from unseen start poses: training fitness {score}"
+    if v is not None:
         title += (
             f"\nvalidation ({v.poses} poses x {v.steps} steps): score {v.score:.3f}, "
             f"stuck {v.stuck:.0%}, roaming {v.roaming:.0%}"
         )
+    t = best.test
+    if t is not None:
+        title += (
+            f"\nheld-out test ({t.poses} poses x {t.steps} steps): roaming "
+            f"{t.nominal.roaming.value:.0%} nominal, {t.gap.roaming.value:.0%} under the gap"
+        )
     fig.suptitle(title)
-    fig.tight_layout()
-    _save(fig, path)
+    fig.legend(
+        handles=[
+            Line2D([], [], label="path", **PATH_MARKS["path"]),
+            Line2D([], [], linestyle="none", label="start", **PATH_MARKS["start"]),
+            Line2D([], [], label="body at the last step", **PATH_MARKS["end"]),
+        ],
+        loc="lower center",
+        ncol=3,
+        frameon=False,
+    )
+    fig.tight_layout(rect=(0.0, 0.07, 1.0, 1.0))
+    return fig
+
+
+def paths_plot(
+    config: RunConfig,
+    best: ControllerDocument,
+    path: Path,
+    paths: SimResult | None = None,
+) -> None:
+    """The best controller driving from UNSEEN start poses (Fig 6): `paths`, by default
+    `evaluate.unseen_paths(config, best.weights)`, which a caller may simulate elsewhere (the
+    drawing needs no simulator). A solid path, a start dot, the body's outline at the last
+    step, and a legend for the three below the panels."""
+    _save(paths_figure(config, best, paths), path)
 
 
 def maze_plot(maze: Maze, path: Path) -> None:

@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from schemas.robots import RobotOut
-from schemas.run import RunConfig
+from schemas.run import HeldOutScore, RunConfig, ValidationScore
 
 TAG = r"^[A-Za-z0-9_.:=-]{1,64}$"
 MAX_TAGS = 16
@@ -36,8 +36,30 @@ RunStatus = Literal["queued", "running", "paused", "completed", "failed", "cance
 TERMINAL: frozenset[str] = frozenset({"completed", "failed", "cancelled"})
 
 
+class ChampionOut(BaseModel):
+    """A completed run's champion: the controller it exports (`GET /api/runs/{id}/best`),
+    chosen on its validation set, and its held-out test figures."""
+
+    model_config = ConfigDict(frozen=True)
+
+    sha256: str
+    training_fitness: float | None = Field(
+        description="its Eq 12 on its training trials of the run's last generation"
+    )
+    validation: ValidationScore | None = Field(
+        description="how it was chosen; None when validation is off (it is training rank 0)"
+    )
+    test: HeldOutScore | None = Field(
+        description="roaming and stuck on start poses never used to choose it, in the nominal "
+        "world and under the reality gap; None when the run's config has no test"
+    )
+
+
 class RunOut(BaseModel):
-    """A run as the API reports it."""
+    """A run as the API reports it. Its numbers keep three words apart: *training fitness*
+    (Eq 12 on training trials), *best of generation g* (the fittest of one generation on
+    training), and the *champion* (the controller a completed run exports, with its held-out
+    test figures)."""
 
     model_config = ConfigDict(frozen=True)
 
@@ -47,7 +69,19 @@ class RunOut(BaseModel):
     config: RunConfig
     generation: int = Field(description="generations committed so far (0..generations)")
     generations: int = Field(description="generations the run evolves in total")
-    best_fitness: float | None = Field(description="fitness of rank 0 of the latest generation")
+    best_fitness: float | None = Field(
+        description="training fitness of the best of the latest committed generation"
+    )
+    best_fitness_so_far: float | None = Field(
+        None, description="the highest training fitness any committed generation's best reached"
+    )
+    trial_steps: int = Field(
+        description="steps of each training trial: `config.steps`, or when that is None the "
+        "steps `config.crossings` crossings of the maze take"
+    )
+    champion: ChampionOut | None = Field(
+        None, description="a completed run's champion; None before the run completes"
+    )
     evaluations: int = Field(description="controllers evaluated so far (each over `trials`)")
     created_at: datetime
     started_at: datetime | None

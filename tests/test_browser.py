@@ -1,7 +1,8 @@
 """The dashboard in headless Chromium (Debian's, driven by Playwright): a run's curve grows live,
-pause and resume work from the page, and a click pushes a run's best controller to a virtual
-robot that acknowledges it. Screenshots dashboard-runs.png and dashboard-colony.png go to
-$DASHBOARD_SCREENSHOTS (e.g. docs/img) when set, else to a temporary directory.
+pause and resume work from the page, a click pushes a run's best controller to a virtual
+robot that acknowledges it, the runs table fits windows from 1024 px up and figures open full
+size. Screenshots go to $DASHBOARD_SCREENSHOTS when set, else to a temporary directory
+(`make screenshots` takes the documentation's).
 
 Real uvicorn, temporary SQLite, in-process evaluation; the robot side on a real zenoh router
 (127.0.0.1, no multicast) with an agent over a BasicX emulator pty.
@@ -126,6 +127,94 @@ def test_curve_grows_live_and_controls_steer(served: Served, page: Any, shots: P
         page.click("[data-testid=cancel]")
         page.wait_for_selector("[data-testid=run-status]:text-is('cancelled')")
         assert client.get(f"/api/runs/{run_id}").json()["status"] == "cancelled"
+
+
+WIDTHS = (1024, 1400, 1920)
+"""Window widths the dashboard fits: a laptop's, a desktop's, a full-HD screen's."""
+
+HIDDEN_HEADERS = """() => [...document.querySelectorAll('#runs-table thead th')].flatMap((th) => {
+    // a header is whole when it lies inside the window and inside the table's scroll box,
+    // and nothing else is drawn over its middle
+    const box = th.getBoundingClientRect();
+    const frame = th.closest('.runs-scroll').getBoundingClientRect();
+    const top = document.elementFromPoint((box.left + box.right) / 2, (box.top + box.bottom) / 2);
+    const inside = box.left >= 0 && box.right <= window.innerWidth &&
+        box.left >= frame.left - 0.5 && box.right <= frame.right + 0.5;
+    return inside && th.contains(top) ? [] : [th.textContent];
+})"""
+
+
+def test_runs_table_and_run_page_fit_every_width_and_print_no_null(
+    served: Served, browser: Any, shots: Path
+) -> None:
+    """At 1024, 1400 and 1920 px every column header of the runs table is whole on screen and
+    no cell runs past the table's box (a long name, a six-digit generation count), the page
+    scrolls no sideways, and the run page of a run whose steps are left to the crossing rule
+    gives the steps it trains with, and nowhere says null."""
+    with httpx.Client(base_url=served.url, timeout=30) as client:
+        wide = {**QUICK, "generations": 100_000, "name": "a long name that ends in an ellipsis"}
+        client.post(f"/api/runs/{client.post('/api/runs', json=wide).json()['id']}/cancel")
+        body = {"population": 8, "generations": 2, "job_size": 4, "name": "steps by crossings"}
+        run_id = client.post("/api/runs", json=body).json()["id"]
+        run = wait_completed(client, run_id)
+    assert run["config"]["steps"] is None and run["trial_steps"] > 0
+    for width in WIDTHS:
+        context = browser.new_context(viewport={"width": width, "height": 900})
+        page = context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc, errors=errors: errors.append(str(exc)))
+        page.set_default_timeout(TIMEOUT_MS)
+        try:
+            page.goto(f"{served.url}/?run={run_id}")
+            page.locator("[data-testid=run-validation]").filter(has_text="Champion").wait_for()
+            page.wait_for_selector("#paths-img:not([hidden])")
+            assert page.evaluate(HIDDEN_HEADERS) == [], width
+            box = page.locator(".runs-scroll")
+            assert box.evaluate("(e) => e.scrollWidth <= e.clientWidth"), width
+            assert page.evaluate("document.documentElement.scrollWidth") <= width
+            meta = page.inner_text("#run-meta")
+            assert f"3 trials × {run['trial_steps']} steps" in meta, meta
+            shown = page.inner_text("#tab-runs")
+            for word in ("null", "undefined", "NaN"):
+                assert word not in shown, (width, word)
+            if width != 1400:
+                page.screenshot(path=str(shots / f"dashboard-runs-{width}.png"), full_page=True)
+            assert errors == [], f"JavaScript errors: {errors}"
+        finally:
+            context.close()
+
+
+def test_run_figures_open_full_size_on_click(served: Served, page: Any) -> None:
+    """The network and paths thumbnails open at full size (as much as the window holds) in a
+    modal that a click closes."""
+    with httpx.Client(base_url=served.url, timeout=30) as client:
+        run_id = client.post("/api/runs", json=QUICK).json()["id"]
+        wait_completed(client, run_id)
+    page.goto(f"{served.url}/?run={run_id}")
+    for figure in ("network", "paths"):
+        thumbnail = page.locator(f"[data-testid={figure}-img]")
+        thumbnail.wait_for()
+        page.wait_for_function(f"document.querySelector('#{figure}-img').naturalWidth > 0")
+        small = thumbnail.bounding_box()["width"]
+        thumbnail.click()
+        zoomed = page.locator("#zoom-img")
+        page.wait_for_function("document.querySelector('#zoom').open")
+        page.wait_for_function("document.querySelector('#zoom-img').complete")
+        natural, shown = page.evaluate(
+            "[document.querySelector('#zoom-img').naturalWidth, "
+            "document.querySelector('#zoom-img').getBoundingClientRect().width]"
+        )
+        fits = 0.96 * 1280 - 20  # the modal's limit on this 1280 px window
+        assert shown == pytest.approx(min(natural, fits), abs=2) and shown > small
+        assert zoomed.get_attribute("src") == thumbnail.get_attribute("src")
+        page.click("#zoom")
+        page.wait_for_function("!document.querySelector('#zoom').open")
+
+
+def wait_completed(client: httpx.Client, run_id: int) -> dict[str, Any]:
+    assert eventually(lambda: client.get(f"/api/runs/{run_id}").json()["status"] == "completed")
+    run: dict[str, Any] = client.get(f"/api/runs/{run_id}").json()
+    return run
 
 
 def test_push_best_controller_to_a_robot_with_a_click(

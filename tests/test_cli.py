@@ -72,14 +72,106 @@ def test_follow_then_every_read_command_json_parses(server: str) -> None:
     assert [g["generation"] for g in json.loads(out)["history"]] == [0, 1, 2]
 
 
-def test_follow_prints_the_best_and_status_prints_tables(server: str) -> None:
+def test_follow_labels_the_training_fitness_and_ends_on_the_champion(server: str) -> None:
+    """The bar gives the best training fitness so far beside the last generation's best (which
+    falls as well as rises); the end names the champion and its held-out test."""
     code, out = colony("run", "start", *SMALL, "--follow", "--server", server)
     assert code == 0, out
-    assert "3/3" in out and "completed best" in out
+    run = json.loads(colony("run", "list", "--server", server, "--json")[1])[0]
+    best = run["best_fitness_so_far"]
+    assert best == max(g["best"] for g in generations(server, run["id"]))
+    assert "3/3" in out
+    assert f"training fitness: best so far {best:.3f}" in out
+    assert f"last generation's best {run['best_fitness']:.3f}" in out
+    champion = run["champion"]
+    assert f"run {run['id']} completed\nchampion {champion['sha256'][:12]}: training fitness" in out
+    gap = champion["test"]["gap"]["roaming"]["value"]
+    assert f"held-out test on {champion['test']['poses']} unseen poses" in out
+    assert f"under the reality gap: roaming {gap:.0%}" in out
     code, out = colony("status", "--server", server)
     assert code == 0, out
     for title in ("active runs", "workers", "robots"):
         assert title in out
+
+
+def generations(server: str, run_id: int) -> list[dict[str, float]]:
+    code, out = colony("run", "show", str(run_id), "--server", server, "--json")
+    assert code == 0, out
+    history: list[dict[str, float]] = json.loads(out)["history"]
+    return history
+
+
+def table_rows(out: str) -> list[list[str]]:
+    """The cells of each body row of the rich tables in `out`."""
+    return [[c.strip() for c in line.split("│")[1:-1]] for line in out.splitlines() if "│" in line]
+
+
+def test_show_and_list_name_the_champion_with_its_held_out_test(server: str) -> None:
+    """`run show` says which controller the run exports and how it did on the held-out test,
+    with about ten generations (the first, the last, the best) unless asked for all; `run list`
+    gives each run's champion and test figures as nominal / under the gap."""
+    code, out = colony(
+        "run", "start", "--population", "8", "--generations", "25", "--steps", "10",
+        "--job-size", "4", "--follow", "--json", "--server", server,
+    )  # fmt: skip
+    assert code == 0, out
+    run = json.loads(out[out.index("{") :])
+    run_id, champion = run["id"], run["champion"]
+    test = champion["test"]
+    best = client_best(server, run_id)
+    assert champion["sha256"] == best["sha256"] and test == best["test"]
+    assert champion["training_fitness"] == best["fitness"]
+
+    code, out = colony("run", "show", str(run_id), "--server", server)
+    assert code == 0, out
+    assert f"champion {champion['sha256'][:12]}: training fitness" in out
+    assert f"rank {champion['validation']['training_rank']}" in out
+    assert f"held-out test on {test['poses']} unseen poses x {test['steps']} steps" in out
+    history = generations(server, run_id)
+    listed = [int(r[0]) for r in table_rows(out) if len(r) == 4 and r[0].isdigit()]
+    top = max(range(25), key=lambda g: history[g]["best"])
+    assert listed[0] == 0 and listed[-1] == 24 and top in listed
+    assert 10 <= len(listed) <= 11 and listed == sorted(listed)
+    assert "--all-generations lists every one" in out
+    code, out = colony("run", "show", str(run_id), "--all-generations", "--server", server)
+    assert code == 0, out
+    assert [int(r[0]) for r in table_rows(out) if len(r) == 4 and r[0].isdigit()] == list(range(25))
+
+    code, out = colony("run", "list", "--server", server)
+    assert code == 0, out
+    assert "champion" in out and "roaming nominal / gap" in out
+    row = next(r for r in table_rows(out) if r[0] == str(run_id))
+    nominal, gap = test["nominal"], test["gap"]
+    assert row[-3:] == [
+        champion["sha256"][:12],
+        f"{nominal['roaming']['value']:.0%} / {gap['roaming']['value']:.0%}",
+        f"{nominal['stuck']['value']:.0%} / {gap['stuck']['value']:.0%}",
+    ]
+    assert row[-4] == f"{max(g['best'] for g in history):.4g}"  # best training fitness so far
+
+
+def test_a_live_run_has_no_champion_yet(server: str) -> None:
+    code, out = colony(
+        "run", "start", "--population", "8", "--generations", "5000", "--steps", "10",
+        "--server", server, "--json",
+    )  # fmt: skip
+    assert code == 0, out
+    run_id = json.loads(out)["id"]
+    try:
+        code, out = colony("run", "show", str(run_id), "--server", server)
+        assert code == 0, out
+        assert "no champion yet" in out
+    finally:
+        colony("run", "cancel", str(run_id), "--server", server)
+    code, out = colony("run", "show", str(run_id), "--server", server)
+    assert "no champion: the run was cancelled" in out
+
+
+def client_best(server: str, run_id: int) -> dict[str, object]:
+    import httpx
+
+    best: dict[str, object] = httpx.get(f"{server}/api/runs/{run_id}/best", timeout=30).json()
+    return best
 
 
 def test_push_to_an_unknown_robot_fails_with_the_server_message(

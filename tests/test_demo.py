@@ -76,6 +76,11 @@ def test_demo_end_to_end_leaves_files_summary_and_no_process(tmp_path: Path) -> 
         assert (out / name).stat().st_size > 0, name
     assert (out / "colony.db").is_file()
     assert "5/5" in text and "completed" in text
+    # the bar and the ending say which number is which: training fitness, the champion's test
+    assert "training fitness: best so far" in text and "last generation's best" in text
+    champion = [line for line in text.splitlines() if line.startswith("champion ")]
+    assert len(champion) == 1 and "training fitness" in champion[0], text
+    assert "held-out test on 200 unseen poses" in text
     robot_rows = [line for line in text.splitlines() if "evbot-" in line]
     assert len(robot_rows) == 2
     for row in robot_rows:

@@ -33,14 +33,19 @@ def test_writes_every_file_and_reruns_byte_identical(tmp_path: Path) -> None:
     for name in ("best.json", "generations.csv", "config.json"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
     assert "wall time" in out_a
-    assert "generation 4/4 best" in out_a  # plain log lines when stdout is not a terminal
-
     rows = list(csv.reader((tmp_path / "a" / "generations.csv").read_text().splitlines()))
     assert rows[0] == ["generation", "best", "mean", "worst"]
     assert [int(r[0]) for r in rows[1:]] == [0, 1, 2, 3]
     for r in rows[1:]:
         best, mean, worst = map(float, r[1:])
         assert worst <= mean <= best
+    # plain log lines when stdout is not a terminal: each number says what it is
+    so_far = max(float(r[1]) for r in rows[1:])
+    assert (
+        f"generation 4/4 training fitness: best {float(rows[-1][1]):.4f} "
+        f"mean {float(rows[-1][2]):.4f} worst {float(rows[-1][3]):.4f}; "
+        f"best so far {so_far:.4f}"
+    ) in out_a
 
     config = RunConfig.model_validate_json((tmp_path / "a" / "config.json").read_text())
     assert (config.population, config.generations, config.steps, config.seed) == (12, 4, 20, 3)
@@ -52,6 +57,9 @@ def test_writes_every_file_and_reruns_byte_identical(tmp_path: Path) -> None:
     assert doc.validation is not None and doc.provenance["rank"] == doc.validation.training_rank
     assert doc.fitness is not None and float(rows[-1][3]) <= doc.fitness <= float(rows[-1][1])
     assert doc.provenance["generation"] == 3 and doc.world == config.world
+    assert doc.test is not None
+    assert f"champion {doc.sha256[:12]}: training fitness {doc.fitness:.4f}" in out_a
+    assert f"held-out test on {doc.test.poses} unseen poses" in out_a
 
 
 def test_config_file_with_flag_override_and_files_for_maze_and_network(tmp_path: Path) -> None:

@@ -14,7 +14,7 @@ from server.robots.map import PATH_SAMPLES, colony_map
 from server.robots.registry import robot_summaries
 from server.robots.service import RobotService
 from server.routes.deps import SessionDep, WorkersDep
-from server.routes.runs import run_out
+from server.routes.runs import run_outs
 from server.runs import crud
 from server.runs.lifecycle import RunManager
 
@@ -64,7 +64,7 @@ def colony(request: Request, session: SessionDep, workers: WorkersDep) -> Colony
     refused = request.app.state.manager.write_refused()
     return ColonyOut(
         runs=crud.count_runs_by_status(session),
-        active=[run_out(r, refused) for r in active],
+        active=run_outs(session, active, refused),
         jobs=JobCounts(**request.app.state.manager.scheduler.counts()),
         workers=workers,
         robots=robot_summaries(

@@ -27,7 +27,7 @@ from sqlalchemy import select
 from server.core.models import Generation, Run
 from server.robots.service import RobotService
 from server.routes.deps import get_workers
-from server.routes.runs import run_out
+from server.routes.runs import run_outs
 from server.runs.lifecycle import RunManager
 
 router = APIRouter(tags=["dashboard"])
@@ -130,15 +130,19 @@ class Watch:
                 Run.error,
                 Run.started_at,
                 Run.finished_at,
+                Run.champion_sha256,
             )
             refused = manager.write_refused()
+            changed: list[Run] = []
             for run_id, *key in session.execute(progress.order_by(Run.id.desc()).limit(RUNS_LIMIT)):
                 seen = (*key, refused.get(run_id))
                 if self._runs.get(run_id) != seen:
                     self._runs[run_id] = seen
                     run = session.get(Run, run_id)  # the whole row (config) only when it changed
                     if run is not None:
-                        events.append(sse("run", run_out(run, refused).model_dump(mode="json")))
+                        changed.append(run)
+            for out in run_outs(session, changed, refused):
+                events.append(sse("run", out.model_dump(mode="json")))
         workers = [w.model_dump(mode="json") for w in get_workers(self._request)]
         if workers != self._workers:
             self._workers = workers

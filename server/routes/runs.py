@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Response, status
+from sqlalchemy.orm import Session
 
 from evorobotics.document import controller_sha256
+from evorobotics.evaluate import trial_steps
 from evorobotics.strategies import traits
 from schemas.api import (
     ArchiveCell,
     ArchiveOut,
+    ChampionOut,
     GenerationOut,
     IndividualOut,
     IndividualsOut,
@@ -35,10 +38,41 @@ RunId = Annotated[int, Path(ge=0, le=2**63 - 1, description="a run id (64-bit)")
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
 
-def run_out(run: Run, refused: Mapping[int, str] | None = None) -> RunOut:
-    """The run as stored, except that a run in `refused` (`RunManager.write_refused`: its
-    generation could not be written, nor could the pause that follows) shows as paused with
-    the store's error, the state the store will show once it accepts writes again."""
+def run_outs(
+    session: Session, runs: Sequence[Run], refused: Mapping[int, str] | None = None
+) -> list[RunOut]:
+    """The runs as stored, with their best training fitness so far and their champions, read in
+    one query each. A run in `refused` (`RunManager.write_refused`: its generation could not be
+    written, nor could the pause that follows) shows as paused with the store's error, the state
+    the store will show once it accepts writes again."""
+    ids = [run.id for run in runs]
+    best = crud.best_so_far(session, run_ids=ids)
+    champions = crud.champion_documents(session, runs=runs)
+    return [_run_out(run, refused, best.get(run.id), champions.get(run.id)) for run in runs]
+
+
+def run_out(session: Session, run: Run, refused: Mapping[int, str] | None = None) -> RunOut:
+    """One run as `run_outs` reports it."""
+    return run_outs(session, [run], refused)[0]
+
+
+def _champion(document: str) -> ChampionOut:
+    """The champion's figures from its stored controller document."""
+    data = json.loads(document)
+    return ChampionOut(
+        sha256=data["sha256"],
+        training_fitness=data.get("fitness"),
+        validation=data.get("validation"),
+        test=data.get("test"),
+    )
+
+
+def _run_out(
+    run: Run,
+    refused: Mapping[int, str] | None,
+    best_so_far: float | None,
+    champion: str | None,
+) -> RunOut:
     config = RunConfig.model_validate_json(run.config)
     created = aware(run.created_at)
     if created is None:
@@ -54,6 +88,8 @@ def run_out(run: Run, refused: Mapping[int, str] | None = None) -> RunOut:
         generation=run.generation,
         generations=config.generations,
         best_fitness=run.best_fitness,
+        best_fitness_so_far=best_so_far,
+        trial_steps=trial_steps(config),
         evaluations=run.evaluations,
         created_at=created,
         started_at=aware(run.started_at),
@@ -64,6 +100,7 @@ def run_out(run: Run, refused: Mapping[int, str] | None = None) -> RunOut:
         study_id=run.study_id,
         condition=run.condition,
         keeps_archive=traits(config).archive,
+        champion=None if champion is None else _champion(champion),
     )
 
 
@@ -96,7 +133,7 @@ def create_run(
     if refused is not None:
         raise HTTPException(422, refused)
     run_id = manager.create_run(config, name=body.name, tags=body.tags)
-    return run_out(_run(session, run_id))
+    return run_out(session, _run(session, run_id))
 
 
 @router.get("", response_model=list[RunOut])
@@ -110,12 +147,12 @@ def list_runs(
     """Newest first; `?status=running&status=paused` filters by the stored status."""
     runs = crud.list_runs(session, statuses=status_, limit=limit, offset=offset)
     refused = manager.write_refused()
-    return [run_out(r, refused) for r in runs]
+    return run_outs(session, runs, refused)
 
 
 @router.get("/{run_id}", response_model=RunOut)
 def get_run(manager: ManagerDep, session: SessionDep, run_id: RunId) -> RunOut:
-    return run_out(_run(session, run_id), manager.write_refused())
+    return run_out(session, _run(session, run_id), manager.write_refused())
 
 
 @router.get("/{run_id}/generations", response_model=list[GenerationOut])
@@ -204,7 +241,7 @@ def best(manager: ManagerDep, run_id: RunId) -> Response:
 def _steer(manager: ManagerDep, session: SessionDep, run_id: RunId, action: str) -> RunOut:
     getattr(manager, action)(run_id)
     session.expire_all()
-    return run_out(_run(session, run_id), manager.write_refused())
+    return run_out(session, _run(session, run_id), manager.write_refused())
 
 
 @router.post("/{run_id}/pause", response_model=RunOut)

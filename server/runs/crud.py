@@ -60,6 +60,31 @@ def list_generations(session: Session, *, run_id: int) -> list[Generation]:
     return list(session.scalars(query))
 
 
+def best_so_far(session: Session, *, run_ids: Sequence[int]) -> dict[int, float]:
+    """Run id -> the highest training fitness any of its committed generations' best reached
+    (runs without a generation are left out)."""
+    if not run_ids:
+        return {}
+    query = (
+        select(Generation.run_id, func.max(Generation.best))
+        .where(Generation.run_id.in_(list(run_ids)))
+        .group_by(Generation.run_id)
+    )
+    return {int(run_id): float(best) for run_id, best in session.execute(query) if best is not None}
+
+
+def champion_documents(session: Session, *, runs: Sequence[Run]) -> dict[int, str]:
+    """Run id -> its champion's controller document (JSON) for the completed ones among `runs`."""
+    shas = {run.id: run.champion_sha256 for run in runs if run.champion_sha256 is not None}
+    if not shas:
+        return {}
+    query = select(Controller.sha256, Controller.document).where(
+        Controller.sha256.in_(set(shas.values()))
+    )
+    found: dict[str, str] = {sha: document for sha, document in session.execute(query)}
+    return {run_id: found[sha] for run_id, sha in shas.items() if sha in found}
+
+
 def get_generation(session: Session, *, run_id: int, generation: int) -> Generation | None:
     return session.get(Generation, (run_id, generation))
 

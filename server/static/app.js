@@ -10,7 +10,7 @@ const state = {
   chart: null,
   cards: new Map(), // robot id -> card elements
   figuresFor: null, // "run:generation" the figures were last asked for
-  validationFor: null, // id of the completed run whose champion's validation is shown
+  championFor: null, // id of the completed run whose champion is shown
   checked: new Set(), // run ids whose best-fitness curves the overlay shows
   overlay: null, // uPlot of the checked runs
   studies: new Map(), // id -> StudyOut
@@ -173,6 +173,13 @@ function studyLabel(run) {
   return `${study ? study.name : `#${run.study_id}`}${run.condition ? ` / ${run.condition}` : ""}`;
 }
 
+// A champion's held-out roaming as "nominal / gap"; "–" before the run has one.
+function championRoaming(champion) {
+  if (!champion || !champion.test) return "–";
+  const t = champion.test;
+  return `${fmt(100 * t.nominal.roaming.value, 0)} % / ${fmt(100 * t.gap.roaming.value, 0)} %`;
+}
+
 function renderRunsTable() {
   const body = $("#runs-table tbody");
   const runs = [...state.runs.values()].sort((a, b) => b.id - a.id);
@@ -197,10 +204,11 @@ function renderRunsTable() {
         el("td", { text: networkName(run.config) }),
         el("td", { text: mazeName(run.config) }),
         el("td", { text: run.seed }),
-        el("td", { text: studyLabel(run) }),
+        el("td", { class: "study", text: studyLabel(run), title: studyLabel(run) }),
         el("td", {}, el("span", { class: `status ${run.status}`, text: run.status })),
-        el("td", { text: `${run.generation} / ${run.generations}` }),
-        el("td", { text: fmt(run.best_fitness) }),
+        el("td", { class: "whole", text: `${run.generation} / ${run.generations}` }),
+        el("td", { text: fmt(run.best_fitness_so_far) }),
+        el("td", { class: "whole", text: championRoaming(run.champion) }),
       );
       if (run.id === state.selected) row.classList.add("selected");
       row.addEventListener("click", () => selectRun(run.id));
@@ -214,7 +222,7 @@ function selectRun(id) {
   state.selected = id;
   state.gens = [[], [], [], []];
   state.figuresFor = null;
-  state.validationFor = null;
+  state.championFor = null;
   $("#run-validation").hidden = true;
   for (const img of [$("#network-img"), $("#paths-img")]) img.hidden = true;
   updateChart();
@@ -234,11 +242,18 @@ function renderRunDetail() {
   status.textContent = run.status;
   status.className = `status ${run.status}`;
   $("#run-meta").textContent =
-    `seed ${run.seed} · population ${c.population} · ${c.trials} trials × ${c.steps} steps · ` +
+    `seed ${run.seed} · population ${c.population} · ${c.trials} trials × ${run.trial_steps} steps · ` +
     `network ${networkName(c)} · maze ${mazeName(c)} · strategy ${c.strategy} · ` +
-    `generation ${run.generation}/` +
-    `${run.generations} · ${run.evaluations} evaluations · ` +
-    `training fitness ${fmt(run.best_fitness)} (rank 0)`;
+    `generation ${run.generation}/${run.generations} · ${run.evaluations} evaluations` +
+    (run.generation > 0
+      ? ` · training fitness: best so far ${fmt(run.best_fitness_so_far)}, ` +
+        `last generation's best ${fmt(run.best_fitness)}`
+      : "");
+  const [network, paths] = run.champion
+    ? ["Champion's network", "Champion's paths"]
+    : ["Network of the last generation's best", "Paths of the last generation's best"];
+  $("#network-caption").textContent = `${network}: whiskers in, wheels out (line width ~ |w|)`;
+  $("#paths-caption").textContent = `${paths} from unseen start poses (click: full size)`;
   const error = $("#run-error");
   error.hidden = !run.error;
   error.textContent = run.error || "";
@@ -251,7 +266,7 @@ function renderRunDetail() {
     button.disabled = !allowed[button.dataset.action].includes(run.status);
   }
   refreshFigures(run);
-  showValidation(run);
+  showChampion(run);
   showArchive(run);
 }
 
@@ -379,30 +394,26 @@ async function pushElite() {
   await sendPush(robot, body, $("#archive-push"), $("#archive-message"));
 }
 
-async function showValidation(run) {
-  // A completed run's best is its validated champion (docs/api.md); a live run has none yet.
-  if (run.status !== "completed" || state.validationFor === run.id) return;
-  state.validationFor = run.id;
-  try {
-    const best = await api("GET", `/api/runs/${run.id}/best`);
-    const v = best.validation;
-    if (!v || state.selected !== run.id) return;
-    const line = $("#run-validation");
-    const chosen =
-      `chosen on validation ${fmt(v.score)} over ${v.poses} poses × ${v.steps} steps ` +
-      `(training fitness ${fmt(best.fitness)}, rank ${v.training_rank})`;
-    const t = best.test;
-    const pct = (p) => `${fmt(100 * p.value, 0)} % [${fmt(100 * p.low, 0)}, ${fmt(100 * p.high, 0)}]`;
-    const world = (label, w) => `${label}: roaming ${pct(w.roaming)}, stuck ${pct(w.stuck)}`;
-    line.textContent = t
-      ? `champion, held-out test on ${t.poses} unseen poses × ${t.steps} steps (95 % CI) · ` +
-        `${world("under the reality gap", t.gap)} · ${world("nominal", t.nominal)} · ${chosen}`
-      : `champion ${chosen} · stuck ${fmt(100 * v.stuck, 0)} % · roaming ${fmt(100 * v.roaming, 0)} %`;
-    line.hidden = false;
-    showRobustness(run.id, best.sha256);
-  } catch {
-    state.validationFor = null; // asked again with the next run event
-  }
+function showChampion(run) {
+  // A completed run's champion (RunOut.champion): its held-out test, then how it was chosen.
+  const c = run.champion;
+  if (!c || state.championFor === run.id) return;
+  state.championFor = run.id;
+  const line = $("#run-validation");
+  const v = c.validation;
+  const chosen = v
+    ? `chosen on validation ${fmt(v.score)} over ${v.poses} poses × ${v.steps} steps ` +
+      `(training fitness ${fmt(c.training_fitness)}, rank ${v.training_rank})`
+    : `training rank 0 (validation off; training fitness ${fmt(c.training_fitness)})`;
+  const t = c.test;
+  const pct = (p) => `${fmt(100 * p.value, 0)} % [${fmt(100 * p.low, 0)}, ${fmt(100 * p.high, 0)}]`;
+  const world = (label, w) => `${label}: roaming ${pct(w.roaming)}, stuck ${pct(w.stuck)}`;
+  line.textContent = `Champion ${short(c.sha256)}: ` + (t
+    ? `held-out test on ${t.poses} unseen poses × ${t.steps} steps (95 % CI) · ` +
+      `${world("under the reality gap", t.gap)} · ${world("nominal", t.nominal)} · ${chosen}`
+    : chosen);
+  line.hidden = false;
+  showRobustness(run.id, c.sha256);
 }
 
 async function showRobustness(runId, sha) {
@@ -448,6 +459,15 @@ async function steer(action) {
   }
 }
 
+// A figure at full size (as large as the window allows) in a modal; a click or Esc closes it.
+function zoom(img) {
+  if (img.hidden || !img.src) return;
+  const big = $("#zoom-img");
+  big.src = img.src;
+  big.alt = img.alt;
+  $("#zoom").showModal();
+}
+
 function refreshFigures(run) {
   // The server answers 304 until the best controller changes (ETag = its sha256).
   if (run.generation < 1) return;
@@ -480,10 +500,10 @@ function makeChart() {
       width: Math.max(300, target.clientWidth || 800),
       height: 300,
       scales: { x: { time: false } },
-      axes: [{ label: "generation" }, { label: "fitness" }],
+      axes: [{ label: "generation" }, { label: "training fitness (Eq 12)" }],
       series: [
         { label: "generation" },
-        { label: "best", stroke: "#1f5fbf", width: 2 },
+        { label: "best of generation", stroke: "#1f5fbf", width: 2 },
         { label: "mean", stroke: "#444", width: 1.5, dash: [6, 4] },
         { label: "worst", stroke: "#b3261e", width: 1, dash: [2, 3] },
       ],
@@ -542,7 +562,7 @@ async function showOverlay() {
         width: Math.max(300, target.clientWidth || 800),
         height: 300,
         scales: { x: { time: false } },
-        axes: [{ label: "generation" }, { label: "best fitness" }],
+        axes: [{ label: "generation" }, { label: "best of generation (training fitness)" }],
         series: [{ label: "generation" }, ...series],
       },
       aligned(curves),
@@ -654,24 +674,17 @@ function renderStudy() {
 const pValue = (p) => (p === null || p === undefined ? "–" : p < 0.001 ? Number(p).toExponential(1) : fmt(p, 3));
 
 function renderFinal(study) {
+  // A row per metric, a column per condition: it fits however many metrics there are.
   const metrics = [...new Set(study.summary.flatMap((s) => Object.keys(s.final)))];
   $("#final-table thead tr").replaceChildren(
-    el("th", { text: "condition" }), el("th", { text: "completed" }),
-    ...metrics.map((m) => el("th", { text: m })),
+    el("th", { text: "metric" }), ...study.summary.map((s) => el("th", { text: s.condition })),
   );
+  const cell = (v) => (v ? `${fmt(v.median)} [${fmt(v.ci_low)}, ${fmt(v.ci_high)}]` : "–");
   $("#final-table tbody").replaceChildren(
-    ...study.summary.map((s) =>
-      el(
-        "tr",
-        {},
-        el("td", { text: s.condition }),
-        el("td", { text: `${s.completed} / ${s.runs}` }),
-        ...metrics.map((m) => {
-          const v = s.final[m];
-          return el("td", { text: v ? `${fmt(v.median)} [${fmt(v.ci_low)}, ${fmt(v.ci_high)}]` : "–" });
-        }),
-      ),
-    ),
+    el("tr", {}, el("td", { text: "completed runs" }),
+      ...study.summary.map((s) => el("td", { text: `${s.completed} / ${s.runs}` }))),
+    ...metrics.map((m) =>
+      el("tr", {}, el("td", { text: m }), ...study.summary.map((s) => el("td", { text: cell(s.final[m]) })))),
   );
 }
 
@@ -707,7 +720,7 @@ function renderStudyCurve(study) {
         width: Math.max(300, target.clientWidth || 800),
         height: 320,
         scales: { x: { time: false } },
-        axes: [{ label: "generation" }, { label: "best fitness (Eq 12)" }],
+        axes: [{ label: "generation" }, { label: "best of generation (training fitness)" }],
         series,
         bands,
         legend: { live: false },
@@ -1204,6 +1217,10 @@ function main() {
     $("#overlay-panel").hidden = true;
   });
   $("#study-cancel").addEventListener("click", cancelStudy);
+  for (const img of [$("#network-img"), $("#paths-img")]) {
+    img.addEventListener("click", () => zoom(img));
+  }
+  $("#zoom").addEventListener("click", () => $("#zoom").close());
   $("#archive-map").addEventListener("click", onArchiveClick);
   $("#archive-push").addEventListener("click", pushElite);
   $("#group-push").addEventListener("click", groupPush);
@@ -1215,12 +1232,14 @@ function main() {
   const wanted = Number(new URLSearchParams(location.search).get("run"));
   if (Number.isInteger(wanted) && wanted > 0) state.selected = wanted;
   renderRunDetail();
+  loadStudies(); // the runs table names each run's study
   const field = $("#token");
   field.value = token();
   field.addEventListener("change", () => {
     localStorage.setItem(TOKEN_KEY, field.value.trim());
     field.classList.remove("needed");
     connect();
+    loadStudies();
   });
   connect();
 }
