@@ -251,7 +251,9 @@ def test_the_agent_cli_refuses_a_malformed_start_pose(tmp_path: Path) -> None:
         assert result.exit_code == 2 and reason in result.output, result.output
 
 
-def _row(robot: str, boot: int, first: int, poses: np.ndarray | None) -> TraceRow:
+def _row(
+    robot: str, boot: int, first: int, poses: np.ndarray | None, source: str = "odometry"
+) -> TraceRow:
     n = 10
     return TraceRow(
         robot_id=robot,
@@ -267,7 +269,7 @@ def _row(robot: str, boot: int, first: int, poses: np.ndarray | None) -> TraceRo
         fresh=np.zeros(n, "|b1").tobytes(),
         times=None if poses is None else np.arange(n, dtype="<f8").tobytes(),
         poses=None if poses is None else poses.astype("<f8").tobytes(),
-        pose_source=None if poses is None else "odometry",
+        pose_source=None if poses is None else source,
     )
 
 
@@ -306,3 +308,31 @@ def test_the_map_places_stuck_events_at_their_steps_pose(engine: sa.Engine) -> N
     assert mapped.pose is not None and mapped.pose == pytest.approx((0.69, 1.0, 0.0))
     assert mapped.path[-1] == mapped.pose[:2]
     assert [(m.step, round(m.x, 9), m.y) for m in mapped.stuck] == [(13, 0.63, 1.0)]
+
+
+def test_the_map_draws_a_path_in_one_frame_only(engine: sa.Engine) -> None:
+    """An agent with a tracker traces odometry (its own frame) until the tracker's first pose,
+    then tracker poses (the maze's): the path is the newest source's alone, never a line
+    from one frame to the other."""
+    from sqlalchemy.orm import sessionmaker
+
+    from server.core.models import Robot
+    from server.robots.map import colony_map
+
+    odometry = np.tile([0.0, 0.0, 0.0], (10, 1))  # where its --start-pose put it
+    tracked = np.stack([np.linspace(1.0, 1.09, 10), np.full(10, 1.0), np.zeros(10)], axis=1)
+    sessions = sessionmaker(engine)
+    with sessions.begin() as db:
+        db.add(Robot(id="r-frames", status="online"))
+        db.add_all(
+            [
+                _row("r-frames", 1, 0, odometry),
+                _row("r-frames", 1, 10, tracked, "tracker"),
+                _row("r-frames", 1, 20, tracked + np.array([0.1, 0.0, 0.0]), "tracker"),
+            ]
+        )
+    with sessions() as db:
+        shown = colony_map(db, "paper", lambda robot: True, samples=600)
+    mapped = next(r for r in shown.robots if r.id == "r-frames")
+    assert mapped.pose_source == "tracker" and len(mapped.path) == 20
+    assert min(x for x, _ in mapped.path) == pytest.approx(1.0)

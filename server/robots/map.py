@@ -45,7 +45,9 @@ def colony_map(
 
 
 def _robot(db: Session, robot_id: str, online: bool, samples: int) -> MapRobot:
-    """Newest batches first until `samples` poses; stuck events whose step lies in them."""
+    """Newest batches first until `samples` poses of the newest batch's pose source (one
+    frame: an agent's odometry starts where it was told, a tracker's in the maze); stuck events
+    whose step lies in them."""
     newest_first = (TraceRow.boot.desc(), TraceRow.first.desc())
     mine = TraceRow.robot_id == robot_id
     # the batch counts alone first (the primary key's order), then only the batches needed
@@ -60,8 +62,8 @@ def _robot(db: Session, robot_id: str, online: bool, samples: int) -> MapRobot:
     rows = db.scalars(select(TraceRow).where(mine).order_by(*newest_first).limit(needed))
     for row in rows:
         located = trace_poses(row)
-        if located is None:
-            break  # older batches carry no pose either
+        if located is None or (batches and row.pose_source != batches[0][0].pose_source):
+            break  # no pose, or poses in another frame (odometry before a tracker saw it)
         batches.append((row, *located))
         held += row.count
         if held >= samples:
