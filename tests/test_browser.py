@@ -444,6 +444,13 @@ def test_studies_page_drills_into_a_run_and_runs_overlay(
         assert eventually(
             lambda: client.get(f"/api/studies/{study_id}").json()["status"] == "completed", 120
         )
+        assert eventually(  # the champions' exploration figures come from jobs afterwards
+            lambda: all(
+                None not in r["metrics"].values()
+                for r in client.get(f"/api/studies/{study_id}").json()["runs"]
+            ),
+            120,
+        )
         study = client.get(f"/api/studies/{study_id}").json()
     assert study["comparisons"] and study["verdicts"]
 
