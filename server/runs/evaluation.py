@@ -149,7 +149,7 @@ def spot_check(
     n = lease.stop - lease.start
     loop = run.loop
     config = loop.config
-    generations = 1  # then those `Scheduler._complete` will move the span's lease on to
+    generations = 1  # then those `Ledger._complete` will move the span's lease on to
     while (
         generations < min(result.generations, lease.span_left + 1)
         and run.running
