@@ -443,7 +443,15 @@ class Scheduler:
         fitness, components, descriptors = result.fitness, result.components, result.descriptors
         if run is None or fitness is None or components is None or descriptors is None:
             return None
-        for i in range(result.generations):
+        every = implausible(  # each check is per individual: all generations in one call
+            run.loop.config,
+            fitness.reshape(-1),
+            components.reshape(-1, *components.shape[2:]),
+            descriptors.reshape(-1, descriptors.shape[-1]),
+        )
+        if every is None:
+            return None
+        for i in range(result.generations):  # which generation, named as a worker sees it
             why = implausible(run.loop.config, fitness[i], components[i], descriptors[i])
             if why is not None:
                 return (
