@@ -161,7 +161,7 @@ def spot_check(
     totals["results_checked"] += 1
     for i in range(picks[-1] // n + 1):
         if i > 0:  # a span's later generation: the genomes its claimed fitness leads to
-            shadow = shadow or RunLoop(config, state=loop.state)
+            shadow = shadow or loop.fork()  # the run's loop then takes its steps for free
             shadow.tell(fitness[i - 1], components[i - 1], descriptors[i - 1])
             asked = shadow.ask()
         rows = [p % n for p in picks if p // n == i]
