@@ -14,7 +14,7 @@ final population on the run's validation set (`RunConfig.validation`, docs/evolv
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -471,6 +471,17 @@ class StrategyHistory:
         return cls(arrays["fitness"], arrays["descriptors"])
 
 
+@dataclass
+class _Steps:
+    """What a fork computed, keyed by the identity of the state it stepped from (`RunLoop.fork`):
+    the genomes asked, and the state and metrics each told fitness (its bytes) gave."""
+
+    asked: dict[int, tuple[GAState, np.ndarray]] = field(default_factory=dict)
+    told: dict[tuple[int, bytes], tuple[GAState, GAState, TellMetrics]] = field(
+        default_factory=dict
+    )
+
+
 class RunLoop:
     """The run loop every role drives: ask, evaluate (the caller's part), tell, for any strategy.
 
@@ -507,6 +518,10 @@ class RunLoop:
         self._fitness: list[np.ndarray] = []
         self._descriptors: list[np.ndarray] = []
         self._asked: np.ndarray | None = None
+        self._steps: _Steps | None = None
+        """The steps a fork took, while this loop follows them (`fork`)."""
+        self._forked = False
+        """This loop is a fork: it records its steps for the loop it was forked from."""
 
     @classmethod
     def resume(cls, config: RunConfig, history: StrategyHistory) -> RunLoop:
@@ -526,6 +541,20 @@ class RunLoop:
         for fitness, descriptors in zip(history.fitness, history.descriptors, strict=True):
             loop.tell(fitness, None, descriptors)
         return loop
+
+    def fork(self) -> RunLoop:
+        """A paper-ga loop at this one's state that records the steps it takes (the genomes
+        asked, the state each fitness told gives): once this loop is told the same fitness
+        from the same state, it takes those steps instead of computing them again, bit for
+        bit the same. The server's spot-check follows a span's claimed fitness on a fork, then
+        tells the run's loop the same generations. ValueError for another strategy."""
+        if self._strategy is not None:
+            raise ValueError(f"a {self.config.strategy} loop cannot be forked")
+        fork = RunLoop(self.config, state=self.state)
+        fork._asked = self._asked
+        fork._forked = True
+        fork._steps = self._steps = _Steps()
+        return fork
 
     @property
     def history(self) -> StrategyHistory:
@@ -552,7 +581,10 @@ class RunLoop:
         if self.done:
             raise ValueError(f"the run is over after {self.config.generations} generations")
         if self._asked is None:
-            if self._strategy is None:
+            taken = self._taken_ask()
+            if taken is not None:
+                genomes = taken
+            elif self._strategy is None:
                 genomes, _ = ask(
                     ga_rng(self.config.seed, self.generation), self.state, self.params, self.layout
                 )
@@ -560,6 +592,8 @@ class RunLoop:
                 genomes = np.ascontiguousarray(self._strategy.ask(self.generation))
             genomes.flags.writeable = False
             self._asked = genomes
+            if self._forked and self._steps is not None:
+                self._steps.asked[id(self.state)] = (self.state, genomes)
         return self._asked
 
     def tell(
@@ -572,7 +606,14 @@ class RunLoop:
         cma-me and novelty need `descriptors` (ValueError without them)."""
         genomes = self.ask()
         before = self.state
-        self.state, metrics = tell(genomes, fitness, before, self.params)
+        key = (id(before), np.asarray(fitness, dtype=np.float64).tobytes())
+        taken = self._taken_tell(key)
+        if taken is not None:
+            self.state, metrics = taken
+        else:
+            self.state, metrics = tell(genomes, fitness, before, self.params)
+            if self._forked and self._steps is not None:
+                self._steps.told[key] = (before, self.state, metrics)
         n, d = self.config.population, len(DESCRIPTORS)
         told_descriptors = (
             np.full((n, d), np.nan)
@@ -600,6 +641,28 @@ class RunLoop:
             self.state,
             metrics,
         )
+
+    def _taken_ask(self) -> np.ndarray | None:
+        """The genomes a fork asked from this loop's state, while this loop follows its steps
+        (the first step it did not take ends the following, freeing what it recorded)."""
+        if self._forked or self._steps is None:
+            return None
+        found = self._steps.asked.pop(id(self.state), None)
+        if found is None or found[0] is not self.state:
+            self._steps = None
+            return None
+        return found[1]
+
+    def _taken_tell(self, key: tuple[int, bytes]) -> tuple[GAState, TellMetrics] | None:
+        """The state and metrics a fork's `tell` of the same fitness from this loop's state
+        gave (`_taken_ask`'s rules)."""
+        if self._forked or self._steps is None:
+            return None
+        found = self._steps.told.pop(key, None)
+        if found is None or found[0] is not self.state:
+            self._steps = None
+            return None
+        return found[1], found[2]
 
     def archive(self) -> Archive | None:
         """The archive of a map-elites, cma-me or novelty run (descriptors (m, 2) on

@@ -293,6 +293,49 @@ def test_a_loop_rebuilt_from_any_state_goes_on_bit_for_bit(
         loop.ask()
 
 
+@settings(max_examples=15, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    fitness=st.lists(
+        st.lists(st.floats(-1e6, 1e6) | st.just(np.nan), min_size=6, max_size=6),
+        min_size=4,
+        max_size=4,
+    ),
+    ahead=st.integers(0, 4),
+    diverge=st.integers(0, 4),
+    asked=st.booleans(),
+)
+def test_a_loop_following_its_forks_steps_goes_on_bit_for_bit(
+    seed: int, fitness: list[list[float]], ahead: int, diverge: int, asked: bool
+) -> None:
+    """A fork told `ahead` generations (the server's spot-check of a span), after which its
+    loop is told the same fitness up to generation `diverge` and other fitness after: every
+    generation is what a loop never forked asks and tells, and the steps the fork took are
+    taken, not computed again (the very same states)."""
+    config = LOOPED.model_copy(update={"seed": seed})
+    values = [np.array(row, dtype=np.float64) for row in fitness]
+    other = [np.where(np.isnan(row), 0.0, row) + 1.0 for row in values]
+    told_values = [values[g] if g < diverge else other[g] for g in range(config.generations)]
+    straight = RunLoop(config)
+    expected = [straight.tell(told_values[g]) for g in range(config.generations)]
+    loop = RunLoop(config)
+    if asked:
+        loop.ask()
+    fork = loop.fork()
+    forked = []
+    for g in range(ahead):
+        forked.append(fork.tell(values[g]))
+        if not fork.done:
+            fork.ask()
+    told = [loop.tell(told_values[g]) for g in range(config.generations)]
+    for g, (a, b) in enumerate(zip(told, expected, strict=True)):
+        assert a.genomes.tobytes() == b.genomes.tobytes()
+        assert a.metrics.order.tobytes() == b.metrics.order.tobytes()
+        assert _states_equal(a.after, b.after)
+        assert (g < ahead and a.after is forked[g].after) == (g < min(ahead, diverge))
+    assert _states_equal(loop.state, straight.state)
+
+
 @settings(max_examples=5, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), generations=st.integers(1, 3))
 def test_evolve_equals_the_manual_run_loop(seed: int, generations: int) -> None:

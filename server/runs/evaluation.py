@@ -149,7 +149,7 @@ def spot_check(
     n = lease.stop - lease.start
     loop = run.loop
     config = loop.config
-    generations = 1  # then those `Scheduler._complete` will move the span's lease on to
+    generations = 1  # then those `Ledger._complete` will move the span's lease on to
     while (
         generations < min(result.generations, lease.span_left + 1)
         and run.running
@@ -161,7 +161,7 @@ def spot_check(
     totals["results_checked"] += 1
     for i in range(picks[-1] // n + 1):
         if i > 0:  # a span's later generation: the genomes its claimed fitness leads to
-            shadow = shadow or RunLoop(config, state=loop.state)
+            shadow = shadow or loop.fork()  # the run's loop then takes its steps for free
             shadow.tell(fitness[i - 1], components[i - 1], descriptors[i - 1])
             asked = shadow.ask()
         rows = [p % n for p in picks if p // n == i]

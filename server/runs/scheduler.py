@@ -1,11 +1,14 @@
 """The scheduler: every decision of the job path, as a state machine without I/O.
 
-It owns the generations in flight (one `RunLoop` per live run, its generation cut into jobs),
-the one lease table on one injectable clock, spans, the worker table and the generations told
-but not yet written. Inputs are calls (a worker asks, a result arrives, a worker leaves, the
-clock passes a deadline); outputs are jobs, acknowledgements, told generations to store and
-runs to fail. It knows nothing of zenoh, HTTP or the database; the zenoh dispatcher, the
-in-process executor and the run manager drive it, each call under one lock held briefly.
+It decides who gets which job and whether a result counts. What is in flight (one `RunLoop`
+per live run, its generation cut into jobs; reports; the one lease table on one injectable
+clock; the worker table; the generations told but not yet written) is its ledger
+(`server.runs.ledger`), which also completes what an accepted result finishes; the jobs no
+worker may take are the referee's (`server.runs.referee`). Inputs are calls (a worker asks, a
+result arrives, a worker leaves, the clock passes a deadline); outputs are jobs,
+acknowledgements, told generations to store and runs to fail. It knows nothing of zenoh, HTTP
+or the database; the zenoh dispatcher, the in-process executor and the run manager drive it,
+each call under one lock held briefly.
 
 A job is a contiguous slice of a generation. Only its lease holder's result counts: a late or
 duplicate result is acknowledged as dropped. The result of the last job tells the run loop,
@@ -39,8 +42,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future
 
 import numpy as np
 
@@ -53,20 +56,18 @@ from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, ReportSpec, ReportStage, Result, WorkerStatus
 from server.core.logs import context
 from server.runs.choosing import Choosing
-from server.runs.evaluation import digest_error, run_job, spot_check, spot_check_scores
+from server.runs.evaluation import digest_error, spot_check, spot_check_scores
 from server.runs.jobs import Lease, Report, Run, Slot, Work
-from server.runs.outbox import Outbox, Written
+from server.runs.ledger import Ledger
+from server.runs.outbox import Written
 from server.runs.policy import Policy, clamp_speed
-from server.runs.workers import Worker, Workers, credential
+from server.runs.referee import Referee
+from server.runs.workers import Worker, credential
 
 log = logging.getLogger(__name__)
 
-TOTALS = ("leased", "done", "requeued", "duplicates_dropped")
-"""Keys of `Scheduler.totals()`."""
 SPOT_TOTALS = ("results_checked", "individuals_checked", "robot_steps_checked", "mismatches")
 """Keys of `Scheduler.spot_totals()`."""
-REFEREE = "(server)"
-"""The lease holder while the server evaluates a job itself (not a valid worker name)."""
 
 
 class Scheduler:
@@ -82,20 +83,11 @@ class Scheduler:
         self.policy = policy or Policy()
         self._clock = clock
         self._lock = threading.Lock()
-        self._runs: dict[int, Run] = {}
-        self._reports: dict[int, Report] = {}
-        self._resolved: list[tuple[Future[Assembled], Assembled | Exception]] = []
-        """Reports finished or failed under the lock, resolved once it is released."""
-        self._closed = False
-        self._leases: dict[JobKey, Lease] = {}
-        self._workers = Workers(self.policy, clock=clock, wall=wall)
-        self._referee = ThreadPoolExecutor(1, thread_name_prefix="colony-referee")
-        """Evaluates the jobs no worker could (`REFEREE` holds their leases meanwhile)."""
-        self._outbox = Outbox(self.policy, clock)
-        self.told_many = self._outbox.told_many
+        self._ledger = Ledger(self.policy, clock=clock, wall=wall)
+        self._referee = Referee(self._ledger, self._lock, clock=clock, record=self._judged)
+        self.told_many = self._ledger.outbox.told_many
         """Set when a run has `write_now` generations unwritten: the store should write now."""
-        self._sequence = 0
-        self._totals = dict.fromkeys(TOTALS, 0)
+        self._closed = False
         self._spot = dict.fromkeys(SPOT_TOTALS, 0)
         self._listeners: list[Callable[[], None]] = []
 
@@ -106,11 +98,11 @@ class Scheduler:
     def close(self) -> None:
         """Finish the server's own evaluation in hand; no more after. Reports in flight fail
         (their askers stop waiting)."""
-        self._referee.shutdown(wait=True, cancel_futures=True)
+        self._referee.close()
         with self._lock:
             self._closed = True
-            for report_id in list(self._reports):
-                self._fail_report(report_id, "the server is stopping")
+            for report_id in list(self._ledger.reports):
+                self._ledger.fail_report(report_id, "the server is stopping")
         self._resolve()
 
     # runs ------------------------------------------------------------------------------------
@@ -128,22 +120,24 @@ class Scheduler:
     def add(self, run_id: int, loop: RunLoop, *, running: bool) -> None:
         """Serve `loop`'s current generation (replacing anything of the run in flight)."""
         with self._lock:
-            self._drop_leases(run_id)
-            self._install(run_id, loop, running, served=self._sequence)
+            self._ledger.drop_leases(run_id)
+            self._ledger.install(run_id, loop, running, served=self._ledger.sequence)
         self._announce()
 
     def choose(self, run_id: int, loop: RunLoop, choosing: Choosing, *, running: bool) -> None:
         """Serve the champion's stages of a run whose `loop` is done (`choosing`, rebuilt from
         the store after a restart), replacing anything of the run in flight."""
         with self._lock:
-            self._drop_leases(run_id)
-            self._choose(run_id, loop, choosing, running=running, served=self._sequence)
+            self._ledger.drop_leases(run_id)
+            self._ledger.choose(
+                run_id, loop, choosing, running=running, served=self._ledger.sequence
+            )
         self._announce()
 
     def set_running(self, run_id: int, running: bool) -> None:
         """Pause (no new leases; leased jobs may still complete) or resume a run."""
         with self._lock:
-            run = self._runs.get(run_id)
+            run = self._ledger.runs.get(run_id)
             if run is not None:
                 run.running = running
         self._announce()
@@ -151,33 +145,33 @@ class Scheduler:
     def forget(self, run_id: int) -> None:
         """Drop a run (over): its results, if any arrive, are acknowledged as dropped."""
         with self._lock:
-            self._drop_run(run_id)
+            self._ledger.drop_run(run_id)
 
     def take_told(self) -> list[Written]:
         """The generations told since the last call, oldest first, for the store."""
         with self._lock:
-            return self._outbox.take()
+            return self._ledger.outbox.take()
 
     def written(self, told: list[Written]) -> None:
         """The store has `told` (or dropped it, its run being over): their runs may go on."""
         with self._lock:
-            self._outbox.written(told)
+            self._ledger.outbox.written(told)
         self._announce()
 
     def put_back(self, told: list[Written]) -> None:
         """Told generations the store refused: first in line for the next `take_told`."""
         with self._lock:
-            self._outbox.put_back(told)
+            self._ledger.outbox.put_back(told)
 
     def take_failed(self) -> dict[int, str]:
         """Runs (id -> why) whose job failed in the server's own evaluation since the last
         call: the store fails them (after writing their told generations)."""
         with self._lock:
-            return self._outbox.take_failed()
+            return self._ledger.outbox.take_failed()
 
     def has_pending(self) -> bool:
         with self._lock:
-            return any(self._leasable(work) for work in self._work())
+            return any(self._ledger.leasable(work) for work in self._ledger.work())
 
     # reports ---------------------------------------------------------------------------------
 
@@ -190,15 +184,17 @@ class Scheduler:
         server's own evaluation of one of its jobs, or the server stopping). The same report
         asked while in flight is the same future. ValueError for a bad request."""
         with self._lock:
-            parts = len(self._live()) * self.policy.jobs_per_worker
-            report = Report.new(stage, config, spec, weights, served=self._sequence, parts=parts)
-            found = self._reports.get(report.report_id)
+            parts = len(self._ledger.live()) * self.policy.jobs_per_worker
+            report = Report.new(
+                stage, config, spec, weights, served=self._ledger.sequence, parts=parts
+            )
+            found = self._ledger.reports.get(report.report_id)
             if found is not None:
                 return found.future
             if self._closed:
                 report.future.set_exception(RuntimeError("the server is stopping"))
                 return report.future
-            self._reports[report.report_id] = report
+            self._ledger.reports[report.report_id] = report
         self._announce()
         return report.future
 
@@ -219,7 +215,7 @@ class Scheduler:
         says of itself. An unlisted one (an in-process evaluator) leases like any other but is
         not in `workers`."""
         with self._lock:
-            self._workers.join(
+            self._ledger.workers.join(
                 worker,
                 host=host,
                 speed=speed,
@@ -232,8 +228,8 @@ class Scheduler:
     def leave(self, worker: str) -> list[JobKey]:
         """`worker` is gone (its token vanished): its leases return at once; their keys."""
         with self._lock:
-            self._workers.leave(worker)
-            released = self._release_where(lambda lease: lease.worker == worker)
+            self._ledger.workers.leave(worker)
+            released = self._ledger.release_where(lambda lease: lease.worker == worker)
         self._announce()
         return released
 
@@ -241,13 +237,13 @@ class Scheduler:
         """Every known worker, gone ones too until `gone_keep_s` after they left (quarantined
         ones for good)."""
         with self._lock:
-            return self._workers.statuses(self._busy())
+            return self._ledger.workers.statuses(self._ledger.busy())
 
     def quarantined(self) -> dict[str, str]:
         """Workers that failed a spot-check: name -> why (worker, run, generation, individual,
         claimed and recomputed fitness)."""
         with self._lock:
-            return self._workers.quarantined()
+            return self._ledger.workers.quarantined()
 
     # jobs ------------------------------------------------------------------------------------
 
@@ -255,17 +251,19 @@ class Scheduler:
         """The next job for `worker`, leased to it, or None. A worker asks only with empty
         hands, so any lease it still holds lost its reply: that job returns first."""
         with self._lock:
-            record = self._workers.touch(worker)
+            record = self._ledger.workers.touch(worker)
             record.asked_at = self._clock()
-            self._release_where(lambda lease: lease.worker == worker)
+            self._ledger.release_where(lambda lease: lease.worker == worker)
             if record.quarantine is not None:
                 return None
-            self._referee_stranded()
+            self._referee.refer_stranded()
             excluded = credential(worker) if record.listed else None
             chosen: Work | None = None
             index = 0
-            for work in self._work():
-                if not self._leasable(work) or (chosen is not None and work.order >= chosen.order):
+            for work in self._ledger.work():
+                if not self._ledger.leasable(work) or (
+                    chosen is not None and work.order >= chosen.order
+                ):
                     continue
                 pick = work.pick(excluded)
                 if pick is not None:
@@ -282,9 +280,11 @@ class Scheduler:
                 and traits(chosen.config).in_state
             ):
                 loop, config = chosen.loop, chosen.config
-                wanted = self.policy.span_generations(config, record.speed, crowded=self._crowded())
+                wanted = self.policy.span_generations(
+                    config, record.speed, crowded=self._ledger.crowded()
+                )
                 span = max(1, min(wanted, config.generations - loop.generation))
-            lease_s = self._lease(chosen, index, worker, span_left=span - 1)
+            lease_s = self._ledger.lease(chosen, index, worker, span_left=span - 1)
             return chosen.job(index, lease_s, span=span)
 
     def settle(self, result: Result) -> Ack:
@@ -297,7 +297,7 @@ class Scheduler:
         return ack
 
     def _settle(self, result: Result) -> Ack:
-        record = self._workers.touch(result.worker, revive=False)
+        record = self._ledger.workers.touch(result.worker, revive=False)
         if record.quarantine is not None:
             return Ack(key=result.key, accepted=False, reason="worker quarantined")
         if result.robot_steps_per_s > 0:
@@ -316,7 +316,7 @@ class Scheduler:
         following = result.key
         for i in range(result.generations):
             key = result.key.at(result.key.generation + i)
-            lease = self._leases.get(key)
+            lease = self._ledger.leases.get(key)
             if (
                 lease is None
                 or lease.worker != result.worker
@@ -325,16 +325,16 @@ class Scheduler:
                     and (result.start, result.stop) != (lease.start, lease.stop)
                 )
             ):
-                self._totals["duplicates_dropped"] += result.generations - i
+                self._ledger.totals["duplicates_dropped"] += result.generations - i
                 if result.fitness is not None:
                     record.late += (result.generations - i) * result.fitness.shape[1]
                 break
-            del self._leases[key]
+            del self._ledger.leases[key]
             if result.error is not None:
                 self._erred(key, record, result.error)
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
-            work = self._find(key)
+            work = self._ledger.find(key)
             if work is None:  # a lease never outlives its run or report
                 raise ValueError(f"{key.label()} is leased but not in flight")
             wrong = None if isinstance(work, Report) else digest_error(result, i, lease, work.loop)
@@ -349,15 +349,15 @@ class Scheduler:
             took = max(self._clock() - lease.leased_at, 1e-6)  # before a span's lease moves on
             record.measured = clamp_speed(work.robot_steps(lease.stop - lease.start) / took)
             self._accept(key, lease, result, i)
-            self._workers.accepted(result.worker)
+            self._ledger.workers.accepted(result.worker)
             record.jobs_done += 1
             if key.stage == "train":  # a stage's rows are no controllers' fitness
                 record.evaluations += lease.stop - lease.start
             ack = Ack(key=result.key, accepted=True)
             following = key.at(key.generation + 1)
-        if ack.accepted and self._outbox.lags(result.key.run_id):
+        if ack.accepted and self._ledger.outbox.lags(result.key.run_id):
             # a span ends with the message that took its run too far ahead of the store
-            self._release_where(
+            self._ledger.release_where(
                 lambda lease: lease.key == following and lease.worker == result.worker
             )
         return ack
@@ -367,8 +367,8 @@ class Scheduler:
         quarantined). The count."""
         now = self._clock()
         with self._lock:
-            released = self._release_where(lambda lease: lease.deadline <= now)
-            self._workers.forget_gone(now)
+            released = self._ledger.release_where(lambda lease: lease.deadline <= now)
+            self._ledger.workers.forget_gone(now)
         if released:
             self._announce()
         return len(released)
@@ -376,14 +376,14 @@ class Scheduler:
     def next_deadline(self) -> float | None:
         """The clock time of the next lease deadline, if any (the referee's have none)."""
         with self._lock:
-            deadlines = (lease.deadline for lease in self._leases.values())
+            deadlines = (lease.deadline for lease in self._ledger.leases.values())
             return min((d for d in deadlines if d < math.inf), default=None)
 
     def totals(self) -> dict[str, int]:
         """Since construction: jobs `leased`, results accepted (`done`), leases returned
         (`requeued`) and results dropped as late or duplicate (`duplicates_dropped`)."""
         with self._lock:
-            return dict(self._totals)
+            return dict(self._ledger.totals)
 
     def spot_totals(self) -> dict[str, int]:
         """Since construction: results spot-checked, individuals and robot-steps re-evaluated,
@@ -395,7 +395,7 @@ class Scheduler:
         """Jobs of the generations in flight by status: pending, leased, done."""
         counts = {"pending": 0, "leased": 0, "done": 0}
         with self._lock:
-            for work in self._work():
+            for work in self._ledger.work():
                 for slot in work.slots:
                     counts[slot.status] += 1
         return counts
@@ -405,7 +405,7 @@ class Scheduler:
     def _announce(self) -> None:
         with self._lock:
             listeners = list(self._listeners)
-            ready = any(self._leasable(work) for work in self._work())
+            ready = any(self._ledger.leasable(work) for work in self._ledger.work())
         if ready:
             for listener in listeners:
                 listener()
@@ -414,126 +414,20 @@ class Scheduler:
         """Hand the reports finished or failed meanwhile to their askers (outside the lock:
         a future's callbacks run here)."""
         with self._lock:
-            resolved, self._resolved = self._resolved, []
+            resolved = self._ledger.take_resolved()
         for future, outcome in resolved:
             if isinstance(outcome, Exception):
                 future.set_exception(outcome)
             else:
                 future.set_result(outcome)
 
-    def _work(self) -> Iterator[Work]:
-        """Everything in flight: reports, then runs."""
-        yield from self._reports.values()
-        yield from self._runs.values()
-
-    def _find(self, key: JobKey) -> Work | None:
-        """The report or run whose job `key` is, if in flight."""
-        return self._reports.get(key.run_id) if key.report else self._runs.get(key.run_id)
-
-    def _leasable(self, work: Work) -> bool:
-        """Running, with a job pending, and (a run's) its store keeping up."""
-        lags = isinstance(work, Run) and self._outbox.lags(work.run_id)
-        return work.running and bool(work.pending) and not lags
-
-    def _install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:
-        size = self._job_size(loop.config, loop.generation, run_id if running else None)
-        self._runs[run_id] = Run.new(run_id, loop, running=running, served=served, size=size)
-
-    def _busy(self) -> set[str]:
-        """The workers holding a lease."""
-        return {lease.worker for lease in self._leases.values()}
-
-    def _live(self) -> list[Worker]:
-        """Workers that take jobs (`Workers.live`)."""
-        return self._workers.live(self._busy())
-
-    def _crowded(self, run_id: int | None = None) -> bool:
-        """At least as many running runs (`run_id` counted as one) as jobs the live workers
-        take (`jobs_per_worker` each): each job can be a run's whole generation, so slicing a
-        generation only adds round trips."""
-        live = len(self._live()) * self.policy.jobs_per_worker
-        running = {run.run_id for run in self._runs.values() if run.running}
-        return live > 0 and len(running | ({run_id} if run_id is not None else set())) >= live
-
-    def _job_size(self, config: RunConfig, generation: int, run_id: int | None) -> int:
-        """`Policy.job_size` for the live workers, `run_id` counted among the running runs."""
-        live = self._live()
-        speeds = [w.speed if w.spans else None for w in live]
-        crowded = bool(live) and self._crowded(run_id)
-        return self.policy.job_size(config, generation, speeds, crowded=crowded)
-
-    def _lease(
-        self,
-        run: Work,
-        index: int,
-        worker: str,
-        *,
-        span_left: int = 0,
-        asked_by_worker: bool = False,
-    ) -> float:
-        """Lease slot `index` of the run's generation to `worker`; the lease's seconds, from
-        the slot's robot-steps and the worker's speed."""
-        slot = run.slots[index]
-        lease_s = self.policy.lease_seconds(
-            run.robot_steps(slot.stop - slot.start), self._workers[worker].measured
-        )
-        slot.status = "leased"
-        self._sequence += 1
-        run.served = self._sequence
-        key = run.key(index)
-        now = self._clock()
-        self._leases[key] = Lease(
-            key, worker, now + lease_s, slot.start, slot.stop, now, span_left, asked_by_worker
-        )
-        self._totals["leased"] += 1
-        return lease_s
-
     def _accept(self, key: JobKey, lease: Lease, result: Result, i: int) -> None:
-        """Generation `i` of `result` (or a stage's scores) fills the slot `lease` held."""
-        if result.scores is not None and key.report:
-            self._complete_report(key, lease, result.scores)
-        elif result.scores is not None:
-            self._complete_stage(key, lease, result.scores)
-        elif (
-            result.fitness is not None
-            and result.components is not None
-            and result.descriptors is not None
-        ):
-            fitness, components, descriptors = result.fitness, result.components, result.descriptors
-            self._complete(key, lease, fitness[i], components[i], descriptors[i])
-
-    def _complete(
-        self,
-        key: JobKey,
-        lease: Lease,
-        fitness: np.ndarray,
-        components: np.ndarray,
-        descriptors: np.ndarray,
-    ) -> None:
-        run = self._runs[key.run_id]
-        self._count_errors(run.slots[key.index])
-        run.fill(key.index, lease.worker, fitness, components, descriptors)
-        self._totals["done"] += 1
-        if run.remaining:
-            return
-        loop = run.loop
-        told = loop.tell(run.fitness, run.components, run.descriptors)
-        if loop.done:
-            try:
-                choosing = Choosing.new(run.run_id, loop, told)
-            except ValueError as exc:
-                self._fail_choice(run.run_id, exc)
-                return
-            self._choose(run.run_id, loop, choosing, running=run.running, served=run.served)
-            return
-        self._outbox.tell(Written(run.run_id, loop.config, told))
-        self._install(run.run_id, loop, run.running, served=run.served)
-        following = self._runs[run.run_id]
-        if lease.span_left > 0 and following.running and len(following.slots) == 1:
-            following.unpend(0)
-            self._lease(
-                following, 0, lease.worker, span_left=lease.span_left - 1, asked_by_worker=True
-            )
+        """Generation `i` of `result` (or a stage's scores) fills the slot `lease` held
+        (`Ledger.accept`), once the errors on it are counted."""
+        work = self._ledger.find(key)
+        if work is not None:
+            self._count_errors(work.slots[key.index])
+        self._ledger.accept(key, lease, result, i)
 
     def _implausible(self, result: Result) -> str | None:
         """Why a generation of `result` claims what its run's trials cannot produce
@@ -541,15 +435,23 @@ class Scheduler:
         no evaluation or its run is not in flight. Judged before any lease or spot-check, so a
         forgery counts against its credential even when it comes late. A report's rows: by
         `evorobotics.reports.implausible`."""
-        report = self._reports.get(result.key.run_id) if result.key.report else None
+        report = self._ledger.reports.get(result.key.run_id) if result.key.report else None
         if report is not None and result.scores is not None:
             why = implausible_rows(report.config, report.stage, report.spec, result.scores)
             return None if why is None else f"worker {result.worker} {report.label}: {why}"
-        run = None if result.key.report else self._runs.get(result.key.run_id)
+        run = None if result.key.report else self._ledger.runs.get(result.key.run_id)
         fitness, components, descriptors = result.fitness, result.components, result.descriptors
         if run is None or fitness is None or components is None or descriptors is None:
             return None
-        for i in range(result.generations):
+        every = implausible(  # each check is per individual: all generations in one call
+            run.loop.config,
+            fitness.reshape(-1),
+            components.reshape(-1, *components.shape[2:]),
+            descriptors.reshape(-1, descriptors.shape[-1]),
+        )
+        if every is None:
+            return None
+        for i in range(result.generations):  # which generation, named as a worker sees it
             why = implausible(run.loop.config, fitness[i], components[i], descriptors[i])
             if why is not None:
                 return (
@@ -558,70 +460,12 @@ class Scheduler:
                 )
         return None
 
-    def _complete_report(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
-        report = self._reports[key.run_id]
-        self._count_errors(report.slots[key.index])
-        try:
-            assembled = report.fill_scores(key.index, lease.worker, scores)
-        except ValueError as exc:
-            self._fail_report(report.report_id, f"it cannot be assembled: {exc}")
-            return
-        self._totals["done"] += 1
-        if assembled is not None:
-            self._resolved.append((report.future, assembled))
-            del self._reports[report.report_id]
-
-    def _fail_report(self, report_id: int, why: str) -> None:
-        """The report fails (its asker gets the error); its jobs are dropped."""
-        report = self._reports.pop(report_id)
-        log.warning("%s failed: %s", report.label, why)
-        self._resolved.append((report.future, RuntimeError(f"{report.label} failed: {why}")))
-        for key in [k for k in self._leases if k.report and k.run_id == report_id]:
-            del self._leases[key]
-
-    def _complete_stage(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
-        run = self._runs[key.run_id]
-        self._count_errors(run.slots[key.index])
-        try:
-            choosing = run.fill_scores(key.index, lease.worker, scores)
-        except ValueError as exc:
-            self._fail_choice(run.run_id, exc)
-            return
-        self._totals["done"] += 1
-        if choosing is not None:
-            self._choose(run.run_id, run.loop, choosing, running=run.running, served=run.served)
-
-    def _choose(
-        self, run_id: int, loop: RunLoop, choosing: Choosing, *, running: bool, served: int
-    ) -> None:
-        """Serve `choosing`'s stage in hand, cut into a job per live worker (`jobs_per_worker`
-        each); once none is left, the last generation goes to the store with its champion."""
-        if choosing.stage is None:
-            try:
-                written = choosing.written()
-            except ValueError as exc:
-                self._fail_choice(run_id, exc)
-                return
-            self._outbox.tell(written)
-            self._runs.pop(run_id, None)
-            return
-        parts = len(self._live()) * self.policy.jobs_per_worker
-        self._runs[run_id] = Run.choose(
-            run_id, loop, choosing, running=running, served=served, parts=parts
-        )
-
-    def _fail_choice(self, run_id: int, exc: ValueError) -> None:
-        """The run's champion cannot be chosen (no candidate, or a bug): the run fails."""
-        log.error("run %d: its champion cannot be chosen: %s", run_id, exc)
-        self._outbox.fail(run_id, f"its champion cannot be chosen: {exc}")
-        self._drop_run(run_id)
-
     def _spot_check(self, result: Result, record: Worker) -> str | None:
         """`spot_check` `result`, unless this process's own evaluator sent it (it runs this
         process's code)."""
         if not record.listed:
             return None
-        lease, work = self._leases.get(result.key), self._find(result.key)
+        lease, work = self._ledger.leases.get(result.key), self._ledger.find(result.key)
         if result.scores is not None:
             return spot_check_scores(
                 result, lease, work, wanted=self.policy.spot_checks, totals=self._spot
@@ -632,16 +476,16 @@ class Scheduler:
             lease,
             run,
             wanted=self.policy.spot_checks,
-            job_size=self._job_size,
+            job_size=self._ledger.job_size,
             totals=self._spot,
         )
 
     def _quarantine(self, name: str, why: str) -> None:
         """No more jobs for any worker of `name`'s credential; their leases and every result
         of them in the generations in flight return to pending."""
-        banned = self._workers.ban(name, why)
-        released = self._release_where(lambda lease: credential(lease.worker) == banned)
-        discarded = sum(work.discard(banned) for work in self._work())
+        banned = self._ledger.workers.ban(name, why)
+        released = self._ledger.release_where(lambda lease: credential(lease.worker) == banned)
+        discarded = sum(work.discard(banned) for work in self._ledger.work())
         context(log, worker=name).warning(
             "worker %s quarantined: %s; %d leases and %d results of it returned to pending",
             name,
@@ -654,11 +498,11 @@ class Scheduler:
         """`record`'s evaluation of the job `key` erred: the run fails if it is the server's
         own; else the job goes to another credential, or to the referee when none is left. The
         error counts against the credential once someone evaluates the job without one."""
-        work = self._find(key)
+        work = self._ledger.find(key)
         if work is None:
             return
         if not record.listed:  # an in-process executor: this process's own evaluation
-            self._fail_run(key, error)
+            self._ledger.fail_run(key, error)
             return
         slot = work.slots[key.index]
         slot.erred[credential(record.name)] = (record.name, error)
@@ -670,93 +514,33 @@ class Scheduler:
             key.label(),
             error,
         )
-        self._referee_stranded()
+        self._referee.refer_stranded()
 
     def _count_errors(self, slot: Slot) -> None:
         """The slot's job is evaluated without an error: each credential that erred on it
         erred on its own account, and `errors_quarantine` such errors in a row quarantine it."""
-        for name, why in self._workers.count_errors(slot.erred):
+        for name, why in self._ledger.workers.count_errors(slot.erred):
             self._quarantine(name, why)
         slot.erred = {}
 
-    def _fail_run(self, key: JobKey, error: str) -> None:
-        """The server's own evaluation of job `key` failed: its run (or report) fails."""
-        if key.report:
-            self._fail_report(key.run_id, f"the server's own evaluation failed: {error}")
-            return
-        self._outbox.fail(
-            key.run_id,
-            f"job {key.generation}/{key.index} failed in the server's own evaluation: {error}",
-        )
-        self._drop_run(key.run_id)
-
-    def _referee_stranded(self) -> None:
-        """Lease to the referee every pending job that erred on `max_attempts` credentials or
-        that no live worker may take (each live credential erred on it)."""
-        live = self._live()  # an in-process executor takes any job
-        takers = None if any(not w.listed for w in live) else {credential(w.name) for w in live}
-        for work in self._work():
-            if work.erred and work.running:
-                for index in work.stranded(self.policy.max_attempts, takers):
-                    self._refer(work, index)
-
-    def _refer(self, run: Work, index: int) -> None:
-        """Lease pending slot `index` to the referee, whose thread evaluates it here (it
-        stays pending if the referee has stopped: the scheduler is closing)."""
-        slot = run.slots[index]
-        job = run.job(index, self.policy.lease_max_s)
-        key = job.key
-        lease = Lease(key, REFEREE, math.inf, slot.start, slot.stop, self._clock())
-        try:
-            self._referee.submit(self._judge, job, lease)  # it waits for this lock
-        except RuntimeError:
-            return
-        run.unpend(index)
-        slot.status = "leased"
-        self._leases[key] = lease
-        context(log, run=key.run_id).info(
-            "%s erred on %s: the server evaluates it", key.label(), ", ".join(sorted(slot.erred))
-        )
-
-    def _judge(self, job: Job, lease: Lease) -> None:
-        """The referee's thread: evaluate `job` and settle it, or fail its run; nothing if
-        `lease` ended meanwhile (its run dropped, replaced or resumed anew)."""
-        with self._lock:
-            if self._leases.get(job.key) is not lease:
-                return
-        result = run_job(job, "server")  # the lease stays REFEREE's, no worker's name
+    def _judged(self, job: Job, lease: Lease, result: Result) -> None:
+        """The referee's `result` of `job`: accepted, or its run fails; nothing if `lease`
+        ended meanwhile."""
         try:
             with self._lock:
-                if self._leases.get(job.key) is not lease:
+                if self._ledger.leases.get(job.key) is not lease:
                     return
-                del self._leases[job.key]
+                del self._ledger.leases[job.key]
                 if result.error is not None:
-                    self._fail_run(job.key, result.error)
+                    self._ledger.fail_run(job.key, result.error)
                 else:
                     self._accept(job.key, lease, result, 0)
         except Exception as exc:  # a bug here must fail the run, not leave its job held
             log.exception("the server's evaluation of %s could not be recorded", job.key.label())
             with self._lock:
-                if self._find(job.key) is not None:
-                    self._fail_run(job.key, f"the server's evaluation could not be recorded: {exc}")
+                if self._ledger.find(job.key) is not None:
+                    self._ledger.fail_run(
+                        job.key, f"the server's evaluation could not be recorded: {exc}"
+                    )
         self._resolve()
         self._announce()
-
-    def _drop_run(self, run_id: int) -> None:
-        self._runs.pop(run_id, None)
-        self._outbox.drop(run_id)
-        self._drop_leases(run_id)
-
-    def _drop_leases(self, run_id: int) -> None:
-        for key in [k for k in self._leases if k.run_id == run_id and not k.report]:
-            del self._leases[key]
-
-    def _release_where(self, condition: Callable[[Lease], bool]) -> list[JobKey]:
-        released = [lease for lease in self._leases.values() if condition(lease)]
-        for lease in released:
-            del self._leases[lease.key]
-            work = self._find(lease.key)
-            if work is not None and work.key(lease.key.index) == lease.key:
-                work.make_pending(lease.key.index)
-        self._totals["requeued"] += len(released)
-        return [lease.key for lease in released]

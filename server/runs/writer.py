@@ -130,13 +130,12 @@ class Writer:
             return
         try:
             with self._sessions.begin() as session:
-                for item in told:
-                    self._write_generation(session, item)
+                self._write_generations(session, told)
         except RunOverError:  # some run ended meanwhile: one transaction each instead
             for item in told:
                 try:
                     with self._sessions.begin() as session:
-                        self._write_generation(session, item)
+                        self._write_generations(session, [item])
                 except RunOverError as exc:
                     context(log, run=item.run_id).info(
                         "run %d generation %d not written: %s",
@@ -173,33 +172,51 @@ class Writer:
                     )
         self._write_failures.clear()
 
-    def _write_generation(self, session: Session, item: Written) -> None:
-        """Store generation g (statistics and what it was told; at a checkpoint also its GA
-        state, genomes and components) and move the run to g + 1; complete the run after its
-        last generation, with its champion (`Written.champion`).
+    def _write_generations(self, session: Session, told: list[Written]) -> None:
+        """Store each told generation g (statistics and what it was told; at a checkpoint also
+        its GA state, genomes and components) and move its run to g + 1; complete a run after
+        its last generation, with its champion (`Written.champion`). A run's consecutive
+        generations move it in one UPDATE and all rows go in one INSERT: a statement costs
+        SQLAlchemy more than the rows in it.
 
         A checkpoint is every `checkpoint_every`-th generation and the last: the others are
         rebuilt by replaying from the one before (`crud.replay`).
         """
-        if item.stored:
-            self._name_champion(session, item)
-            return
+        conn = session.connection()  # Core on the session's transaction: no ORM unit of work
+        rows: list[dict[str, object]] = []
+        finished: list[tuple[Written, ControllerDocument]] = []
+        for segment in _segments(told):
+            first, last = segment[0], segment[-1]
+            if first.stored:
+                self._name_champion(session, first)
+                continue
+            g, top = first.told.generation, _top(last)
+            moved = conn.execute(
+                _ADVANCE_RUN,
+                {
+                    "run": first.run_id,
+                    "at": g,
+                    "next": last.told.generation + 1,
+                    "top": top if np.isfinite(top) else None,
+                    "evaluated": first.config.population * len(segment),
+                },
+            )
+            if moved.rowcount != 1:
+                raise RunOverError(
+                    f"run {first.run_id} is not live at generation {g}; nothing written"
+                )
+            rows.extend(self._row(item) for item in segment)
+            if last.champion is not None:
+                finished.append((last, last.champion))
+        if rows:
+            conn.execute(_INSERT_GENERATION, rows)
+        for item, champion in finished:
+            self._finish(session, crud.find_run(session, run_id=item.run_id), item.config, champion)
+
+    def _row(self, item: Written) -> dict[str, object]:
+        """The generation row of `item` (logged: its run's first and last, and one a second)."""
         run_id, told, config = item.run_id, item.told, item.config
         g, genomes, fitness, metrics = told.generation, told.genomes, told.fitness, told.metrics
-        top = float(fitness[metrics.order[0]])
-        conn = session.connection()  # Core on the session's transaction: no ORM unit of work
-        moved = conn.execute(
-            _ADVANCE_RUN,
-            {
-                "run": run_id,
-                "at": g,
-                "next": g + 1,
-                "top": top if np.isfinite(top) else None,
-                "evaluated": config.population,
-            },
-        )
-        if moved.rowcount != 1:
-            raise RunOverError(f"run {run_id} is not live at generation {g}; nothing written")
         checkpoint = item.last or (g + 1) % self._settings.checkpoint_every == 0
         components = told.components
         if components is None:
@@ -210,20 +227,6 @@ class Writer:
             genomes=genomes if checkpoint else None,
             components=components if checkpoint else None,
         )
-        conn.execute(
-            _INSERT_GENERATION,
-            {
-                "run_id": run_id,
-                "generation": g,
-                "best": metrics.best,
-                "mean": metrics.mean,
-                "worst": metrics.worst,
-                "nan_count": metrics.nan_count,
-                "state": seal(population.encode_state(told.after)) if checkpoint else None,
-                "population": seal(population.encode(frame)),
-                "committed_at": utcnow(),
-            },
-        )
         now = time.monotonic()
         loud = g == 0 or item.last
         if loud or now - self._logged_at.get(run_id, -math.inf) >= LOG_EVERY_S:
@@ -231,16 +234,26 @@ class Writer:
             level = logging.INFO
         else:
             level = logging.DEBUG
-        context(log, run=run_id).log(
-            level,
-            "run %d generation %d written: best %.4g, mean %.4g",
-            run_id,
-            g,
-            metrics.best,
-            metrics.mean,
-        )
-        if item.champion is not None:
-            self._finish(session, crud.find_run(session, run_id=run_id), config, item.champion)
+        if log.isEnabledFor(level):
+            context(log, run=run_id).log(
+                level,
+                "run %d generation %d written: best %.4g, mean %.4g",
+                run_id,
+                g,
+                metrics.best,
+                metrics.mean,
+            )
+        return {
+            "run_id": run_id,
+            "generation": g,
+            "best": metrics.best,
+            "mean": metrics.mean,
+            "worst": metrics.worst,
+            "nan_count": metrics.nan_count,
+            "state": seal(population.encode_state(told.after)) if checkpoint else None,
+            "population": seal(population.encode(frame)),
+            "committed_at": utcnow(),
+        }
 
     def _name_champion(self, session: Session, item: Written) -> None:
         """Complete with its champion a run whose last generation is stored already (a
@@ -255,3 +268,28 @@ class Writer:
         ):
             raise RunOverError(f"run {item.run_id} is not waiting for its champion")
         self._finish(session, run, item.config, item.champion)
+
+
+def _top(item: Written) -> float:
+    """The fitness of the generation's rank 0 (NaN if every evaluation failed)."""
+    return float(item.told.fitness[item.told.metrics.order[0]])
+
+
+def _segments(told: list[Written]) -> list[list[Written]]:
+    """`told` cut into each run's stretches of consecutive generations, in order (a generation
+    stored already, whose champion alone is written, is a stretch of its own)."""
+    segments: list[list[Written]] = []
+    open_: dict[int, list[Written]] = {}
+    for item in told:
+        segment = open_.get(item.run_id)
+        if (
+            segment is None
+            or item.stored
+            or segment[-1].stored
+            or segment[-1].last
+            or item.told.generation != segment[-1].told.generation + 1
+        ):
+            segment = open_[item.run_id] = []
+            segments.append(segment)
+        segment.append(item)
+    return segments

@@ -1,0 +1,269 @@
+"""What the scheduler has in flight, and what an accepted result completes.
+
+The ledger holds the runs and reports in flight (`server.runs.jobs`), the one lease table, the
+worker table (`server.runs.workers`) and the told generations on their way to the store
+(`server.runs.outbox`). A result the scheduler accepted fills its slot here: the last of a
+generation tells the run loop, which asks the next generation at once (a span's lease moves on
+to it); the last of a champion's stage moves the choice on (`server.runs.choosing`), and once
+no stage is left the last generation goes to the store with the champion; the last of a report
+assembles it (`evorobotics.reports`) for its asker's future, which the scheduler resolves
+outside its lock. No lock: the scheduler calls it under its own.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+
+import numpy as np
+
+from evorobotics.evolution import RunLoop
+from evorobotics.reports import Report as Assembled
+from schemas.run import RunConfig
+from schemas.wire import JobKey, Result
+from server.runs.choosing import Choosing
+from server.runs.jobs import Lease, Report, Run, Work
+from server.runs.outbox import Outbox, Written
+from server.runs.policy import Policy
+from server.runs.workers import Worker, Workers
+
+log = logging.getLogger(__name__)
+
+TOTALS = ("leased", "done", "requeued", "duplicates_dropped")
+"""Keys of `Ledger.totals` (`Scheduler.totals`)."""
+
+
+class Ledger:
+    """Runs, reports, leases, workers and told generations in flight, and their completion."""
+
+    def __init__(
+        self, policy: Policy, *, clock: Callable[[], float], wall: Callable[[], float]
+    ) -> None:
+        self.policy = policy
+        self._clock = clock
+        self.runs: dict[int, Run] = {}
+        self.reports: dict[int, Report] = {}
+        self.leases: dict[JobKey, Lease] = {}
+        self.workers = Workers(policy, clock=clock, wall=wall)
+        self.outbox = Outbox(policy, clock)
+        self.sequence = 0
+        """Leases made so far: a work's `served` is the number of its last."""
+        self.totals = dict.fromkeys(TOTALS, 0)
+        self._resolved: list[tuple[Future[Assembled], Assembled | Exception]] = []
+        """Reports finished or failed, for the scheduler to resolve outside its lock."""
+
+    def take_resolved(self) -> list[tuple[Future[Assembled], Assembled | Exception]]:
+        """The reports finished (their report) or failed (the error) since the last call."""
+        resolved, self._resolved = self._resolved, []
+        return resolved
+
+    # what is in flight -----------------------------------------------------------------------
+
+    def work(self) -> Iterator[Work]:
+        """Everything in flight: reports, then runs."""
+        yield from self.reports.values()
+        yield from self.runs.values()
+
+    def find(self, key: JobKey) -> Work | None:
+        """The report or run whose job `key` is, if in flight."""
+        return self.reports.get(key.run_id) if key.report else self.runs.get(key.run_id)
+
+    def leasable(self, work: Work) -> bool:
+        """Running, with a job pending, and (a run's) its store keeping up."""
+        lags = isinstance(work, Run) and self.outbox.lags(work.run_id)
+        return work.running and bool(work.pending) and not lags
+
+    def busy(self) -> set[str]:
+        """The workers holding a lease."""
+        return {lease.worker for lease in self.leases.values()}
+
+    def live(self) -> list[Worker]:
+        """Workers that take jobs (`Workers.live`)."""
+        return self.workers.live(self.busy())
+
+    def crowded(self, run_id: int | None = None) -> bool:
+        """At least as many running runs (`run_id` counted as one) as jobs the live workers
+        take (`jobs_per_worker` each): each job can be a run's whole generation, so slicing a
+        generation only adds round trips."""
+        live = len(self.live()) * self.policy.jobs_per_worker
+        running = {run.run_id for run in self.runs.values() if run.running}
+        return live > 0 and len(running | ({run_id} if run_id is not None else set())) >= live
+
+    def job_size(self, config: RunConfig, generation: int, run_id: int | None) -> int:
+        """`Policy.job_size` for the live workers, `run_id` counted among the running runs."""
+        live = self.live()
+        speeds = [w.speed if w.spans else None for w in live]
+        crowded = bool(live) and self.crowded(run_id)
+        return self.policy.job_size(config, generation, speeds, crowded=crowded)
+
+    def install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:
+        """Serve `loop`'s current generation, cut into jobs for the live workers."""
+        size = self.job_size(loop.config, loop.generation, run_id if running else None)
+        self.runs[run_id] = Run.new(run_id, loop, running=running, served=served, size=size)
+
+    # leases ----------------------------------------------------------------------------------
+
+    def lease(
+        self,
+        run: Work,
+        index: int,
+        worker: str,
+        *,
+        span_left: int = 0,
+        asked_by_worker: bool = False,
+    ) -> float:
+        """Lease slot `index` of the run's generation to `worker`; the lease's seconds, from
+        the slot's robot-steps and the worker's speed."""
+        slot = run.slots[index]
+        lease_s = self.policy.lease_seconds(
+            run.robot_steps(slot.stop - slot.start), self.workers[worker].measured
+        )
+        slot.status = "leased"
+        self.sequence += 1
+        run.served = self.sequence
+        key = run.key(index)
+        now = self._clock()
+        self.leases[key] = Lease(
+            key, worker, now + lease_s, slot.start, slot.stop, now, span_left, asked_by_worker
+        )
+        self.totals["leased"] += 1
+        return lease_s
+
+    def release_where(self, condition: Callable[[Lease], bool]) -> list[JobKey]:
+        """Return to pending every leased job whose lease meets `condition`; their keys."""
+        released = [lease for lease in self.leases.values() if condition(lease)]
+        for lease in released:
+            del self.leases[lease.key]
+            work = self.find(lease.key)
+            if work is not None and work.key(lease.key.index) == lease.key:
+                work.make_pending(lease.key.index)
+        self.totals["requeued"] += len(released)
+        return [lease.key for lease in released]
+
+    def drop_run(self, run_id: int) -> None:
+        """The run is over: its work, leases and unwritten generations go."""
+        self.runs.pop(run_id, None)
+        self.outbox.drop(run_id)
+        self.drop_leases(run_id)
+
+    def drop_leases(self, run_id: int) -> None:
+        for key in [k for k in self.leases if k.run_id == run_id and not k.report]:
+            del self.leases[key]
+
+    # completion ------------------------------------------------------------------------------
+
+    def accept(self, key: JobKey, lease: Lease, result: Result, i: int) -> None:
+        """Generation `i` of `result` (or a stage's scores) fills the slot `lease` held."""
+        if result.scores is not None and key.report:
+            self._complete_report(key, lease, result.scores)
+        elif result.scores is not None:
+            self._complete_stage(key, lease, result.scores)
+        elif (
+            result.fitness is not None
+            and result.components is not None
+            and result.descriptors is not None
+        ):
+            fitness, components, descriptors = result.fitness, result.components, result.descriptors
+            self._complete(key, lease, fitness[i], components[i], descriptors[i])
+
+    def _complete(
+        self,
+        key: JobKey,
+        lease: Lease,
+        fitness: np.ndarray,
+        components: np.ndarray,
+        descriptors: np.ndarray,
+    ) -> None:
+        run = self.runs[key.run_id]
+        run.fill(key.index, lease.worker, fitness, components, descriptors)
+        self.totals["done"] += 1
+        if run.remaining:
+            return
+        loop = run.loop
+        told = loop.tell(run.fitness, run.components, run.descriptors)
+        if loop.done:
+            try:
+                choosing = Choosing.new(run.run_id, loop, told)
+            except ValueError as exc:
+                self._fail_choice(run.run_id, exc)
+                return
+            self.choose(run.run_id, loop, choosing, running=run.running, served=run.served)
+            return
+        self.outbox.tell(Written(run.run_id, loop.config, told))
+        self.install(run.run_id, loop, run.running, served=run.served)
+        following = self.runs[run.run_id]
+        if lease.span_left > 0 and following.running and len(following.slots) == 1:
+            following.unpend(0)
+            self.lease(
+                following, 0, lease.worker, span_left=lease.span_left - 1, asked_by_worker=True
+            )
+
+    def _complete_report(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
+        report = self.reports[key.run_id]
+        try:
+            assembled = report.fill_scores(key.index, lease.worker, scores)
+        except ValueError as exc:
+            self.fail_report(report.report_id, f"it cannot be assembled: {exc}")
+            return
+        self.totals["done"] += 1
+        if assembled is not None:
+            self._resolved.append((report.future, assembled))
+            del self.reports[report.report_id]
+
+    def _complete_stage(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
+        run = self.runs[key.run_id]
+        try:
+            choosing = run.fill_scores(key.index, lease.worker, scores)
+        except ValueError as exc:
+            self._fail_choice(run.run_id, exc)
+            return
+        self.totals["done"] += 1
+        if choosing is not None:
+            self.choose(run.run_id, run.loop, choosing, running=run.running, served=run.served)
+
+    def choose(
+        self, run_id: int, loop: RunLoop, choosing: Choosing, *, running: bool, served: int
+    ) -> None:
+        """Serve `choosing`'s stage in hand, cut into a job per live worker (`jobs_per_worker`
+        each); once none is left, the last generation goes to the store with its champion."""
+        if choosing.stage is None:
+            try:
+                written = choosing.written()
+            except ValueError as exc:
+                self._fail_choice(run_id, exc)
+                return
+            self.outbox.tell(written)
+            self.runs.pop(run_id, None)
+            return
+        parts = len(self.live()) * self.policy.jobs_per_worker
+        self.runs[run_id] = Run.choose(
+            run_id, loop, choosing, running=running, served=served, parts=parts
+        )
+
+    # failures --------------------------------------------------------------------------------
+
+    def _fail_choice(self, run_id: int, exc: ValueError) -> None:
+        """The run's champion cannot be chosen (no candidate, or a bug): the run fails."""
+        log.error("run %d: its champion cannot be chosen: %s", run_id, exc)
+        self.outbox.fail(run_id, f"its champion cannot be chosen: {exc}")
+        self.drop_run(run_id)
+
+    def fail_report(self, report_id: int, why: str) -> None:
+        """The report fails (its asker gets the error); its jobs are dropped."""
+        report = self.reports.pop(report_id)
+        log.warning("%s failed: %s", report.label, why)
+        self._resolved.append((report.future, RuntimeError(f"{report.label} failed: {why}")))
+        for key in [k for k in self.leases if k.report and k.run_id == report_id]:
+            del self.leases[key]
+
+    def fail_run(self, key: JobKey, error: str) -> None:
+        """The server's own evaluation of job `key` failed: its run (or report) fails."""
+        if key.report:
+            self.fail_report(key.run_id, f"the server's own evaluation failed: {error}")
+            return
+        self.outbox.fail(
+            key.run_id,
+            f"job {key.generation}/{key.index} failed in the server's own evaluation: {error}",
+        )
+        self.drop_run(key.run_id)
