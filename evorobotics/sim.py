@@ -716,13 +716,15 @@ def _episodes(
     ranges: np.ndarray,
     gains: np.ndarray,
     record: bool,
+    watch: bool,
+    marks: tuple[float, int, int],
+    confine: tuple[int, float, int],
     final: np.ndarray,
     metrics: np.ndarray,
     stuck_out: np.ndarray,
     cells_out: np.ndarray,
-    rec_poses: np.ndarray,
-    rec_whiskers: np.ndarray,
-    rec_motors: np.ndarray,
+    traces: tuple[np.ndarray, np.ndarray, np.ndarray],
+    watched: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
     """Every robot's whole trial: sense, think, act, collide, score (see the module docstring).
 
@@ -739,14 +741,29 @@ def _episodes(
     `ranges` (B, S, W) holds the whiskers' trigger distances: S = 1, fixed for the trial, or
     S = steps, one row per step; W = 1, shared by the five whiskers, or W = 5.
 
-    `cells_out[r]` counts the grid cells robot r's centre visited: a bitmap over the maze per
-    lane, marked on every accepted move, whose marks are undone from the lane's `trail` when its
-    robot is done (cheaper than clearing the whole map).
+    `cells_out[r]` counts the squares of side `mark_cell` (a grid of `mark_rows` x `mark_cols`
+    from the origin: `marks`) robot r's centre visited: a bitmap per lane, marked on every accepted move,
+    whose marks are undone from the lane's `trail` when its robot is done (cheaper than clearing
+    the whole map).
+
+    With `record`, `traces` receives every robot's poses, whisker bits and motor commands.
+
+    With `watch` (never with `record`: the generated wrappers fix both, so the other's code is
+    compiled out) the kernel also measures what `explore.trials` reads from recorded paths, as
+    the robots move, into `watched`: `confined_out[r]`, a run of `window` steps before sticking
+    whose positions fit a box of `diagonal` (`_confine`; `confine` is window, diagonal, horizon); `offsets_out[:, r]`, the largest distance from the
+    start by step `horizon` and over the trial and the distance at step `horizon`; and
+    `moves_out[r, k]`, the length of move k < `horizon` (0 when blocked). Distances are
+    `math.hypot`'s, numpy's libm function, as the recorded definition computes them.
     """
     dt = world[0]
     a = world[3]
     b = world[4]
     hd = world[5]
+    mark_cell, mark_rows, mark_cols = marks
+    window, diagonal, horizon = confine
+    rec_poses, rec_whiskers, rec_motors = traces
+    confined_out, offsets_out, moves_out = watched
     lanes = network.LANES
     n_q = wx.shape[0]
     n_w = weights.shape[1]
@@ -788,10 +805,14 @@ def _episodes(
     curve = np.zeros(lanes)
     max_off = np.zeros(lanes)
     n_cells = np.zeros(lanes, dtype=np.int64)
-    rows = solid.shape[0]
-    cols = solid.shape[1]
-    visited = np.zeros((lanes, rows * cols), dtype=np.uint8)
-    trail = np.empty((lanes, min(steps + 1, rows * cols)), dtype=np.int64)  # new cells only
+    visited = np.zeros((lanes, mark_rows * mark_cols), dtype=np.uint8)
+    trail = np.empty((lanes, min(steps + 1, mark_rows * mark_cols)), dtype=np.int64)  # new only
+    span = window + 1 if watch else 0  # positions of a confinement window
+    window_xy = np.empty((lanes, 2, span))
+    suffix = np.empty((lanes, 4, span))
+    prefix = np.empty((lanes, 4))
+    confined = np.zeros(lanes, dtype=np.uint8)
+    farthest = np.zeros(lanes)
     per_step = ranges.shape[1] != 1
     last = ranges.shape[2] - 1
     next_robot = 0
@@ -813,6 +834,12 @@ def _episodes(
                     metrics[2, r] = max_off[lane]
                     stuck_out[r] = stuck_at[lane]
                     cells_out[r] = n_cells[lane]
+                    if watch:
+                        confined_out[r] = confined[lane]
+                        offsets_out[1, r] = farthest[lane]
+                        if step[lane] < horizon:  # stuck before it: nothing moves from here
+                            offsets_out[0, r] = farthest[lane]
+                            offsets_out[2, r] = math.hypot(ox, oy)
                     for t in range(n_cells[lane]):
                         visited[lane, trail[lane, t]] = 0
                     robot[lane] = -1
@@ -847,7 +874,12 @@ def _episodes(
                 stuck_at[lane] = -1
                 curve[lane] = 0.0
                 max_off[lane] = 0.0
-                n_cells[lane] = _mark(visited[lane], trail[lane], 0, cols, rows, cell, x, y)
+                n_cells[lane] = _mark(
+                    visited[lane], trail[lane], 0, mark_cols, mark_rows, mark_cell, x, y
+                )
+                if watch:
+                    farthest[lane] = 0.0
+                    confined[lane] = _confine(window_xy, suffix, prefix, lane, 0, x, y, diagonal)
                 if record:
                     rec_poses[r, 0, 0] = x
                     rec_poses[r, 0, 1] = y
@@ -953,10 +985,33 @@ def _episodes(
                     ss[lane] = ns
                     ox = nx - x0s[lane]
                     oy = ny - y0s[lane]
-                    max_off[lane] = max(max_off[lane], math.sqrt(ox * ox + oy * oy))
+                    off = math.sqrt(ox * ox + oy * oy)
+                    max_off[lane] = max(max_off[lane], off)
                     n_cells[lane] = _mark(
-                        visited[lane], trail[lane], n_cells[lane], cols, rows, cell, nx, ny
+                        visited[lane],
+                        trail[lane],
+                        n_cells[lane],
+                        mark_cols,
+                        mark_rows,
+                        mark_cell,
+                        nx,
+                        ny,
                     )
+                    if watch:
+                        if k < horizon:
+                            moves_out[r, k] = math.hypot(ddx, ddy)
+                        # hypot and this root differ by an ulp at most: only a root within
+                        # 1e-12 of the farthest so far can move it
+                        if off * (1.0 + 1e-12) > farthest[lane]:
+                            farthest[lane] = max(farthest[lane], math.hypot(ox, oy))
+                if watch:
+                    if stuck_at[lane] < 0 and not confined[lane]:
+                        confined[lane] = _confine(
+                            window_xy, suffix, prefix, lane, k + 1, xs[lane], ys[lane], diagonal
+                        )
+                    if k + 1 == horizon:
+                        offsets_out[0, r] = farthest[lane]
+                        offsets_out[2, r] = math.hypot(xs[lane] - x0s[lane], ys[lane] - y0s[lane])
             if record:
                 rec_poses[r, k + 1, 0] = xs[lane]
                 rec_poses[r, k + 1, 1] = ys[lane]
@@ -966,6 +1021,60 @@ def _episodes(
                 rec_motors[r, k, 0] = motors[0, lane]
                 rec_motors[r, k, 1] = motors[1, lane]
             step[lane] = k + 1
+
+
+@njit(inline="always")
+def _confine(
+    xy: np.ndarray,
+    suffix: np.ndarray,
+    prefix: np.ndarray,
+    lane: int,
+    p: int,
+    x: float,
+    y: float,
+    diagonal: float,
+) -> bool:
+    """Take position p (x, y) of the lane's robot; True if the window of the last
+    `xy.shape[2]` positions, ending at p, fits a box of `diagonal` (`explore.confined`'s test).
+
+    Each window's extremes, streaming, as `explore._confined_rows` takes them (van Herk-Gil-
+    Werman, blocks of a window's length): the suffix extremes of the previous block and the
+    prefix extremes of this one; O(1) a position, exact (max and min never round).
+    """
+    span = xy.shape[2]
+    k = p % span
+    if k == 0:
+        prefix[lane, 0] = prefix[lane, 1] = x
+        prefix[lane, 2] = prefix[lane, 3] = y
+    else:
+        prefix[lane, 0] = max(prefix[lane, 0], x)
+        prefix[lane, 1] = min(prefix[lane, 1], x)
+        prefix[lane, 2] = max(prefix[lane, 2], y)
+        prefix[lane, 3] = min(prefix[lane, 3], y)
+    xy[lane, 0, k] = x
+    xy[lane, 1, k] = y
+    fits = False
+    # hypot(dx, dy) >= max(dx, dy), up to its rounding: a side beyond the loose bound is proof
+    loose = diagonal * (1.0 + 1e-9)
+    x_hi, x_lo, y_hi, y_lo = prefix[lane, 0], prefix[lane, 1], prefix[lane, 2], prefix[lane, 3]
+    if p >= span - 1 and x_hi - x_lo <= loose and y_hi - y_lo <= loose:
+        if k < span - 1:  # the window starts at k + 1 in the previous block
+            x_hi = max(suffix[lane, 0, k + 1], x_hi)
+            x_lo = min(suffix[lane, 1, k + 1], x_lo)
+            y_hi = max(suffix[lane, 2, k + 1], y_hi)
+            y_lo = min(suffix[lane, 3, k + 1], y_lo)
+        dx = x_hi - x_lo
+        dy = y_hi - y_lo
+        fits = dx <= loose and dy <= loose and math.hypot(dx, dy) <= diagonal
+    if k == span - 1:  # a block is complete: its suffix extremes serve the next block's windows
+        suffix[lane, 0, k] = suffix[lane, 1, k] = x
+        suffix[lane, 2, k] = suffix[lane, 3, k] = y
+        for q in range(k - 1, -1, -1):
+            suffix[lane, 0, q] = max(suffix[lane, 0, q + 1], xy[lane, 0, q])
+            suffix[lane, 1, q] = min(suffix[lane, 1, q + 1], xy[lane, 0, q])
+            suffix[lane, 2, q] = max(suffix[lane, 2, q + 1], xy[lane, 1, q])
+            suffix[lane, 3, q] = min(suffix[lane, 3, q + 1], xy[lane, 1, q])
+    return fits
 
 
 @njit(inline="always")
@@ -1115,12 +1224,29 @@ def clear_of_walls(maze: Maze, poses: np.ndarray, params: World = DEFAULT_WORLD)
     return out
 
 
-_EPISODE_ARGS = ", ".join(list(inspect.signature(_episodes.py_func).parameters)[1:])
+_EPISODE_PARAMS = list(inspect.signature(_episodes.py_func).parameters)[1:]
+_FIXED = {"episodes": {"watch": "False"}, "watched": {"record": "False", "watch": "True"}}
+"""The generated wrappers and the `_episodes` flags each fixes: a constant, so the code of the
+other mode is compiled out of it (the training kernel carries nothing of the watching one)."""
+
+
+def _wrapper(name: str) -> str:
+    """The source of wrapper `name`: `_episodes` with its fixed flags, the rest passed on."""
+    fixed = _FIXED[name]
+    params = ", ".join(p for p in _EPISODE_PARAMS if p not in fixed)
+    constants = "".join(f"    {p} = {value}\n" for p, value in fixed.items())
+    return (
+        "@njit(cache=True, nogil=True)\n"
+        f"def {name}({params}):\n"
+        f"{constants}"
+        f"    _episodes(kernel, {', '.join(_EPISODE_PARAMS)})\n"
+    )
 
 
 @lru_cache(maxsize=16)
-def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
-    """`_episodes` bound to `network.spec_kernel(spec)`, disk-cached per spec.
+def _episode_module(spec: NetworkSpec) -> Any:
+    """`_episodes` bound to `network.spec_kernel(spec)` in wrappers `episodes` and `watched`,
+    disk-cached per spec (each compiled on its first call).
 
     A closure over the controller's dispatcher cannot be cached by numba, so a tiny module is
     generated per spec that imports the controller's generated module and calls `_episodes`
@@ -1131,12 +1257,18 @@ def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
         "from numba import njit\n\n"
         "from evorobotics.sim import _episodes\n"
         f"from {network.kernel_module(spec)} import kernel\n\n\n"
-        "@njit(cache=True, nogil=True)\n"
-        f"def episodes({_EPISODE_ARGS}):\n"
-        f"    _episodes(kernel, {_EPISODE_ARGS})\n"
+        + "\n\n".join(_wrapper(name) for name in _FIXED)
     )
-    module = network.cached_module("episodes", source, (network.__file__, __file__))
-    return cast(Callable[..., None], module.episodes)
+    return network.cached_module("episodes", source, (network.__file__, __file__))
+
+
+def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
+    """The episodes of `simulate` (`_episodes` without watching)."""
+    return cast(Callable[..., None], _episode_module(spec).episodes)
+
+
+_NOT_WATCHED = (np.zeros(0, dtype=np.uint8), np.zeros((0, 0)), np.zeros((0, 0)))
+"""The watch outputs of a call of `simulate`: empty, never written."""
 
 
 def simulate(
@@ -1157,7 +1289,6 @@ def simulate(
     """
     w, starts, gap = _prepare(spec, weights, start_poses, steps, params, gap)
     batch = w.shape[0]
-    world, wx, wy, ca, sa, reach = _world_arrays(params)
     final = np.empty((batch, 3))
     metrics = np.empty((3, batch))
     stuck = np.empty(batch, dtype=np.int64)
@@ -1167,11 +1298,41 @@ def simulate(
         rec_p = np.zeros((batch, steps + 1, 3))
         rec_w = np.zeros((batch, steps, N_WHISKERS), dtype=np.uint8)
         rec_m = np.zeros((batch, steps, 2))
+    rows, cols = maze.solid.shape
+    _episode_kernel(spec)(
+        *_kernel_inputs(spec, w, maze, starts, steps, params, gap),
+        record,
+        (maze.cell_size, rows, cols),
+        (0, 0.0, 0),
+        final,
+        metrics,
+        stuck,
+        cells,
+        (rec_p, rec_w, rec_m),
+        _NOT_WATCHED,
+    )
+    curve, net, max_off = metrics
+    if record:
+        return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m, cells)
+    return SimResult(final, curve, net, max_off, stuck, cells=cells)
+
+
+def _kernel_inputs(
+    spec: NetworkSpec,
+    w: np.ndarray,
+    maze: Maze,
+    starts: np.ndarray,
+    steps: int,
+    params: World,
+    gap: Gap,
+) -> tuple[Any, ...]:
+    """`_episodes`' arguments from `weights` to `gains`, of `_prepare`d inputs."""
+    world, wx, wy, ca, sa, reach = _world_arrays(params)
     ranges = gap.whisker_range
     if ranges.ndim < 3:  # fixed for the trial: the kernel's (B, S, W) with S = 1, a view
-        ranges = ranges.reshape(batch, 1, -1)
+        ranges = ranges.reshape(w.shape[0], 1, -1)
     _, linear_output, n_state, n_scratch = _spec_sizes(spec)
-    _episode_kernel(spec)(
+    return (
         w,
         linear_output,
         n_state,
@@ -1190,19 +1351,98 @@ def simulate(
         params.stuck_after,
         ranges,
         gap.motor_gain,
-        record,
+    )
+
+
+@dataclass(frozen=True)
+class Watched:
+    """Per trial, what `simulate_watched` measured as the robots moved; no path is kept."""
+
+    curve_length: np.ndarray
+    net_offset: np.ndarray
+    max_offset: np.ndarray
+    stuck_step: np.ndarray
+    """Eq 12's terms and the step the robot stuck on (-1: never), as `SimResult`'s."""
+    confined: np.ndarray
+    """(B,) bool: `window` consecutive steps, before sticking, inside a box of `diagonal`."""
+    coverage: np.ndarray
+    """(B,) int64: distinct squares of side `cell` (from the origin) the centre visited."""
+    horizon_offset: np.ndarray
+    """(B,) largest distance from the start by step `horizon`."""
+    farthest: np.ndarray
+    """(B,) largest distance from the start over the trial (`max_offset` but by `math.hypot`,
+    which may round differently in the last bit)."""
+    horizon_net: np.ndarray
+    """(B,) distance from the start at step `horizon`."""
+    moves: np.ndarray
+    """(B, horizon): length of each of the first `horizon` moves, 0 for a blocked one."""
+
+    @property
+    def stuck(self) -> np.ndarray:
+        """(B,) bool: stuck by the end of the trial."""
+        return self.stuck_step >= 0
+
+    @property
+    def components(self) -> np.ndarray:
+        """(B, 4) in fitness.COMPONENTS order."""
+        return np.stack(
+            [self.curve_length, self.net_offset, self.max_offset, self.stuck.astype(np.float64)],
+            axis=-1,
+        )
+
+
+def simulate_watched(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    maze: Maze,
+    start_poses: np.ndarray,
+    steps: int,
+    params: World = DEFAULT_WORLD,
+    gap: Gap | None = None,
+    *,
+    window: int,
+    diagonal: float,
+    cell: float,
+    horizon: int,
+) -> Watched:
+    """`simulate`'s trials, measured as the robots move (confinement, coverage, offsets: see
+    `Watched`) instead of recorded: the figures of a long trial at the kernel's speed.
+
+    A stuck robot's trial ends when it sticks (nothing of it changes after), so its lane takes
+    the next robot. Start positions must lie on the maze's grid (where any accepted pose lies):
+    coverage squares are counted over it.
+    """
+    if not 1 <= horizon <= steps:
+        raise ValueError(f"horizon must be in 1..steps ({steps}), got {horizon}")
+    if window < 1 or not diagonal >= 0.0 or not cell > 0.0:
+        raise ValueError(f"bad window {window}, diagonal {diagonal} or cell {cell}")
+    w, starts, gap = _prepare(spec, weights, start_poses, steps, params, gap)
+    inside = (starts[:, 0] >= 0) & (starts[:, 0] < maze.width)
+    inside &= (starts[:, 1] >= 0) & (starts[:, 1] < maze.height)
+    if not inside.all():
+        raise ValueError("start positions must lie inside the maze")
+    batch = w.shape[0]
+    final = np.empty((batch, 3))
+    metrics = np.empty((3, batch))
+    stuck = np.empty(batch, dtype=np.int64)
+    coverage = np.empty(batch, dtype=np.int64)
+    confined = np.empty(batch, dtype=np.uint8)
+    offsets = np.empty((3, batch))
+    moves = np.zeros((batch, horizon))
+    _episode_module(spec).watched(
+        *_kernel_inputs(spec, w, maze, starts, steps, params, gap),
+        (cell, math.floor(maze.height / cell) + 1, math.floor(maze.width / cell) + 1),
+        (window, float(diagonal), horizon),
         final,
         metrics,
         stuck,
-        cells,
-        rec_p,
-        rec_w,
-        rec_m,
+        coverage,
+        _NO_RECORD,
+        (confined, offsets, moves),
     )
     curve, net, max_off = metrics
-    if record:
-        return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m, cells)
-    return SimResult(final, curve, net, max_off, stuck, cells=cells)
+    near, far, net_h = offsets
+    return Watched(curve, net, max_off, stuck, confined == 1, coverage, near, far, net_h, moves)
 
 
 @lru_cache(maxsize=16)
