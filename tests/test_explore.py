@@ -262,14 +262,20 @@ def test_simulate_watched_measures_its_definitions_on_the_recorded_paths(
 def test_simulate_watched_refuses_bad_arguments() -> None:
     maze = load_maze("paper")
     weights, starts, _ = random_trials("paper", 0, 2, World(), False)
-    sizes = {"window": CONFINED_STEPS, "diagonal": CONFINED_DIAGONAL, "cell": COVERAGE_CELL}
+
+    def run(starts: np.ndarray, horizon: int) -> None:
+        simulate_watched(
+            REACTIVE, weights, maze, starts, 10,
+            window=CONFINED_STEPS, diagonal=CONFINED_DIAGONAL, cell=COVERAGE_CELL, horizon=horizon,
+        )  # fmt: skip
+
     for horizon in (0, 11):
         with pytest.raises(ValueError, match="horizon"):
-            simulate_watched(REACTIVE, weights, maze, starts, 10, horizon=horizon, **sizes)
+            run(starts, horizon)
     outside = starts.copy()
     outside[1, 0] = -0.5
     with pytest.raises(ValueError, match="inside the maze"):
-        simulate_watched(REACTIVE, weights, maze, outside, 10, horizon=5, **sizes)
+        run(outside, 5)
 
 
 def test_a_report_is_the_same_on_any_number_of_threads() -> None:
