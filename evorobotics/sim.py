@@ -810,7 +810,7 @@ def _episodes(
     span = window + 1 if watch else 0  # positions of a confinement window
     window_xy = np.empty((lanes, 2, span))
     suffix = np.empty((lanes, 4, span))
-    prefix = np.empty((lanes, 4))
+    window_state = np.zeros((lanes, 2), dtype=np.int64)  # place in the block, `_confine`'s
     confined = np.zeros(lanes, dtype=np.uint8)
     farthest = np.zeros(lanes)
     per_step = ranges.shape[1] != 1
@@ -835,6 +835,11 @@ def _episodes(
                     stuck_out[r] = stuck_at[lane]
                     cells_out[r] = n_cells[lane]
                     if watch:
+                        if not confined[lane]:  # the windows ending in the last, partial block
+                            n = window_state[lane, 0]
+                            confined[lane] = _confine(
+                                window_xy, suffix, window_state, lane, n, diagonal
+                            )
                         confined_out[r] = confined[lane]
                         offsets_out[1, r] = farthest[lane]
                         if step[lane] < horizon:  # stuck before it: nothing moves from here
@@ -879,7 +884,11 @@ def _episodes(
                 )
                 if watch:
                     farthest[lane] = 0.0
-                    confined[lane] = _confine(window_xy, suffix, prefix, lane, 0, x, y, diagonal)
+                    confined[lane] = 0
+                    window_xy[lane, 0, 0] = x
+                    window_xy[lane, 1, 0] = y
+                    window_state[lane, 0] = 1
+                    window_state[lane, 1] = span
                 if record:
                     rec_poses[r, 0, 0] = x
                     rec_poses[r, 0, 1] = y
@@ -1005,10 +1014,17 @@ def _episodes(
                         if off * (1.0 + 1e-12) > farthest[lane]:
                             farthest[lane] = max(farthest[lane], math.hypot(ox, oy))
                 if watch:
-                    if stuck_at[lane] < 0 and not confined[lane]:
-                        confined[lane] = _confine(
-                            window_xy, suffix, prefix, lane, k + 1, xs[lane], ys[lane], diagonal
-                        )
+                    n = window_state[lane, 0]
+                    if stuck_at[lane] < 0 and not confined[lane]:  # a position before sticking
+                        window_xy[lane, 0, n] = xs[lane]
+                        window_xy[lane, 1, n] = ys[lane]
+                        n += 1
+                        if n == span:
+                            confined[lane] = _confine(
+                                window_xy, suffix, window_state, lane, n, diagonal
+                            )
+                            n = 0
+                        window_state[lane, 0] = n
                     if k + 1 == horizon:
                         offsets_out[0, r] = farthest[lane]
                         offsets_out[2, r] = math.hypot(xs[lane] - x0s[lane], ys[lane] - y0s[lane])
@@ -1025,55 +1041,62 @@ def _episodes(
 
 @njit(inline="always")
 def _confine(
-    xy: np.ndarray,
-    suffix: np.ndarray,
-    prefix: np.ndarray,
-    lane: int,
-    p: int,
-    x: float,
-    y: float,
-    diagonal: float,
+    xy: np.ndarray, suffix: np.ndarray, state: np.ndarray, lane: int, n: int, diagonal: float
 ) -> bool:
-    """Take position p (x, y) of the lane's robot; True if the window of the last
-    `xy.shape[2]` positions, ending at p, fits a box of `diagonal` (`explore.confined`'s test).
+    """True if a window of `xy.shape[2]` positions of the lane's robot ending at one of the
+    first n positions of its current block fits a box of `diagonal` (`explore.confined`'s
+    test); with a whole block (n = span), its suffix extremes then serve the next block's.
 
-    Each window's extremes, streaming, as `explore._confined_rows` takes them (van Herk-Gil-
-    Werman, blocks of a window's length): the suffix extremes of the previous block and the
-    prefix extremes of this one; O(1) a position, exact (max and min never round).
+    The robot's positions go to `xy[lane]` in blocks of a window's length (`_episodes`); a
+    window's extremes are the suffix extremes of the previous block and the prefix extremes of
+    this one (van Herk-Gil-Werman, as `explore._confined_rows`): exact, max and min never round.
+    hypot(dx, dy) >= max(dx, dy) up to its rounding, so a side longer than `loose` rules out a
+    window and every window holding that side: prefixes stop growing at the first, suffixes
+    are kept while they have none (from state[lane, 1] on; span: none, the first block). A
+    roaming robot thus pays a few positions a block, once a block.
     """
     span = xy.shape[2]
-    k = p % span
-    if k == 0:
-        prefix[lane, 0] = prefix[lane, 1] = x
-        prefix[lane, 2] = prefix[lane, 3] = y
-    else:
-        prefix[lane, 0] = max(prefix[lane, 0], x)
-        prefix[lane, 1] = min(prefix[lane, 1], x)
-        prefix[lane, 2] = max(prefix[lane, 2], y)
-        prefix[lane, 3] = min(prefix[lane, 3], y)
-    xy[lane, 0, k] = x
-    xy[lane, 1, k] = y
-    fits = False
-    # hypot(dx, dy) >= max(dx, dy), up to its rounding: a side beyond the loose bound is proof
     loose = diagonal * (1.0 + 1e-9)
-    x_hi, x_lo, y_hi, y_lo = prefix[lane, 0], prefix[lane, 1], prefix[lane, 2], prefix[lane, 3]
-    if p >= span - 1 and x_hi - x_lo <= loose and y_hi - y_lo <= loose:
-        if k < span - 1:  # the window starts at k + 1 in the previous block
-            x_hi = max(suffix[lane, 0, k + 1], x_hi)
-            x_lo = min(suffix[lane, 1, k + 1], x_lo)
-            y_hi = max(suffix[lane, 2, k + 1], y_hi)
-            y_lo = min(suffix[lane, 3, k + 1], y_lo)
-        dx = x_hi - x_lo
-        dy = y_hi - y_lo
-        fits = dx <= loose and dy <= loose and math.hypot(dx, dy) <= diagonal
-    if k == span - 1:  # a block is complete: its suffix extremes serve the next block's windows
-        suffix[lane, 0, k] = suffix[lane, 1, k] = x
-        suffix[lane, 2, k] = suffix[lane, 3, k] = y
-        for q in range(k - 1, -1, -1):
-            suffix[lane, 0, q] = max(suffix[lane, 0, q + 1], xy[lane, 0, q])
-            suffix[lane, 1, q] = min(suffix[lane, 1, q + 1], xy[lane, 0, q])
-            suffix[lane, 2, q] = max(suffix[lane, 2, q + 1], xy[lane, 1, q])
-            suffix[lane, 3, q] = min(suffix[lane, 3, q + 1], xy[lane, 1, q])
+    reach = state[lane, 1]
+    fits = False
+    x_hi = x_lo = xy[lane, 0, 0]
+    y_hi = y_lo = xy[lane, 1, 0]
+    for j in range(n):
+        x_hi = max(x_hi, xy[lane, 0, j])
+        x_lo = min(x_lo, xy[lane, 0, j])
+        y_hi = max(y_hi, xy[lane, 1, j])
+        y_lo = min(y_lo, xy[lane, 1, j])
+        if x_hi - x_lo > loose or y_hi - y_lo > loose:
+            break
+        if j == span - 1:  # the window is the block
+            dx = x_hi - x_lo
+            dy = y_hi - y_lo
+        elif j + 1 >= reach:  # the window starts at j + 1 in the previous block
+            dx = max(suffix[lane, 0, j + 1], x_hi) - min(suffix[lane, 1, j + 1], x_lo)
+            dy = max(suffix[lane, 2, j + 1], y_hi) - min(suffix[lane, 3, j + 1], y_lo)
+        else:
+            continue
+        if dx <= loose and dy <= loose and math.hypot(dx, dy) <= diagonal:
+            fits = True
+            break
+    if n < span:
+        return fits
+    q = span - 1
+    x_hi = x_lo = xy[lane, 0, q]
+    y_hi = y_lo = xy[lane, 1, q]
+    while q >= 0:
+        x_hi = max(x_hi, xy[lane, 0, q])
+        x_lo = min(x_lo, xy[lane, 0, q])
+        y_hi = max(y_hi, xy[lane, 1, q])
+        y_lo = min(y_lo, xy[lane, 1, q])
+        if x_hi - x_lo > loose or y_hi - y_lo > loose:
+            break
+        suffix[lane, 0, q] = x_hi
+        suffix[lane, 1, q] = x_lo
+        suffix[lane, 2, q] = y_hi
+        suffix[lane, 3, q] = y_lo
+        q -= 1
+    state[lane, 1] = q + 1
     return fits
 
 
