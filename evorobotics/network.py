@@ -92,6 +92,26 @@ from evorobotics.layout import layout
 from schemas.network import NetworkSpec
 
 
+def _import_numba_arrays() -> None:
+    """Import numba's array implementations (`numba.np.arraymath`) before a kernel loads them,
+    with scipy.linalg hidden from the BLAS probe that module runs at import: importing
+    scipy.linalg costs 0.15-0.3 s of every process's start (it clones numpy's namespace, f2py
+    and unittest included), and no kernel here calls BLAS. Numba then takes its own loop for
+    the inner products of np.correlate and np.convolve, and still imports scipy.linalg when
+    compiled code calls np.dot or np.linalg."""
+    probed = "scipy.linalg.cython_blas"
+    if "numba.np.arraymath" in sys.modules or probed in sys.modules:
+        return
+    sys.modules[probed] = None  # type: ignore[assignment]  # its import raises ImportError
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        del sys.modules[probed]
+
+
+_import_numba_arrays()
+
+
 class KernelPlan(NamedTuple):
     """Everything `step_one` needs about a spec, as numba-friendly arrays and ints."""
 
