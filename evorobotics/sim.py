@@ -694,6 +694,103 @@ def _act_tile(
     return sig, codegen
 
 
+@intrinsic
+def _near_tile(
+    typingctx: object,
+    xs: Any,
+    ys: Any,
+    cs: Any,
+    ss: Any,
+    wx: Any,
+    wy: Any,
+    rq: Any,
+    clear: Any,
+    inv: Any,
+    near: Any,
+) -> tuple[Signature, Callable[..., object]]:
+    """near[q, lane] = 1 where whisker q of the lane's robot may touch a wall, as SIMD over
+    the LANES lanes, for the N_WHISKERS whiskers.
+
+    From the robot's pose (xs, ys, cos cs, sin ss), whisker q's attachment point in
+    `_sense_one`'s operations lane by lane; its square of the clearance map at `inv` =
+    CLEARANCE_SUB / cell (`_clearance`'s, 0 outside the grid); 1 if that clearance is no more
+    than the whisker's range rq[q, lane], else 0: no wall within its reach. No branch on a
+    lane's outcome; idle lanes (any values, NaN included) form no index off the map.
+    """
+    sig = types.void(xs, ys, cs, ss, wx, wy, rq, clear, inv, near)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        lanes = network.LANES
+        f64 = llvm_ir.DoubleType()
+        i64 = llvm_ir.IntType(64)
+        i32 = llvm_ir.IntType(32)
+        vec = llvm_ir.VectorType(f64, lanes)
+        flags = llvm_ir.VectorType(llvm_ir.IntType(8), lanes)
+
+        def array(k: int) -> Any:
+            return context.make_array(signature.args[k])(context, builder, args[k])
+
+        def row(k: int, r: int, ty: Any = vec) -> Any:
+            data = builder.gep(array(k).data, [llvm_ir.Constant(i64, r * lanes)])
+            return builder.bitcast(data, ty.as_pointer())
+
+        def splat(value: Any) -> Any:
+            if isinstance(value, float):
+                return llvm_ir.Constant(vec, [value] * lanes)
+            undef = llvm_ir.Constant(vec, llvm_ir.Undefined)
+            one = builder.insert_element(undef, value, llvm_ir.Constant(i32, 0))
+            zeros = llvm_ir.Constant(llvm_ir.VectorType(i32, lanes), [0] * lanes)
+            return builder.shuffle_vector(one, undef, zeros)
+
+        def scalar(k: int, q: int) -> Any:
+            return splat(builder.load(builder.gep(array(k).data, [llvm_ir.Constant(i64, q)])))
+
+        floor = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+            builder.module, llvm_ir.FunctionType(vec, [vec]), f"llvm.floor.v{lanes}f64"
+        )
+        x, y, c, s = (builder.load(row(k, 0), align=8) for k in range(4))
+        grid = array(7)
+        n_rows, n_cols = (
+            splat(builder.sitofp(v, f64))
+            for v in cgutils.unpack_tuple(builder, grid.shape, 2)  # type: ignore[no-untyped-call]
+        )
+        zero = splat(0.0)
+        scale = splat(args[8])
+        for q in range(N_WHISKERS):
+            wxq, wyq = scalar(4, q), scalar(5, q)
+            px = builder.fsub(builder.fadd(x, builder.fmul(c, wxq)), builder.fmul(s, wyq))
+            py = builder.fadd(builder.fadd(y, builder.fmul(s, wxq)), builder.fmul(c, wyq))
+            i = builder.call(floor, [builder.fmul(px, scale)])
+            j = builder.call(floor, [builder.fmul(py, scale)])
+            inside = builder.and_(
+                builder.and_(
+                    builder.fcmp_ordered(">=", i, zero), builder.fcmp_ordered("<", i, n_cols)
+                ),
+                builder.and_(
+                    builder.fcmp_ordered(">=", j, zero), builder.fcmp_ordered("<", j, n_rows)
+                ),
+            )
+            at = builder.fptosi(
+                builder.fadd(
+                    builder.fmul(builder.select(inside, j, zero), n_cols),
+                    builder.select(inside, i, zero),
+                ),
+                llvm_ir.VectorType(i64, lanes),
+            )
+            squares = llvm_ir.Constant(vec, llvm_ir.Undefined)
+            for lane in range(lanes):
+                k = llvm_ir.Constant(i32, lane)
+                value = builder.load(builder.gep(grid.data, [builder.extract_element(at, k)]))
+                squares = builder.insert_element(squares, value, k)
+            clearance = builder.select(inside, squares, zero)
+            reach = builder.load(row(6, q), align=8)
+            maybe = builder.fcmp_ordered("<=", clearance, reach)
+            builder.store(builder.zext(maybe, flags), row(9, q, flags), align=1)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 @njit(inline="always")
 def _episodes(
     kernel: network.Kernel,
@@ -711,7 +808,6 @@ def _episodes(
     ca: np.ndarray,
     sa: np.ndarray,
     clear: np.ndarray,
-    reach: float,
     stuck_after: int,
     ranges: np.ndarray,
     gains: np.ndarray,
@@ -798,8 +894,9 @@ def _episodes(
     ss = np.zeros(lanes)
     x0s = np.zeros(lanes)
     y0s = np.zeros(lanes)
-    rq = np.zeros((lanes, n_q))
-    r_max = np.zeros(lanes)  # the longest whisker: the body's early out must cover all five
+    rq = np.zeros((n_q, lanes))  # whisker ranges
+    near = np.zeros((n_q, lanes), dtype=np.uint8)  # `_near_tile`'s
+    inv_square = CLEARANCE_SUB / cell  # `_clearance`'s
     blocked = np.zeros(lanes, dtype=np.int64)
     stuck_at = np.full(lanes, -1, dtype=np.int64)
     curve = np.zeros(lanes)
@@ -871,10 +968,8 @@ def _episodes(
                 y0s[lane] = y
                 cs[lane], ss[lane] = _sincos(th)
                 if not per_step:
-                    r_max[lane] = 0.0
                     for q in range(n_q):
-                        rq[lane, q] = ranges[r, 0, min(q, last)]
-                        r_max[lane] = max(r_max[lane], rq[lane, q])
+                        rq[q, lane] = ranges[r, 0, min(q, last)]
                 blocked[lane] = 0
                 stuck_at[lane] = -1
                 curve[lane] = 0.0
@@ -917,32 +1012,32 @@ def _episodes(
                 r = robot[lane]
                 for i in range(n_w):
                     w_tile[i, lane] = weights[r, i]
-        for lane in range(lanes):  # sense
-            if not live[lane] or sensed[lane]:  # a blocked or stuck robot senses what it did
+        n_sense = 0  # a blocked or stuck robot senses what it did: not these
+        for lane in range(lanes):
+            if live[lane] and not sensed[lane]:
+                n_sense += 1
+                if per_step:
+                    for q in range(n_q):
+                        rq[q, lane] = ranges[robot[lane], step[lane], min(q, last)]
+        # sense: which whiskers may touch a wall, all lanes at once; the exact test for those
+        if n_sense:
+            _near_tile(xs, ys, cs, ss, wx, wy, rq, clear, inv_square, near)  # type: ignore[call-arg]
+        for lane in range(lanes):
+            if not live[lane] or sensed[lane]:
                 continue
-            r = robot[lane]
             x = xs[lane]
             y = ys[lane]
             c = cs[lane]
             s = ss[lane]
-            if per_step:
-                r_max[lane] = 0.0
-                for q in range(n_q):
-                    rq[lane, q] = ranges[r, step[lane], min(q, last)]
-                    r_max[lane] = max(r_max[lane], rq[lane, q])
-            # early outs: no wall within reach of the centre / of an attachment point
-            far = _clearance(clear, cell, x, y) > reach + r_max[lane]
             for q in range(n_q):
                 inputs[q, lane] = 0.0
-                if far:
+                if not near[q, lane]:
                     continue
                 px = x + c * wx[q] - s * wy[q]
                 py = y + s * wx[q] + c * wy[q]
-                if _clearance(clear, cell, px, py) > rq[lane, q]:
-                    continue
                 ux = c * ca[q] - s * sa[q]
                 uy = s * ca[q] + c * sa[q]
-                if _whisker(solid, cell, px, py, ux, uy, rq[lane, q]):
+                if _whisker(solid, cell, px, py, ux, uy, rq[q, lane]):
                     inputs[q, lane] = 1.0
             sensed[lane] = not per_step
         kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
@@ -1350,7 +1445,7 @@ def _kernel_inputs(
     gap: Gap,
 ) -> tuple[Any, ...]:
     """`_episodes`' arguments from `weights` to `gains`, of `_prepare`d inputs."""
-    world, wx, wy, ca, sa, reach = _world_arrays(params)
+    world, wx, wy, ca, sa, _ = _world_arrays(params)
     ranges = gap.whisker_range
     if ranges.ndim < 3:  # fixed for the trial: the kernel's (B, S, W) with S = 1, a view
         ranges = ranges.reshape(w.shape[0], 1, -1)
@@ -1370,7 +1465,6 @@ def _kernel_inputs(
         ca,
         sa,
         _clearance_map(maze),
-        reach,
         params.stuck_after,
         ranges,
         gap.motor_gain,
