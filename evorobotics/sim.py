@@ -1104,8 +1104,8 @@ def _episodes(
                     if watch:
                         if k < horizon:
                             moves_out[r, k] = math.hypot(ddx, ddy)
-                        # hypot and this root differ by an ulp at most: only a root within
-                        # 1e-12 of the farthest so far can move it
+                        # hypot and this root differ by a few ulp at most: only a root
+                        # within 1e-12 of the farthest so far can move it
                         if off * (1.0 + 1e-12) > farthest[lane]:
                             farthest[lane] = max(farthest[lane], math.hypot(ox, oy))
                 if watch:
@@ -1722,7 +1722,8 @@ def _sense_one(
     rq: np.ndarray,
     bits: np.ndarray,
 ) -> None:
-    """The sensing of one robot in `_episodes`, with its early outs, into `bits` (5,)."""
+    """The sensing of one robot into `bits` (5,): `_episodes`' bits, with scalar early outs
+    (the centre far from walls, an attachment point further than its range from them)."""
     c, s = _sincos(th)
     r_max = 0.0
     for q in range(wx.shape[0]):
