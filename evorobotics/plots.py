@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import matplotlib
 
@@ -19,17 +19,16 @@ import numpy as np
 from matplotlib.collections import LineCollection
 from matplotlib.lines import Line2D
 
+from evorobotics.document import ControllerDocument
+from evorobotics.evaluate import unseen_paths
+from evorobotics.evolution import GenerationSummary
 from evorobotics.layout import layout
 from evorobotics.maze import Maze, load_maze
+from evorobotics.robustness import RobustnessMap
+from evorobotics.sim import SimResult
+from evorobotics.strategies import Archive
 from schemas.network import NetworkSpec
 from schemas.run import RunConfig
-
-if TYPE_CHECKING:  # the plots need no simulator: `colony evolve`'s plotter process loads none
-    from evorobotics.document import ControllerDocument
-    from evorobotics.evolution import GenerationSummary
-    from evorobotics.robustness import RobustnessMap
-    from evorobotics.sim import SimResult
-    from evorobotics.strategies import Archive
 
 PNG_METADATA: dict[str, Any] = {"Software": None}
 """Drop matplotlib's version stamp so a PNG depends on its data only."""
@@ -175,8 +174,6 @@ def paths_plot(
     `evaluate.unseen_paths(config, best.weights)`, which a caller may simulate elsewhere (the
     drawing needs no simulator). Dotted path, start dot, final body outline."""
     if paths is None:
-        from evorobotics.evaluate import unseen_paths
-
         paths = unseen_paths(config, best.weights)
     if paths.poses is None or len(paths.poses) == 0:
         raise ValueError("paths_plot needs recorded paths of at least one trial")
