@@ -25,7 +25,8 @@ largest distance from the start position at any step. So is `cells`, the number 
 grid cells the centre visited (a behaviour descriptor, not a fitness term).
 
 `simulate` is the canonical path: one numba kernel runs controller, physics and fitness for all
-robots and steps. `simulate_reference` is the same science as vectorised numpy over the batch,
+robots and steps. `simulate_watched` is the same kernel measuring, as the robots move, what a
+long trial is judged on (confinement, coverage, offsets: `explore`), with nothing recorded. `simulate_reference` is the same science as vectorised numpy over the batch,
 kept as the reference the tests compare against. `clear_of_walls` is the start-pose test
 (body clear, no whisker touching) in compiled code, bit-identical to the numpy geometry.
 """
