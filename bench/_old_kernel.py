@@ -454,7 +454,7 @@ def simulate_old(
         _clearance_map(maze),
         reach,
         params.stuck_after,
-        gap.whisker_range.reshape(batch, 1, 1),
+        gap.whisker_range.reshape(batch, 1, -1),
         gap.motor_gain,
         False,
         final,

@@ -15,6 +15,17 @@ wants at most 20 %); and the random Eq 7 population (generation 0) as a referenc
 
 Run: .venv/bin/python bench/explore.py [--seeds N] [--networks A B] [--generations G]
 [--config JSON] [--poses P] [--steps H] [--mazes M ...] [--quick]   (--quick: 2 seeds, 30 generations, for a smoke run)
+
+`--speed` measures instead how fast a champion's report runs (`--poses` 4,000 x `--steps`
+1,000, one thread; the champion of the nominal paper experiment, or `--controller FILE`):
+in this process, interleaved, the kernel's watched trials against today's definition (every
+pose recorded, then `explore.trials`) and the independent numpy simulator on the same work
+(`sim.simulate_reference`, recorded, plus `explore.trials`), each report's rows checked equal;
+then, with `--against DIR` (a checkout of another commit), `colony evaluate` as a process from
+this tree and from DIR in turn, net of its start-up (the same command with one pose of one
+step), the reports checked equal to the digit. Robot-steps per second per core; medians of
+`--rounds` rounds and the load average.
+    .venv/bin/python bench/explore.py --speed --against /tmp/before
 """
 
 from __future__ import annotations
@@ -22,14 +33,35 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from evorobotics.document import ControllerDocument
+from evorobotics.evaluate import start_poses
 from evorobotics.evolution import GenerationSummary, RunLoop, evolve
-from evorobotics.explore import Exploration, explore
+from evorobotics.explore import (
+    Exploration,
+    exploration,
+    explore,
+    trials,
+    watch,
+    watched_trials,
+)
+from evorobotics.maze import load_maze
+from evorobotics.seeds import Purpose
+from evorobotics.sim import simulate, simulate_reference
 from schemas.run import RunConfig
+
+ROOT = Path(__file__).resolve().parents[1]
 
 TEST_SEED = 12345
 """Seed of the exploration start poses every controller is measured on."""
@@ -188,12 +220,142 @@ def print_summary(label: str, rows: list[Row], steps: int, world: str) -> None:
         print(f"  {name:22s} {summary(values)}")
 
 
+def champion(controller: Path | None, generations: int | None) -> ControllerDocument:
+    """The controller of `--controller`, or the champion of the nominal paper experiment (of
+    `generations`, by default the paper's)."""
+    if controller is not None:
+        return ControllerDocument.from_json(controller.read_text())
+    config = RunConfig(reality_gap="off")
+    return evolve(config.model_copy(update={"generations": generations or config.generations})).best
+
+
+def load() -> str:
+    """The machine's load averages (1, 5, 15 minutes)."""
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def in_process(doc: ControllerDocument, poses: int, steps: int, rounds: int) -> tuple[float, float]:
+    """Rows of the report's trials (seed 0, the document's world) three ways, the kernel's
+    interleaved: print each one's robot-steps/s (median of rounds) and return the watched
+    kernel's and the numpy reference's."""
+    world = doc.world or RunConfig().world
+    maze = load_maze("paper")
+    starts = start_poses(maze, 0, 0, poses, world, Purpose.EXPLORATION)
+    weights = np.repeat(doc.weights[None], poses, axis=0)
+
+    def watched() -> np.ndarray:
+        return watched_trials(watch(doc.spec, weights, maze, starts, steps, world))
+
+    def recorded() -> np.ndarray:
+        run = simulate(doc.spec, weights, maze, starts, steps, world, record=True)
+        return trials(run, steps)
+
+    def reference() -> np.ndarray:
+        run = simulate_reference(doc.spec, weights, maze, starts, steps, world, record=True)
+        return trials(run, steps)
+
+    ways: dict[str, Callable[[], np.ndarray]] = {
+        "kernel, watched (this tree)": watched,
+        "kernel, every pose recorded, then explore.trials (today's definition)": recorded,
+    }
+    rows = {name: way() for name, way in ways.items()}  # warm-up (compilation) and the rows
+    times: dict[str, list[float]] = {name: [] for name in ways}
+    for _ in range(rounds):
+        for name, way in ways.items():
+            t0 = time.perf_counter()
+            way()
+            times[name].append(time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    numpy_rows = reference()
+    numpy_s = time.perf_counter() - t0
+    work = poses * steps
+    print(f"{poses} poses x {steps} steps of one champion in this process, one thread:")
+    for name, seconds in times.items():
+        print(f"  {name:72s} {work / statistics.median(seconds) / 1e6:7.2f} M robot-steps/s")
+    print(f"  {'numpy reference simulator, recorded, then explore.trials (once)':72s} "
+          f"{work / numpy_s / 1e6:7.2f} M robot-steps/s")  # fmt: skip
+    watched_rows, recorded_rows = rows.values()
+    same = watched_rows.tobytes() == recorded_rows.tobytes()
+    print(
+        f"  the kernel's rows, watched and recorded, bit for bit equal: {'yes' if same else 'NO'}"
+    )
+    # numpy's libm sin and cos round unlike the kernel's polynomials: trials drift apart
+    kernel_e = exploration(watched_rows, steps, "paper", 0, False)
+    numpy_e = exploration(numpy_rows, steps, "paper", 0, False)
+    print(
+        f"  roaming {kernel_e.roaming:.3f} (numpy reference {numpy_e.roaming:.3f}), coverage "
+        f"{kernel_e.coverage:.1f} ({numpy_e.coverage:.1f}) cells"
+    )
+    return work / statistics.median(times["kernel, watched (this tree)"]), work / numpy_s
+
+
+def colony(tree: Path, cwd: Path, *args: str) -> tuple[float, str]:
+    """Wall time and output of one `colony ARGS` process run from `tree`'s code."""
+    started = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-c", "from colony.cli import main; main()", *args],
+        env={**os.environ, "PYTHONPATH": str(tree)}, cwd=cwd, capture_output=True, text=True,
+    )  # fmt: skip
+    wall = time.perf_counter() - started
+    if done.returncode != 0:
+        raise SystemExit(f"colony {' '.join(args)} from {tree} failed:\n{done.stderr[-2000:]}")
+    return wall, done.stdout
+
+
+def against(tree: Path, doc: ControllerDocument, poses: int, steps: int, rounds: int) -> None:
+    """`colony evaluate` from this tree and from `tree`, interleaved: net robot-steps/s."""
+    trees = {"this tree": ROOT, str(tree): tree}
+    with tempfile.TemporaryDirectory() as tmp:
+        cwd = Path(tmp)  # off any checkout, as `python -c` puts cwd first on the path
+        (cwd / "champion.json").write_text(doc.to_json())
+        # one thread (a tree without --threads evaluates on one)
+        flags = {
+            name: ["--threads", "1"]
+            if "--threads" in colony(t, cwd, "evaluate", "--help")[1]
+            else []
+            for name, t in trees.items()
+        }
+
+        def run(name: str, n: int, h: int) -> tuple[float, str]:
+            size = ["--poses", str(n), "--steps", str(h), "--json", *flags[name]]
+            return colony(trees[name], cwd, "evaluate", "champion.json", *size)
+
+        reports = {name: run(name, poses, steps)[1] for name in trees}  # and warm caches
+        runs: dict[str, dict[str, list[float]]] = {n: {"big": [], "start": []} for n in trees}
+        for _ in range(rounds):
+            for name in trees:
+                runs[name]["big"].append(run(name, poses, steps)[0])
+                runs[name]["start"].append(run(name, 1, 1)[0])
+    print(f"colony evaluate, one thread, {poses} x {steps}, interleaved (median of {rounds}):")
+    rates = {}
+    for name, r in runs.items():
+        big, start = statistics.median(r["big"]), statistics.median(r["start"])
+        rates[name] = poses * steps / (big - start)
+        print(
+            f"  {name}: {big:.2f} s, start-up (1 pose x 1 step) {start:.2f} s: "
+            f"{rates[name] / 1e6:.2f} M robot-steps/s net of start-up"
+        )
+    mine, other = rates.values()
+    print(f"  ratio, this tree / {tree}: {mine / other:.1f}x")
+    print(f"  reports equal to the digit: {'yes' if len(set(reports.values())) == 1 else 'NO'}")
+
+
+def speed(args: argparse.Namespace) -> None:
+    print(f"load average before: {load()}")
+    doc = champion(args.controller, args.generations)
+    kernel, numpy_rate = in_process(doc, args.poses, args.steps, args.rounds)
+    print(f"  watched kernel / numpy reference: {kernel / numpy_rate:.0f}x (target >= 40x)")
+    if args.against is not None:
+        against(args.against, doc, args.poses, args.steps, args.rounds)
+    print(f"load average after: {load()}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=None, help="run seeds 0..N-1 (10)")
     parser.add_argument("--networks", nargs="+", default=["paper-best", "reactive"])
     parser.add_argument("--generations", type=int, default=None, help="(the default run's)")
-    parser.add_argument("--poses", type=int, default=1000)
+    parser.add_argument("--poses", type=int, help="(1000; 4000 with --speed)")
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument(
         "--config",
@@ -202,7 +364,16 @@ def main() -> None:
     )
     parser.add_argument("--mazes", nargs="*", default=list(UNSEEN_MAZES), help="unseen mazes")
     parser.add_argument("--quick", action="store_true", help="2 seeds, 30 generations")
+    parser.add_argument("--speed", action="store_true", help="how fast a report runs, instead")
+    parser.add_argument("--controller", type=Path, help="--speed: this controller document")
+    parser.add_argument("--against", type=Path, help="--speed: a checkout of another commit")
+    parser.add_argument("--rounds", type=int, default=3, help="--speed: interleaved rounds")
     args = parser.parse_args()
+    if args.speed:
+        args.poses = args.poses or 4000
+        speed(args)
+        return
+    args.poses = args.poses or 1000
     if args.steps < 200:
         parser.error("--steps must be >= 200 (stuck is reported at 40 and 200 steps too)")
     try:

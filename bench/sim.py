@@ -2,9 +2,14 @@
 kernel it replaced (bench/_old_kernel.py), interleaved in one run, as a fraction of the core's
 measured FP64 peak; then the numpy reference, first-call compile times and evaluate().
 
-Run: .venv/bin/python bench/sim.py. Best of several repeats (the machine may be shared); one
-core (the kernel is single-threaded). Random genomes, 40-step trials in the "paper" maze from
-the evaluation's own start poses.
+Run: .venv/bin/python bench/sim.py [--kernel-only] [--against DIR [--rounds R]]. Best of
+several repeats (the machine may be shared); one core (the kernel is single-threaded). Random
+genomes, 40-step trials in the "paper" maze from the evaluation's own start poses.
+
+With `--against DIR` (a checkout of another commit, e.g. main's) the tiled kernel's rows
+(batch 1024, both worlds, both presets) are also measured in fresh processes from this tree
+and from DIR in turn, R rounds (default 5): the median of each tree's rounds and their ratio,
+with the load average before and after.
 
 Two kinds of rows. "default world": a robot that gets stuck (paper rule, stuck_after = 1) stops
 and its remaining steps are skipped (counted as robot-steps all the same), so the figure
@@ -20,13 +25,17 @@ for the geometry (whiskers, move, collision) per robot-step.
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -172,7 +181,73 @@ def first_call_seconds(script: str, preset: str, cache: str) -> float:
     return float(done.stdout.split()[-1])
 
 
+KERNEL_RATES = """
+import json, sys, time
+import numpy as np
+from evorobotics.evaluate import start_poses
+from evorobotics.maze import load_maze
+from evorobotics.sim import simulate
+from schemas.network import PRESETS
+from schemas.world import World
+maze, rates = load_maze("paper"), {}
+starts = np.resize(start_poses(maze, 0, 0, 64), (1024, 3))
+for world in ("default", "never stuck"):
+    params = World() if world == "default" else World(stuck_after=10**6)
+    for preset in ("paper-best", "paper-largest"):
+        spec = PRESETS[preset]
+        weights = np.random.default_rng(0).normal(0.0, 1.5, (1024, spec.weight_count))
+        simulate(spec, weights, maze, starts, 40, params)
+        best = float("inf")
+        for _ in range(max(3, 4_000_000 // (1024 * 40 * spec.weight_count))):
+            t0 = time.perf_counter()
+            simulate(spec, weights, maze, starts, 40, params)
+            best = min(best, time.perf_counter() - t0)
+        rates[f"{world}, {preset}"] = 1024 * 40 / best
+print(json.dumps(rates))
+"""
+"""Robot-steps/s of the tiled kernel, batch 1024, in a fresh process, as JSON."""
+
+
+def load() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def against(tree: Path, rounds: int) -> None:
+    """KERNEL_RATES from this tree and from `tree` in turn: medians of rounds, ratios."""
+    root = Path(__file__).resolve().parents[1]
+    trees = {"this tree": root, str(tree): tree}
+    print(f"tiled kernel, batch 1024, {STEPS}-step trials, this tree against {tree}, fresh")
+    print(f"processes in turn, median of {rounds} rounds (load average {load()} before):")
+    found: dict[str, list[dict[str, float]]] = {name: [] for name in trees}
+    with tempfile.TemporaryDirectory() as cwd:  # off any checkout: `-c` puts cwd on the path
+        for i in range(rounds + 1):  # the first round warms the kernel caches
+            for name, path in trees.items():
+                done = subprocess.run(
+                    [sys.executable, "-c", KERNEL_RATES],
+                    env={**os.environ, "PYTHONPATH": str(path)},
+                    cwd=cwd,
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
+                if i:
+                    found[name].append(json.loads(done.stdout.splitlines()[-1]))
+    mine, other = found.values()
+    for row in mine[0]:
+        a = statistics.median(r[row] for r in mine)
+        b = statistics.median(r[row] for r in other)
+        print(f"  {row:28s} this tree {a / 1e6:7.3f} M/s  {tree}: {b / 1e6:7.3f} M/s  x{a / b:.2f}")
+    print(f"  (load average {load()} after)")
+
+
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--kernel-only", action="store_true", help="skip evaluate() and evolve")
+    parser.add_argument("--against", type=Path, help="a checkout of another commit to compare")
+    parser.add_argument("--rounds", type=int, default=5, help="--against: interleaved rounds")
+    args = parser.parse_args()
+    if args.against is not None:
+        against(args.against, args.rounds)
     peak = fma_peak()
     print(f"FP64 peak of one core (FMA loop): {peak / 1e9:.1f} GFLOP/s")
     print(
@@ -199,7 +274,7 @@ def main() -> None:
         print(
             f" first simulate() of {preset} in a process: cold cache {cold:.2f} s, warm {warm:.2f} s"
         )
-    if "--kernel-only" not in sys.argv:
+    if not args.kernel_only:
         evaluate_calls()
 
 

@@ -9,6 +9,7 @@ Prints a rich table or `--json`; bad input is one line `colony evaluate: ...` an
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -131,10 +132,10 @@ def _robustness(
     seed: int,
     out: Path,
     as_json: bool,
+    threads: int,
 ) -> None:
     """`--robustness`: the map, printed or as JSON, and its heat map in OUT/robustness.png."""
     from evorobotics.errors import EvoError
-    from evorobotics.evaluate import available_cores
     from evorobotics.plots import robustness_plot
     from evorobotics.robustness import robustness
 
@@ -147,7 +148,7 @@ def _robustness(
             maze=maze,
             seed=seed,
             world=world[1],
-            threads=available_cores(),
+            threads=threads,
         )
     except (EvoError, ValueError) as exc:
         raise _fail(str(exc)) from None
@@ -205,15 +206,25 @@ def evaluate_command(
         Path, typer.Option(help="with --robustness: directory of robustness.png (created)")
     ] = Path("out"),
     as_json: Annotated[bool, typer.Option("--json", help="print the report as JSON")] = False,
+    threads: Annotated[
+        int | None,
+        typer.Option(help="simulation threads; the report is the same [cores available]"),
+    ] = None,
 ) -> None:
     """Stuck, confined and roaming fractions, offsets, coverage and Eq 12 fitness over long runs,
     or (`--robustness`) the same trials across the reality gap, cell by cell.
 
     Trials start from poses no training or validation trial uses (docs/explore.md).
     """
+    if threads is not None and threads < 1:
+        raise _fail(f"--threads must be >= 1, got {threads}")
+    # numpy's OpenBLAS would start a thread per core, each spinning about 0.1 s of CPU as it
+    # loads: a report uses no BLAS worth a thread
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     # numba and the simulator: only when evaluating, so `colony --help` stays fast
     from colony.documents import load_document, robot_world
     from evorobotics.errors import EvoError
+    from evorobotics.evaluate import available_cores
     from evorobotics.explore import MAX_ROBOT_STEPS, explore
     from evorobotics.maze import load_maze
 
@@ -244,8 +255,9 @@ def evaluate_command(
         load_maze(maze)
     except (EvoError, OSError, ValueError) as exc:
         raise _fail(f"--maze: {exc}") from None
+    workers = available_cores() if threads is None else threads
     if robustness:
-        _robustness(doc, world, poses, steps, maze, seed, out, as_json)
+        _robustness(doc, world, poses, steps, maze, seed, out, as_json, workers)
         return
     try:
         result = explore(
@@ -257,6 +269,7 @@ def evaluate_command(
             seed=seed,
             reality_gap=reality_gap,
             world=world[1],
+            threads=workers,
         )
     except (EvoError, ValueError) as exc:
         raise _fail(str(exc)) from None

@@ -31,13 +31,13 @@ from evorobotics.evaluate import (
     thread_slices,
     validation_set,
 )
-from evorobotics.explore import confined
+from evorobotics.explore import watch
 from evorobotics.fitness import mean_fitness
 from evorobotics.ga import GAParams, GAState, TellMetrics, ask, ga_rng, init, rank, tell
 from evorobotics.layout import layout
 from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose
-from evorobotics.sim import Gap, simulate
+from evorobotics.sim import Gap
 from evorobotics.stats import wilson
 from evorobotics.strategies import Archive, make_strategy
 from schemas.run import (
@@ -147,8 +147,8 @@ class Validated:
 
 
 VALIDATION_CHUNK_BYTES = 64 * 2**20
-"""Recorded validation trials are simulated in slices of candidates of about this many bytes
-in all (over the threads simulating at once)."""
+"""Under the per-step gap model validation trials are simulated in slices of candidates whose
+copies of the gap's whisker draws take about this many bytes in all (over the threads)."""
 
 
 def validate(config: RunConfig, genomes: np.ndarray, *, threads: int = 1) -> Validated:
@@ -164,27 +164,25 @@ def validate(config: RunConfig, genomes: np.ndarray, *, threads: int = 1) -> Val
     g = np.asarray(genomes, dtype=np.float64)
     poses, gap = validation_set(config)
     maze = load_maze(config.maze)
-    # a candidate's recorded poses and its copy of the gap's whisker draws (step model: big)
-    per_candidate = v.poses * (v.steps + 1) * 3 * 8 + (
-        0 if gap is None else gap.whisker_range.nbytes
+    most = (
+        None
+        if gap is None
+        else max(1, VALIDATION_CHUNK_BYTES // (gap.whisker_range.nbytes * threads))
     )
-    most = max(1, VALIDATION_CHUNK_BYTES // (per_candidate * threads))
 
     def scored(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         k = b - a
-        result = simulate(
+        result = watch(
             config.network_spec,
             np.repeat(g[a:b], v.poses, axis=0),
             maze,
             np.tile(poses, (k, 1)),
             v.steps,
-            params=config.world,
-            gap=None if gap is None else gap.tile(k),
-            record=True,
+            config.world,
+            None if gap is None else gap.tile(k),
         )
-        assert result.poses is not None
         trials = (k, v.poses)
-        free = ~confined(result.poses, result.stuck_step) & ~result.stuck
+        free = ~result.confined & ~result.stuck
         return (
             mean_fitness(result.components.reshape(*trials, 4), config.fitness),
             result.stuck.reshape(trials).mean(axis=1),
@@ -261,18 +259,16 @@ def held_out_trials(
     w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
 
     def run(world: Gap | None, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        result = simulate(
+        result = watch(
             config.network_spec,
             np.repeat(w, b - a, axis=0),
             maze,
             poses[a:b],
             v.steps,
-            params=config.world,
-            gap=None if world is None else Gap(world.whisker_range[a:b], world.motor_gain[a:b]),
-            record=True,
+            config.world,
+            None if world is None else Gap(world.whisker_range[a:b], world.motor_gain[a:b]),
         )
-        assert result.poses is not None
-        free = ~confined(result.poses, result.stuck_step) & ~result.stuck
+        free = ~result.confined & ~result.stuck
         return free, result.stuck, result.max_offset
 
     rows = []

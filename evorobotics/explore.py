@@ -13,7 +13,11 @@ training or validation trial uses) for `steps` steps each and measures, per tria
 - coverage: distinct 0.1 m grid cells (COVERAGE_CELL) its centre visited;
 - Eq 12 fitness of its first 40 steps (the paper's trial), with the run's weights.
 
-Numpy (and one compiled loop, `confined`) over one recorded `simulate` call; deterministic in (controller, world, maze, seed).
+Measured by the simulation kernel as the robots move (`watch`, `sim.simulate_watched`): no
+path is recorded, so a report runs at the kernel's speed, on as many threads as asked.
+`trials` computes the same rows from recorded paths (`simulate(record=True)`), the definition
+the kernel's figures are tested against bit for bit. Deterministic in (controller, world, maze,
+seed), whatever the threads.
 """
 
 from __future__ import annotations
@@ -25,11 +29,11 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from evorobotics.evaluate import draw_gap, start_poses
+from evorobotics.evaluate import draw_gap, map_slices, start_poses, thread_slices
 from evorobotics.fitness import fitness
-from evorobotics.maze import load_maze
+from evorobotics.maze import Maze, load_maze
 from evorobotics.seeds import Purpose
-from evorobotics.sim import Gap, SimResult, simulate
+from evorobotics.sim import Gap, SimResult, Watched, simulate_watched
 from schemas.network import NetworkSpec
 from schemas.run import FitnessWeights
 from schemas.wire import REPORT_ROBOT_STEPS
@@ -46,8 +50,8 @@ PAPER_TRIAL = 40
 HORIZONS = (40, 200)
 """Stuck fractions and offsets are also reported at these steps (when within the horizon)."""
 MAX_ROBOT_STEPS = REPORT_ROBOT_STEPS
-"""Upper bound on poses x steps of one report, so no request can exhaust memory: 24 bytes a
-robot-step of recorded poses (0.5 GB at the bound), 40 more with the per-step gap model."""
+"""Upper bound on poses x steps of one report, so no request can exhaust memory or a worker's
+time: nothing is recorded, but the per-step gap model draws 40 bytes a robot-step."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +146,50 @@ TRIAL_COLUMNS = ("stuck_step", "confined", "offset_40", "offset", "coverage", "c
 length and net offset of its first min(40, H) steps (Eq 12's terms of the paper's trial)."""
 
 
+def watch(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    maze: Maze,
+    starts: np.ndarray,
+    steps: int,
+    world: World,
+    gap: Gap | None = None,
+) -> Watched:
+    """Trials of `weights` (B, n_weights) from `starts` (B, 3), with this module's confinement,
+    coverage and horizon (`sim.simulate_watched`): the one entry of every long-trial measure
+    (reports, validation, the held-out test, robustness maps)."""
+    return simulate_watched(
+        spec,
+        weights,
+        maze,
+        starts,
+        steps,
+        params=world,
+        gap=gap,
+        window=CONFINED_STEPS,
+        diagonal=CONFINED_DIAGONAL,
+        cell=COVERAGE_CELL,
+        horizon=min(PAPER_TRIAL, steps),
+    )
+
+
+def watched_trials(watched: Watched) -> np.ndarray:
+    """(B, TRIAL_COLUMNS) float64 of watched trials (`watch`): `trials` of the same trials
+    recorded, bit for bit (the first moves summed by numpy, as there)."""
+    return np.stack(
+        [
+            watched.stuck_step.astype(np.float64),
+            watched.confined.astype(np.float64),
+            watched.horizon_offset,
+            watched.farthest,
+            watched.coverage.astype(np.float64),
+            watched.moves.sum(axis=1),
+            watched.horizon_net,
+        ],
+        axis=1,
+    )
+
+
 def trials(result: SimResult, steps: int) -> np.ndarray:
     """(B, TRIAL_COLUMNS) float64 of one recorded batch of trials: every row depends on its
     own trial alone, so rows of any slices of the poses concatenate to the whole batch's."""
@@ -217,30 +265,26 @@ def exploration_trials(
     seed: int,
     reality_gap: bool,
     world: World,
+    threads: int = 1,
 ) -> np.ndarray:
-    """`trials` rows of poses start:stop of `explore`'s report: a job of a report sliced
-    among workers (`evorobotics.reports`); every slice's rows are the whole report's."""
+    """`trials` rows of poses start:stop of `explore`'s report, in slices on `threads`
+    threads: a job of a report sliced among workers (`evorobotics.reports`); every slice's
+    rows are the whole report's."""
     if not 0 <= start < stop <= poses:
         raise ValueError(f"poses {start}:{stop} outside the report's {poses}")
     check_size(poses, steps)
     loaded = load_maze(maze)
-    starts = start_poses(loaded, seed, 0, poses, world, Purpose.EXPLORATION)[start:stop]
-    gap = None
-    if reality_gap:
-        drawn = draw_gap(seed, 0, poses, world, Purpose.EXPLORATION_GAP, steps)
-        gap = Gap(drawn.whisker_range[start:stop], drawn.motor_gain[start:stop])
+    starts = start_poses(loaded, seed, 0, poses, world, Purpose.EXPLORATION)
+    drawn = draw_gap(seed, 0, poses, world, Purpose.EXPLORATION_GAP, steps) if reality_gap else None
     w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
-    result = simulate(
-        spec,
-        np.repeat(w, stop - start, axis=0),
-        loaded,
-        starts,
-        steps,
-        params=world,
-        gap=gap,
-        record=True,
-    )
-    return trials(result, steps)
+
+    def rows(a: int, b: int) -> np.ndarray:
+        gap = None if drawn is None else Gap(drawn.whisker_range[a:b], drawn.motor_gain[a:b])
+        trials = watch(spec, np.repeat(w, b - a, axis=0), loaded, starts[a:b], steps, world, gap)
+        return watched_trials(trials)
+
+    slices = [(start + a, start + b) for a, b in thread_slices(stop - start, threads)]
+    return np.concatenate(map_slices(rows, slices, threads))
 
 
 def check_size(poses: int, steps: int) -> None:
@@ -264,8 +308,10 @@ def explore(
     reality_gap: bool = False,
     world: World | None = None,
     fitness_weights: FitnessWeights | None = None,
+    threads: int = 1,
 ) -> Exploration:
-    """The exploration report of one controller (see the module docstring)."""
+    """The exploration report of one controller (see the module docstring), simulated on
+    `threads` threads (the same figures whatever the count)."""
     check_size(poses, steps)
     rows = exploration_trials(
         spec,
@@ -278,6 +324,7 @@ def explore(
         seed=seed,
         reality_gap=reality_gap,
         world=world or World(),
+        threads=threads,
     )
     return exploration(rows, steps, maze, seed, reality_gap, fitness_weights)
 

@@ -52,9 +52,10 @@ offsets and state offsets, blocks summed in the same order), written as a real m
 the kernel cache directory (`cached_module`) and compiled with `njit(cache=True)`, so the
 compile is paid once per machine, not per process. Its call is
 `kernel(w, state, inputs, out, scratch, live)` on (rows, LANES) arrays, one controller per
-column; each neuron's sums and sigmoid are SIMD over the lanes (`_accumulate_tile`,
-`_sigmoid_tile`), and every live lane is bit-identical to `step_one` (same operations in the
-same order, no fastmath; the exp is the fixed polynomial `_exp_neg` in both; tested).
+column; each neuron's sums and sigmoid are SIMD over the lanes, several neurons' interleaved
+(`_accumulate_rows`, `_sigmoid_rows`), and every live lane is bit-identical to `step_one`
+(same operations in the same order, no fastmath; the exp is the fixed polynomial `_exp_neg`
+in both; tested).
 
 `step` is a compiled loop over tiles of the batch calling `spec_kernel(spec)`, and the
 simulator's fused episode kernel calls the same function: one compiled path, so a controller's
@@ -67,6 +68,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import itertools
 import math
 import os
 import pickle
@@ -90,6 +92,26 @@ from numba.extending import intrinsic
 
 from evorobotics.layout import layout
 from schemas.network import NetworkSpec
+
+
+def _import_numba_arrays() -> None:
+    """Import numba's array implementations (`numba.np.arraymath`) before a kernel loads them,
+    with scipy.linalg hidden from the BLAS probe that module runs at import: importing
+    scipy.linalg costs 0.15-0.3 s of every process's start (it clones numpy's namespace, f2py
+    and unittest included), and no kernel here calls BLAS. Numba then takes its own loop for
+    the inner products of np.correlate and np.convolve, and still imports scipy.linalg when
+    compiled code calls np.dot or np.linalg."""
+    probed = "scipy.linalg.cython_blas"
+    if "numba.np.arraymath" in sys.modules or probed in sys.modules:
+        return
+    sys.modules[probed] = None  # type: ignore[assignment]  # its import raises ImportError
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        del sys.modules[probed]
+
+
+_import_numba_arrays()
 
 
 class KernelPlan(NamedTuple):
@@ -172,7 +194,7 @@ truncation error below 1e-17 for |r| <= ln 2 / 2."""
 
 @njit(cache=True)
 def _exp_neg(x: float) -> float:
-    """e^x for x <= 0 (and NaN), in operations `_sigmoid_tile` repeats lane by lane.
+    """e^x for x <= 0 (and NaN), in operations `_sigmoid_rows` repeats lane by lane.
 
     Not libm's exp (whose SIMD and scalar versions round differently) but one fixed sequence
     of IEEE operations: x = k ln 2 + r, |r| <= ln 2 / 2, e^r by Horner, times 2^k exactly. Within
@@ -225,50 +247,68 @@ of arrays: a row of LANES float64 per weight, state value or activation), so eac
 of a tile is one SIMD instruction."""
 
 
+def _literal(value: types.Type) -> int | None:
+    """The value of a compile-time integer argument of an intrinsic, None if not a literal."""
+    return value.literal_value if isinstance(value, types.IntegerLiteral) else None
+
+
 @intrinsic
-def _accumulate_tile(
+def _accumulate_rows(
     typingctx: object,
     w: types.Array,
     row: types.Integer,
+    rows: types.IntegerLiteral,
     n_src: types.Integer,
     x: types.Array,
     x_row: types.Integer,
     u: types.Array,
     u_row: types.Integer,
-) -> tuple[Signature, Callable[..., object]]:
-    """`_accumulate` of one neuron for the LANES lanes of (rows, LANES) C arrays, as SIMD.
+) -> tuple[Signature, Callable[..., object]] | None:
+    """`_accumulate` of `rows` neurons for the LANES lanes of (rows, LANES) C arrays, as SIMD.
 
-    u[u_row] += (sum_i w[row + i] * x[x_row + i]) + w[row + n_src], lane by lane: acc = 0,
-    += w x input by input, += bias, u += acc, the order of `step_one`, so every lane gets its
-    bits. Written in LLVM vector instructions because numba's defaults (no SLP vectoriser,
-    small loops unrolled before the loop vectoriser) leave the lane loop scalar.
+    For neuron k < rows, whose weights start at w[row + k (n_src + 1)]: u[u_row + k] +=
+    (sum_i w x[x_row + i]) + bias, lane by lane: acc = 0, += w x input by input, += bias,
+    u += acc, the order of `step_one`, so every lane gets its bits. The neurons' sums are
+    independent chains of additions: each input's step is issued for every neuron in turn (a
+    loop over the inputs, `rows`, a literal, accumulators in it), so they overlap instead of
+    waiting on one another. Written in LLVM vector instructions because numba's defaults (no
+    SLP vectoriser, small loops unrolled before the loop vectoriser) leave a lane loop scalar.
     """
-    sig = types.void(w, row, n_src, x, x_row, u, u_row)
+    count = _literal(rows)
+    if count is None:
+        return None
+    sig = types.void(w, row, rows, n_src, x, x_row, u, u_row)
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
-        w_a, row_v, n_v, x_a, xr_v, u_a, ur_v = args
+        w_a, row_v, _, n_v, x_a, xr_v, u_a, ur_v = args
         tys = signature.args
         row_v, n_v, xr_v, ur_v = (
             context.cast(builder, v, t, types.intp)
-            for v, t in ((row_v, tys[1]), (n_v, tys[2]), (xr_v, tys[4]), (ur_v, tys[6]))
+            for v, t in ((row_v, tys[1]), (n_v, tys[3]), (xr_v, tys[5]), (ur_v, tys[7]))
         )
         vec = llvm_ir.VectorType(llvm_ir.DoubleType(), LANES)
-        lanes = llvm_ir.Constant(row_v.type, LANES)
+        stride = builder.add(n_v, llvm_ir.Constant(n_v.type, 1))  # a neuron's weights
 
-        def at(ty: types.Array, value: object, r: object) -> object:
+        def at(ty: types.Array, value: object, index: object) -> object:
             data = context.make_array(ty)(context, builder, value).data
-            return builder.bitcast(builder.gep(data, [builder.mul(r, lanes)]), vec.as_pointer())
+            offset = builder.mul(index, llvm_ir.Constant(index.type, LANES))  # type: ignore[attr-defined]
+            return builder.bitcast(builder.gep(data, [offset]), vec.as_pointer())
+
+        def weight(k: int, i: object) -> object:
+            first = builder.add(row_v, builder.mul(stride, llvm_ir.Constant(stride.type, k)))
+            return builder.load(at(tys[0], w_a, builder.add(first, i)), align=8)
 
         zero = llvm_ir.Constant(vec, [0.0] * LANES)
-        acc = cgutils.alloca_once_value(builder, zero)  # type: ignore[no-untyped-call]
+        accs = [cgutils.alloca_once_value(builder, zero) for _ in range(count)]  # type: ignore[no-untyped-call]
         with cgutils.for_range(builder, n_v) as loop:
-            wi = builder.load(at(tys[0], w_a, builder.add(row_v, loop.index)), align=8)
-            xi = builder.load(at(tys[3], x_a, builder.add(xr_v, loop.index)), align=8)
-            builder.store(builder.fadd(builder.load(acc), builder.fmul(wi, xi)), acc)
-        bias = builder.load(at(tys[0], w_a, builder.add(row_v, n_v)), align=8)
-        total = builder.fadd(builder.load(acc), bias)
-        target = at(tys[5], u_a, ur_v)
-        builder.store(builder.fadd(builder.load(target, align=8), total), target, align=8)
+            xi = builder.load(at(tys[4], x_a, builder.add(xr_v, loop.index)), align=8)
+            for k, acc in enumerate(accs):
+                term = builder.fmul(weight(k, loop.index), xi)
+                builder.store(builder.fadd(builder.load(acc), term), acc)
+        for k, acc in enumerate(accs):
+            target = at(tys[6], u_a, builder.add(ur_v, llvm_ir.Constant(ur_v.type, k)))
+            total = builder.fadd(builder.load(acc), weight(k, n_v))
+            builder.store(builder.fadd(builder.load(target, align=8), total), target, align=8)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -307,19 +347,28 @@ def _copy_tile(
 
 
 @intrinsic
-def _sigmoid_tile(
-    typingctx: object, a: types.Array, row: types.Integer, live: types.Array
-) -> tuple[Signature, Callable[..., object]]:
-    """a[row] = `_sigmoid`(a[row]) in the live lanes of a (rows, LANES) C array, as SIMD.
+def _sigmoid_rows(
+    typingctx: object,
+    a: types.Array,
+    row: types.Integer,
+    rows: types.IntegerLiteral,
+    live: types.Array,
+) -> tuple[Signature, Callable[..., object]] | None:
+    """a[row + k] = `_sigmoid`(a[row + k]) for k < rows (a literal) in the live lanes of a
+    (rows, LANES) C array, as SIMD.
 
     The operations of `_sigmoid` and `_exp_neg` lane by lane (2^k built from its exponent
     bits rather than by ldexp: the same exact power of two), so every lane gets their bits.
-    An idle lane (live[lane] == 0) keeps its value.
+    Each operation is issued for every row in turn: the rows' exp chains overlap instead of
+    waiting on one another. An idle lane (live[lane] == 0) keeps its value.
     """
-    sig = types.void(a, row, live)
+    count = _literal(rows)
+    if count is None:
+        return None
+    sig = types.void(a, row, rows, live)
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
-        a_v, row_v, live_v = args
+        a_v, row_v, _, live_v = args
         row_v = context.cast(builder, row_v, signature.args[1], types.intp)
         f64 = llvm_ir.DoubleType()
         i64 = llvm_ir.IntType(64)
@@ -336,33 +385,70 @@ def _sigmoid_tile(
             )
             return builder.call(fn, operands)
 
+        def each(op: Callable[..., object], *values: list[object]) -> list[object]:
+            return [op(*operands) for operands in zip(*values, strict=True)]
+
         data = context.make_array(signature.args[0])(context, builder, a_v).data
-        ptr = builder.bitcast(
-            builder.gep(data, [builder.mul(row_v, llvm_ir.Constant(row_v.type, LANES))]),
-            vec.as_pointer(),
+        ptrs = [
+            builder.bitcast(
+                builder.gep(
+                    data,
+                    [
+                        builder.mul(
+                            builder.add(row_v, llvm_ir.Constant(row_v.type, k)),
+                            llvm_ir.Constant(row_v.type, LANES),
+                        )
+                    ],
+                ),
+                vec.as_pointer(),
+            )
+            for k in range(count)
+        ]
+        u = [builder.load(ptr, align=8) for ptr in ptrs]
+        x = each(lambda v: builder.fneg(call("fabs", v)), u)
+        inside = each(lambda v: builder.fcmp_ordered(">", v, splat(EXP_FLOOR)), x)
+        # NaN lanes too: no poison below
+        xc = each(lambda c, v: builder.select(c, v, splat(EXP_FLOOR)), inside, x)
+        k = each(
+            lambda v: call("floor", builder.fadd(builder.fmul(v, splat(LOG2E)), splat(0.5))), xc
         )
-        u = builder.load(ptr, align=8)
-        x = builder.fneg(call("fabs", u))
-        inside = builder.fcmp_ordered(">", x, splat(EXP_FLOOR))
-        xc = builder.select(inside, x, splat(EXP_FLOOR))  # NaN lanes too: no poison below
-        k = call("floor", builder.fadd(builder.fmul(xc, splat(LOG2E)), splat(0.5)))
-        r = builder.fsub(
-            builder.fsub(xc, builder.fmul(k, splat(LN2_HI))), builder.fmul(k, splat(LN2_LO))
+        r = each(
+            lambda v, n: builder.fsub(
+                builder.fsub(v, builder.fmul(n, splat(LN2_HI))), builder.fmul(n, splat(LN2_LO))
+            ),
+            xc,
+            k,
         )
-        p = splat(EXP_TAYLOR[0])
+        p = [splat(EXP_TAYLOR[0])] * count
         for coefficient in EXP_TAYLOR[1:]:
-            p = builder.fadd(builder.fmul(p, r), splat(coefficient))
-        bits = builder.shl(
-            builder.add(builder.fptosi(k, ivec), llvm_ir.Constant(ivec, [1023] * LANES)),
-            llvm_ir.Constant(ivec, [52] * LANES),
+            term = splat(coefficient)
+            p = each(lambda q, v, c=term: builder.fadd(builder.fmul(q, v), c), p, r)
+        bits = each(
+            lambda n: builder.shl(
+                builder.add(builder.fptosi(n, ivec), llvm_ir.Constant(ivec, [1023] * LANES)),
+                llvm_ir.Constant(ivec, [52] * LANES),
+            ),
+            k,
         )
-        e = builder.fmul(p, builder.bitcast(bits, vec))
-        nan = builder.fcmp_unordered("uno", x, x)
-        e = builder.select(inside, e, builder.select(nan, x, splat(0.0)))
+        e = each(lambda q, b: builder.fmul(q, builder.bitcast(b, vec)), p, bits)
+        e = each(
+            lambda c, v, ev: builder.select(
+                c, ev, builder.select(builder.fcmp_unordered("uno", v, v), v, splat(0.0))
+            ),
+            inside,
+            x,
+            e,
+        )
         # one division: select the numerator (the same operands, so the same bits)
-        numerator = builder.select(builder.fcmp_ordered(">=", u, splat(0.0)), splat(1.0), e)
-        y = builder.fdiv(numerator, builder.fadd(splat(1.0), e))
-        live_data = context.make_array(signature.args[2])(context, builder, live_v).data
+        y = each(
+            lambda v, ev: builder.fdiv(
+                builder.select(builder.fcmp_ordered(">=", v, splat(0.0)), splat(1.0), ev),
+                builder.fadd(splat(1.0), ev),
+            ),
+            u,
+            e,
+        )
+        live_data = context.make_array(signature.args[3])(context, builder, live_v).data
         mask = builder.load(
             builder.bitcast(
                 live_data, llvm_ir.VectorType(live_data.type.pointee, LANES).as_pointer()
@@ -370,7 +456,8 @@ def _sigmoid_tile(
             align=1,
         )
         on = builder.icmp_unsigned("!=", mask, llvm_ir.Constant(mask.type, [0] * LANES))
-        builder.store(builder.select(on, y, u), ptr, align=8)
+        for ptr, v, out in zip(ptrs, u, y, strict=True):
+            builder.store(builder.select(on, out, v), ptr, align=8)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -438,13 +525,26 @@ Kernel = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, n
 """A specialised step of a tile: kernel(w, state, inputs, out, scratch, live), see `spec_kernel`."""
 
 
+INTERLEAVE = 8
+"""Most neurons whose sums or sigmoids a kernel interleaves (`_accumulate_rows`,
+`_sigmoid_rows`): enough independent chains to fill the pipelines, few enough to stay in
+registers."""
+
+
+def _groups(rows: int) -> list[tuple[int, int]]:
+    """(first, count) of a layer's neurons in near-equal groups of at most INTERLEAVE."""
+    n = -(-rows // INTERLEAVE)
+    bounds = [rows * i // n for i in range(n + 1)]
+    return [(a, b - a) for a, b in itertools.pairwise(bounds)]
+
+
 def _kernel_source(spec: NetworkSpec) -> str:
     """Module source of `kernel` (one step of a tile of LANES controllers) and `batch` for `spec`.
 
     Per lane and neuron the sums are those of `step_one` in the same order (u = 0, then per
     block in chromosome order acc = 0, += w x input by input, += bias, u += acc), so every lane
-    is bit-identical to `step_one`; `_accumulate_tile` does each neuron's sums for the whole
-    tile in SIMD instructions.
+    is bit-identical to `step_one`; `_accumulate_rows` does a group of neurons' sums for the
+    whole tile in SIMD instructions, `_sigmoid_rows` their sigmoids.
     """
     plan = kernel_plan(spec)
     sizes = [int(v) for v in plan.sizes]
@@ -457,7 +557,7 @@ def _kernel_source(spec: NetworkSpec) -> str:
         "import numpy as np",
         "from numba import njit",
         "",
-        "from evorobotics.network import _accumulate_tile, _copy_tile, _saturate, _sigmoid_tile",
+        "from evorobotics.network import _accumulate_rows, _copy_tile, _saturate, _sigmoid_rows",
         "",
         "",
         "@njit(cache=True)",
@@ -465,12 +565,12 @@ def _kernel_source(spec: NetworkSpec) -> str:
         f"    _copy_tile(scratch, 0, x, 0, {sizes[0]})",
     ]
     for m in range(1, top + 1):
-        u = f"{act[m]} + n"
         lines += [
             f"    for n in range({sizes[m]}):",
             f"        for lane in range({LANES}):",
-            f"            scratch[{u}, lane] = 0.0",
+            f"            scratch[{act[m]} + n, lane] = 0.0",
         ]
+        groups = _groups(sizes[m])
         for m_b, t, s, src, offset in plan.blocks.tolist():
             if m_b != m:
                 continue
@@ -481,18 +581,23 @@ def _kernel_source(spec: NetworkSpec) -> str:
                 x = f"state, {hist[src] + (t - 1) * n_src}"
             else:
                 x = f"state, {hist[src] + t * n_src}"
-            row = f"{offset} + n * {n_src + 1}"
-            lines.append(f"        _accumulate_tile(w, {row}, {n_src}, {x}, scratch, {u})")
+            for first, rows in groups:
+                row = offset + first * (n_src + 1)
+                lines.append(
+                    f"    _accumulate_rows(w, {row}, {rows}, {n_src}, {x}, scratch, "
+                    f"{act[m] + first})"
+                )
         if m == top and plan.linear_output == 1:
             lines += [  # an idle lane (zero weights and inputs) keeps u = 0
+                f"    for n in range({sizes[m]}):",
                 f"        for lane in range({LANES}):",
                 "            if live[lane]:",
-                f"                scratch[{u}, lane] = _saturate(scratch[{u}, lane])",
+                f"                scratch[{act[m]} + n, lane] = _saturate(scratch[{act[m]} + n, lane])",
             ]
-        else:  # after the layer's sums: the neurons' exp chains are independent, so they overlap
+        else:
             lines += [
-                f"    for n in range({sizes[m]}):",
-                f"        _sigmoid_tile(scratch, {u}, live)",
+                f"    _sigmoid_rows(scratch, {act[m] + first}, {rows}, live)"
+                for first, rows in groups
             ]
     for j in range(top + 1):
         n_j, h = sizes[j], hist[j]

@@ -14,10 +14,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from evorobotics.evaluate import map_slices, start_poses
-from evorobotics.explore import confined
+from evorobotics.explore import watch
 from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose
-from evorobotics.sim import Gap, simulate
+from evorobotics.sim import Gap
 from schemas.network import NetworkSpec
 from schemas.wire import REPORT_ROBOT_STEPS
 from schemas.world import N_WHISKERS, World
@@ -29,7 +29,7 @@ GAIN_RATIOS = (0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15)
 CELLS = len(WHISKER_RANGES) * len(GAIN_RATIOS)
 """Cells of a map: 49."""
 MAX_ROBOT_STEPS = REPORT_ROBOT_STEPS
-"""Upper bound on cells x poses x steps of one map (a row is recorded at a time)."""
+"""Upper bound on cells x poses x steps of one map."""
 
 
 @dataclass(frozen=True)
@@ -96,19 +96,9 @@ def map_trials(
     ratios = np.stack([wheel_gains(r, world) for r in GAIN_RATIOS])
     ranges = np.repeat(np.array(WHISKER_RANGES)[cell // len(GAIN_RATIOS), None], N_WHISKERS, 1)
     w = np.asarray(weights, dtype=np.float64).reshape(1, -1)
-    run = simulate(
-        spec,
-        np.repeat(w, stop - start, axis=0),
-        loaded,
-        starts[pose],
-        steps,
-        params=world,
-        gap=Gap(ranges, ratios[cell % len(GAIN_RATIOS)]),
-        record=True,
-    )
-    if run.poses is None:
-        raise ValueError("the simulation was not recorded")
-    roams = ~confined(run.poses, run.stuck_step) & ~run.stuck
+    gap = Gap(ranges, ratios[cell % len(GAIN_RATIOS)])
+    run = watch(spec, np.repeat(w, stop - start, axis=0), loaded, starts[pose], steps, world, gap)
+    roams = ~run.confined & ~run.stuck
     return np.stack([roams, run.stuck], axis=1).astype(np.float64)
 
 

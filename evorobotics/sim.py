@@ -25,7 +25,8 @@ largest distance from the start position at any step. So is `cells`, the number 
 grid cells the centre visited (a behaviour descriptor, not a fitness term).
 
 `simulate` is the canonical path: one numba kernel runs controller, physics and fitness for all
-robots and steps. `simulate_reference` is the same science as vectorised numpy over the batch,
+robots and steps. `simulate_watched` is the same kernel measuring, as the robots move, what a
+long trial is judged on (confinement, coverage, offsets: `explore`), with nothing recorded. `simulate_reference` is the same science as vectorised numpy over the batch,
 kept as the reference the tests compare against. `clear_of_walls` is the start-pose test
 (body clear, no whisker touching) in compiled code, bit-identical to the numpy geometry.
 """
@@ -694,6 +695,103 @@ def _act_tile(
     return sig, codegen
 
 
+@intrinsic
+def _near_tile(
+    typingctx: object,
+    xs: Any,
+    ys: Any,
+    cs: Any,
+    ss: Any,
+    wx: Any,
+    wy: Any,
+    rq: Any,
+    clear: Any,
+    inv: Any,
+    near: Any,
+) -> tuple[Signature, Callable[..., object]]:
+    """near[q, lane] = 1 where whisker q of the lane's robot may touch a wall, as SIMD over
+    the LANES lanes, for the N_WHISKERS whiskers.
+
+    From the robot's pose (xs, ys, cos cs, sin ss), whisker q's attachment point in
+    `_sense_one`'s operations lane by lane; its square of the clearance map at `inv` =
+    CLEARANCE_SUB / cell (`_clearance`'s, 0 outside the grid); 1 if that clearance is no more
+    than the whisker's range rq[q, lane], else 0: no wall within its reach. No branch on a
+    lane's outcome; idle lanes (any values, NaN included) form no index off the map.
+    """
+    sig = types.void(xs, ys, cs, ss, wx, wy, rq, clear, inv, near)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> object:
+        lanes = network.LANES
+        f64 = llvm_ir.DoubleType()
+        i64 = llvm_ir.IntType(64)
+        i32 = llvm_ir.IntType(32)
+        vec = llvm_ir.VectorType(f64, lanes)
+        flags = llvm_ir.VectorType(llvm_ir.IntType(8), lanes)
+
+        def array(k: int) -> Any:
+            return context.make_array(signature.args[k])(context, builder, args[k])
+
+        def row(k: int, r: int, ty: Any = vec) -> Any:
+            data = builder.gep(array(k).data, [llvm_ir.Constant(i64, r * lanes)])
+            return builder.bitcast(data, ty.as_pointer())
+
+        def splat(value: Any) -> Any:
+            if isinstance(value, float):
+                return llvm_ir.Constant(vec, [value] * lanes)
+            undef = llvm_ir.Constant(vec, llvm_ir.Undefined)
+            one = builder.insert_element(undef, value, llvm_ir.Constant(i32, 0))
+            zeros = llvm_ir.Constant(llvm_ir.VectorType(i32, lanes), [0] * lanes)
+            return builder.shuffle_vector(one, undef, zeros)
+
+        def scalar(k: int, q: int) -> Any:
+            return splat(builder.load(builder.gep(array(k).data, [llvm_ir.Constant(i64, q)])))
+
+        floor = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+            builder.module, llvm_ir.FunctionType(vec, [vec]), f"llvm.floor.v{lanes}f64"
+        )
+        x, y, c, s = (builder.load(row(k, 0), align=8) for k in range(4))
+        grid = array(7)
+        n_rows, n_cols = (
+            splat(builder.sitofp(v, f64))
+            for v in cgutils.unpack_tuple(builder, grid.shape, 2)  # type: ignore[no-untyped-call]
+        )
+        zero = splat(0.0)
+        scale = splat(args[8])
+        for q in range(N_WHISKERS):
+            wxq, wyq = scalar(4, q), scalar(5, q)
+            px = builder.fsub(builder.fadd(x, builder.fmul(c, wxq)), builder.fmul(s, wyq))
+            py = builder.fadd(builder.fadd(y, builder.fmul(s, wxq)), builder.fmul(c, wyq))
+            i = builder.call(floor, [builder.fmul(px, scale)])
+            j = builder.call(floor, [builder.fmul(py, scale)])
+            inside = builder.and_(
+                builder.and_(
+                    builder.fcmp_ordered(">=", i, zero), builder.fcmp_ordered("<", i, n_cols)
+                ),
+                builder.and_(
+                    builder.fcmp_ordered(">=", j, zero), builder.fcmp_ordered("<", j, n_rows)
+                ),
+            )
+            at = builder.fptosi(
+                builder.fadd(
+                    builder.fmul(builder.select(inside, j, zero), n_cols),
+                    builder.select(inside, i, zero),
+                ),
+                llvm_ir.VectorType(i64, lanes),
+            )
+            squares = llvm_ir.Constant(vec, llvm_ir.Undefined)
+            for lane in range(lanes):
+                k = llvm_ir.Constant(i32, lane)
+                value = builder.load(builder.gep(grid.data, [builder.extract_element(at, k)]))
+                squares = builder.insert_element(squares, value, k)
+            clearance = builder.select(inside, squares, zero)
+            reach = builder.load(row(6, q), align=8)
+            maybe = builder.fcmp_ordered("<=", clearance, reach)
+            builder.store(builder.zext(maybe, flags), row(9, q, flags), align=1)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 @njit(inline="always")
 def _episodes(
     kernel: network.Kernel,
@@ -711,18 +809,19 @@ def _episodes(
     ca: np.ndarray,
     sa: np.ndarray,
     clear: np.ndarray,
-    reach: float,
     stuck_after: int,
     ranges: np.ndarray,
     gains: np.ndarray,
     record: bool,
+    watch: bool,
+    marks: tuple[float, int, int],
+    confine: tuple[int, float, int],
     final: np.ndarray,
     metrics: np.ndarray,
     stuck_out: np.ndarray,
     cells_out: np.ndarray,
-    rec_poses: np.ndarray,
-    rec_whiskers: np.ndarray,
-    rec_motors: np.ndarray,
+    traces: tuple[np.ndarray, np.ndarray, np.ndarray],
+    watched: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
     """Every robot's whole trial: sense, think, act, collide, score (see the module docstring).
 
@@ -739,14 +838,29 @@ def _episodes(
     `ranges` (B, S, W) holds the whiskers' trigger distances: S = 1, fixed for the trial, or
     S = steps, one row per step; W = 1, shared by the five whiskers, or W = 5.
 
-    `cells_out[r]` counts the grid cells robot r's centre visited: a bitmap over the maze per
-    lane, marked on every accepted move, whose marks are undone from the lane's `trail` when its
-    robot is done (cheaper than clearing the whole map).
+    `cells_out[r]` counts the squares of side `mark_cell` (a grid of `mark_rows` x `mark_cols`
+    from the origin: `marks`) robot r's centre visited: a bitmap per lane, marked on every accepted move,
+    whose marks are undone from the lane's `trail` when its robot is done (cheaper than clearing
+    the whole map).
+
+    With `record`, `traces` receives every robot's poses, whisker bits and motor commands.
+
+    With `watch` (never with `record`: the generated wrappers fix both, so the other's code is
+    compiled out) the kernel also measures what `explore.trials` reads from recorded paths, as
+    the robots move, into `watched`: `confined_out[r]`, a run of `window` steps before sticking
+    whose positions fit a box of `diagonal` (`_confine`; `confine` is window, diagonal, horizon); `offsets_out[:, r]`, the largest distance from the
+    start by step `horizon` and over the trial and the distance at step `horizon`; and
+    `moves_out[r, k]`, the length of move k < `horizon` (0 when blocked). Distances are
+    `math.hypot`'s, numpy's libm function, as the recorded definition computes them.
     """
     dt = world[0]
     a = world[3]
     b = world[4]
     hd = world[5]
+    mark_cell, mark_rows, mark_cols = marks
+    window, diagonal, horizon = confine
+    rec_poses, rec_whiskers, rec_motors = traces
+    confined_out, offsets_out, moves_out = watched
     lanes = network.LANES
     n_q = wx.shape[0]
     n_w = weights.shape[1]
@@ -781,17 +895,22 @@ def _episodes(
     ss = np.zeros(lanes)
     x0s = np.zeros(lanes)
     y0s = np.zeros(lanes)
-    rq = np.zeros((lanes, n_q))
-    r_max = np.zeros(lanes)  # the longest whisker: the body's early out must cover all five
+    rq = np.zeros((n_q, lanes))  # whisker ranges
+    near = np.zeros((n_q, lanes), dtype=np.uint8)  # `_near_tile`'s
+    inv_square = CLEARANCE_SUB / cell  # `_clearance`'s
     blocked = np.zeros(lanes, dtype=np.int64)
     stuck_at = np.full(lanes, -1, dtype=np.int64)
     curve = np.zeros(lanes)
     max_off = np.zeros(lanes)
     n_cells = np.zeros(lanes, dtype=np.int64)
-    rows = solid.shape[0]
-    cols = solid.shape[1]
-    visited = np.zeros((lanes, rows * cols), dtype=np.uint8)
-    trail = np.empty((lanes, min(steps + 1, rows * cols)), dtype=np.int64)  # new cells only
+    visited = np.zeros((lanes, mark_rows * mark_cols), dtype=np.uint8)
+    trail = np.empty((lanes, min(steps + 1, mark_rows * mark_cols)), dtype=np.int64)  # new only
+    span = window + 1 if watch else 0  # positions of a confinement window
+    window_xy = np.empty((lanes, 2, span))
+    suffix = np.empty((lanes, 4, span))
+    window_state = np.zeros((lanes, 2), dtype=np.int64)  # place in the block, `_confine`'s
+    confined = np.zeros(lanes, dtype=np.uint8)
+    farthest = np.zeros(lanes)
     per_step = ranges.shape[1] != 1
     last = ranges.shape[2] - 1
     next_robot = 0
@@ -813,6 +932,17 @@ def _episodes(
                     metrics[2, r] = max_off[lane]
                     stuck_out[r] = stuck_at[lane]
                     cells_out[r] = n_cells[lane]
+                    if watch:
+                        if not confined[lane]:  # the windows ending in the last, partial block
+                            n = window_state[lane, 0]
+                            confined[lane] = _confine(
+                                window_xy, suffix, window_state, lane, n, diagonal
+                            )
+                        confined_out[r] = confined[lane]
+                        offsets_out[1, r] = farthest[lane]
+                        if step[lane] < horizon:  # stuck before it: nothing moves from here
+                            offsets_out[0, r] = farthest[lane]
+                            offsets_out[2, r] = math.hypot(ox, oy)
                     for t in range(n_cells[lane]):
                         visited[lane, trail[lane, t]] = 0
                     robot[lane] = -1
@@ -839,15 +969,22 @@ def _episodes(
                 y0s[lane] = y
                 cs[lane], ss[lane] = _sincos(th)
                 if not per_step:
-                    r_max[lane] = 0.0
                     for q in range(n_q):
-                        rq[lane, q] = ranges[r, 0, min(q, last)]
-                        r_max[lane] = max(r_max[lane], rq[lane, q])
+                        rq[q, lane] = ranges[r, 0, min(q, last)]
                 blocked[lane] = 0
                 stuck_at[lane] = -1
                 curve[lane] = 0.0
                 max_off[lane] = 0.0
-                n_cells[lane] = _mark(visited[lane], trail[lane], 0, cols, rows, cell, x, y)
+                n_cells[lane] = _mark(
+                    visited[lane], trail[lane], 0, mark_cols, mark_rows, mark_cell, x, y
+                )
+                if watch:
+                    farthest[lane] = 0.0
+                    confined[lane] = 0
+                    window_xy[lane, 0, 0] = x
+                    window_xy[lane, 1, 0] = y
+                    window_state[lane, 0] = 1
+                    window_state[lane, 1] = span
                 if record:
                     rec_poses[r, 0, 0] = x
                     rec_poses[r, 0, 1] = y
@@ -876,32 +1013,32 @@ def _episodes(
                 r = robot[lane]
                 for i in range(n_w):
                     w_tile[i, lane] = weights[r, i]
-        for lane in range(lanes):  # sense
-            if not live[lane] or sensed[lane]:  # a blocked or stuck robot senses what it did
+        n_sense = 0  # a blocked or stuck robot senses what it did: not these
+        for lane in range(lanes):
+            if live[lane] and not sensed[lane]:
+                n_sense += 1
+                if per_step:
+                    for q in range(n_q):
+                        rq[q, lane] = ranges[robot[lane], step[lane], min(q, last)]
+        # sense: which whiskers may touch a wall, all lanes at once; the exact test for those
+        if n_sense:
+            _near_tile(xs, ys, cs, ss, wx, wy, rq, clear, inv_square, near)  # type: ignore[call-arg]
+        for lane in range(lanes):
+            if not live[lane] or sensed[lane]:
                 continue
-            r = robot[lane]
             x = xs[lane]
             y = ys[lane]
             c = cs[lane]
             s = ss[lane]
-            if per_step:
-                r_max[lane] = 0.0
-                for q in range(n_q):
-                    rq[lane, q] = ranges[r, step[lane], min(q, last)]
-                    r_max[lane] = max(r_max[lane], rq[lane, q])
-            # early outs: no wall within reach of the centre / of an attachment point
-            far = _clearance(clear, cell, x, y) > reach + r_max[lane]
             for q in range(n_q):
                 inputs[q, lane] = 0.0
-                if far:
+                if not near[q, lane]:
                     continue
                 px = x + c * wx[q] - s * wy[q]
                 py = y + s * wx[q] + c * wy[q]
-                if _clearance(clear, cell, px, py) > rq[lane, q]:
-                    continue
                 ux = c * ca[q] - s * sa[q]
                 uy = s * ca[q] + c * sa[q]
-                if _whisker(solid, cell, px, py, ux, uy, rq[lane, q]):
+                if _whisker(solid, cell, px, py, ux, uy, rq[q, lane]):
                     inputs[q, lane] = 1.0
             sensed[lane] = not per_step
         kernel(w_tile, state, inputs, out, scratch, live)  # think: the whole tile at once
@@ -953,10 +1090,40 @@ def _episodes(
                     ss[lane] = ns
                     ox = nx - x0s[lane]
                     oy = ny - y0s[lane]
-                    max_off[lane] = max(max_off[lane], math.sqrt(ox * ox + oy * oy))
+                    off = math.sqrt(ox * ox + oy * oy)
+                    max_off[lane] = max(max_off[lane], off)
                     n_cells[lane] = _mark(
-                        visited[lane], trail[lane], n_cells[lane], cols, rows, cell, nx, ny
+                        visited[lane],
+                        trail[lane],
+                        n_cells[lane],
+                        mark_cols,
+                        mark_rows,
+                        mark_cell,
+                        nx,
+                        ny,
                     )
+                    if watch:
+                        if k < horizon:
+                            moves_out[r, k] = math.hypot(ddx, ddy)
+                        # hypot and this root differ by a few ulp at most: only a root
+                        # within 1e-12 of the farthest so far can move it
+                        if off * (1.0 + 1e-12) > farthest[lane]:
+                            farthest[lane] = max(farthest[lane], math.hypot(ox, oy))
+                if watch:
+                    n = window_state[lane, 0]
+                    if stuck_at[lane] < 0 and not confined[lane]:  # a position before sticking
+                        window_xy[lane, 0, n] = xs[lane]
+                        window_xy[lane, 1, n] = ys[lane]
+                        n += 1
+                        if n == span:
+                            confined[lane] = _confine(
+                                window_xy, suffix, window_state, lane, n, diagonal
+                            )
+                            n = 0
+                        window_state[lane, 0] = n
+                    if k + 1 == horizon:
+                        offsets_out[0, r] = farthest[lane]
+                        offsets_out[2, r] = math.hypot(xs[lane] - x0s[lane], ys[lane] - y0s[lane])
             if record:
                 rec_poses[r, k + 1, 0] = xs[lane]
                 rec_poses[r, k + 1, 1] = ys[lane]
@@ -966,6 +1133,67 @@ def _episodes(
                 rec_motors[r, k, 0] = motors[0, lane]
                 rec_motors[r, k, 1] = motors[1, lane]
             step[lane] = k + 1
+
+
+@njit(inline="always")
+def _confine(
+    xy: np.ndarray, suffix: np.ndarray, state: np.ndarray, lane: int, n: int, diagonal: float
+) -> bool:
+    """True if a window of `xy.shape[2]` positions of the lane's robot ending at one of the
+    first n positions of its current block fits a box of `diagonal` (`explore.confined`'s
+    test); with a whole block (n = span), its suffix extremes then serve the next block's.
+
+    The robot's positions go to `xy[lane]` in blocks of a window's length (`_episodes`); a
+    window's extremes are the suffix extremes of the previous block and the prefix extremes of
+    this one (van Herk-Gil-Werman, as `explore._confined_rows`): exact, max and min never round.
+    hypot(dx, dy) >= max(dx, dy) up to its rounding, so a side longer than `loose` rules out a
+    window and every window holding that side: prefixes stop growing at the first, suffixes
+    are kept while they have none (from state[lane, 1] on; span: none, the first block). A
+    roaming robot thus pays a few positions a block, once a block.
+    """
+    span = xy.shape[2]
+    loose = diagonal * (1.0 + 1e-9)
+    reach = state[lane, 1]
+    fits = False
+    x_hi = x_lo = xy[lane, 0, 0]
+    y_hi = y_lo = xy[lane, 1, 0]
+    for j in range(n):
+        x_hi = max(x_hi, xy[lane, 0, j])
+        x_lo = min(x_lo, xy[lane, 0, j])
+        y_hi = max(y_hi, xy[lane, 1, j])
+        y_lo = min(y_lo, xy[lane, 1, j])
+        if x_hi - x_lo > loose or y_hi - y_lo > loose:
+            break
+        if j == span - 1:  # the window is the block
+            dx = x_hi - x_lo
+            dy = y_hi - y_lo
+        elif j + 1 >= reach:  # the window starts at j + 1 in the previous block
+            dx = max(suffix[lane, 0, j + 1], x_hi) - min(suffix[lane, 1, j + 1], x_lo)
+            dy = max(suffix[lane, 2, j + 1], y_hi) - min(suffix[lane, 3, j + 1], y_lo)
+        else:
+            continue
+        if dx <= loose and dy <= loose and math.hypot(dx, dy) <= diagonal:
+            fits = True
+            break
+    if n < span:
+        return fits
+    q = span - 1
+    x_hi = x_lo = xy[lane, 0, q]
+    y_hi = y_lo = xy[lane, 1, q]
+    while q >= 0:
+        x_hi = max(x_hi, xy[lane, 0, q])
+        x_lo = min(x_lo, xy[lane, 0, q])
+        y_hi = max(y_hi, xy[lane, 1, q])
+        y_lo = min(y_lo, xy[lane, 1, q])
+        if x_hi - x_lo > loose or y_hi - y_lo > loose:
+            break
+        suffix[lane, 0, q] = x_hi
+        suffix[lane, 1, q] = x_lo
+        suffix[lane, 2, q] = y_hi
+        suffix[lane, 3, q] = y_lo
+        q -= 1
+    state[lane, 1] = q + 1
+    return fits
 
 
 @njit(inline="always")
@@ -1115,12 +1343,29 @@ def clear_of_walls(maze: Maze, poses: np.ndarray, params: World = DEFAULT_WORLD)
     return out
 
 
-_EPISODE_ARGS = ", ".join(list(inspect.signature(_episodes.py_func).parameters)[1:])
+_EPISODE_PARAMS = list(inspect.signature(_episodes.py_func).parameters)[1:]
+_FIXED = {"episodes": {"watch": "False"}, "watched": {"record": "False", "watch": "True"}}
+"""The generated wrappers and the `_episodes` flags each fixes: a constant, so the code of the
+other mode is compiled out of it (the training kernel carries nothing of the watching one)."""
+
+
+def _wrapper(name: str) -> str:
+    """The source of wrapper `name`: `_episodes` with its fixed flags, the rest passed on."""
+    fixed = _FIXED[name]
+    params = ", ".join(p for p in _EPISODE_PARAMS if p not in fixed)
+    constants = "".join(f"    {p} = {value}\n" for p, value in fixed.items())
+    return (
+        "@njit(cache=True, nogil=True)\n"
+        f"def {name}({params}):\n"
+        f"{constants}"
+        f"    _episodes(kernel, {', '.join(_EPISODE_PARAMS)})\n"
+    )
 
 
 @lru_cache(maxsize=16)
-def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
-    """`_episodes` bound to `network.spec_kernel(spec)`, disk-cached per spec.
+def _episode_module(spec: NetworkSpec) -> Any:
+    """`_episodes` bound to `network.spec_kernel(spec)` in wrappers `episodes` and `watched`,
+    disk-cached per spec (each compiled on its first call).
 
     A closure over the controller's dispatcher cannot be cached by numba, so a tiny module is
     generated per spec that imports the controller's generated module and calls `_episodes`
@@ -1131,12 +1376,18 @@ def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
         "from numba import njit\n\n"
         "from evorobotics.sim import _episodes\n"
         f"from {network.kernel_module(spec)} import kernel\n\n\n"
-        "@njit(cache=True, nogil=True)\n"
-        f"def episodes({_EPISODE_ARGS}):\n"
-        f"    _episodes(kernel, {_EPISODE_ARGS})\n"
+        + "\n\n".join(_wrapper(name) for name in _FIXED)
     )
-    module = network.cached_module("episodes", source, (network.__file__, __file__))
-    return cast(Callable[..., None], module.episodes)
+    return network.cached_module("episodes", source, (network.__file__, __file__))
+
+
+def _episode_kernel(spec: NetworkSpec) -> Callable[..., None]:
+    """The episodes of `simulate` (`_episodes` without watching)."""
+    return cast(Callable[..., None], _episode_module(spec).episodes)
+
+
+_NOT_WATCHED = (np.zeros(0, dtype=np.uint8), np.zeros((0, 0)), np.zeros((0, 0)))
+"""The watch outputs of a call of `simulate`: empty, never written."""
 
 
 def kernel_cached(spec: NetworkSpec) -> bool:
@@ -1172,7 +1423,6 @@ def simulate(
     """
     w, starts, gap = _prepare(spec, weights, start_poses, steps, params, gap)
     batch = w.shape[0]
-    world, wx, wy, ca, sa, reach = _world_arrays(params)
     final = np.empty((batch, 3))
     metrics = np.empty((3, batch))
     stuck = np.empty(batch, dtype=np.int64)
@@ -1182,11 +1432,41 @@ def simulate(
         rec_p = np.zeros((batch, steps + 1, 3))
         rec_w = np.zeros((batch, steps, N_WHISKERS), dtype=np.uint8)
         rec_m = np.zeros((batch, steps, 2))
+    rows, cols = maze.solid.shape
+    _episode_kernel(spec)(
+        *_kernel_inputs(spec, w, maze, starts, steps, params, gap),
+        record,
+        (maze.cell_size, rows, cols),
+        (0, 0.0, 0),
+        final,
+        metrics,
+        stuck,
+        cells,
+        (rec_p, rec_w, rec_m),
+        _NOT_WATCHED,
+    )
+    curve, net, max_off = metrics
+    if record:
+        return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m, cells)
+    return SimResult(final, curve, net, max_off, stuck, cells=cells)
+
+
+def _kernel_inputs(
+    spec: NetworkSpec,
+    w: np.ndarray,
+    maze: Maze,
+    starts: np.ndarray,
+    steps: int,
+    params: World,
+    gap: Gap,
+) -> tuple[Any, ...]:
+    """`_episodes`' arguments from `weights` to `gains`, of `_prepare`d inputs."""
+    world, wx, wy, ca, sa, _ = _world_arrays(params)
     ranges = gap.whisker_range
     if ranges.ndim < 3:  # fixed for the trial: the kernel's (B, S, W) with S = 1, a view
-        ranges = ranges.reshape(batch, 1, -1)
+        ranges = ranges.reshape(w.shape[0], 1, -1)
     _, linear_output, n_state, n_scratch = _spec_sizes(spec)
-    _episode_kernel(spec)(
+    return (
         w,
         linear_output,
         n_state,
@@ -1201,23 +1481,101 @@ def simulate(
         ca,
         sa,
         _clearance_map(maze),
-        reach,
         params.stuck_after,
         ranges,
         gap.motor_gain,
-        record,
+    )
+
+
+@dataclass(frozen=True)
+class Watched:
+    """Per trial, what `simulate_watched` measured as the robots moved; no path is kept."""
+
+    curve_length: np.ndarray
+    net_offset: np.ndarray
+    max_offset: np.ndarray
+    stuck_step: np.ndarray
+    """Eq 12's terms and the step the robot stuck on (-1: never), as `SimResult`'s."""
+    confined: np.ndarray
+    """(B,) bool: `window` consecutive steps, before sticking, inside a box of `diagonal`."""
+    coverage: np.ndarray
+    """(B,) int64: distinct squares of side `cell` (from the origin) the centre visited."""
+    horizon_offset: np.ndarray
+    """(B,) largest distance from the start by step `horizon`."""
+    farthest: np.ndarray
+    """(B,) largest distance from the start over the trial (`max_offset` but by `math.hypot`,
+    which may round differently in the last bit)."""
+    horizon_net: np.ndarray
+    """(B,) distance from the start at step `horizon`."""
+    moves: np.ndarray
+    """(B, horizon): length of each of the first `horizon` moves, 0 for a blocked one."""
+
+    @property
+    def stuck(self) -> np.ndarray:
+        """(B,) bool: stuck by the end of the trial."""
+        return self.stuck_step >= 0
+
+    @property
+    def components(self) -> np.ndarray:
+        """(B, 4) in fitness.COMPONENTS order."""
+        return np.stack(
+            [self.curve_length, self.net_offset, self.max_offset, self.stuck.astype(np.float64)],
+            axis=-1,
+        )
+
+
+def simulate_watched(
+    spec: NetworkSpec,
+    weights: np.ndarray,
+    maze: Maze,
+    start_poses: np.ndarray,
+    steps: int,
+    params: World = DEFAULT_WORLD,
+    gap: Gap | None = None,
+    *,
+    window: int,
+    diagonal: float,
+    cell: float,
+    horizon: int,
+) -> Watched:
+    """`simulate`'s trials, measured as the robots move (confinement, coverage, offsets: see
+    `Watched`) instead of recorded: the figures of a long trial at the kernel's speed.
+
+    A stuck robot's trial ends when it sticks (nothing of it changes after), so its lane takes
+    the next robot. Start positions must lie on the maze's grid (where any accepted pose lies):
+    coverage squares are counted over it.
+    """
+    if not 1 <= horizon <= steps:
+        raise ValueError(f"horizon must be in 1..steps ({steps}), got {horizon}")
+    if window < 1 or not diagonal >= 0.0 or not cell > 0.0:
+        raise ValueError(f"bad window {window}, diagonal {diagonal} or cell {cell}")
+    w, starts, gap = _prepare(spec, weights, start_poses, steps, params, gap)
+    inside = (starts[:, 0] >= 0) & (starts[:, 0] < maze.width)
+    inside &= (starts[:, 1] >= 0) & (starts[:, 1] < maze.height)
+    if not inside.all():
+        raise ValueError("start positions must lie inside the maze")
+    batch = w.shape[0]
+    final = np.empty((batch, 3))
+    metrics = np.empty((3, batch))
+    stuck = np.empty(batch, dtype=np.int64)
+    coverage = np.empty(batch, dtype=np.int64)
+    confined = np.empty(batch, dtype=np.uint8)
+    offsets = np.empty((3, batch))
+    moves = np.zeros((batch, horizon))
+    _episode_module(spec).watched(
+        *_kernel_inputs(spec, w, maze, starts, steps, params, gap),
+        (cell, math.floor(maze.height / cell) + 1, math.floor(maze.width / cell) + 1),
+        (window, float(diagonal), horizon),
         final,
         metrics,
         stuck,
-        cells,
-        rec_p,
-        rec_w,
-        rec_m,
+        coverage,
+        _NO_RECORD,
+        (confined, offsets, moves),
     )
     curve, net, max_off = metrics
-    if record:
-        return SimResult(final, curve, net, max_off, stuck, rec_p, rec_w, rec_m, cells)
-    return SimResult(final, curve, net, max_off, stuck, cells=cells)
+    near, far, net_h = offsets
+    return Watched(curve, net, max_off, stuck, confined == 1, coverage, near, far, net_h, moves)
 
 
 @lru_cache(maxsize=16)
@@ -1380,7 +1738,8 @@ def _sense_one(
     rq: np.ndarray,
     bits: np.ndarray,
 ) -> None:
-    """The sensing of one robot in `_episodes`, with its early outs, into `bits` (5,)."""
+    """The sensing of one robot into `bits` (5,): `_episodes`' bits, with scalar early outs
+    (the centre far from walls, an attachment point further than its range from them)."""
     c, s = _sincos(th)
     r_max = 0.0
     for q in range(wx.shape[0]):

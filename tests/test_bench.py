@@ -57,6 +57,11 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
             "validation share",
         ),
         (
+            "explore.py",
+            ["--speed", "--generations", "2", "--poses", "20", "--steps", "150", "--rounds", "1"],
+            "watched kernel / numpy reference",
+        ),
+        (
             "dispatch.py",
             [
                 "--only",

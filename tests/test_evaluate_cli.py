@@ -75,6 +75,9 @@ def test_json_is_explore_in_the_documents_world(tmp_path: Path) -> None:
     assert got["validation"] == CHAMPION.validation.model_dump(mode="json")
     default_world = explore(REACTIVE, CHAMPION.weights, poses=30, steps=150, seed=2)
     assert default_world != want  # the world really is the document's
+    for threads in ("1", "3"):  # the same report on any number of threads
+        code, again, err = invoke(str(path), *SMALL, "--seed", "2", "--json", "--threads", threads)
+        assert code == 0 and again == out, err
 
 
 def test_table_labels_the_measures_and_the_documents_own_scores(tmp_path: Path) -> None:
@@ -108,6 +111,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
         ([str(tampered)], "sha256 mismatch"),
         ([str(good), "--poses", str(MAX_ROBOT_STEPS), "--steps", "2"], "exceeds"),
         ([str(good), "--poses", "0"], "--poses"),
+        ([str(good), "--threads", "0"], "--threads"),
         ([str(good), "--maze", "no-such-maze"], "--maze"),
         ([str(good), "--server", "http://127.0.0.1:9"], "not both"),
         (["--server", "http://127.0.0.1:9"], "exactly one of --run, --sha"),

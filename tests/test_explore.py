@@ -1,5 +1,6 @@
 """The exploration report (evorobotics.explore) against its definitions, on built and simulated
-paths: confinement against a brute-force reference, stuck horizons, coverage, Eq 12 at 40."""
+paths: confinement against a brute-force reference, stuck horizons, coverage, Eq 12 at 40; the
+kernel's watched measures against the same definitions on the recorded paths, bit for bit."""
 
 from __future__ import annotations
 
@@ -18,11 +19,14 @@ from evorobotics.explore import (
     confined,
     explore,
     report,
+    trials,
+    watch,
+    watched_trials,
 )
 from evorobotics.fitness import fitness
 from evorobotics.maze import load_maze
 from evorobotics.seeds import Purpose
-from evorobotics.sim import Gap, SimResult, simulate
+from evorobotics.sim import Gap, SimResult, simulate, simulate_watched
 from schemas.network import PRESETS
 from schemas.run import FitnessWeights
 from schemas.world import World
@@ -37,17 +41,22 @@ def recorded(poses: np.ndarray, stuck_step: np.ndarray) -> SimResult:
     return SimResult(poses[:, -1], zeros, zeros, zeros, stuck_step, poses=poses)
 
 
-def confined_reference(path: np.ndarray, stuck_step: int) -> bool:
-    """The definition, one window at a time: CONFINED_STEPS consecutive steps, all before the
-    step the robot stuck on, whose positions fit a box of diagonal <= CONFINED_DIAGONAL."""
+def confined_reference(
+    path: np.ndarray,
+    stuck_step: int,
+    steps: int = CONFINED_STEPS,
+    diagonal: float = CONFINED_DIAGONAL,
+) -> bool:
+    """The definition, one window at a time: `steps` consecutive steps, all before the step
+    the robot stuck on, whose positions fit a box of diagonal <= `diagonal`."""
     n = path.shape[0]  # positions: before step 1 ... after step n - 1
-    for first in range(n - CONFINED_STEPS):
-        last = first + CONFINED_STEPS  # position after the window's last step
+    for first in range(n - steps):
+        last = first + steps  # position after the window's last step
         if stuck_step >= 0 and last >= stuck_step:
             break
         window = path[first : last + 1, :2]
         dx, dy = window.max(axis=0) - window.min(axis=0)
-        if np.hypot(dx, dy) <= CONFINED_DIAGONAL:
+        if np.hypot(dx, dy) <= diagonal:
             return True
     return False
 
@@ -167,3 +176,111 @@ def test_bad_sizes_are_refused() -> None:
     for poses, steps in ((0, 10), (10, 0), (100_000, 1_000)):
         with pytest.raises(ValueError, match="poses"):
             explore(REACTIVE, weights, poses=poses, steps=steps)
+
+
+def random_trials(
+    maze: str, seed: int, n: int, world: World, gap: bool
+) -> tuple[np.ndarray, np.ndarray, Gap | None]:
+    """n random reactive controllers (some spin, some stick, some roam), start poses, draws."""
+    g = np.random.default_rng(seed)
+    weights = g.uniform(-3.0, 3.0, (n, REACTIVE.weight_count))
+    starts = start_poses(load_maze(maze), seed, 0, n, world)
+    drawn = Gap(g.uniform(0.025, 0.1, (n, 5)), g.uniform(0.85, 1.15, (n, 2))) if gap else None
+    return weights, starts, drawn
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    maze=st.sampled_from(["paper", "arena", "corridor", "gen:4:2"]),
+    seed=st.integers(0, 2**16),
+    steps=st.integers(1, 400),
+    stuck_after=st.sampled_from([1, 3, 10**6]),
+    gap=st.booleans(),
+)
+def test_watched_trials_are_the_recorded_trials_bit_for_bit(
+    maze: str, seed: int, steps: int, stuck_after: int, gap: bool
+) -> None:
+    world = World(stuck_after=stuck_after)
+    weights, starts, drawn = random_trials(maze, seed, 24, world, gap)
+    loaded = load_maze(maze)
+    recorded = simulate(REACTIVE, weights, loaded, starts, steps, world, drawn, record=True)
+    watched = watch(REACTIVE, weights, loaded, starts, steps, world, drawn)
+    assert watched_trials(watched).tobytes() == trials(recorded, steps).tobytes()
+    assert watched.components.tobytes() == recorded.components.tobytes()
+
+
+def test_watched_trials_meet_every_outcome() -> None:
+    # what the property test above compares: confined, stuck and roaming trials alike
+    world = World(stuck_after=3)
+    weights, starts, _ = random_trials("paper", 1, 200, world, False)
+    rows = watched_trials(watch(REACTIVE, weights, load_maze("paper"), starts, 400, world))
+    stuck, near = rows[:, 0] >= 0, rows[:, 1] == 1.0
+    assert stuck.any() and near.any() and (~stuck & ~near).any() and (stuck & near).any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    steps=st.integers(1, 250),
+    window=st.integers(1, 40),
+    diagonal=st.floats(0.0, 0.6),
+    cell=st.sampled_from([0.05, 0.1, 0.3]),
+    stuck_after=st.sampled_from([1, 3]),
+    data=st.data(),
+)
+def test_simulate_watched_measures_its_definitions_on_the_recorded_paths(
+    seed: int,
+    steps: int,
+    window: int,
+    diagonal: float,
+    cell: float,
+    stuck_after: int,
+    data: st.DataObject,
+) -> None:
+    horizon = data.draw(st.integers(1, steps))
+    world = World(stuck_after=stuck_after)
+    maze = load_maze("paper")
+    weights, starts, drawn = random_trials("paper", seed, 16, world, True)
+    rec = simulate(REACTIVE, weights, maze, starts, steps, world, drawn, record=True)
+    got = simulate_watched(
+        REACTIVE, weights, maze, starts, steps, world, drawn,
+        window=window, diagonal=diagonal, cell=cell, horizon=horizon,
+    )  # fmt: skip
+    assert rec.poses is not None
+    assert got.stuck_step.tolist() == rec.stuck_step.tolist()
+    for i, path in enumerate(rec.poses[:, :, :2]):
+        stuck = int(rec.stuck_step[i])
+        assert got.confined[i] == confined_reference(rec.poses[i], stuck, window, diagonal)
+        assert got.coverage[i] == len({tuple(c) for c in np.floor(path / cell).tolist()})
+        offsets = np.hypot(*(path - path[0]).T)
+        assert got.horizon_offset[i] == offsets[: horizon + 1].max()
+        assert got.farthest[i] == offsets.max()
+        assert got.horizon_net[i] == offsets[horizon]
+        assert got.moves[i].tolist() == np.hypot(*np.diff(path[: horizon + 1], axis=0).T).tolist()
+
+
+def test_simulate_watched_refuses_bad_arguments() -> None:
+    maze = load_maze("paper")
+    weights, starts, _ = random_trials("paper", 0, 2, World(), False)
+
+    def run(starts: np.ndarray, horizon: int) -> None:
+        simulate_watched(
+            REACTIVE, weights, maze, starts, 10,
+            window=CONFINED_STEPS, diagonal=CONFINED_DIAGONAL, cell=COVERAGE_CELL, horizon=horizon,
+        )  # fmt: skip
+
+    for horizon in (0, 11):
+        with pytest.raises(ValueError, match="horizon"):
+            run(starts, horizon)
+    outside = starts.copy()
+    outside[1, 0] = -0.5
+    with pytest.raises(ValueError, match="inside the maze"):
+        run(outside, 5)
+
+
+def test_a_report_is_the_same_on_any_number_of_threads() -> None:
+    weights = np.random.default_rng(8).uniform(-1.0, 1.0, REACTIVE.weight_count)
+    one = explore(REACTIVE, weights, poses=45, steps=150, seed=2, reality_gap=True)
+    assert (
+        explore(REACTIVE, weights, poses=45, steps=150, seed=2, reality_gap=True, threads=3) == one
+    )

@@ -24,7 +24,7 @@ from evorobotics.network import (
     LINEAR_BOUND,
     _exp_neg,
     _sigmoid,
-    _sigmoid_tile,
+    _sigmoid_rows,
     cached_module,
     kernel_cache_dir,
     kernel_plan,
@@ -648,16 +648,19 @@ def test_threads_importing_one_generated_module_at_once_all_see_it_whole(
     ),
     st.lists(st.booleans(), min_size=LANES, max_size=LANES),
 )
-def test_sigmoid_tile_is_sigmoid_bit_for_bit_and_within_an_ulp_of_exp(
+def test_sigmoid_rows_are_sigmoid_bit_for_bit_and_within_an_ulp_of_exp(
     values: list[float], live: list[bool]
 ) -> None:
-    """The SIMD sigmoid is the scalar one in every live lane (idle lanes keep their value), and
-    its exp is within an ulp of numpy's down to -708, below which it is 0."""
-    row = np.array([values])
-    _sigmoid_lanes(row, np.array(live, dtype=np.uint8))
-    for k, u in enumerate(values):
+    """The SIMD sigmoid is the scalar one in every live lane of each of the rows it interleaves
+    (idle lanes keep their value), and its exp is within an ulp of numpy's down to -708, below
+    which it is 0."""
+    rows = np.array([values, values[::-1], [-v for v in values]])
+    given = rows.copy()
+    _sigmoid_lanes(rows, np.array(live, dtype=np.uint8))
+    for (r, k), u in np.ndenumerate(given):
         expected = _sigmoid(u) if live[k] else u
-        assert np.array([row[0, k]]).tobytes() == np.array([expected]).tobytes()
+        assert np.array([rows[r, k]]).tobytes() == np.array([expected]).tobytes()
+    for u in values:
         x = -abs(u)
         if np.isfinite(x) and x > -708.0:
             assert abs(_exp_neg(x) - math.exp(x)) <= np.spacing(math.exp(x))
@@ -666,5 +669,5 @@ def test_sigmoid_tile_is_sigmoid_bit_for_bit_and_within_an_ulp_of_exp(
 
 
 @njit
-def _sigmoid_lanes(row: np.ndarray, live: np.ndarray) -> None:
-    _sigmoid_tile(row, 0, live)  # type: ignore[call-arg, arg-type]  # numba supplies typingctx
+def _sigmoid_lanes(rows: np.ndarray, live: np.ndarray) -> None:
+    _sigmoid_rows(rows, 0, 3, live)  # type: ignore[call-arg, arg-type]  # numba supplies typingctx
