@@ -136,6 +136,8 @@ def test_a_second_agent_of_a_robot_is_refused_with_the_first_ones_address(
 
         alive = watcher.liveliness().declare_subscriber(alive_key("dup"), on_alive, history=True)
         with agent_process("dup", endpoint, tmp_path / "first") as first:
+            assert first.stderr is not None
+            logged = reader(first.stderr)  # drained, so its logging never waits on the pipe
             try:
                 assert online.wait(WAIT)
                 second = subprocess.run(
@@ -153,7 +155,8 @@ def test_a_second_agent_of_a_robot_is_refused_with_the_first_ones_address(
                 assert first.poll() is None  # the first one runs on, never seen offline
                 assert zenoh.SampleKind.DELETE not in seen
                 first.send_signal(signal.SIGINT)
-                assert first.wait(timeout=AGENT_WAIT) == 0
+                code = first.wait(timeout=AGENT_WAIT)
+                assert code == 0, "\n".join(iter(lambda: logged.get(timeout=AGENT_WAIT), None))
             finally:
                 alive.undeclare()  # type: ignore[no-untyped-call]
                 if first.poll() is None:
