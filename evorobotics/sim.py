@@ -82,8 +82,30 @@ class Gap:
         return Gap(np.tile(self.whisker_range, reps), np.tile(self.motor_gain, (k, 1)))
 
 
+class _Trials:
+    """What every batch of trials reports: Eq 12's terms and the step each robot stuck on."""
+
+    curve_length: np.ndarray
+    net_offset: np.ndarray
+    max_offset: np.ndarray
+    stuck_step: np.ndarray
+
+    @property
+    def stuck(self) -> np.ndarray:
+        """(B,) bool: stuck by the end of the trial."""
+        return self.stuck_step >= 0
+
+    @property
+    def components(self) -> np.ndarray:
+        """(B, 4) in fitness.COMPONENTS order."""
+        return np.stack(
+            [self.curve_length, self.net_offset, self.max_offset, self.stuck.astype(np.float64)],
+            axis=-1,
+        )
+
+
 @dataclass(frozen=True)
-class SimResult:
+class SimResult(_Trials):
     """Final poses (B, 3), the Eq-12 terms (B,), and with record=True the per-step traces."""
 
     poses_final: np.ndarray
@@ -102,19 +124,6 @@ class SimResult:
     """(B,) int64: distinct maze cells the robot's centre visited, its start cell included
     (a behaviour descriptor: `evaluate.DESCRIPTORS`). Always set by `simulate` and
     `simulate_reference`; None only in results built by hand."""
-
-    @property
-    def stuck(self) -> np.ndarray:
-        """(B,) bool: stuck by the end of the trial."""
-        return self.stuck_step >= 0
-
-    @property
-    def components(self) -> np.ndarray:
-        """(B, 4) in fitness.COMPONENTS order."""
-        return np.stack(
-            [self.curve_length, self.net_offset, self.max_offset, self.stuck.astype(np.float64)],
-            axis=-1,
-        )
 
 
 # ---------------------------------------------------------------- numpy geometry (reference)
@@ -1488,7 +1497,7 @@ def _kernel_inputs(
 
 
 @dataclass(frozen=True)
-class Watched:
+class Watched(_Trials):
     """Per trial, what `simulate_watched` measured as the robots moved; no path is kept."""
 
     curve_length: np.ndarray
@@ -1509,19 +1518,6 @@ class Watched:
     """(B,) distance from the start at step `horizon`."""
     moves: np.ndarray
     """(B, horizon): length of each of the first `horizon` moves, 0 for a blocked one."""
-
-    @property
-    def stuck(self) -> np.ndarray:
-        """(B,) bool: stuck by the end of the trial."""
-        return self.stuck_step >= 0
-
-    @property
-    def components(self) -> np.ndarray:
-        """(B, 4) in fitness.COMPONENTS order."""
-        return np.stack(
-            [self.curve_length, self.net_offset, self.max_offset, self.stuck.astype(np.float64)],
-            axis=-1,
-        )
 
 
 def simulate_watched(

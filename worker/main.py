@@ -288,12 +288,7 @@ def _evaluate(
             evaluator(job.config, job.key.generation, genomes), job
         )
     except Exception as exc:  # report it to the server instead of crashing the worker
-        log.exception("evaluating %s failed", job.key.label())
-        link.stats.errors += 1
-        error = f"{type(exc).__name__}: {exc}"
-        return Result(
-            key=job.key, worker=link.settings.name, error=error, start=job.start, stop=job.stop
-        )
+        return _failed(link, job, "evaluating", exc)
     seconds = time.perf_counter() - began
     speed = robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else None
     link.stats.jobs_done += 1
@@ -312,6 +307,16 @@ def _evaluate(
     )
 
 
+def _failed(link: _Link, job: Job, doing: str, exc: Exception) -> Result:
+    """The error Result of a job whose evaluation raised, logged with its traceback."""
+    log.exception("%s %s failed", doing, job.key.label())
+    link.stats.errors += 1
+    error = f"{type(exc).__name__}: {exc}"
+    return Result(
+        key=job.key, worker=link.settings.name, error=error, start=job.start, stop=job.stop
+    )
+
+
 def _score(link: _Link, job: Job) -> Result:
     """A champion stage's job (validation candidates or test poses) or a report's (trials) as
     a Result: the science itself (`stage_scores`), whatever the evaluator."""
@@ -320,12 +325,7 @@ def _score(link: _Link, job: Job) -> Result:
     try:
         scores = stage_scores(job.config, stage, job.genomes, job.start, job.stop, report)
     except Exception as exc:  # report it to the server instead of crashing the worker
-        log.exception("scoring %s failed", job.key.label())
-        link.stats.errors += 1
-        error = f"{type(exc).__name__}: {exc}"
-        return Result(
-            key=job.key, worker=link.settings.name, error=error, start=job.start, stop=job.stop
-        )
+        return _failed(link, job, "scoring", exc)
     seconds = time.perf_counter() - began
     steps = stage_steps(job.config, stage, job.stop - job.start, report)
     speed = steps / seconds if seconds > 0 else None
