@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from evorobotics.evolution import RunLoop
@@ -100,6 +100,10 @@ RUN = 1
 POLICY = Policy(lease_min_s=1.0, lease_max_s=2.0, lease_unknown_s=2.0)
 """Short leases: a job leased to a name garbage happened to carry returns within seconds."""
 LONG_POLL_S = 4.0
+GARBLER = "garbler"
+"""The worker the job fuzzer's garbage comes from (its keys, its templates): a mutation that
+forms a valid result claiming the impossible is a forgery, and quarantines its sender, never
+`fuzzer`, who leases and settles after each payload."""
 
 
 def trace(robot: str, first: int, n: int = 3) -> TraceBatch:
@@ -141,9 +145,16 @@ def fitted(job: Job, worker: str = "fuzzer", **fields: Any) -> Result:
     )
 
 
+def forged() -> bytes:
+    """`GARBLER`'s result of `_job` claiming 1e308 for every individual, as a mutation may."""
+    result = fitted(_job(), GARBLER)
+    assert result.fitness is not None
+    return encode(result.model_copy(update={"fitness": np.full_like(result.fitness, 1e308)}))
+
+
 VALID: list[bytes] = [
-    encode(JobRequest(worker="fuzzer", robot_steps_per_s=1e4)),
-    encode(fitted(_job())),
+    encode(JobRequest(worker=GARBLER, robot_steps_per_s=1e4)),
+    encode(fitted(_job(), GARBLER)),
     encode(_job()),
     encode(Ack(key=_job().key, accepted=True)),
     encode(Idle(reason="no job")),
@@ -296,7 +307,7 @@ def of_this_protocol(key: str, reply: zenoh.Reply) -> None:
     if reply.ok is None:
         return
     payload = reply.ok.payload.to_bytes()
-    if key == next_key("fuzzer"):
+    if key == next_key(GARBLER):
         assert isinstance(decode_next_reply(payload), Job | Idle)
     else:
         decode_result_reply(payload)
@@ -304,17 +315,21 @@ def of_this_protocol(key: str, reply: zenoh.Reply) -> None:
 
 @FUZZ
 @given(payload=garbage)
+@example(payload=forged())  # quarantines its sender: the others lease on
 def test_job_queryables_drop_garbage_and_keep_serving(
     dispatcher: tuple[Dispatcher, Scheduler, zenoh.Session], payload: bytes
 ) -> None:
-    disp, _, session = dispatcher
-    for key in (next_key("fuzzer"), result_key("fuzzer")):
+    disp, scheduler, session = dispatcher
+    as_worker(session, GARBLER)  # its garbage reaches the scheduler: forgeries quarantine it
+    assert eventually(lambda: GARBLER in {w.name for w in scheduler.workers()}, WAIT)
+    for key in (next_key(GARBLER), result_key(GARBLER)):
         before = disp.malformed
         reply = ask(session, key, payload)
         if refused_or_valid(reply):
             assert disp.malformed > before  # counted
         else:
             of_this_protocol(key, reply)
+    assert "fuzzer" not in scheduler.quarantined()
     job = lease(session)
     ack, _ = settle(session, fitted(job))
     assert ack.accepted, ack.reason
@@ -582,7 +597,7 @@ def test_the_templates_are_messages_of_this_protocol() -> None:
     assert NAME_PATTERN.match("fuzz-agent") and decode_trace(VALID[5]).robot == "template-bot"
     job = decode_next_reply(VALID[2])
     assert isinstance(job, Job) and job.key == _job().key
-    assert decode(VALID[0], JobRequest).worker == "fuzzer"
+    assert decode(VALID[0], JobRequest).worker == GARBLER
     assert decode(VALID[1], Result).fitness is not None
     assert decode_result_reply(VALID[3]) == (Ack(key=job.key, accepted=True), None)
     assert decode_next_reply(VALID[4]) == Idle(reason="no job")
