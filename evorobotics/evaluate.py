@@ -261,6 +261,17 @@ def robot_steps(config: RunConfig, individuals: int) -> int:
     return individuals * config.trials * trial_steps(config)
 
 
+def full_speed_reach(world: World, steps: int, *, gap: bool = True) -> float:
+    """How far `steps` steps at full speed take the fastest robot `world` allows (with `gap`,
+    the fastest wheel gain its reality gap draws: the paper's, or a calibrated robot's of the
+    colony gap), with room for rounding: the bound on every claimed distance."""
+    gain = max(world.motor_gain)
+    if gap:
+        fastest = [max(robot.gain_bounds()[1]) for robot in world.gap_robots]
+        gain = max([gain * (1.0 + world.gap_motor_gain), *fastest])
+    return steps * world.step_length * gain * (1.0 + 1e-9) + 1e-9
+
+
 def implausible(
     config: RunConfig, fitness: np.ndarray, components: np.ndarray, descriptors: np.ndarray
 ) -> str | None:
@@ -285,9 +296,8 @@ def implausible(
         return "fitness and components must be finite"
     if not ((descriptors >= 0.0) & (descriptors <= 1.0)).all():  # NaN fails too
         return "a descriptor outside [0, 1]"
-    world, maze = config.world, load_maze(config.maze)
-    gain = max(world.motor_gain) * (1.0 + world.gap_motor_gain)
-    reach = trial_steps(config) * world.dt * world.max_speed * gain * (1.0 + 1e-9) + 1e-9
+    maze = load_maze(config.maze)
+    reach = full_speed_reach(config.world, trial_steps(config))
     offset = min(reach, math.hypot(maze.width, maze.height) * (1.0 + 1e-9))
     curve, net, far, stuck = (components[..., i] for i in range(4))
     if not ((curve >= 0) & (curve <= reach)).all():

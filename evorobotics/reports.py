@@ -17,13 +17,13 @@ import math
 
 import numpy as np
 
+from evorobotics.evaluate import full_speed_reach
 from evorobotics.evolution import champion_scores, stage_robot_steps
 from evorobotics.explore import PAPER_TRIAL, Exploration, exploration, exploration_trials
 from evorobotics.maze import load_maze
 from evorobotics.robustness import RobustnessMap, map_trials, robustness_map
 from schemas.run import RunConfig
 from schemas.wire import ReportSpec, Stage
-from schemas.world import World
 
 Report = Exploration | RobustnessMap
 """What a report's jobs assemble into."""
@@ -86,21 +86,10 @@ def implausible(
     maze = load_maze(config.maze)
     diagonal = math.hypot(maze.width, maze.height) * (1.0 + 1e-9)
     h = min(PAPER_TRIAL, steps)
-    if (curve > _reach(world, h, report.reality_gap)).any():
+    if (curve > full_speed_reach(world, h, gap=report.reality_gap)).any():
         return f"a curve length beyond the reach of {h} steps at full speed"
-    if (near > min(_reach(world, h, report.reality_gap), diagonal)).any() or (
-        far > min(_reach(world, steps, report.reality_gap), diagonal)
+    if (near > min(full_speed_reach(world, h, gap=report.reality_gap), diagonal)).any() or (
+        far > min(full_speed_reach(world, steps, gap=report.reality_gap), diagonal)
     ).any():
         return "an offset beyond the reach at full speed or the maze's diagonal"
     return None
-
-
-def _reach(world: World, steps: int, gap: bool) -> float:
-    """How far `steps` steps at full speed take the fastest robot of `world` (under its
-    reality gap: its fastest wheel gain drawn), with room for rounding."""
-    gain = max(world.motor_gain)
-    if gap:
-        gain *= 1.0 + world.gap_motor_gain
-        fastest = (max(r.gain_bounds()[1]) for r in world.gap_robots)
-        gain = max(gain, *fastest) if world.gap_robots else gain
-    return steps * world.step_length * gain * (1.0 + 1e-9) + 1e-9

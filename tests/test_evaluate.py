@@ -404,6 +404,29 @@ def test_the_curriculum_trains_nominal_first_then_under_the_gap(
     assert same == (generation < switch)
 
 
+def test_a_fast_calibrated_robot_is_no_forgery_under_the_colony_gap() -> None:
+    """A colony-gap run's trials draw wheel gains from the calibrated robots, which may be
+    faster than the paper's gap allows: an honest robot driving straight at full speed with
+    wheels of 1.6 (beyond 1.15) is within the bound, going farther than that robot can is not."""
+    fast = GapRobot(
+        whisker_range=(0.05,) * 5,
+        whisker_uncertainty=(0.0,) * 5,
+        motor_gain=(1.6, 1.6),
+        motor_gain_uncertainty=(0.0, 0.0),
+    )
+    config = RunConfig(
+        population=4, trials=1, steps=40, reality_gap="colony", world=World(gap_robots=(fast,))
+    )
+    reach = trial_steps(config) * config.world.step_length * 1.6
+    honest = np.array([[[reach, reach, reach, 0.0]]])
+    descriptors = np.full((1, 4), 0.5)
+    fitness = mean_fitness(honest, config.fitness)
+    assert implausible(config, fitness, honest, descriptors) is None
+    beyond = honest * np.array([1.01, 0.0, 0.0, 0.0])
+    forged = mean_fitness(beyond, config.fitness)
+    assert "reach at full speed" in str(implausible(config, forged, beyond, descriptors))
+
+
 @settings(max_examples=15, deadline=None)
 @given(
     seed=st.integers(0, 2**40),
