@@ -98,7 +98,7 @@ class Pushes:
         most in the robot's calibrated world (waiting for the ranking); without any, the run's
         best: its validated champion once completed, else the best training rank whose claim
         the server's evaluation repeats (`confirmed_document`)."""
-        if sha256 is not None and run_id is not None:
+        if (sha256 is None) == (run_id is None):
             raise ValueError("give exactly one of sha256 or run_id")
         chosen_elite = (
             None
@@ -111,9 +111,8 @@ class Pushes:
             if sha256 is not None:
                 row = crud.find_controller(db, sha256=sha256)
                 text, sha = row.document, row.sha256
-            elif run_id is None:
-                raise ValueError("give exactly one of sha256 or run_id")
             else:
+                assert run_id is not None  # one of the two, checked above
                 run = db.get(Run, run_id)
                 if run is None:
                     raise NotFoundError(f"no run with id {run_id}")
