@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import logging
+import os
+import sys
+from typing import NoReturn
+
 import typer
 
 from colony.agent_cli import register as register_agent_commands
@@ -52,4 +57,23 @@ app.add_typer(study_app, name="study")
 
 
 def main() -> None:
-    app()
+    """Run the command; a process that imported zenoh ends with `_exit_now`."""
+    try:
+        app()
+    except SystemExit as exc:
+        if "zenoh" in sys.modules:
+            _exit_now(exc.code)
+        raise
+
+
+def _exit_now(code: object) -> NoReturn:
+    """Exit as SystemExit(code) would, with logs and output flushed but without finalizing
+    the interpreter: zenoh's own threads log through Python, and one that does so while the
+    interpreter finalizes aborts the process (SIGABRT, "FATAL: exception not rethrown"), which
+    turned an agent's clean Ctrl-C into a crash now and then."""
+    if isinstance(code, str):
+        print(code, file=sys.stderr)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code if isinstance(code, int) else 0 if code is None else 1)

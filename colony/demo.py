@@ -44,16 +44,27 @@ class DemoError(Exception):
     """A step of the demo failed; the message says which and where its log is."""
 
 
-def free_port(preferred: int) -> int:
-    """`preferred` if it is free on 127.0.0.1 (0: any), else a free port the OS picks."""
-    for port in (preferred, 0) if preferred else (0,):
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return int(s.getsockname()[1])
-    raise DemoError("no free port on 127.0.0.1")
+def free_ports(*preferred: int) -> list[int]:
+    """Each of `preferred` if it is free on 127.0.0.1, else (or for 0) a free port the OS
+    picks; all different: every socket is held until all are bound, named ports first, so the
+    OS never hands out one port twice, nor one named after it."""
+    with contextlib.ExitStack() as held:
+        sockets = [held.enter_context(socket.socket()) for _ in preferred]
+        for i in sorted(range(len(preferred)), key=lambda i: preferred[i] == 0):
+            if not _bind(sockets[i], preferred[i]):
+                raise DemoError("no free port on 127.0.0.1")
+        return [int(s.getsockname()[1]) for s in sockets]
+
+
+def _bind(s: socket.socket, wanted: int) -> bool:
+    """Bind `s` to `wanted` on 127.0.0.1 if it is free (0: any), else to a port the OS picks."""
+    for port in (wanted, 0) if wanted else (0,):
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            continue
+        return True
+    return False
 
 
 def colony_argv() -> list[str]:
@@ -233,6 +244,7 @@ def demo_command(
     children = Children()
     started = time.perf_counter()
     try:
+        port, zenoh_port = free_ports(port, zenoh_port)
         with sigterm_as_interrupt():
             _demo(
                 console,
@@ -242,8 +254,8 @@ def demo_command(
                 explore_seconds=explore_seconds,
                 overrides={"generations": generations, "population": population, "seed": seed},
                 workers=workers,
-                port=free_port(port),
-                zenoh_port=free_port(zenoh_port),
+                port=port,
+                zenoh_port=zenoh_port,
                 keep_running=keep_running,
             )
     except KeyboardInterrupt:

@@ -17,6 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from colony.demo import free_ports
 from tests.helpers import free_port
 
 COMPILING = "compiling the simulator, once per machine: about 15 s"
@@ -163,3 +164,13 @@ def test_keep_running_keeps_the_dashboard_until_ctrl_c_and_says_it_compiles(
                     demo.kill()
     assert processes_mentioning(f"127.0.0.1:{zenoh_port}") == []
     assert processes_mentioning(str(out)) == []
+
+
+def test_the_demo_never_gives_its_server_and_router_one_port() -> None:
+    """A free port the OS picks for one is never the other's, even when the other was free
+    only because nobody held it yet (CI saw the HTTP server fail to bind the router's port)."""
+    taken = free_port()
+    for preferred in [(0, taken), (taken, 0), (taken, taken), (0, 0)]:
+        http, zenoh = free_ports(*preferred)
+        assert http != zenoh
+        assert taken in (http, zenoh) or preferred == (0, 0)
