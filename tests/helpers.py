@@ -10,7 +10,11 @@ Imports stay light: the app, zenoh, the agent and the science are imported where
 from __future__ import annotations
 
 import math
+import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -59,11 +63,86 @@ TINY = RunConfig(population=6, generations=3, steps=5, trials=1, job_size=2, see
 REACTIVE = PRESETS["reactive"]
 
 
+_HANDED: set[int] = set()
+"""Ports `free_port` gave this process: the OS may offer one again before its user binds it."""
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A TCP port on 127.0.0.1 that was free a moment ago, never one given before (a test's
+    HTTP and zenoh ports differ even when neither is bound yet)."""
+    while True:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if port not in _HANDED:
+            _HANDED.add(port)
+            return port
+
+
+COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
+"""The `colony` command of this interpreter, for a subprocess."""
+
+
+def wait_until(
+    predicate: Callable[[], bool], what: str, timeout: float = 60.0, tick: float = 0.02
+) -> None:
+    """Poll state that no event announces (a REST API's, a process's) until a deadline; a
+    TimeoutError names `what`."""
+    deadline = time.monotonic() + timeout
+    pause = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out waiting for {what}")
+        pause.wait(tick)
+
+
+class Processes:
+    """A test's colony processes (a server, workers), each logging to NAME.log in `tmp`, kept
+    for a failure's post-mortem; `close` kills and reaps every one (stopped ones too)."""
+
+    def __init__(self, tmp: Path, client: httpx.Client) -> None:
+        self.tmp = tmp
+        self.client = client
+        self.procs: list[subprocess.Popen[bytes]] = []
+
+    def spawn(self, argv: list[str], env: dict[str, str], log: str) -> subprocess.Popen[bytes]:
+        with (self.tmp / f"{log}.log").open("ab") as out:
+            proc = subprocess.Popen(
+                argv,
+                env={**os.environ, **env},
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
+        self.procs.append(proc)
+        return proc
+
+    def healthy(self, server: subprocess.Popen[bytes]) -> bool:
+        """Whether `server` (logging to server.log) answers /healthz; its log's tail if it
+        exited."""
+        import httpx
+
+        if server.poll() is not None:
+            tail = (self.tmp / "server.log").read_text(errors="replace")[-2000:]
+            raise RuntimeError(f"colony server exited with {server.returncode}:\n{tail}")
+        try:
+            return self.client.get("/healthz", timeout=1).is_success
+        except httpx.TransportError:
+            return False
+
+    def get(self, path: str) -> Any:
+        response = self.client.get(path)
+        assert response.is_success, response.text
+        return response.json()
+
+    def close(self) -> None:
+        self.client.close()
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
+                proc.kill()
+        for proc in self.procs:
+            proc.wait(timeout=30)
 
 
 def eventually(

@@ -9,7 +9,6 @@ import queue
 import signal
 import socket
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,9 +21,17 @@ from typer.testing import CliRunner
 from colony.cli import app
 from robot_agent.verify import PINNED_KEY
 from schemas.robots import alive_key
-from tests.helpers import AGENT_WAIT, WAIT, Served, client_config, free_port, router_config, serve
+from tests.helpers import (
+    AGENT_WAIT,
+    COLONY,
+    WAIT,
+    Served,
+    client_config,
+    free_port,
+    router_config,
+    serve,
+)
 
-COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
 GARBAGE = "garbage\n"
 
 

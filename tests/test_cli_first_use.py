@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,9 +17,8 @@ from typer.testing import CliRunner
 from colony.cli import app
 from schemas.run import RunConfig
 from server.core.settings import Settings
-from tests.helpers import QUICK, Served, completed_run, serve
+from tests.helpers import COLONY, QUICK, Served, completed_run, serve
 
-COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
 COMPILING = "compiling the simulator, once per machine: about 15 s"
 BAD_CHARACTER = "#####\n#..x#\n#####\n"
 NO_ROOM = "#####\n#...#\n#####\n"

@@ -7,13 +7,9 @@ matter which worker is killed, stopped, added, or whether the server itself is S
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
-import sys
-import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
@@ -24,15 +20,13 @@ import pytest
 
 from evorobotics.evolution import evolve
 from schemas.run import RunConfig
-from tests.helpers import free_port
+from tests.helpers import COLONY, Processes, free_port, wait_until
 
 CONFIG = {"population": 16, "job_size": 4, "generations": 6, "steps": 2000, "seed": 11}
 """Jobs of tens of milliseconds, so a worker is caught holding one. Under the reality gap (the
 default), so every kill, restart and span below also checks that the gap draws do not depend
 on who evaluated what."""
 EVALUATIONS = 16 * 6
-TIMEOUT_S = 45.0
-COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
 
 
 @pytest.fixture(scope="module")
@@ -40,20 +34,17 @@ def expected_sha() -> str:
     return evolve(RunConfig(**CONFIG)).best.sha256
 
 
-class Colony:
+class Colony(Processes):
     """A server and workers as subprocesses; every one is killed and reaped at the end."""
 
     def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
         self.db = tmp / "colony.db"
         self.http = free_port()
         self.zenoh = free_port()
-        self.url = f"http://127.0.0.1:{self.http}"
-        self.procs: list[subprocess.Popen[bytes]] = []
         self.server: subprocess.Popen[bytes] | None = None
         # One client: `httpx.get` builds one per call (35 ms of CPU, at 50 polls a second
         # a core taken from the server and workers under test).
-        self.client = httpx.Client(base_url=self.url, timeout=10)
+        super().__init__(tmp, httpx.Client(base_url=f"http://127.0.0.1:{self.http}", timeout=10))
 
     def start_server(
         self, workers: int = 0, *, spans: bool = False, **env: str
@@ -79,38 +70,13 @@ class Colony:
         }
         off = {"COLONY_SPAN_BELOW_SECONDS": "0"}
         env = {"COLONY_HOUSEKEEPING_SECONDS": "0.2", **(spanning if spans else off), **env}
-        self.server = self._spawn(argv, env, "server")
-        wait_until(lambda: self._healthy(), "server health")
+        self.server = self.spawn(argv, env, "server")
+        wait_until(partial(self.healthy, self.server), "server health")
         return self.server
 
     def start_worker(self, name: str) -> subprocess.Popen[bytes]:
         connect = f"tcp/127.0.0.1:{self.zenoh}"
-        return self._spawn([*COLONY, "worker", "--connect", connect, "--name", name], {}, name)
-
-    def _spawn(self, argv: list[str], env: dict[str, str], log: str) -> subprocess.Popen[bytes]:
-        """Output goes to `log`.log in the test's tmp dir, kept for a failure's post-mortem."""
-        with (self.tmp / f"{log}.log").open("ab") as out:
-            proc = subprocess.Popen(
-                argv,
-                env={**os.environ, **env},
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-            )
-        self.procs.append(proc)
-        return proc
-
-    def _healthy(self) -> bool:
-        if self.server is not None and self.server.poll() is not None:
-            tail = (self.tmp / "server.log").read_text(errors="replace")[-2000:]
-            raise RuntimeError(f"colony server exited with {self.server.returncode}:\n{tail}")
-        try:
-            return self.client.get("/healthz", timeout=1).is_success
-        except httpx.TransportError:
-            return False
-
-    def get(self, path: str) -> Any:
-        return self.client.get(path).json()
+        return self.spawn([*COLONY, "worker", "--connect", connect, "--name", name], {}, name)
 
     def post(self, path: str, body: Any = None) -> Any:
         response = self.client.post(path, json=body)
@@ -138,15 +104,6 @@ class Colony:
         assert self.get(f"/api/runs/{run_id}/best")["sha256"] == expected_sha
         return run
 
-    def close(self) -> None:
-        self.client.close()
-        for proc in self.procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGCONT)
-                proc.kill()
-        for proc in self.procs:
-            proc.wait(timeout=30)
-
 
 @pytest.fixture
 def colony(tmp_path: Path) -> Iterator[Colony]:
@@ -155,16 +112,6 @@ def colony(tmp_path: Path) -> Iterator[Colony]:
         yield c
     finally:
         c.close()
-
-
-def wait_until(predicate: Callable[[], bool], what: str, timeout: float = TIMEOUT_S) -> None:
-    """Poll API state (no event announces it) until a deadline."""
-    deadline = time.monotonic() + timeout
-    tick = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out waiting for {what}")
-        tick.wait(0.02)
 
 
 def exited(pid: int) -> bool:

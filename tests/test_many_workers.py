@@ -11,13 +11,8 @@ own: the 24 need about 2.2 GB, checked against what the machine has before any s
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
-import sys
-import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +21,7 @@ import pytest
 
 from schemas.run import RunConfig
 from server.core.lab import init_lab
-from tests.helpers import evolved_champion, free_port
+from tests.helpers import COLONY, Processes, evolved_champion, free_port, wait_until
 
 pytestmark = pytest.mark.slow  # it starts 25 processes
 
@@ -47,7 +42,6 @@ BASE: dict[str, Any] = {
 """Jobs of two individuals: a generation is 24 jobs, one a worker."""
 SEEDS = [0, 1, 2]
 TIMEOUT_S = 90.0
-COLONY = [sys.executable, "-c", "from colony.cli import main; main()"]
 
 
 def read_env(path: Path) -> dict[str, str]:
@@ -75,21 +69,10 @@ def pss_mb(pid: int) -> float:
     return 0.0
 
 
-def wait_until(predicate: Callable[[], bool], what: str, timeout: float = TIMEOUT_S) -> None:
-    """Poll REST state (no event announces it) until a deadline."""
-    deadline = time.monotonic() + timeout
-    tick = threading.Event()
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out waiting for {what}")
-        tick.wait(0.5)
-
-
-class LabColony:
+class LabColony(Processes):
     """A lab's server and workers as subprocesses; every one is killed and reaped at the end."""
 
     def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
         self.zenoh = free_port()
         self.http = free_port()
         lab = init_lab(
@@ -97,13 +80,13 @@ class LabColony:
         )
         self.server_env = read_env(lab.server_env)
         self.worker_envs = {name: read_env(path) for name, path in lab.worker_envs.items()}
-        self.procs: list[subprocess.Popen[bytes]] = []
         token = self.server_env["COLONY_API_TOKEN"]
-        self.client = httpx.Client(
+        client = httpx.Client(
             base_url=f"http://127.0.0.1:{self.http}",
             headers={"Authorization": f"Bearer {token}"},
             timeout=30,
         )
+        super().__init__(tmp, client)
 
     def start_server(self) -> None:
         argv = [*COLONY, "server", "--db", f"sqlite:///{self.tmp / 'colony.db'}"]
@@ -115,8 +98,8 @@ class LabColony:
             "COLONY_SPAN_BELOW_SECONDS": "0",  # slices: every worker evaluates
             "COLONY_HOUSEKEEPING_SECONDS": "0.2",
         }
-        server = self._spawn(argv, env, "server")
-        wait_until(lambda: self._healthy(server), "server health")
+        server = self.spawn(argv, env, "server")
+        wait_until(lambda: self.healthy(server), "server health", TIMEOUT_S, tick=0.5)
 
     def start_workers(self) -> list[subprocess.Popen[bytes]]:
         per = WORKERS // len(CREDENTIALS)
@@ -131,46 +114,11 @@ class LabColony:
                     "--name",
                     f"{user}.{i}",
                 ]
-                started.append(self._spawn(argv, env, f"{user}.{i}"))
+                started.append(self.spawn(argv, env, f"{user}.{i}"))
         return started
-
-    def _spawn(self, argv: list[str], env: dict[str, str], log: str) -> subprocess.Popen[bytes]:
-        """Output goes to `log`.log in the test's tmp dir, kept for a failure's post-mortem."""
-        with (self.tmp / f"{log}.log").open("ab") as out:
-            proc = subprocess.Popen(
-                argv,
-                env={**os.environ, **env},
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-            )
-        self.procs.append(proc)
-        return proc
-
-    def _healthy(self, server: subprocess.Popen[bytes]) -> bool:
-        if server.poll() is not None:
-            tail = (self.tmp / "server.log").read_text(errors="replace")[-2000:]
-            raise RuntimeError(f"colony server exited with {server.returncode}:\n{tail}")
-        try:
-            return self.client.get("/healthz", timeout=1).is_success
-        except httpx.TransportError:
-            return False
-
-    def get(self, path: str) -> Any:
-        response = self.client.get(path)
-        assert response.is_success, response.text
-        return response.json()
 
     def idle_workers(self) -> int:
         return sum(w["state"] == "idle" for w in self.get("/api/workers"))
-
-    def close(self) -> None:
-        self.client.close()
-        for proc in self.procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGKILL)
-        for proc in self.procs:
-            proc.wait(timeout=30)
 
 
 @pytest.fixture
@@ -189,7 +137,12 @@ def test_24_authenticated_workers_run_a_study_whose_champions_are_evolves(
         pytest.skip(f"{WORKERS} worker processes need about {WORKERS * WORKER_MB} MB")
     colony.start_server()
     workers = colony.start_workers()
-    wait_until(lambda: colony.idle_workers() == WORKERS, f"{WORKERS} workers asking for jobs")
+    wait_until(
+        lambda: colony.idle_workers() == WORKERS,
+        f"{WORKERS} workers asking for jobs",
+        TIMEOUT_S,
+        tick=0.5,
+    )
     created = colony.client.post(
         "/api/studies", json={"name": "many", "base": BASE, "seeds": SEEDS}
     )
@@ -198,6 +151,8 @@ def test_24_authenticated_workers_run_a_study_whose_champions_are_evolves(
     wait_until(
         lambda: colony.get(f"/api/studies/{study['id']}")["status"] == "completed",
         "the study's end",
+        TIMEOUT_S,
+        tick=0.5,
     )
     runs = colony.get(f"/api/studies/{study['id']}")["runs"]
     assert sorted(r["seed"] for r in runs) == SEEDS
