@@ -16,7 +16,7 @@ from typing import Any
 
 import httpx
 
-from colony.demo import Children, free_port, wait_until
+from colony.demo import Children, free_ports, wait_until
 
 CHROMIUM = "/usr/bin/chromium"
 VIEWPORT = {"width": 1920, "height": 1080}
@@ -54,8 +54,9 @@ def main() -> None:
 
 
 def take(tmp: Path, out: Path, children: Children) -> None:
-    url = f"http://127.0.0.1:{free_port(0)}"
-    endpoint = f"tcp/127.0.0.1:{free_port(0)}"
+    http_port, zenoh_port = free_ports(0, 0)
+    url = f"http://127.0.0.1:{http_port}"
+    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
     server = ["server", "--db", f"sqlite:///{tmp / 'colony.db'}", "--host", "127.0.0.1"]
     server += ["--port", url.rsplit(":", 1)[1], "--zenoh-listen", endpoint, "--workers", "2"]
     children.start("server", server, tmp / "server.log")
