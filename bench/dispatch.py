@@ -8,14 +8,16 @@
    the scheduler's settle and lease: the part of the per-job CPU that is this project's
    Python, not zenoh's).
 2. `colony evolve` alone and two side by side: how much two processes get from the cores.
-3. The default experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
+3. A stuck robot's `fit` ranking as jobs of worker processes (`Scheduler.rank`) against the
+   same ranking in the server's process (`rank_in_world`): wall time and the server's CPU.
+4. The default experiment on `colony server --workers 2` (a subprocess: REST, the run manager,
    zenoh on loopback, two local worker processes), against `evolve` in this process, with the
    best controllers compared, and the CPU seconds each side used: what the machine's cores
    must run for the distributed run, against what `colony evolve` runs on one.
 
     .venv/bin/python bench/dispatch.py [--seconds 5] [--windows 3] [--rounds 5000] [--workers 2]
         [--generations 350] [--steps 240] [--repeats 3] [--sweep] [--span-below SECONDS]
-        [--only throughput|paper]
+        [--only throughput|paper|rank]
 
 `--steps 240` is the default trial (three crossings of the paper maze); `--steps 2400
 --generations 35` is the same number of robot-steps with ten times the work per generation:
@@ -415,6 +417,58 @@ def bench_paper(
         print(f"the distributed run is no slower than colony evolve: {where}")
 
 
+def bench_rank(workers: int, repeats: int) -> None:
+    """A stuck robot's `fit` ranking (a paper run's 100 candidates, 40 validation poses x 1,000
+    steps, in a calibrated world): asked of a real Dispatcher and Scheduler in this process
+    (`Scheduler.rank`) with `workers` worker processes on loopback, against `rank_in_world` in
+    this process (what the server ran on a thread before rankings were jobs), alternately; the
+    wall time until the ranking is known and this process's CPU (the server's)."""
+    from evorobotics.evolution import evolve, rank_in_world, ranking_validation
+
+    config = RunConfig(generations=60, seed=3)
+    genomes = evolve(config).genomes[: ranking_validation(config).candidates]
+    world = config.world.model_copy(
+        update={"whisker_range": (0.03, 0.05, 0.08, 0.05, 0.1), "motor_gain": (1.0, 0.9)}
+    )
+    ctx = mp.get_context("spawn")
+    port = free_port()
+    scheduler = Scheduler(Policy(spot_checks=1))
+    local: list[tuple[float, float]] = []
+    jobs: list[tuple[float, float]] = []
+    with Dispatcher(DispatchSettings(listen=(f"tcp/127.0.0.1:{port}",)), scheduler):
+        procs, stop = start_workers(ctx, port, workers, empty=False)
+        try:
+            deadline = time.monotonic() + 120
+            while len(scheduler.workers()) < workers:  # spawned interpreters import numba
+                if time.monotonic() > deadline:
+                    raise TimeoutError("the workers did not join in 120 s")
+                stop.wait(0.05)
+            scheduler.rank(config, world, genomes[:2]).result(300)  # the workers' kernels warm
+            for i in range(repeats):
+                moved = world.model_copy(update={"max_speed": 0.3 - 1e-4 * (i + 1)})  # not cached
+                began, cpu = time.perf_counter(), time.process_time()
+                expected = rank_in_world(config, genomes, moved)
+                local.append((time.perf_counter() - began, time.process_time() - cpu))
+                began, cpu = time.perf_counter(), time.process_time()
+                order, _ = scheduler.rank(config, moved, genomes).result(300)
+                jobs.append((time.perf_counter() - began, time.process_time() - cpu))
+                if order.tolist() != expected[0].tolist():
+                    raise AssertionError("the workers' ranking differs from rank_in_world's")
+            logging.getLogger("server.runs.dispatch").setLevel(logging.ERROR)
+        finally:
+            stop_workers(procs, stop)
+    (local_s, local_cpu), (jobs_s, jobs_cpu) = (
+        (statistics.median(w for w, _ in runs), statistics.median(c for _, c in runs))
+        for runs in (local, jobs)
+    )
+    print(
+        f"a fit ranking ({len(genomes)} candidates, median of {repeats}): in the server "
+        f"{local_s:.2f} s wall, {local_cpu:.2f} s of its CPU; as jobs of {workers} workers "
+        f"{jobs_s:.2f} s wall ({jobs_s / local_s:.2f}x), {jobs_cpu:.3f} s of the server's CPU "
+        f"({jobs_cpu / local_cpu:.3f}x); rankings identical"
+    )
+
+
 def _spread(seconds: list[float]) -> str:
     return f"{statistics.median(seconds):.2f} s [{min(seconds):.2f}-{max(seconds):.2f}]"
 
@@ -432,7 +486,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sweep", action="store_true")
     parser.add_argument("--span-below", type=float, default=None)
-    parser.add_argument("--only", choices=("throughput", "paper"), default=None)
+    parser.add_argument("--only", choices=("throughput", "paper", "rank"), default=None)
     args = parser.parse_args()
     shapes = [(args.generations, args.steps)]
     if args.sweep:  # the same robot-steps, more of them per generation
@@ -440,10 +494,12 @@ def main() -> None:
         shapes += [
             (max(1, robot_steps // s), s) for s in (100, 200, 400, 800, 1600) if s > args.steps
         ]
-    if args.only != "paper":
+    if args.only in (None, "throughput"):
         bench_throughput(args.seconds, args.workers, args.windows)
         bench_codec(args.rounds)
-    if args.only != "throughput":
+    if args.only in (None, "rank"):
+        bench_rank(args.workers, args.repeats)
+    if args.only in (None, "paper"):
         bench_capacity(RunConfig(generations=args.generations, steps=args.steps))
         bench_paper(args.workers, shapes, args.repeats, args.span_below)
 

@@ -199,18 +199,39 @@ def ranking_validation(config: RunConfig) -> ValidationConfig:
     return config.validation if config.validation.poses else ValidationConfig(test_poses=0)
 
 
+def ranking_config(config: RunConfig, world: World) -> RunConfig:
+    """The config `rank_in_world` validates a run's candidates with: `world` (a robot's
+    calibrated world) without a reality gap, on `ranking_validation`'s set. Its world draws from
+    no gap robots, so it is a valid config that crosses the wire as it is."""
+    return config.model_copy(
+        update={
+            "world": world.model_copy(update={"gap_robots": ()}),
+            "reality_gap": "off",
+            "validation": ranking_validation(config),
+        }
+    )
+
+
+Ranked = tuple[np.ndarray, Validated]
+"""A ranking of candidates: their order, best first, and their scores (`rank_in_world`)."""
+
+
+def ranked(scored: Validated) -> Ranked:
+    """Candidates in the order `rank_in_world` gives them from their validation scores, with
+    those scores: most roaming trials first, ties to the higher mean Eq 12, then to candidate
+    order (lexsort's last key leads)."""
+    return np.lexsort((np.arange(len(scored.score)), -scored.score, -scored.roaming)), scored
+
+
 def rank_in_world(
     config: RunConfig, genomes: np.ndarray, world: World, *, threads: int = 1
-) -> tuple[np.ndarray, Validated]:
+) -> Ranked:
     """A run's candidates (k, n_weights) ranked for one robot, best first, with their scores:
     run from the run's validation poses in `world` (a robot's calibrated world, no reality gap
-    drawn on top), most roaming trials first, ties to the higher mean Eq 12, then to candidate
-    order, on `ranking_validation`'s set: the `rank` and `fit` replacement policies' order
-    (docs/robots.md)."""
-    v = ranking_validation(config)
-    there = config.model_copy(update={"world": world, "reality_gap": "off", "validation": v})
-    scored = validate(there, genomes, threads=threads)
-    return np.lexsort((np.arange(len(scored.score)), -scored.score, -scored.roaming)), scored
+    drawn on top, `ranking_config`), `ranked`: the `rank` and `fit` replacement policies'
+    order (docs/robots.md). Each candidate's row is its own, so rows scored in any slices, by
+    anyone, rank the same (`ranked` of `Validated.from_scores`)."""
+    return ranked(validate(ranking_config(config, world), genomes, threads=threads))
 
 
 @dataclass(frozen=True)
@@ -327,17 +348,18 @@ def champion_scores(
 
 
 def stage_robot_steps(config: RunConfig, stage: Stage, n: int) -> int:
-    """Robot-steps of a job of n individuals (`train`), candidates or test poses."""
+    """Robot-steps of a job of n individuals (`train`), candidates (`validate`, or `rank` of
+    a `ranking_config`) or test poses."""
     v = config.validation
     if stage == "train":
         return robot_steps(config, n)
-    return n * v.steps * (v.poses if stage == "validate" else 2)
+    return n * v.steps * (v.poses if stage in ("validate", "rank") else 2)
 
 
 def validation_pick(scored: Validated) -> int:
-    """The validated candidate the champion is: most roaming validation trials, ties to the
-    higher mean Eq 12 there, then to the better training rank (lexsort's last key leads)."""
-    return int(np.lexsort((np.arange(len(scored.score)), -scored.score, -scored.roaming))[0])
+    """The validated candidate the champion is: the first `ranked` (candidates are in
+    training-rank order, so ties go to the better training rank)."""
+    return int(ranked(scored)[0][0])
 
 
 def champion_document(

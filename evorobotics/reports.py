@@ -8,7 +8,11 @@ computes it in one process, bit for bit, however the trials were sliced and whoe
 them. `implausible` names what no row of a report's steps can be.
 
 A report job's config is `schemas.wire.report_config`: the controller's network and world with
-the report's maze and seed; its `ReportSpec` the poses, steps and reality gap.
+the report's maze and seed; its `ReportSpec` the poses, steps and reality gap. A ranking of
+a run's candidates in a robot's world (`rank`, `evorobotics.evolution.rank_in_world`) is asked
+the same way: its job scores candidates start:stop on the validation set of its config (a
+`ranking_config`, no `ReportSpec`), and the rows of all its jobs make the ranking (`ranked` of
+`Validated.from_scores`).
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import math
 import numpy as np
 
 from evorobotics.evaluate import full_speed_reach
-from evorobotics.evolution import champion_scores, stage_robot_steps
+from evorobotics.evolution import champion_scores, stage_robot_steps, validate
 from evorobotics.explore import PAPER_TRIAL, Exploration, exploration, exploration_trials
 from evorobotics.maze import load_maze
 from evorobotics.robustness import RobustnessMap, map_trials, robustness_map
@@ -37,8 +41,11 @@ def stage_scores(
     stop: int,
     report: ReportSpec | None = None,
 ) -> np.ndarray:
-    """A stage job's `Result.scores`: a champion's stage's (`champion_scores`), or, with
-    `report`, trials start:stop of the report of the one genome."""
+    """A stage job's `Result.scores`: a champion's stage's (`champion_scores`), a ranking's
+    (`rank`: candidates `genomes` on the validation set of `config`, a `ranking_config`), or,
+    with `report`, trials start:stop of the report of the one genome."""
+    if stage == "rank":
+        return validate(config, genomes).scores()
     if report is None:
         return champion_scores(config, stage, genomes, start, stop)
     spec, weights, v = config.network_spec, genomes[0], report

@@ -31,7 +31,7 @@ from schemas.network import NetworkSpec
 from schemas.run import RunConfig
 from schemas.world import World
 
-PROTOCOL = 14
+PROTOCOL = 15
 """Wire protocol version, sent in every job request and robot trace batch; the server idles
 workers and refuses robots' traces of other versions."""
 
@@ -232,21 +232,32 @@ def _first_line(exc: ValidationError) -> str:
     return f"{where}: {errors[0]['msg']}" if errors else str(exc)
 
 
-Stage = Literal["train", "validate", "test", "explore", "robustness"]
+Stage = Literal["train", "validate", "test", "explore", "robustness", "rank"]
 """What a job simulates: individuals of a generation (`train`); once a run's last generation
 is told, slices of its champion's choice: candidates on the validation set (`validate`,
 `evorobotics.evolution.validate`) and the pick's held-out test poses (`test`,
-`evorobotics.evolution.held_out_trials`); or trials of a controller's report (REPORT_STAGES)."""
+`evorobotics.evolution.held_out_trials`); trials of a controller's report (REPORT_STAGES); or
+a run's candidates ranked in a robot's world (`rank`, `evorobotics.evolution.rank_in_world`):
+validate's rows of another config."""
 ReportStage = Literal["explore", "robustness"]
 REPORT_STAGES: tuple[ReportStage, ...] = ("explore", "robustness")
 """A controller's reports, whoever asked (a study, the REST API): an exploration report's
 poses (`explore`, `evorobotics.explore.exploration_trials`) or a robustness map's trials
 (`robustness`, `evorobotics.robustness.map_trials`)."""
+ASKED_STAGES: tuple[Stage, ...] = (*REPORT_STAGES, "rank")
+"""Work the server asks for itself, of no run in flight: the reports, and the rankings its
+replacement policies and pushes choose from (`rank`)."""
 REPORT_ROBOT_STEPS = 20_000_000
 """Most robot-steps of one report (its trials x steps): a report job's trials are drawn whole
 before its slice is cut, so this bounds what one job can ask of a worker."""
 MAP_CELLS = 49
 """Cells of a robustness map (7 whisker ranges x 7 gain ratios, `evorobotics.robustness`)."""
+
+
+def rank_candidates(config: RunConfig) -> int:
+    """Most rows of a ranking (`rank`) whose config is `config`: its `validation.candidates`
+    fittest training ranks and as many archive elites."""
+    return 2 * config.validation.candidates
 
 
 def report_trials(stage: Stage, poses: int) -> int:
@@ -287,11 +298,13 @@ class JobKey(BaseModel):
 
     @property
     def report(self) -> bool:
-        """A report's job: `run_id` is then the report's number (`server.runs.jobs.Report`)
-        and `generation` 0."""
-        return self.stage in REPORT_STAGES
+        """A report's or a ranking's job (ASKED_STAGES): `run_id` is then its number
+        (`server.runs.jobs.Report`, `Rank`) and `generation` 0."""
+        return self.stage in ASKED_STAGES
 
     def label(self) -> str:
+        if self.stage == "rank":
+            return f"ranking {self.run_id} job {self.index}"
         if self.report:
             return f"report {self.run_id} {self.stage} job {self.index}"
         stage = "" if self.stage == "train" else f" {self.stage}"
@@ -309,12 +322,13 @@ min(40, H) and by H, coverage, curve length and net offset of the first min(40, 
 
 
 def score_columns(stage: Stage) -> int:
-    """Columns of a stage's `Result.scores`: validate's (score, stuck, roaming), test's
-    (roaming, stuck, offset) in the nominal world then in the test gap's, explore's
+    """Columns of a stage's `Result.scores`: validate's and rank's (score, stuck, roaming),
+    test's (roaming, stuck, offset) in the nominal world then in the test gap's, explore's
     EXPLORE_COLUMNS, robustness's (roaming, stuck)."""
     if stage == "train":
         raise ValueError("a training job's result carries fitness, not scores")
-    return {"validate": 3, "test": 6, "explore": EXPLORE_COLUMNS, "robustness": 2}[stage]
+    columns = {"validate": 3, "rank": 3, "test": 6, "explore": EXPLORE_COLUMNS, "robustness": 2}
+    return columns[stage]
 
 
 def _worker_name(value: str) -> str:
@@ -356,7 +370,8 @@ class Job(_Message):
     `state` (the GA state before this generation's `tell`). A champion stage's job (`key.stage`)
     is validation candidates start..stop, or test poses start..stop of the one genome; a
     report's job, trials start..stop of its `report` of the one genome (`config`:
-    `report_config`)."""
+    `report_config`); a ranking's, candidates start..stop on the validation set of its
+    `config` (`evorobotics.evolution.ranking_config`)."""
 
     ARRAYS: ClassVar[tuple[str, ...]] = ("genomes", "state")
     kind: Literal["job"] = "job"
@@ -369,14 +384,14 @@ class Job(_Message):
     ack: Ack | None = None
     """Set when the job answers a result that asked for the next job: that result's Ack."""
     report: ReportSpec | None = None
-    """A report's job's, and only theirs."""
+    """A report's job's (REPORT_STAGES), and only theirs."""
     genomes: np.ndarray
     """(stop - start, n_weights) float64."""
     state: dict[str, np.ndarray] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> Job:
-        if (self.report is not None) != self.key.report:
+        if (self.report is not None) != (self.key.stage in REPORT_STAGES):
             raise ValueError("a report's job, and only a report's, brings its report")
         if self.key.stage != "train":
             return self._check_stage()
@@ -403,11 +418,13 @@ class Job(_Message):
 
     def _check_stage(self) -> Job:
         config, genomes, v = self.config, self.genomes, self.config.validation
-        validate = self.key.stage == "validate"
+        validate = self.key.stage in ("validate", "rank")
         if self.span != 1 or self.state is not None:
             raise ValueError(f"a {self.key.stage} job is no span")
         if self.report is not None:
             most = self._check_report(self.report)
+        elif self.key.stage == "rank":
+            most = self._check_rank()
         elif self.key.generation != config.generations - 1:
             raise ValueError(f"a {self.key.stage} job is of the last generation")
         else:
@@ -420,6 +437,14 @@ class Job(_Message):
         if not np.isfinite(genomes).all():
             raise ValueError("genomes contain NaN or infinity")
         return self
+
+    def _check_rank(self) -> int:
+        """The most candidates of a ranking's job, once it checks out."""
+        if self.key.generation != 0:
+            raise ValueError(f"a ranking's job is of generation 0, got {self.key.generation}")
+        if self.config.gap or not self.config.validation.poses:
+            raise ValueError("a ranking validates without a reality gap, on validation poses")
+        return rank_candidates(self.config)
 
     def _check_report(self, report: ReportSpec) -> int:
         """The trials of a report's job, once it checks out."""
@@ -465,7 +490,8 @@ class Result(_Message):
     shapes are checked here: whether the values can be true is a claim the scheduler judges
     (`evorobotics.evaluate.implausible`), so a false one counts against its credential."""
     scores: np.ndarray | None = None
-    """A champion stage's: (stop - start, `score_columns`) float64, in place of the others."""
+    """A stage's (a champion's, a report's or a ranking's): (stop - start, `score_columns`)
+    float64, in place of the others."""
 
     _name = field_validator("worker")(_worker_name)
 
@@ -539,7 +565,7 @@ class Result(_Message):
             if ((scores != 0.0) & (scores != 1.0)).any() or (scores.sum(axis=1) > 1.0).any():
                 raise ValueError("a map's trial roams or sticks or neither: 0 or 1, not both")
             return self
-        fractions = scores[:, 1:] if stage == "validate" else scores[:, :4]
+        fractions = scores[:, 1:] if stage in ("validate", "rank") else scores[:, :4]
         if not ((fractions >= 0.0) & (fractions <= 1.0)).all():
             raise ValueError("stuck and roaming must lie in [0, 1]")
         if stage == "test" and ((fractions != 0.0) & (fractions != 1.0)).any():

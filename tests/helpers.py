@@ -582,7 +582,8 @@ def robot_link(
     try:
         settings = settings or RobotSettings(push_timeout=5.0)
         archives = colony.app.state.manager.archive
-        service = RobotService(router, engine, settings, signer, archives).start()
+        rank = colony.app.state.manager.scheduler.rank
+        service = RobotService(router, engine, settings, signer, archives, rank).start()
         colony.app.state.robots = service
         try:
             yield Link(router, service, f"tcp/127.0.0.1:{port}", port)

@@ -133,7 +133,7 @@ def test_a_frame_refuses_object_arrays_and_its_reserved_key() -> None:
 
 
 def test_the_protocol_and_its_keys() -> None:
-    assert PROTOCOL == 14 and JobRequest(worker="w").protocol == PROTOCOL
+    assert PROTOCOL == 15 and JobRequest(worker="w").protocol == PROTOCOL
     assert (next_key("w"), result_key("w")) == ("evocolony/jobs/next/w", "evocolony/jobs/result/w")
     assert next_key("w-1").startswith(KEY_JOB_NEXT.removesuffix("*"))
     assert result_key("w-1").startswith(KEY_JOB_RESULT.removesuffix("*"))

@@ -6,7 +6,8 @@ robot's policy (its own, else the colony's `RobotSettings.replacement`) chooses 
 `off`: none. `rank`: the run's validated champion, else the best of the server's own validated
 ranking of the run's candidates (`rank_in_world` in the run's world) that this robot has not
 failed with in its last `recent_failures` stuck events (its current one included); none while
-that ranking is computed (on a thread of its own, once per run and generation), for a
+that ranking is computed (once per run and generation: as jobs workers take, sliced by
+candidate, `Scheduler.rank`; the server's own evaluation only when no worker is live), for a
 controller that came from no run, or when every candidate failed recently. `archive`: the
 elite of that run's archive farthest in behaviour from the stuck controller's entry (the
 fittest when it is not an elite), skipping recent failures; none when the run keeps no
@@ -30,10 +31,11 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from evorobotics.document import ControllerDocument, controller_sha256
 from evorobotics.evaluate import DESCRIPTORS
-from evorobotics.evolution import StrategyHistory, rank_in_world, ranking_validation
+from evorobotics.evolution import Ranked, StrategyHistory, rank_in_world, ranking_validation
 from evorobotics.strategies import Archive
 from schemas.robots import ReplacementPolicy, RobotCalibration, StuckRequest
 from schemas.run import RunConfig
+from schemas.world import World
 from server.core.errors import NotFoundError, UnconfirmedError
 from server.core.logs import context
 from server.core.models import Controller, Robot, Run
@@ -46,6 +48,10 @@ log = logging.getLogger(__name__)
 
 RANKINGS_KEPT = 32
 """Validated rankings kept in memory, one per (robot calibration or none, run, generation)."""
+
+Ranker = Callable[[RunConfig, World, np.ndarray], "Future[Ranked]"]
+"""`rank_in_world(config, genomes, world)` asked of the scheduler (`Scheduler.rank`): its
+jobs go to the workers."""
 
 
 @dataclass(frozen=True)
@@ -86,22 +92,25 @@ class Ranking:
 
 class Replacements:
     """Answers stuck robots (on the robot service's thread) and gives pushes a run's elites
-    and rankings (from any thread); rankings are computed on a thread of their own until
-    `close()`."""
+    and rankings (from any thread); rankings are asked of `rank` (None: computed here) from
+    a thread of their own until `close()`."""
 
     def __init__(
         self,
         sessions: sessionmaker[Session],
         settings: RobotSettings,
         archives: Callable[[int], tuple[int, RunConfig, Archive]] | None,
+        rank: Ranker | None = None,
     ) -> None:
         self._sessions = sessions
         self._settings = settings
         self._archives = archives
         """run id -> (generations, config, archive) of a QD run (`RunManager.archive`)."""
+        self._rank_jobs = rank
         self._lock = threading.Lock()
         self._ranker = ThreadPoolExecutor(1, thread_name_prefix="fit-ranking")
-        """Validates candidates for the `rank` and `fit` policies off the service thread."""
+        """Gathers and waits for rankings for the `rank` and `fit` policies off the service
+        thread."""
         self._rankings: dict[tuple[str, str, int, int], Future[Ranking]] = {}
 
     def close(self) -> None:
@@ -315,7 +324,10 @@ class Replacements:
                 top = np.concatenate([top, archive.genomes[elites]])
                 labels += [(None, k) for k in elites]
         world = config.world if calibration is None else calibration.world(config.world)
-        order, scored = rank_in_world(config, top, world)
+        if self._rank_jobs is None:
+            order, scored = rank_in_world(config, top, world)
+        else:
+            order, scored = self._rank_jobs(config, world, top).result()
         seen: set[str] = set()
         candidates = []
         for k in (int(i) for i in order):

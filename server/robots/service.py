@@ -66,7 +66,7 @@ from server.robots.registry import (
     robot_summaries,
     stuck_ledger,
 )
-from server.robots.replacement import Replacements
+from server.robots.replacement import Ranker, Replacements
 from server.robots.settings import POLICIES, RobotSettings
 from server.robots.signing import Signer
 from server.robots.store import RobotStateRow, StuckEventRow, TraceRow
@@ -91,6 +91,7 @@ class RobotService:
         settings: RobotSettings | None = None,
         signer: Signer | None = None,
         archives: Callable[[int], tuple[int, RunConfig, Archive]] | None = None,
+        rank: Ranker | None = None,
     ) -> None:
         self.settings = settings or RobotSettings()
         self._zenoh = session
@@ -111,7 +112,7 @@ class RobotService:
         self.traces_received = 0
         """Trace samples stored (duplicates excluded); for benchmarks."""
         self._ingest = TraceIngest(self.sessions, self.settings, self.is_online)
-        self._replacements = Replacements(self.sessions, self.settings, archives)
+        self._replacements = Replacements(self.sessions, self.settings, archives, rank)
         self._pushes = Pushes(
             self.sessions, self.settings, signer, self._replacements, self.is_online, self._publish
         )
@@ -425,7 +426,9 @@ def robot_service(
         signer = getattr(app.state, "signer", None)
         manager = app.state.manager
         tuned = replace(settings or RobotSettings(), replacement=manager.settings.replacement)
-        service = RobotService(session, manager.sessions, tuned, signer, manager.archive).start()
+        service = RobotService(
+            session, manager.sessions, tuned, signer, manager.archive, manager.scheduler.rank
+        ).start()
         app.state.robots = service
 
         def close() -> None:

@@ -1,28 +1,40 @@
-"""The scheduler's work in flight: each live run's slots (its jobs), each report's, and their
-leases.
+"""The scheduler's work in flight: each live run's slots (its jobs), each report's and each
+ranking's, and their leases.
 
-A run's or a report's pending slots are a heap (the lowest is leased first); a slot remembers
-the credentials that erred on it and whose result filled it, so a quarantine can discard its
-result. After its last generation a run's slots are its champion's stage
+A run's, a report's or a ranking's pending slots are a heap (the lowest is leased first); a
+slot remembers the credentials that erred on it and whose result filled it, so a quarantine can
+discard its result. After its last generation a run's slots are its champion's stage
 (`server.runs.choosing`): candidates to validate or test poses, scored into `Run.scores`. A
 report's slots are trials of a controller's exploration report or robustness map
-(`evorobotics.reports`), scored into `Report.scores` and assembled into its `future`.
+(`evorobotics.reports`), scored into `Report.scores` and assembled into its `future`; a
+ranking's, a run's candidates validated in a robot's world (`evorobotics.evolution
+.rank_in_world`), scored into `Rank.scores` and ranked into its `future`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import heapq
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from evorobotics.errors import EvoError
-from evorobotics.evolution import RunLoop, job_slices, stage_robot_steps
+from evorobotics.evolution import (
+    Ranked,
+    RunLoop,
+    Validated,
+    job_slices,
+    ranked,
+    ranking_config,
+    stage_robot_steps,
+)
 from evorobotics.maze import load_maze
 from evorobotics.reports import Report as Assembled
-from evorobotics.reports import assemble
+from evorobotics.reports import assemble, implausible
 from schemas.run import RunConfig
 from schemas.wire import (
     REPORT_ROBOT_STEPS,
@@ -31,9 +43,11 @@ from schemas.wire import (
     ReportSpec,
     ReportStage,
     Stage,
+    rank_candidates,
     report_trials,
     score_columns,
 )
+from schemas.world import World
 from server.runs.choosing import Choosing
 from server.runs.workers import credential
 
@@ -294,14 +308,44 @@ class Run(Slotted):
 
 
 @dataclass(kw_only=True)
-class Report(Slotted):
-    """A controller's report in flight (`evorobotics.reports`): its trials cut into slots,
-    scored into `scores`, assembled into `future` once all are."""
+class Asked(Slotted):
+    """Work the server asks for itself, of no run: a report or a ranking. Its number is a
+    digest of what it computes, so the same work asked twice (or after a restart) is one."""
 
     report_id: int
     config: RunConfig
-    """`schemas.wire.report_config`: the controller's network and world, the report's maze
-    and seed."""
+
+    @property
+    def order(self) -> tuple[int, int, int]:
+        """Before runs (someone waits for each), least recently served first."""
+        return (0, self.served, self.report_id)
+
+    def key(self, index: int) -> JobKey:
+        return JobKey(run_id=self.report_id, generation=0, index=index, stage=self.stage)
+
+
+def _digest(*parts: str | np.ndarray) -> int:
+    """An asked work's number: 63 bits of the SHA-256 of what it computes."""
+    text = "\n".join(p for p in parts if isinstance(p, str)).encode()
+    arrays = b"".join(p.tobytes() for p in parts if isinstance(p, np.ndarray))
+    return int.from_bytes(hashlib.sha256(text + arrays).digest()[:8], "little") >> 1
+
+
+def _check_maze(config: RunConfig) -> None:
+    """A bad maze fails the asker now, not every worker later."""
+    try:
+        load_maze(config.maze)
+    except EvoError as exc:
+        raise ValueError(f"maze: {exc}") from exc
+
+
+@dataclass(kw_only=True)
+class Report(Asked):
+    """A controller's report in flight (`evorobotics.reports`): its trials cut into slots,
+    scored into `scores`, assembled into `future` once all are. Its `config` is
+    `schemas.wire.report_config`: the controller's network and world, the report's maze and
+    seed."""
+
     spec: ReportSpec
     genome: np.ndarray
     """(1, n_weights): the controller's weights."""
@@ -318,22 +362,14 @@ class Report(Slotted):
         served: int,
         parts: int,
     ) -> Report:
-        """The report cut into about `parts` jobs, all pending; its number is a digest of
-        what it computes, so the same report asked twice (or after a restart) is one.
-        ValueError for a bad maze, weights or size."""
+        """The report cut into about `parts` jobs, all pending. ValueError for a bad maze,
+        weights or size."""
         genome = np.ascontiguousarray(weights, dtype="<f8").reshape(1, -1)
         if genome.shape[1] != config.network_spec.weight_count:
             raise ValueError(
                 f"{genome.shape[1]} weights for a network of {config.network_spec.weight_count}"
             )
-        digest = hashlib.sha256(
-            "\n".join([stage, config.model_dump_json(), spec.model_dump_json()]).encode()
-            + genome.tobytes()
-        ).digest()
-        try:
-            load_maze(config.maze)  # a bad maze fails the asker now, not every worker later
-        except EvoError as exc:
-            raise ValueError(f"maze: {exc}") from exc
+        _check_maze(config)
         n = report_trials(stage, spec.poses)
         if n * spec.steps > REPORT_ROBOT_STEPS:
             raise ValueError(
@@ -342,7 +378,7 @@ class Report(Slotted):
             )
         slots = _stage_slots(n, parts)
         return cls(
-            report_id=int.from_bytes(digest[:8], "little") >> 1,
+            report_id=_digest(stage, config.model_dump_json(), spec.model_dump_json(), genome),
             config=config,
             spec=spec,
             genome=genome,
@@ -359,16 +395,8 @@ class Report(Slotted):
         return f"report {self.report_id}"
 
     @property
-    def order(self) -> tuple[int, int, int]:
-        """Reports before runs (someone waits for each), least recently served first."""
-        return (0, self.served, self.report_id)
-
-    @property
     def report(self) -> ReportSpec:
         return self.spec
-
-    def key(self, index: int) -> JobKey:
-        return JobKey(run_id=self.report_id, generation=0, index=index, stage=self.stage)
 
     def robot_steps(self, n: int) -> int:
         """Robot-steps of a job of `n` trials."""
@@ -391,15 +419,106 @@ class Report(Slotted):
             lease_s=lease_s,
         )
 
-    def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> Assembled | None:
-        """Slot `index` is done: `worker`'s rows of it; once every slot is, the report
-        (ValueError if it cannot be assembled)."""
+    def implausible(self, rows: np.ndarray) -> str | None:
+        """Why a result's rows cannot come from the report's trials
+        (`evorobotics.reports.implausible`), or None."""
+        return implausible(self.config, self.stage, self.spec, rows)
+
+    def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> Callable[[], None] | None:
+        """Slot `index` is done: `worker`'s rows of it; once every slot is, what hands the
+        report to its future (ValueError if it cannot be assembled)."""
         if not self._fill_scores(index, worker, scores) or self.scores is None:
             return None
-        return assemble(self.config, self.stage, self.spec, self.scores)
+        return partial(
+            self.future.set_result, assemble(self.config, self.stage, self.spec, self.scores)
+        )
 
 
-Work = Run | Report
+@dataclass(kw_only=True)
+class Rank(Asked):
+    """A run's candidates ranked in one world, in flight (`evorobotics.evolution
+    .rank_in_world`): the candidates cut into slots, scored into `scores` (validate's rows),
+    ranked into `future` once all are. Its `config` is the `ranking_config`."""
+
+    genomes: np.ndarray
+    """(k, n_weights): the candidates, in their order."""
+    future: Future[Ranked] = field(default_factory=Future)
+
+    @classmethod
+    def new(
+        cls, config: RunConfig, world: World, genomes: np.ndarray, *, served: int, parts: int
+    ) -> Rank:
+        """`rank_in_world(config, genomes, world)` cut into about `parts` jobs, all pending.
+        ValueError for a bad maze or candidates."""
+        ranking = ranking_config(config, world)
+        candidates = np.ascontiguousarray(genomes, dtype="<f8")
+        weights = ranking.network_spec.weight_count
+        if candidates.ndim != 2 or candidates.shape[1] != weights:
+            raise ValueError(f"candidates of shape {candidates.shape} for a network of {weights}")
+        if not 1 <= len(candidates) <= rank_candidates(ranking):
+            raise ValueError(
+                f"{len(candidates)} candidates to rank: 1 to {rank_candidates(ranking)}"
+            )
+        if not np.isfinite(candidates).all():
+            raise ValueError("candidates contain NaN or infinity")
+        _check_maze(ranking)
+        n = len(candidates)
+        slots = _stage_slots(n, parts)
+        return cls(
+            report_id=_digest("rank", ranking.model_dump_json(), candidates),
+            config=ranking,
+            genomes=candidates,
+            slots=slots,
+            pending=list(range(len(slots))),
+            remaining=len(slots),
+            served=served,
+            stage="rank",
+            scores=np.full((n, score_columns("rank")), np.nan),
+        )
+
+    @property
+    def label(self) -> str:
+        return f"ranking {self.report_id}"
+
+    @property
+    def report(self) -> None:
+        """A ranking's jobs are no report's."""
+        return None
+
+    def robot_steps(self, n: int) -> int:
+        """Robot-steps of a job of `n` candidates."""
+        return stage_robot_steps(self.config, "rank", n)
+
+    def genomes_for(self, start: int, stop: int) -> np.ndarray:
+        return self.genomes[start:stop]
+
+    def job(self, index: int, lease_s: float, *, span: int = 1) -> Job:
+        """Slot `index` as a job (never a span)."""
+        slot = self.slots[index]
+        return Job(
+            key=self.key(index),
+            start=slot.start,
+            stop=slot.stop,
+            config=self.config,
+            genomes=self.genomes[slot.start : slot.stop],
+            lease_s=lease_s,
+        )
+
+    def implausible(self, rows: np.ndarray) -> str | None:
+        """Validate's rows: their bounds are checked as the result is decoded."""
+        return None
+
+    def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> Callable[[], None] | None:
+        """Slot `index` is done: `worker`'s rows of it; once every slot is, what hands the
+        ranking (`ranked`, `rank_in_world`'s bit for bit) to its future."""
+        if not self._fill_scores(index, worker, scores) or self.scores is None:
+            return None
+        return partial(self.future.set_result, ranked(Validated.from_scores(self.scores)))
+
+
+AskedWork = Report | Rank
+"""What the server asks for itself."""
+Work = Run | Report | Rank
 """What the scheduler has in flight."""
 
 

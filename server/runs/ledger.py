@@ -6,24 +6,24 @@ worker table (`server.runs.workers`) and the told generations on their way to th
 generation tells the run loop, which asks the next generation at once (a span's lease moves on
 to it); the last of a champion's stage moves the choice on (`server.runs.choosing`), and once
 no stage is left the last generation goes to the store with the champion; the last of a report
-assembles it (`evorobotics.reports`) for its asker's future, which the scheduler resolves
-outside its lock. No lock: the scheduler calls it under its own.
+or a ranking assembles it (`evorobotics.reports`, `evorobotics.evolution.ranked`) for its
+asker's future, which the scheduler resolves outside its lock. No lock: the scheduler calls it
+under its own.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future
+from functools import partial
 
 import numpy as np
 
 from evorobotics.evolution import RunLoop
-from evorobotics.reports import Report as Assembled
 from schemas.run import RunConfig
 from schemas.wire import JobKey, Result
 from server.runs.choosing import Choosing
-from server.runs.jobs import Lease, Report, Run, Work
+from server.runs.jobs import AskedWork, Lease, Run, Work
 from server.runs.outbox import Outbox, Written
 from server.runs.policy import Policy
 from server.runs.workers import Worker, Workers
@@ -35,7 +35,8 @@ TOTALS = ("leased", "done", "requeued", "duplicates_dropped")
 
 
 class Ledger:
-    """Runs, reports, leases, workers and told generations in flight, and their completion."""
+    """Runs, reports and rankings, leases, workers and told generations in flight, and their
+    completion."""
 
     def __init__(
         self, policy: Policy, *, clock: Callable[[], float], wall: Callable[[], float]
@@ -43,30 +44,33 @@ class Ledger:
         self.policy = policy
         self._clock = clock
         self.runs: dict[int, Run] = {}
-        self.reports: dict[int, Report] = {}
+        self.reports: dict[int, AskedWork] = {}
+        """Reports and rankings by number."""
         self.leases: dict[JobKey, Lease] = {}
         self.workers = Workers(policy, clock=clock, wall=wall)
         self.outbox = Outbox(policy, clock)
         self.sequence = 0
         """Leases made so far: a work's `served` is the number of its last."""
         self.totals = dict.fromkeys(TOTALS, 0)
-        self._resolved: list[tuple[Future[Assembled], Assembled | Exception]] = []
-        """Reports finished or failed, for the scheduler to resolve outside its lock."""
+        self._resolved: list[Callable[[], None]] = []
+        """What resolves the futures of the reports and rankings finished or failed, for the
+        scheduler to call outside its lock (a future's callbacks run there)."""
 
-    def take_resolved(self) -> list[tuple[Future[Assembled], Assembled | Exception]]:
-        """The reports finished (their report) or failed (the error) since the last call."""
+    def take_resolved(self) -> list[Callable[[], None]]:
+        """What resolves the reports and rankings finished (their result) or failed (the
+        error) since the last call."""
         resolved, self._resolved = self._resolved, []
         return resolved
 
     # what is in flight -----------------------------------------------------------------------
 
     def work(self) -> Iterator[Work]:
-        """Everything in flight: reports, then runs."""
+        """Everything in flight: reports and rankings, then runs."""
         yield from self.reports.values()
         yield from self.runs.values()
 
     def find(self, key: JobKey) -> Work | None:
-        """The report or run whose job `key` is, if in flight."""
+        """The report, ranking or run whose job `key` is, if in flight."""
         return self.reports.get(key.run_id) if key.report else self.runs.get(key.run_id)
 
     def leasable(self, work: Work) -> bool:
@@ -202,13 +206,13 @@ class Ledger:
     def _complete_report(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
         report = self.reports[key.run_id]
         try:
-            assembled = report.fill_scores(key.index, lease.worker, scores)
+            resolve = report.fill_scores(key.index, lease.worker, scores)
         except ValueError as exc:
             self.fail_report(report.report_id, f"it cannot be assembled: {exc}")
             return
         self.totals["done"] += 1
-        if assembled is not None:
-            self._resolved.append((report.future, assembled))
+        if resolve is not None:
+            self._resolved.append(resolve)
             del self.reports[report.report_id]
 
     def _complete_stage(self, key: JobKey, lease: Lease, scores: np.ndarray) -> None:
@@ -250,15 +254,17 @@ class Ledger:
         self.drop_run(run_id)
 
     def fail_report(self, report_id: int, why: str) -> None:
-        """The report fails (its asker gets the error); its jobs are dropped."""
+        """The report or ranking fails (its asker gets the error); its jobs are dropped."""
         report = self.reports.pop(report_id)
         log.warning("%s failed: %s", report.label, why)
-        self._resolved.append((report.future, RuntimeError(f"{report.label} failed: {why}")))
+        error = RuntimeError(f"{report.label} failed: {why}")
+        self._resolved.append(partial(report.future.set_exception, error))
         for key in [k for k in self.leases if k.report and k.run_id == report_id]:
             del self.leases[key]
 
     def fail_run(self, key: JobKey, error: str) -> None:
-        """The server's own evaluation of job `key` failed: its run (or report) fails."""
+        """The server's own evaluation of job `key` failed: its run (or report, or ranking)
+        fails."""
         if key.report:
             self.fail_report(key.run_id, f"the server's own evaluation failed: {error}")
             return

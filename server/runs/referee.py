@@ -1,7 +1,9 @@
 """The referee: the server's own evaluation of the jobs no worker may evaluate.
 
 A job that erred on `Policy.max_attempts` credentials, or on every live one, is leased to
-`REFEREE` and evaluated on the referee's one thread (`run_job`), outside the scheduler's lock.
+`REFEREE` and evaluated on the referee's one thread (`run_job`), outside the scheduler's lock;
+so is a ranking's job while no worker is live (a stuck robot's replacement must not wait for
+one).
 Its result goes back to the scheduler as a worker's would; only its failing fails the run (or
 report), since a worker's error says nothing about the run.
 """
@@ -17,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 from schemas.wire import Job, Result
 from server.core.logs import context
 from server.runs.evaluation import run_job
-from server.runs.jobs import Lease, Work
+from server.runs.jobs import Lease, Rank, Work
 from server.runs.ledger import Ledger
 from server.runs.workers import credential
 
@@ -51,12 +53,18 @@ class Referee:
 
     def refer_stranded(self) -> None:
         """Lease to the referee every pending job that erred on `max_attempts` credentials or
-        that no live worker may take (each live credential erred on it). Under the lock."""
+        that no live worker may take (each live credential erred on it), and a ranking's jobs
+        while no worker is live. Under the lock."""
         ledger = self._ledger
         live = ledger.live()  # an in-process executor takes any job
         takers = None if any(not w.listed for w in live) else {credential(w.name) for w in live}
         for work in ledger.work():
-            if work.erred and work.running:
+            if not work.running:
+                continue
+            if isinstance(work, Rank) and takers is not None and not takers:
+                for index in list(work.pending):
+                    self._refer(work, index)
+            elif work.erred:
                 for index in work.stranded(ledger.policy.max_attempts, takers):
                     self._refer(work, index)
 
@@ -74,9 +82,9 @@ class Referee:
         run.unpend(index)
         slot.status = "leased"
         self._ledger.leases[key] = lease
-        context(log, run=key.run_id).info(
-            "%s erred on %s: the server evaluates it", key.label(), ", ".join(sorted(slot.erred))
-        )
+        erred = ", ".join(sorted(slot.erred))
+        why = f"erred on {erred}" if erred else "no worker is live"
+        context(log, run=key.run_id).info("%s %s: the server evaluates it", key.label(), why)
 
     def _judge(self, job: Job, lease: Lease) -> None:
         """The referee's thread: evaluate `job` and record it; nothing if `lease` ended

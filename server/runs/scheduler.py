@@ -18,7 +18,8 @@ pick), leased, retried, refereed and spot-checked as a generation's are; the las
 goes to the store with the champion. A controller's report (`report`: an exploration report
 or a robustness map, `evorobotics.reports`) is cut into jobs of its trials the same way, leased
 before any run's, and assembled into the future its asker waits on (resolved outside the
-lock). A span lets the worker holding a generation's only
+lock); so is a ranking (`rank`: a run's candidates validated in a robot's world,
+`evorobotics.evolution.rank_in_world`), cut into jobs of its candidates. A span lets the worker holding a generation's only
 job evolve the following ones itself (ask and tell are pure functions of the GA state and the
 seed): each accepted generation moves the lease on to the next, and the worker proves with a
 digest that it evaluated the genomes asked here.
@@ -44,20 +45,21 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
+from typing import TypeVar
 
 import numpy as np
 
 from evorobotics.evaluate import implausible
-from evorobotics.evolution import RunLoop
+from evorobotics.evolution import Ranked, RunLoop
 from evorobotics.reports import Report as Assembled
-from evorobotics.reports import implausible as implausible_rows
 from evorobotics.strategies import traits
 from schemas.run import RunConfig
 from schemas.wire import Ack, Job, JobKey, ReportSpec, ReportStage, Result, WorkerStatus
+from schemas.world import World
 from server.core.logs import context
 from server.runs.choosing import Choosing
 from server.runs.evaluation import digest_error, spot_check, spot_check_scores
-from server.runs.jobs import Lease, Report, Run, Slot, Work
+from server.runs.jobs import Lease, Rank, Report, Run, Slot, Work
 from server.runs.ledger import Ledger
 from server.runs.outbox import Written
 from server.runs.policy import Policy, clamp_speed
@@ -65,6 +67,8 @@ from server.runs.referee import Referee
 from server.runs.workers import Worker, credential
 
 log = logging.getLogger(__name__)
+
+_Asked = TypeVar("_Asked", Report, Rank)
 
 SPOT_TOTALS = ("results_checked", "individuals_checked", "robot_steps_checked", "mismatches")
 """Keys of `Scheduler.spot_totals()`."""
@@ -96,8 +100,8 @@ class Scheduler:
         return self._clock()
 
     def close(self) -> None:
-        """Finish the server's own evaluation in hand; no more after. Reports in flight fail
-        (their askers stop waiting)."""
+        """Finish the server's own evaluation in hand; no more after. Reports and rankings in
+        flight fail (their askers stop waiting)."""
         self._referee.close()
         with self._lock:
             self._closed = True
@@ -184,19 +188,40 @@ class Scheduler:
         server's own evaluation of one of its jobs, or the server stopping). The same report
         asked while in flight is the same future. ValueError for a bad request."""
         with self._lock:
-            parts = len(self._ledger.live()) * self.policy.jobs_per_worker
             report = Report.new(
-                stage, config, spec, weights, served=self._ledger.sequence, parts=parts
+                stage, config, spec, weights, served=self._ledger.sequence, parts=self._parts()
             )
-            found = self._ledger.reports.get(report.report_id)
-            if found is not None:
-                return found.future
+        return self._ask(report).future
+
+    def rank(self, config: RunConfig, world: World, genomes: np.ndarray) -> Future[Ranked]:
+        """`evorobotics.evolution.rank_in_world(config, genomes, world)`, computed by jobs
+        of the candidates cut per live worker and leased before any run's, as a report is: the
+        future of its (order, scores), bit for bit, or of the error that failed it. ValueError
+        for bad candidates."""
+        with self._lock:
+            rank = Rank.new(
+                config, world, genomes, served=self._ledger.sequence, parts=self._parts()
+            )
+        return self._ask(rank).future
+
+    def _parts(self) -> int:
+        """Jobs to cut asked work into: `jobs_per_worker` for each live worker."""
+        return len(self._ledger.live()) * self.policy.jobs_per_worker
+
+    def _ask(self, asked: _Asked) -> _Asked:
+        """`asked` in flight, or the same work already in flight (its number is a digest of
+        what it computes); failed at once if the scheduler is closed."""
+        with self._lock:
+            found = self._ledger.reports.get(asked.report_id)
+            if isinstance(found, type(asked)):
+                return found
             if self._closed:
-                report.future.set_exception(RuntimeError("the server is stopping"))
-                return report.future
-            self._ledger.reports[report.report_id] = report
+                asked.future.set_exception(RuntimeError("the server is stopping"))
+                return asked
+            self._ledger.reports[asked.report_id] = asked
+            self._referee.refer_stranded()  # a ranking while no worker is live
         self._announce()
-        return report.future
+        return asked
 
     # workers ---------------------------------------------------------------------------------
 
@@ -230,6 +255,7 @@ class Scheduler:
         with self._lock:
             self._ledger.workers.leave(worker)
             released = self._ledger.release_where(lambda lease: lease.worker == worker)
+            self._referee.refer_stranded()
         self._announce()
         return released
 
@@ -337,7 +363,7 @@ class Scheduler:
             work = self._ledger.find(key)
             if work is None:  # a lease never outlives its run or report
                 raise ValueError(f"{key.label()} is leased but not in flight")
-            wrong = None if isinstance(work, Report) else digest_error(result, i, lease, work.loop)
+            wrong = digest_error(result, i, lease, work.loop) if isinstance(work, Run) else None
             if wrong is not None:
                 record.spans = False
                 context(log, worker=result.worker).warning(
@@ -411,15 +437,12 @@ class Scheduler:
                 listener()
 
     def _resolve(self) -> None:
-        """Hand the reports finished or failed meanwhile to their askers (outside the lock:
-        a future's callbacks run here)."""
+        """Hand the reports and rankings finished or failed meanwhile to their askers (outside
+        the lock: a future's callbacks run here)."""
         with self._lock:
             resolved = self._ledger.take_resolved()
-        for future, outcome in resolved:
-            if isinstance(outcome, Exception):
-                future.set_exception(outcome)
-            else:
-                future.set_result(outcome)
+        for resolve in resolved:
+            resolve()
 
     def _accept(self, key: JobKey, lease: Lease, result: Result, i: int) -> None:
         """Generation `i` of `result` (or a stage's scores) fills the slot `lease` held
@@ -433,11 +456,11 @@ class Scheduler:
         """Why a generation of `result` claims what its run's trials cannot produce
         (`implausible`), naming worker, run and generation; None if none does, or it carries
         no evaluation or its run is not in flight. Judged before any lease or spot-check, so a
-        forgery counts against its credential even when it comes late. A report's rows: by
-        `evorobotics.reports.implausible`."""
+        forgery counts against its credential even when it comes late. A report's or a
+        ranking's rows: by its own `implausible`."""
         report = self._ledger.reports.get(result.key.run_id) if result.key.report else None
         if report is not None and result.scores is not None:
-            why = implausible_rows(report.config, report.stage, report.spec, result.scores)
+            why = report.implausible(result.scores)
             return None if why is None else f"worker {result.worker} {report.label}: {why}"
         run = None if result.key.report else self._ledger.runs.get(result.key.run_id)
         fitness, components, descriptors = result.fitness, result.components, result.descriptors

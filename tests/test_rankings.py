@@ -1,0 +1,116 @@
+"""A run's candidates ranked in a robot's world as jobs (`Scheduler.rank`): the `rank` and
+`fit` replacement policies' rankings are the workers' simulation, cut by candidate, and equal
+`rank_in_world` bit for bit; the server ranks them itself only while no worker is live."""
+
+from __future__ import annotations
+
+from concurrent.futures import Future
+
+import numpy as np
+import pytest
+
+from evorobotics.evolution import Ranked, rank_in_world, ranking_config
+from schemas.run import RunConfig, ValidationConfig
+from schemas.wire import Job, JobKey
+from schemas.world import World
+from server.runs.evaluation import run_job
+from server.runs.policy import Policy
+from server.runs.scheduler import Scheduler
+from tests.helpers import WAIT, make_scheduler, random_controller
+
+SLOW = 10.0
+"""A worker speed at which no generation is a span."""
+CONFIG = RunConfig(
+    network="reactive",
+    validation=ValidationConfig(poses=4, steps=60, candidates=6, test_poses=0),
+)
+CALIBRATED = World(whisker_range=(0.03, 0.05, 0.08, 0.05, 0.1), motor_gain=(1.0, 0.9))
+"""A robot's calibrated world: whiskers and wheels of its own."""
+CANDIDATES = np.stack([random_controller(seed).weights for seed in range(6)])
+
+
+def same(a: Ranked, b: Ranked) -> bool:
+    """Order and every score, bit for bit."""
+    return a[0].tolist() == b[0].tolist() and a[1].scores().tobytes() == b[1].scores().tobytes()
+
+
+def settle_all(sched: Scheduler, names: list[str]) -> list[Job]:
+    """Every worker leases and settles honestly until nothing is left; the jobs."""
+    jobs: list[Job] = []
+    while held := [(n, j) for n in names if (j := sched.lease(n)) is not None]:
+        for name, job in held:
+            assert sched.settle(run_job(job, name)).accepted
+            jobs.append(job)
+    return jobs
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_a_ranking_is_cut_per_worker_and_is_rank_in_world_bit_for_bit(workers: int) -> None:
+    sched, _ = make_scheduler()
+    names = [f"w{i}" for i in range(workers)]
+    for name in names:
+        sched.join(name, speed=SLOW)
+    future: Future[Ranked] = sched.rank(CONFIG, CALIBRATED, CANDIDATES)
+    assert sched.rank(CONFIG, CALIBRATED, CANDIDATES) is future  # asked again: the same
+    jobs = settle_all(sched, names)
+    assert [(j.key.stage, j.start, j.stop) for j in jobs] == [
+        ("rank", a, a + 6 // workers) for a in range(0, 6, 6 // workers)
+    ]
+    assert all(j.config == ranking_config(CONFIG, CALIBRATED) for j in jobs)
+    assert future.done() and same(future.result(), rank_in_world(CONFIG, CANDIDATES, CALIBRATED))
+    sched.close()
+
+
+def test_with_no_live_worker_the_server_ranks_itself() -> None:
+    sched, _ = make_scheduler()
+    future = sched.rank(CONFIG, CONFIG.world, CANDIDATES)
+    assert same(future.result(WAIT), rank_in_world(CONFIG, CANDIDATES, CONFIG.world))
+    assert sched.totals()["leased"] == 0  # the referee's leases are not a worker's
+    sched.close()
+
+
+def test_a_rankings_forged_rows_quarantine_and_return_to_pending() -> None:
+    sched, _ = make_scheduler(Policy(spot_checks=10))
+    for name in ("honest", "cheat"):
+        sched.join(name, speed=SLOW)
+    future = sched.rank(CONFIG, CALIBRATED, CANDIDATES)
+    forged = sched.lease("cheat")
+    assert forged is not None and forged.key.stage == "rank"
+    true = run_job(forged, "cheat")
+    assert true.scores is not None
+    crowned = true.scores.copy()
+    crowned[:, 2] = 1.0  # every candidate roams on every pose: only a re-run tells
+    ack = sched.settle(true.model_copy(update={"scores": crowned}))
+    assert not ack.accepted and "rank row" in sched.quarantined()["cheat"]
+    settle_all(sched, ["honest", "cheat"])
+    assert same(future.result(WAIT), rank_in_world(CONFIG, CANDIDATES, CALIBRATED))
+    sched.close()
+
+
+def test_bad_candidates_are_refused_before_any_job() -> None:
+    sched, _ = make_scheduler()
+    sched.join("a", speed=SLOW)
+    with pytest.raises(ValueError, match="for a network of"):
+        sched.rank(CONFIG, CALIBRATED, CANDIDATES[:, :-1])
+    with pytest.raises(ValueError, match="NaN or infinity"):
+        sched.rank(CONFIG, CALIBRATED, np.full_like(CANDIDATES, np.nan))
+    with pytest.raises(ValueError, match="candidates to rank"):
+        sched.rank(CONFIG, CALIBRATED, np.concatenate([CANDIDATES, CANDIDATES, CANDIDATES]))
+    with pytest.raises(ValueError, match="maze"):
+        sched.rank(CONFIG.model_copy(update={"maze": "nowhere"}), CALIBRATED, CANDIDATES)
+    assert not sched.has_pending() and sched.lease("a") is None
+    sched.close()
+
+
+def test_a_ranking_jobs_wire_checks_its_config_and_rows() -> None:
+    config = ranking_config(CONFIG, CALIBRATED)
+    key = JobKey(run_id=7, generation=0, index=0, stage="rank")
+    job = Job(key=key, start=0, stop=6, config=config, genomes=CANDIDATES)
+    assert run_job(job, "w").scores is not None
+    with pytest.raises(ValueError, match="generation 0"):
+        Job(key=key.at(1), start=0, stop=6, config=config, genomes=CANDIDATES)
+    gap = config.model_copy(update={"reality_gap": "on"})
+    with pytest.raises(ValueError, match="without a reality gap"):
+        Job(key=key, start=0, stop=6, config=gap, genomes=CANDIDATES)
+    with pytest.raises(ValueError, match="slice 0:13 outside 12"):
+        Job(key=key, start=0, stop=13, config=config, genomes=np.ones((13, CANDIDATES.shape[1])))
