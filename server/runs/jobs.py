@@ -323,6 +323,28 @@ class Asked(Slotted):
     def key(self, index: int) -> JobKey:
         return JobKey(run_id=self.report_id, generation=0, index=index, stage=self.stage)
 
+    @property
+    def report(self) -> ReportSpec | None:
+        """A report's size; a ranking's jobs carry none."""
+        return None
+
+    def genomes_for(self, start: int, stop: int) -> np.ndarray:
+        """The genomes of rows start:stop."""
+        raise NotImplementedError
+
+    def job(self, index: int, lease_s: float, *, span: int = 1) -> Job:
+        """Slot `index` as a job (never a span)."""
+        slot = self.slots[index]
+        return Job(
+            key=self.key(index),
+            start=slot.start,
+            stop=slot.stop,
+            config=self.config,
+            genomes=self.genomes_for(slot.start, slot.stop),
+            report=self.report,
+            lease_s=lease_s,
+        )
+
 
 def _digest(*parts: str | np.ndarray) -> int:
     """An asked work's number: 63 bits of the SHA-256 of what it computes."""
@@ -406,19 +428,6 @@ class Report(Asked):
         """Every trial runs the one controller."""
         return self.genome
 
-    def job(self, index: int, lease_s: float, *, span: int = 1) -> Job:
-        """Slot `index` as a job (never a span)."""
-        slot = self.slots[index]
-        return Job(
-            key=self.key(index),
-            start=slot.start,
-            stop=slot.stop,
-            config=self.config,
-            genomes=self.genome,
-            report=self.spec,
-            lease_s=lease_s,
-        )
-
     def implausible(self, rows: np.ndarray) -> str | None:
         """Why a result's rows cannot come from the report's trials
         (`evorobotics.reports.implausible`), or None."""
@@ -480,29 +489,12 @@ class Rank(Asked):
     def label(self) -> str:
         return f"ranking {self.report_id}"
 
-    @property
-    def report(self) -> None:
-        """A ranking's jobs are no report's."""
-        return None
-
     def robot_steps(self, n: int) -> int:
         """Robot-steps of a job of `n` candidates."""
         return stage_robot_steps(self.config, "rank", n)
 
     def genomes_for(self, start: int, stop: int) -> np.ndarray:
         return self.genomes[start:stop]
-
-    def job(self, index: int, lease_s: float, *, span: int = 1) -> Job:
-        """Slot `index` as a job (never a span)."""
-        slot = self.slots[index]
-        return Job(
-            key=self.key(index),
-            start=slot.start,
-            stop=slot.stop,
-            config=self.config,
-            genomes=self.genomes[slot.start : slot.stop],
-            lease_s=lease_s,
-        )
 
     def implausible(self, rows: np.ndarray) -> str | None:
         """Validate's rows: their bounds are checked as the result is decoded."""
