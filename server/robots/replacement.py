@@ -1,10 +1,10 @@
-"""What a stuck robot gets: the replacement policies, and the server's own rankings of a run's
+"""What a stuck robot gets: the replacement policies, and the validated rankings of a run's
 candidates that they choose from.
 
 A stuck robot asks on KEY_REPLACE: the failure is recorded against the controller, and the
 robot's policy (its own, else the colony's `RobotSettings.replacement`) chooses the reply.
-`off`: none. `rank`: the run's validated champion, else the best of the server's own validated
-ranking of the run's candidates (`rank_in_world` in the run's world) that this robot has not
+`off`: none. `rank`: the run's validated champion, else the best of the validated ranking of
+the run's candidates (`rank_in_world` in the run's world) that this robot has not
 failed with in its last `recent_failures` stuck events (its current one included); none while
 that ranking is computed (once per run and generation: as jobs workers take, sliced by
 candidate, `Scheduler.rank`; the server's own evaluation only when no worker is live), for a
@@ -217,9 +217,9 @@ class Replacements:
     def _pick_rank(
         self, db: Session, run_id: int, recent: set[str | None]
     ) -> tuple[ControllerDocument | None, str]:
-        """The run's validated champion, else the best of the server's own validated ranking
-        of its candidates that did not fail recently (none while that is being computed):
-        nothing served rests on a worker's claimed fitness alone."""
+        """The run's validated champion, else the best of the validated ranking of its
+        candidates that did not fail recently (none while that is being computed): nothing
+        served rests on a worker's claimed training fitness."""
         run = db.get(Run, run_id)
         best = None if run is None else crud.champion(db, run=run)
         if best is not None and best.sha256 not in recent:  # chosen on unseen poses, tested
@@ -262,9 +262,9 @@ class Replacements:
     def ranking(
         self, db: Session, run_id: int, robot_id: str | None, *, wait: bool
     ) -> Ranking | None:
-        """The run's candidates ranked by the server's validation, in the robot's calibrated
-        world or (robot None) the run's, computed once per calibration and committed
-        generation on the ranking thread; None while it is being computed unless `wait`.
+        """The run's candidates ranked by validation, in the robot's calibrated world or
+        (robot None) the run's, computed once per calibration and committed generation
+        (waited for on the ranking thread); None while it is being computed unless `wait`.
         NotFoundError: no robot, no calibration, no run, no generation."""
         calibration, calibrated = None, ""
         if robot_id is not None:
