@@ -4,7 +4,8 @@
 file) runs the default RunConfig (the paper's experiment) to completion, with
 COLONY_SPOT_CHECKS=1 and =0 interleaved (the order alternates every repetition), so a drift
 of the machine's load falls on both alike. Per run: wall time from POST /api/runs to
-"completed", and the robot-steps the server re-simulated (/metrics) against the run's own
+"completed", and the robot-steps evaluated again (/metrics: by the server, or by the workers of
+a generation cut into several jobs) against the run's own
 evaluation robot-steps (population x generations x trials x trial steps). Both settings must
 export the same champion (checks never touch the science).
 

@@ -31,7 +31,7 @@ from schemas.network import NetworkSpec
 from schemas.run import RunConfig
 from schemas.world import World
 
-PROTOCOL = 15
+PROTOCOL = 16
 """Wire protocol version, sent in every job request and robot trace batch; the server idles
 workers and refuses robots' traces of other versions."""
 
@@ -373,7 +373,7 @@ class Job(_Message):
     `report_config`); a ranking's, candidates start..stop on the validation set of its
     `config` (`evorobotics.evolution.ranking_config`)."""
 
-    ARRAYS: ClassVar[tuple[str, ...]] = ("genomes", "state")
+    ARRAYS: ClassVar[tuple[str, ...]] = ("genomes", "state", "checks")
     kind: Literal["job"] = "job"
     key: JobKey
     start: int = Field(ge=0)
@@ -388,6 +388,10 @@ class Job(_Message):
     genomes: np.ndarray
     """(stop - start, n_weights) float64."""
     state: dict[str, np.ndarray] | None = None
+    checks: np.ndarray | None = None
+    """(c, n_weights) float64: individuals of another job of the generation, evaluated after
+    the slice's and sent with them (`Result.checks`): that job's spot-check, by another
+    worker (a training job's of a generation cut into several)."""
 
     @model_validator(mode="after")
     def _check(self) -> Job:
@@ -405,6 +409,16 @@ class Job(_Message):
             raise ValueError(f"genomes are {genomes.dtype}{genomes.shape}, expected float64{shape}")
         if not np.isfinite(genomes).all():
             raise ValueError("genomes contain NaN or infinity")
+        checks = self.checks
+        if checks is not None and (
+            checks.dtype != np.float64
+            or checks.ndim != 2
+            or not 1 <= len(checks) <= config.population
+            or checks.shape[1] != shape[1]
+            or not np.isfinite(checks).all()
+            or self.span > 1
+        ):
+            raise ValueError(f"checks must be finite float64 (1..population, {shape[1]}), no span")
         if (self.span > 1) != (self.state is not None):
             raise ValueError("a span, and only a span, brings the GA state")
         if self.span > 1 and (self.start, self.stop) != (0, config.population):
@@ -419,8 +433,8 @@ class Job(_Message):
     def _check_stage(self) -> Job:
         config, genomes, v = self.config, self.genomes, self.config.validation
         validate = self.key.stage in ("validate", "rank")
-        if self.span != 1 or self.state is not None:
-            raise ValueError(f"a {self.key.stage} job is no span")
+        if self.span != 1 or self.state is not None or self.checks is not None:
+            raise ValueError(f"a {self.key.stage} job is no span and brings no checks")
         if self.report is not None:
             most = self._check_report(self.report)
         elif self.key.stage == "rank":
@@ -479,14 +493,16 @@ class Result(_Message):
     error: str | None = None
     want_next: bool = False
     """Answer with the worker's next job (carrying the Ack) if one is ready now."""
+    checks: int = Field(0, ge=0, le=10_000)
+    """Rows after the slice's: the job's `checks`, evaluated (k = 1)."""
     digests: tuple[str, ...] = Field((), max_length=SPAN_BATCH_MAX)
     """`genome_digest` of each generation's genomes: a span's, which the worker asked itself."""
     fitness: np.ndarray | None = None
-    """(k, stop - start) float64."""
+    """(k, stop - start + checks) float64."""
     components: np.ndarray | None = None
-    """(k, stop - start, trials, 4) float64."""
+    """(k, stop - start + checks, trials, 4) float64."""
     descriptors: np.ndarray | None = None
-    """(k, stop - start, 4) float64 (`evorobotics.evaluate.DESCRIPTORS`). Only dtypes and
+    """(k, stop - start + checks, 4) float64 (`evorobotics.evaluate.DESCRIPTORS`). Only dtypes and
     shapes are checked here: whether the values can be true is a claim the scheduler judges
     (`evorobotics.evaluate.implausible`), so a false one counts against its credential."""
     scores: np.ndarray | None = None
@@ -523,6 +539,8 @@ class Result(_Message):
                 raise ValueError("an error result carries no fitness")
             return self
         if self.key.stage != "train":
+            if self.checks:
+                raise ValueError(f"a {self.key.stage} result carries no checks")
             return self._check_scores()
         if self.scores is not None:
             raise ValueError("a training result carries no scores")
@@ -535,11 +553,13 @@ class Result(_Message):
             or self.stop is None
         ):
             raise ValueError("a result needs its slice, fitness, components and descriptors")
-        k, n = len(fitness) if fitness.ndim else 0, self.stop - self.start
+        k, n = len(fitness) if fitness.ndim else 0, self.stop - self.start + self.checks
+        if self.checks and (k != 1 or self.digests):
+            raise ValueError("a result with checks is of one generation, no span")
         if fitness.dtype != np.float64 or fitness.ndim != 2 or not 1 <= k <= SPAN_BATCH_MAX:
             raise ValueError(f"fitness must be float64 (k <= {SPAN_BATCH_MAX}, n)")
         if fitness.shape[1] != n:
-            raise ValueError(f"fitness {fitness.shape} must be for the slice of {n}")
+            raise ValueError(f"fitness {fitness.shape} must be for the slice and checks: {n}")
         if components.dtype != np.float64 or components.ndim != 4 or components.shape[:2] != (k, n):
             raise ValueError(f"components {components.shape} do not match fitness {fitness.shape}")
         if descriptors.dtype != np.float64 or descriptors.shape != (k, n, 4):

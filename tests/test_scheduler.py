@@ -750,8 +750,9 @@ def test_any_interleaving_with_error_results_tells_what_evolve_tells(
 ) -> None:
     """Issue 38, attack 1, as a property: whichever of four credentials err on whichever
     jobs, leave or let time pass, no run fails and it tells `evolve`'s generations (the jobs
-    every live credential erred on are evaluated by the server's referee)."""
-    sched, clock = make_scheduler(Policy(span_below_s=0, errors_quarantine=3))
+    every live credential erred on are evaluated by the server's referee). Each generation's
+    jobs check each other (`Job.checks`): no honest credential is ever quarantined."""
+    sched, clock = make_scheduler(Policy(span_below_s=0, errors_quarantine=3, spot_checks=1))
     sched.add(1, RunLoop(CONFIG), running=True)
     held: dict[int, Job | None] = dict.fromkeys(range(4))
     written: list[Written] = []
@@ -783,6 +784,7 @@ def test_any_interleaving_with_error_results_tells_what_evolve_tells(
     assert eventually(drained, WAIT)
     same_generations(written, reference(CONFIG, evaluate_population))
     assert sched.take_failed() == {}
+    assert not [why for why in sched.quarantined().values() if "claimed" in why]
     sched.close()
 
 
@@ -891,10 +893,12 @@ def drain_honestly(sched: Scheduler, worker: str) -> list[Written]:
 
 
 def test_an_honest_result_passes_its_spot_check() -> None:
+    """One job of a generation: its result is checked as it arrives, here."""
     sched, _ = make_scheduler(Policy(spot_checks=1))
+    sched.join("w", speed=1e6)  # one worker: the generation is one job
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("w")
-    assert job is not None
+    assert job is not None and (job.start, job.stop, job.checks) == (0, 8, None)
     assert sched.settle(honest(job, "w")).accepted
     steps = CONFIG.trials * (CONFIG.steps or 0)
     assert sched.spot_totals() == {
@@ -906,25 +910,107 @@ def test_an_honest_result_passes_its_spot_check() -> None:
     assert sched.quarantined() == {}
 
 
+def test_a_generation_in_several_jobs_is_checked_by_its_workers_against_each_other(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each job also evaluates an individual of the job before it (`Job.checks`, drawn with
+    secrets); once all are in, each pair is compared bit for bit: the server evaluates
+    nothing while the workers agree."""
+    sched, _ = make_scheduler(Policy(spot_checks=1))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    names = ["a", "b", "c"]
+    jobs = [sched.lease(name) for name in names]
+    assert all(job is not None and job.checks is not None for job in jobs)
+    asked = RunLoop(CONFIG).ask()
+    slots = [(0, 3), (3, 6), (6, 8)]
+    for k, job in enumerate(jobs):
+        assert job is not None and job.checks is not None and len(job.checks) == 1
+        start, stop = slots[k - 1]
+        assert any(np.array_equal(job.checks[0], g) for g in asked[start:stop])
+    results = [honest(job, name) for job, name in zip(jobs, names, strict=True) if job]
+
+    def server_evaluates(*args: object) -> None:
+        raise AssertionError("the server evaluated while the workers agreed")
+
+    monkeypatch.setattr("server.runs.evaluation.evaluate", server_evaluates)
+    assert all(sched.settle(result).accepted for result in results)
+    assert [w.told.generation for w in sched.take_told()] == [0]
+    assert sched.spot_totals() == {
+        "results_checked": 3,
+        "individuals_checked": 3,
+        "robot_steps_checked": 3 * CONFIG.trials * (CONFIG.steps or 0),
+        "mismatches": 0,
+    }
+
+
+def test_a_worker_that_lies_about_anothers_individuals_is_the_one_quarantined() -> None:
+    """The workers' checks disagree: the server's own evaluation finds the checker lied, so
+    only it is quarantined; the job it checked stands, and the generation waits for its own."""
+    sched, _ = make_scheduler(Policy(spot_checks=2))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    jobs = [sched.lease(name) for name in ("a", "liar", "c")]
+    assert all(jobs) and jobs[1] is not None
+    results = [honest(job, name) for job, name in zip(jobs, ("a", "liar", "c"), strict=True) if job]
+    lie = results[1]
+    assert lie.fitness is not None and lie.components is not None and lie.checks == 2
+    fitness, components = lie.fitness.copy(), lie.components.copy()
+    forged_fitness, forged_components = plausible_forgery(CONFIG, components[:, -2:])
+    fitness[:, -2:], components[:, -2:] = forged_fitness, forged_components  # job 0's two
+    results[1] = lie.model_copy(update={"fitness": fitness, "components": components})
+    assert all(sched.settle(result).accepted for result in results[:2])
+    ack = sched.settle(results[2])
+    assert ack.accepted
+    assert set(sched.quarantined()) == {"liar"} and "claimed fitness" in sched.quarantined()["liar"]
+    assert sched.counts() == {"pending": 1, "leased": 0, "done": 2}
+    assert [w.told.generation for w in drain_honestly(sched, "a")][:1] == [0]
+
+
+def test_a_result_without_its_jobs_checks_is_its_credentials_error() -> None:
+    """Its job goes to others (here none is live: the server's referee), never back to it."""
+    sched, _ = make_scheduler(Policy(spot_checks=1))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("w")
+    assert job is not None and job.checks is not None
+    full = honest(job, "w")
+    assert full.fitness is not None and full.components is not None and full.descriptors is not None
+    n = job.stop - job.start
+    bare = full.model_copy(
+        update={
+            "checks": 0,
+            "fitness": full.fitness[:, :n],
+            "components": full.components[:, :n],
+            "descriptors": full.descriptors[:, :n],
+        }
+    )
+    assert sched.settle(bare).reason == "error recorded"
+    assert sched.counts()["pending"] == 2 and sched.quarantined() == {}
+    again = sched.lease("w")
+    assert again is not None and again.start != job.start
+    sched.close()
+
+
 def test_a_forged_result_quarantines_its_worker_and_requeues_its_generation() -> None:
+    """The forgery completes its generation: the workers' checks disagree, the server's own
+    evaluation says who lied, and the liar's results return to pending."""
     sched, _ = make_scheduler(CHECKED)
     sched.add(1, RunLoop(CONFIG), running=True)
     first, other, last = sched.lease("rogue"), sched.lease("honest"), sched.lease("rogue2")
     assert first is not None and other is not None and last is not None
-    assert sched.settle(honest(first, "rogue")).accepted  # honest once: it passes
+    assert sched.settle(honest(first, "rogue")).accepted  # honest once
+    assert sched.settle(honest(other, "honest")).accepted
     sched.leave("rogue2")  # the third slice returns, and goes to the rogue
     again = sched.lease("rogue")
     assert again is not None and (again.start, again.stop) == (6, 8)
     ack = sched.settle(forged(again, "rogue"))
     assert not ack.accepted and "spot-check" in ack.reason
     why = sched.quarantined()["rogue"]
-    assert "run 1 generation 0 individual 6" in why and "claimed fitness" in why
-    # its passed result of this generation is discarded too: slices 0:3 and 6:8 pending again
-    assert sched.counts() == {"pending": 2, "leased": 1, "done": 0}
+    assert "run 1 generation 0 individual" in why and "claimed fitness" in why
+    # its honest result of this generation is discarded too: slices 0:3 and 6:8 pending again
+    assert sched.counts() == {"pending": 2, "leased": 0, "done": 1}
+    assert sched.take_told() == []  # nothing of the generation was told
     assert sched.lease("rogue") is None  # no more jobs, ever
     assert not sched.settle(honest(first, "rogue")).accepted
     assert sched.spot_totals()["mismatches"] == 1
-    assert sched.settle(honest(other, "honest")).accepted
     told = drain_honestly(sched, "honest")
     expected = RunLoop(CONFIG)
     fitness, _, _ = evaluate_population(CONFIG, 0, expected.ask())
@@ -934,6 +1020,7 @@ def test_a_forged_result_quarantines_its_worker_and_requeues_its_generation() ->
 
 def test_quarantine_outlives_gone_keep_and_the_worker_stays_listed() -> None:
     sched, clock = make_scheduler(Policy(spot_checks=3, gone_keep_s=1.0))
+    sched.join("rogue", speed=SLOW)  # the generation is one job: checked as it arrives
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("rogue")
     assert job is not None and not sched.settle(forged(job, "rogue")).accepted
@@ -950,12 +1037,13 @@ def test_quarantine_covers_every_name_of_the_credential() -> None:
     stops them all, discards their results in flight, and a new name under it gets nothing."""
     sched, _ = make_scheduler(CHECKED)
     sched.add(1, RunLoop(CONFIG), running=True)
-    sibling, rogue = sched.lease("lab.pc-1"), sched.lease("lab.pc-2")
-    assert sibling is not None and rogue is not None
+    sibling, rogue, other = sched.lease("lab.pc-1"), sched.lease("lab.pc-2"), sched.lease("x")
+    assert sibling is not None and rogue is not None and other is not None
     assert sched.settle(honest(sibling, "lab.pc-1")).accepted
-    assert not sched.settle(forged(rogue, "lab.pc-2")).accepted
+    assert sched.settle(forged(rogue, "lab.pc-2")).accepted  # judged once all are in
+    assert sched.settle(honest(other, "x")).accepted
     assert set(sched.quarantined()) == {"lab.pc-1", "lab.pc-2"}
-    assert sched.counts()["done"] == 0  # the sibling's result is discarded too
+    assert sched.counts()["done"] == 1  # the sibling's result is discarded too
     for name in ("lab", "lab.pc-1", "lab.new"):
         assert sched.lease(name) is None
     assert sched.lease("laboratory") is not None  # another credential
@@ -965,6 +1053,7 @@ def test_quarantine_covers_every_name_of_the_credential() -> None:
 def test_forged_components_or_descriptors_quarantine_as_forged_fitness_does(what: str) -> None:
     """Quality-diversity strategies select on descriptors: they are checked bit for bit too."""
     sched, _ = make_scheduler(CHECKED)
+    sched.join("rogue", speed=SLOW)  # the generation is one job: checked as it arrives
     sched.add(1, RunLoop(CONFIG), running=True)
     job = sched.lease("rogue")
     assert job is not None

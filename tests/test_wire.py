@@ -133,7 +133,7 @@ def test_a_frame_refuses_object_arrays_and_its_reserved_key() -> None:
 
 
 def test_the_protocol_and_its_keys() -> None:
-    assert PROTOCOL == 15 and JobRequest(worker="w").protocol == PROTOCOL
+    assert PROTOCOL == 16 and JobRequest(worker="w").protocol == PROTOCOL
     assert (next_key("w"), result_key("w")) == ("evocolony/jobs/next/w", "evocolony/jobs/result/w")
     assert next_key("w-1").startswith(KEY_JOB_NEXT.removesuffix("*"))
     assert result_key("w-1").startswith(KEY_JOB_RESULT.removesuffix("*"))
@@ -282,7 +282,7 @@ def test_a_result_refuses_non_finite_or_negative_speeds_and_times() -> None:
             },
             "k <=",
         ),
-        ({"fitness": np.zeros((1, 3))}, "slice of 4"),
+        ({"fitness": np.zeros((1, 3))}, "slice and checks: 4"),
         ({"components": np.zeros((1, 3, 2, 4))}, "components"),
         ({"components": np.zeros((2, 4, 2, 4))}, "components"),
         ({"components": np.zeros((1, 4, 2))}, "components"),

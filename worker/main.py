@@ -280,17 +280,19 @@ def _reject_job(link: _Link, exc: InvalidJobError) -> Job | None:
 def _evaluate(
     link: _Link, job: Job, evaluator: Evaluator, genomes: np.ndarray | None = None
 ) -> Result:
-    """One generation of `job` (of `genomes` if given: a span's own) as a Result."""
-    genomes = job.genomes if genomes is None else genomes
+    """One generation of `job` (of `genomes` if given: a span's own), its checks after its
+    slice, as a Result."""
+    if genomes is None:
+        genomes = job.genomes if job.checks is None else np.concatenate([job.genomes, job.checks])
     began = time.perf_counter()
     try:
         fitness, components, descriptors = _checked(
-            evaluator(job.config, job.key.generation, genomes), job
+            evaluator(job.config, job.key.generation, genomes), job, len(genomes)
         )
     except Exception as exc:  # report it to the server instead of crashing the worker
         return _failed(link, job, "evaluating", exc)
     seconds = time.perf_counter() - began
-    speed = robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else None
+    speed = robot_steps(job.config, len(genomes)) / seconds if seconds > 0 else None
     link.stats.jobs_done += 1
     link.stats.evaluations += len(genomes)
     link.stats.robot_steps_per_s = speed
@@ -301,6 +303,7 @@ def _evaluate(
         stop=job.stop,
         robot_steps_per_s=speed or 0.0,
         seconds=seconds,
+        checks=len(genomes) - (job.stop - job.start),
         fitness=fitness[np.newaxis],
         components=components[np.newaxis],
         descriptors=descriptors[np.newaxis],
@@ -342,11 +345,11 @@ def _score(link: _Link, job: Job) -> Result:
     )
 
 
-def _checked(out: Evaluated, job: Job) -> Evaluated:
+def _checked(out: Evaluated, job: Job, n: int) -> Evaluated:
     """The evaluator's fitness (n,), components (n, trials, 4) and descriptors (n, 4) as
     float64."""
     fitness, components, descriptors = (np.ascontiguousarray(a, dtype=np.float64) for a in out)
-    n, trials = job.stop - job.start, job.config.trials
+    trials = job.config.trials
     if (fitness.shape, components.shape, descriptors.shape) != ((n,), (n, trials, 4), (n, 4)):
         raise EvaluationError(
             f"evaluator returned {fitness.shape}, {components.shape} and {descriptors.shape} "

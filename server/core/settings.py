@@ -150,8 +150,9 @@ class Settings(BaseSettings):
         1,
         ge=0,
         le=64,
-        description="individuals of each worker result re-evaluated by the server; a mismatch "
-        "quarantines the worker (0: off)",
+        description="individuals of each worker result evaluated again (by the worker of "
+        "another job of the same generation, else by the server) and compared bit for bit; a "
+        "mismatch quarantines the worker (0: off)",
     )
     housekeeping_seconds: float = Field(
         1.0, gt=0.0, description="period of lease expiry and queued-run promotion"

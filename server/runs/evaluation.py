@@ -1,7 +1,8 @@
 """The server's own evaluations and its checks of a worker's result: a job (`run_job`: the
 in-process executors' and the referee's, a generation's, a champion's stage's or a report's), a
 spot-check (`spot_check`, `spot_check_scores` for a stage's or a report's: re-evaluate some of
-a result here), a span's
+a result here; `cross_check`: a generation's jobs against each other, judged here only when
+they differ), a span's
 digest (`digest_error`: the genomes it evaluated were those asked) and a stored claim before
 it is served (`repeats_claim`).
 
@@ -24,6 +25,7 @@ from evorobotics.reports import stage_scores, stage_steps
 from schemas.run import RunConfig
 from schemas.wire import Job, Result, genome_digest
 from server.runs.jobs import Lease, Run, Work
+from server.runs.workers import credential
 
 _CHOOSE = secrets.SystemRandom()
 """Picks the individuals to re-evaluate: a worker cannot predict them from the run's seed."""
@@ -37,7 +39,8 @@ def run_job(job: Job, worker: str) -> Result:
     try:
         if job.key.stage != "train":
             return _run_stage(job, worker, began)
-        evaluation = evaluate(job.config, job.key.generation, job.genomes)
+        genomes = job.genomes if job.checks is None else np.concatenate([job.genomes, job.checks])
+        evaluation = evaluate(job.config, job.key.generation, genomes)
         why = implausible(
             job.config, evaluation.fitness, evaluation.components, evaluation.descriptors
         )
@@ -50,9 +53,10 @@ def run_job(job: Job, worker: str) -> Result:
             start=job.start,
             stop=job.stop,
             robot_steps_per_s=(
-                robot_steps(job.config, job.stop - job.start) / seconds if seconds > 0 else 0.0
+                robot_steps(job.config, len(genomes)) / seconds if seconds > 0 else 0.0
             ),
             seconds=seconds,
+            checks=len(genomes) - (job.stop - job.start),
             fitness=evaluation.fitness[None],
             components=evaluation.components[None],
             descriptors=evaluation.descriptors[None],
@@ -171,16 +175,69 @@ def spot_check(
         again = evaluate(config, generation, asked[lease.start + np.array(rows)])
         totals["individuals_checked"] += len(rows)
         totals["robot_steps_checked"] += robot_steps(config, len(rows))
-        for j, row in enumerate(rows):
-            claimed = (fitness[i, row], components[i, row], descriptors[i, row])
-            recomputed = (again.fitness[j], again.components[j], again.descriptors[j])
-            for what, a, b in zip(_CHECKED, claimed, recomputed, strict=True):
-                if not _same_bits(a, b):
-                    return (
-                        f"worker {result.worker} run {run.run_id} generation {generation} "
-                        f"individual {lease.start + row}: claimed {what} "
-                        f"{np.asarray(a).tolist()!r}, recomputed {np.asarray(b).tolist()!r}"
-                    )
+        claimed = (fitness[i, rows], components[i, rows], descriptors[i, rows])
+        recomputed = (again.fitness, again.components, again.descriptors)
+        where = lease.start + np.array(rows)
+        why = _mismatch(result.worker, run.run_id, generation, where, claimed, recomputed)
+        if why is not None:
+            return why
+    return None
+
+
+def cross_check(
+    run: Run, *, wanted: int, trusted: Callable[[str], bool], totals: dict[str, int]
+) -> list[tuple[str, str]]:
+    """Each slot's `check_rows` of a complete generation, as its worker claimed them, against
+    the next slot's worker's evaluation of them (`Run.checked`): the workers that lied, each
+    with why. A mismatch is judged by this process's own evaluation; so is a slot whose
+    checker shares its credential (and saw which rows are checked: others are drawn). Slots
+    of this process's own evaluators (`trusted`) are not checked."""
+    config, generation, genomes = run.config, run.generation, run.loop.ask()
+    liars: list[tuple[str, str]] = []
+    for j, rows in enumerate(run.check_rows):
+        claimer, entry = run.slots[j].worker, run.checked.get(j)
+        if claimer is None or entry is None or trusted(claimer):
+            continue
+        checker, *theirs = entry
+        if credential(checker) == credential(claimer):
+            slot = run.slots[j]
+            rows = np.array(sorted(_CHOOSE.sample(range(slot.start, slot.stop), len(rows))))
+            theirs = []
+        totals["results_checked"] += 1
+        totals["individuals_checked"] += len(rows)
+        totals["robot_steps_checked"] += robot_steps(config, len(rows))
+        claimed = (run.fitness[rows], run.components[rows], run.descriptors[rows])
+        if theirs and all(_same_bits(a, b) for a, b in zip(claimed, theirs, strict=True)):
+            continue
+        again = evaluate(config, generation, genomes[rows])
+        recomputed = (again.fitness, again.components, again.descriptors)
+        for who, said in ((claimer, claimed), (checker, tuple(theirs))):
+            why = (
+                None if not said else _mismatch(who, run.run_id, generation, rows, said, recomputed)
+            )
+            if why is not None and not trusted(who):
+                liars.append((who, why))
+    return liars
+
+
+def _mismatch(
+    worker: str,
+    run_id: int,
+    generation: int,
+    rows: np.ndarray,
+    claimed: tuple[np.ndarray, ...],
+    recomputed: tuple[np.ndarray, ...],
+) -> str | None:
+    """Why `worker`'s claimed fitness, components and descriptors of individuals `rows` are
+    not the recomputed ones bit for bit (the first that differs), or None."""
+    for j, row in enumerate(rows):
+        for what, a, b in zip(_CHECKED, claimed, recomputed, strict=True):
+            if not _same_bits(a[j], b[j]):
+                return (
+                    f"worker {worker} run {run_id} generation {generation} individual {row}: "
+                    f"claimed {what} {np.asarray(a[j]).tolist()!r}, recomputed "
+                    f"{np.asarray(b[j]).tolist()!r}"
+                )
     return None
 
 

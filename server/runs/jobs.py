@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import heapq
+import secrets
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -147,6 +148,10 @@ class Slotted:
         ]
 
 
+_CHOOSE = secrets.SystemRandom()
+"""Draws the individuals to check: a worker cannot predict them from the run's seed."""
+
+
 def _stage_slots(n: int, parts: int) -> list[Slot]:
     """`n` rows of a stage in about `parts` slots."""
     return [Slot(a, b) for a, b in job_slices(n, -(-n // max(1, min(parts, n))))]
@@ -163,6 +168,13 @@ class Run(Slotted):
     descriptors: np.ndarray
     choosing: Choosing | None = None
     """After the last generation: the champion being chosen, whose stage the slots are."""
+    check_rows: list[np.ndarray] = field(default_factory=list)
+    """Per slot of a generation cut into several: individuals of it (drawn with `secrets`)
+    that the next slot's job evaluates too (`Job.checks`), its spot-check by whoever takes
+    that job."""
+    checked: dict[int, tuple[str, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    """Slot -> the worker that evaluated its `check_rows` and their fitness, components and
+    descriptors as it did."""
 
     @property
     def config(self) -> RunConfig:
@@ -233,10 +245,21 @@ class Run(Slotted):
         )
 
     @classmethod
-    def new(cls, run_id: int, loop: RunLoop, *, running: bool, served: int, size: int) -> Run:
-        """`loop`'s current generation, cut into jobs of `size` individuals, all pending."""
+    def new(
+        cls, run_id: int, loop: RunLoop, *, running: bool, served: int, size: int, checks: int
+    ) -> Run:
+        """`loop`'s current generation, cut into jobs of `size` individuals, all pending; cut
+        into several, each slot's `checks` individuals go to the next slot's job."""
         config = loop.config
         slots = [Slot(a, b) for a, b in job_slices(config.population, size)]
+        check_rows = []
+        if checks and len(slots) > 1:
+            check_rows = [
+                np.array(
+                    sorted(_CHOOSE.sample(range(s.start, s.stop), min(checks, s.stop - s.start)))
+                )
+                for s in slots
+            ]
         return cls(
             run_id=run_id,
             loop=loop,
@@ -248,7 +271,14 @@ class Run(Slotted):
             descriptors=np.full((config.population, 4), np.nan),
             remaining=len(slots),
             served=served,
+            check_rows=check_rows,
         )
+
+    def checks_of(self, index: int) -> np.ndarray | None:
+        """The rows slot `index`'s job evaluates too: the previous slot's `check_rows`."""
+        if not self.check_rows or self.choosing is not None:
+            return None
+        return self.check_rows[index - 1]
 
     def job(self, index: int, lease_s: float, *, span: int = 1) -> Job:
         """Slot `index` as a job (the whole run from its GA state when `span` > 1)."""
@@ -271,6 +301,7 @@ class Run(Slotted):
             genomes=loop.ask()[slot.start : slot.stop],
             span=span,
             state=loop.state.to_arrays() if span > 1 else None,
+            checks=None if (rows := self.checks_of(index)) is None else loop.ask()[rows],
             lease_s=lease_s,
         )
 
@@ -282,11 +313,16 @@ class Run(Slotted):
         components: np.ndarray,
         descriptors: np.ndarray,
     ) -> None:
-        """Slot `index` is done: `worker`'s evaluation of it."""
+        """Slot `index` is done: `worker`'s evaluation of it, then of the rows it checks
+        (`checks_of`)."""
         slot = self.slots[index]
-        self.fitness[slot.start : slot.stop] = fitness
-        self.components[slot.start : slot.stop] = components
-        self.descriptors[slot.start : slot.stop] = descriptors
+        n = slot.stop - slot.start
+        self.fitness[slot.start : slot.stop] = fitness[:n]
+        self.components[slot.start : slot.stop] = components[:n]
+        self.descriptors[slot.start : slot.stop] = descriptors[:n]
+        if self.checks_of(index) is not None:
+            checked = (index - 1) % len(self.slots)
+            self.checked[checked] = (worker, fitness[n:], components[n:], descriptors[n:])
         self._done(slot, worker)
 
     def fill_scores(self, index: int, worker: str, scores: np.ndarray) -> Choosing | None:

@@ -52,6 +52,9 @@ class Ledger:
         self.sequence = 0
         """Leases made so far: a work's `served` is the number of its last."""
         self.totals = dict.fromkeys(TOTALS, 0)
+        self.verify: Callable[[Run], None] = lambda run: None
+        """Judges a generation's slots against each other once all are in (the scheduler's
+        cross-checks); any it quarantines return to pending, and the generation waits."""
         self._resolved: list[Callable[[], None]] = []
         """What resolves the futures of the reports and rankings finished or failed, for the
         scheduler to call outside its lock (a future's callbacks run there)."""
@@ -104,7 +107,9 @@ class Ledger:
     def install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:
         """Serve `loop`'s current generation, cut into jobs for the live workers."""
         size = self.job_size(loop.config, loop.generation, run_id if running else None)
-        self.runs[run_id] = Run.new(run_id, loop, running=running, served=served, size=size)
+        self.runs[run_id] = Run.new(
+            run_id, loop, running=running, served=served, size=size, checks=self.policy.spot_checks
+        )
 
     # leases ----------------------------------------------------------------------------------
 
@@ -182,6 +187,9 @@ class Ledger:
         run = self.runs[key.run_id]
         run.fill(key.index, lease.worker, fitness, components, descriptors)
         self.totals["done"] += 1
+        if run.remaining:
+            return
+        self.verify(run)
         if run.remaining:
             return
         loop = run.loop

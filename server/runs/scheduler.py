@@ -24,8 +24,10 @@ job evolve the following ones itself (ask and tell are pure functions of the GA 
 seed): each accepted generation moves the lease on to the next, and the worker proves with a
 digest that it evaluated the genomes asked here.
 
-Spot-checks (`server.runs.evaluation`) re-evaluate `Policy.spot_checks` individuals (a
-stage's: rows) of every result of a listed worker. A mismatch quarantines the worker's
+Spot-checks (`server.runs.evaluation`) evaluate again `Policy.spot_checks` individuals (a
+stage's: rows) of every result of a listed worker: of a generation cut into several jobs, the
+next job's worker does (`Job.checks`), and once all are in the ledger asks `cross_check` before
+it tells; of anything else, this process does as the result arrives. A mismatch quarantines the worker's
 credential for the life of the process (`server.runs.workers`): its workers get no more jobs
 and its results in the generations (or the stage) in flight return to pending, so honest
 workers evaluate them (docs/reliability.md, "Spot-checks").
@@ -58,12 +60,12 @@ from schemas.wire import Ack, Job, JobKey, ReportSpec, ReportStage, Result, Work
 from schemas.world import World
 from server.core.logs import context
 from server.runs.choosing import Choosing
-from server.runs.evaluation import digest_error, spot_check, spot_check_scores
+from server.runs.evaluation import cross_check, digest_error, spot_check, spot_check_scores
 from server.runs.jobs import Lease, Rank, Report, Run, Slot, Work
 from server.runs.ledger import Ledger
 from server.runs.outbox import Written
 from server.runs.policy import Policy, clamp_speed
-from server.runs.referee import Referee
+from server.runs.referee import REFEREE, Referee
 from server.runs.workers import Worker, credential
 
 log = logging.getLogger(__name__)
@@ -89,6 +91,7 @@ class Scheduler:
         self._lock = threading.Lock()
         self._ledger = Ledger(self.policy, clock=clock, wall=wall)
         self._referee = Referee(self._ledger, self._lock, clock=clock, record=self._judged)
+        self._ledger.verify = self._cross_check
         self.told_many = self._ledger.outbox.told_many
         """Set when a run has `write_now` generations unwritten: the store should write now."""
         self._closed = False
@@ -363,6 +366,14 @@ class Scheduler:
             work = self._ledger.find(key)
             if work is None:  # a lease never outlives its run or report
                 raise ValueError(f"{key.label()} is leased but not in flight")
+            if isinstance(work, Run) and work.choosing is None:
+                checks = work.checks_of(key.index)
+                asked = 0 if checks is None else len(checks)
+                if result.checks != asked:  # as an error: never leased to it again
+                    why = f"{result.checks} checks evaluated, its job asked for {asked}"
+                    self._erred(key, record, why)
+                    ack = Ack(key=result.key, accepted=True, reason="error recorded")
+                    break
             wrong = digest_error(result, i, lease, work.loop) if isinstance(work, Run) else None
             if wrong is not None:
                 record.spans = False
@@ -375,6 +386,8 @@ class Scheduler:
             took = max(self._clock() - lease.leased_at, 1e-6)  # before a span's lease moves on
             record.measured = clamp_speed(work.robot_steps(lease.stop - lease.start) / took)
             self._accept(key, lease, result, i)
+            if record.quarantine is not None:  # the generation's cross-checks caught it
+                return Ack(key=result.key, accepted=False, reason="spot-check failed: quarantined")
             self._ledger.workers.accepted(result.worker)
             record.jobs_done += 1
             if key.stage == "train":  # a stage's rows are no controllers' fitness
@@ -494,6 +507,8 @@ class Scheduler:
                 result, lease, work, wanted=self.policy.spot_checks, totals=self._spot
             )
         run = work if isinstance(work, Run) else None
+        if run is not None and run.check_rows:
+            return None  # its rows are checked against the others' once all are in
         return spot_check(
             result,
             lease,
@@ -502,6 +517,26 @@ class Scheduler:
             job_size=self._ledger.job_size,
             totals=self._spot,
         )
+
+    def _cross_check(self, run: Run) -> None:
+        """Quarantine each worker a complete generation's cross-checks caught
+        (`cross_check`): its slots return to pending, and the generation waits for them."""
+        liars = cross_check(
+            run, wanted=self.policy.spot_checks, trusted=self._trusted, totals=self._spot
+        )
+        for name, why in liars:
+            if name not in self._ledger.workers.quarantined():
+                self._spot["mismatches"] += 1
+                self._quarantine(name, why)
+
+    def _trusted(self, name: str) -> bool:
+        """This process's own evaluation: the referee's, or an in-process executor's."""
+        if name == REFEREE:
+            return True
+        try:
+            return not self._ledger.workers[name].listed
+        except KeyError:  # forgotten long ago: a worker's
+            return False
 
     def _quarantine(self, name: str, why: str) -> None:
         """No more jobs for any worker of `name`'s credential; their leases and every result
