@@ -185,7 +185,7 @@ def spot_check(
 
 
 def cross_check(
-    run: Run, *, wanted: int, trusted: Callable[[str], bool], totals: dict[str, int]
+    run: Run, *, trusted: Callable[[str], bool], totals: dict[str, int]
 ) -> list[tuple[str, str]]:
     """Each slot's `check_rows` of a complete generation, as its worker claimed them, against
     the next slot's worker's evaluation of them (`Run.checked`): the workers that lied, each
