@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from functools import partial
 from typing import Annotated
 
 import typer
@@ -23,6 +24,15 @@ def worker_command(
         str | None,
         typer.Option(help="worker name in GET /api/workers (default: [ZENOH_USER.]hostname-pid)"),
     ] = None,
+    threads: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            max=256,
+            help="threads a job's evaluation runs on (the same results whatever the count): "
+            "a machine's cores for its one worker",
+        ),
+    ] = 1,
     zenoh_user: ZenohUserOpt = None,
     zenoh_password: ZenohPasswordOpt = None,
     zenoh_root_ca: ZenohRootCaOpt = None,
@@ -42,6 +52,7 @@ def worker_command(
     from worker.main import (
         WorkerSettings,
         default_name,
+        evaluate_slice,
         install_signal_handlers,
         run_worker,
         watch_parent,
@@ -59,7 +70,7 @@ def worker_command(
     install_signal_handlers(stop)
     if exit_with_parent:
         watch_parent(stop)
-    stats = run_worker(settings, stop)
+    stats = run_worker(settings, stop, evaluator=partial(evaluate_slice, threads=threads))
     typer.echo(
         f"worker {settings.name}: {stats.evaluations} evaluations in {stats.jobs_done} jobs, "
         f"{stats.errors} errors"

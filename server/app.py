@@ -136,7 +136,9 @@ def create_app(
                 app.state.zenoh = session
                 app.state.dispatcher = dispatcher
                 if endpoint is not None:
-                    stack.callback(LocalWorkers(settings.local_workers(), endpoint).stop)
+                    threads = settings.local_worker_threads()
+                    local = LocalWorkers(settings.local_workers(), endpoint, threads=threads)
+                    stack.callback(local.stop)
             executor = InProcessExecutor(manager.scheduler, threads=settings.executor_threads())
             executor.start()
             stack.callback(executor.stop)

@@ -7,6 +7,7 @@ matter which worker is killed, stopped, added, or whether the server itself is S
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 from collections.abc import Iterator
@@ -134,6 +135,10 @@ def test_two_local_workers_finish_a_run_and_stop_with_the_server(
 ) -> None:
     server = colony.start_server(workers=2)
     pids = local_pids(colony, 2)
+    cores = str(len(os.sched_getaffinity(0)))
+    for pid in pids:  # each evaluates on every core: a run's span then has them all
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+        assert argv[argv.index("--threads") + 1] == cores
     run_id = colony.post("/api/runs", CONFIG)["id"]
     colony.finish(run_id, expected_sha)
     workers = colony.workers()

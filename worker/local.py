@@ -40,9 +40,12 @@ def local_endpoint(listen: tuple[str, ...], connect: tuple[str, ...]) -> str:
 
 
 class LocalWorkers:
-    """`count` `colony worker` subprocesses connected to `endpoint`; stop them exactly once."""
+    """`count` `colony worker` subprocesses connected to `endpoint`, each evaluating on
+    `threads` threads; stop them exactly once."""
 
-    def __init__(self, count: int, endpoint: str, *, log_level: str = "WARNING") -> None:
+    def __init__(
+        self, count: int, endpoint: str, *, threads: int = 1, log_level: str = "WARNING"
+    ) -> None:
         if count < 0:
             raise ValueError(f"count must be >= 0, got {count}")
         argv = [
@@ -53,6 +56,8 @@ class LocalWorkers:
             "--connect",
             endpoint,
             "--exit-with-parent",
+            "--threads",
+            str(threads),
             "--log-level",
             log_level,
         ]

@@ -83,11 +83,14 @@ class EvaluationError(WorkerError):
     """The evaluator returned shapes or values a result cannot carry."""
 
 
-def evaluate_slice(config: RunConfig, generation: int, genomes: np.ndarray) -> Evaluated:
-    """The science: `evorobotics.evaluate.evaluate` over the whole slice, vectorised."""
+def evaluate_slice(
+    config: RunConfig, generation: int, genomes: np.ndarray, *, threads: int = 1
+) -> Evaluated:
+    """The science: `evorobotics.evaluate.evaluate` over the whole slice, vectorised, on
+    `threads` threads (the same bits whatever the count)."""
     from evorobotics.evaluate import evaluate
 
-    evaluation = evaluate(config, generation, genomes)
+    evaluation = evaluate(config, generation, genomes, threads=threads)
     return evaluation.fitness, evaluation.components, evaluation.descriptors
 
 

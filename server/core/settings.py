@@ -209,6 +209,12 @@ class Settings(BaseSettings):
             return self.workers
         return max(1, (os.cpu_count() or 1) - 1)
 
+    def local_worker_threads(self) -> int:
+        """Threads each local worker evaluates on: every core this process may use. A run of
+        short generations goes to one worker in spans, which then has them all; a study's
+        spans share them (bench/dispatch.py, bench/study.py)."""
+        return len(os.sched_getaffinity(0))
+
     def executor_threads(self) -> int:
         """In-process evaluators: off when zenoh workers evaluate, one in a zenoh-less server."""
         if self.executors is not None:
