@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-from functools import partial
 from typing import Annotated
 
 import typer
@@ -52,7 +51,6 @@ def worker_command(
     from worker.main import (
         WorkerSettings,
         default_name,
-        evaluate_slice,
         install_signal_handlers,
         run_worker,
         watch_parent,
@@ -61,7 +59,7 @@ def worker_command(
     try:
         auth = ZenohClientAuth(user=zenoh_user, password=zenoh_password, root_ca=zenoh_root_ca)
         settings = WorkerSettings(
-            connect=tuple(connect), name=name or default_name(auth.user), auth=auth
+            connect=tuple(connect), name=name or default_name(auth.user), auth=auth, threads=threads
         )
         configure(log_level, as_format(log_format), ids={"worker": settings.name})
     except ValueError as exc:
@@ -70,7 +68,7 @@ def worker_command(
     install_signal_handlers(stop)
     if exit_with_parent:
         watch_parent(stop)
-    stats = run_worker(settings, stop, evaluator=partial(evaluate_slice, threads=threads))
+    stats = run_worker(settings, stop)
     typer.echo(
         f"worker {settings.name}: {stats.evaluations} evaluations in {stats.jobs_done} jobs, "
         f"{stats.errors} errors"

@@ -344,6 +344,9 @@ class JobRequest(_Message):
     host: str = Field("", max_length=255)
     robot_steps_per_s: float | None = Field(None, ge=0.0, allow_inf_nan=False)
     """Measured on its last job; the server clamps it (schemas.security bounds)."""
+    threads: int = Field(1, ge=1, le=256)
+    """Threads it evaluates a job on: several workers on one host with more than one share
+    its cores, so the server does not slice a generation between them."""
 
     _name = field_validator("worker")(_worker_name)
 

@@ -788,6 +788,25 @@ def test_any_interleaving_with_error_results_tells_what_evolve_tells(
     sched.close()
 
 
+@pytest.mark.parametrize(
+    ("hosts", "threads", "first"),
+    [
+        (("pc", "pc"), 2, (0, 8)),  # one machine's cores, shared: slices would gain nothing
+        (("pc", "pc"), 1, (0, 4)),  # a core each: the generation is cut in two
+        (("pc-1", "pc-2"), 2, (0, 4)),  # two machines
+    ],
+)
+def test_workers_sharing_a_hosts_cores_get_whole_generations(
+    hosts: tuple[str, str], threads: int, first: tuple[int, int]
+) -> None:
+    sched, _ = make_scheduler()
+    for name, host in zip(("a", "b"), hosts, strict=True):
+        sched.join(name, host=host, threads=threads, speed=SLOW)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    job = sched.lease("a")
+    assert job is not None and (job.start, job.stop) == first
+
+
 def test_a_run_whose_store_lags_leases_nothing_until_the_writes_are_in() -> None:
     """A store that blocks or refuses writes (or a writer that stopped) stops its runs: once
     a told generation has waited `store_lag_s` nothing is leased, and `written` lets the run

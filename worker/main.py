@@ -27,6 +27,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from types import FrameType
 
 import numpy as np
@@ -113,6 +114,8 @@ class WorkerSettings:
     backoff_initial_s: float = 0.1
     backoff_max_s: float = 5.0
     multicast_scouting: bool = False
+    threads: int = 1
+    """Threads a job's evaluation runs on (the same results whatever the count)."""
     auth: ZenohClientAuth = field(default_factory=ZenohClientAuth)
     """zenoh user/password and TLS root CA (docs/security.md)."""
 
@@ -126,6 +129,8 @@ class WorkerSettings:
             )
         if not self.connect:
             raise ValueError("a worker needs at least one connect endpoint")
+        if not 1 <= self.threads <= 256:
+            raise ValueError(f"threads must be 1 to 256, got {self.threads}")
         for name in ("request_timeout_s", "backoff_initial_s", "backoff_max_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -174,9 +179,11 @@ def run_worker(
     settings: WorkerSettings,
     stop: threading.Event,
     *,
-    evaluator: Evaluator = evaluate_slice,
+    evaluator: Evaluator | None = None,
 ) -> WorkerStats:
-    """Serve jobs until `stop` is set; open (and reopen) the session as needed."""
+    """Serve jobs until `stop` is set; open (and reopen) the session as needed. Jobs are
+    evaluated by `evaluator`, by default the science on `settings.threads` threads."""
+    evaluator = evaluator or partial(evaluate_slice, threads=settings.threads)
     stats = WorkerStats()
     backoff = _Backoff(settings)
     host = socket.gethostname()
@@ -255,8 +262,12 @@ def _serve(link: _Link, host: str, evaluator: Evaluator, backoff: _Backoff) -> N
 
 def _next_job(link: _Link, host: str, backoff: _Backoff) -> Job | None:
     """One `get` on jobs/next: a job, or None (idle, no server, or a job it reported invalid)."""
+    settings = link.settings
     request = JobRequest(
-        worker=link.settings.name, host=host[:255], robot_steps_per_s=link.stats.robot_steps_per_s
+        worker=settings.name,
+        host=host[:255],
+        robot_steps_per_s=link.stats.robot_steps_per_s,
+        threads=settings.threads,
     )
     reply = link.ask(KEY_JOB_NEXT, encode(request))
     if reply is None:
@@ -297,7 +308,7 @@ def _evaluate(
     seconds = time.perf_counter() - began
     speed = robot_steps(job.config, len(genomes)) / seconds if seconds > 0 else None
     link.stats.jobs_done += 1
-    link.stats.evaluations += len(genomes)
+    link.stats.evaluations += job.stop - job.start  # its slice: checks are no run's
     link.stats.robot_steps_per_s = speed
     return Result(
         key=job.key,

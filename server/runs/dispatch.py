@@ -262,7 +262,11 @@ class Dispatcher:
     def _join(self, held: _Held) -> None:
         request = held.request
         self._scheduler.join(
-            request.worker, host=request.host, speed=request.robot_steps_per_s, serving=held.served
+            request.worker,
+            host=request.host,
+            threads=request.threads,
+            speed=request.robot_steps_per_s,
+            serving=held.served,
         )
 
     def _on_result(self, query: zenoh.Query) -> None:

@@ -97,11 +97,21 @@ class Ledger:
         running = {run.run_id for run in self.runs.values() if run.running}
         return live > 0 and len(running | ({run_id} if run_id is not None else set())) >= live
 
+    def sliceable(self) -> bool:
+        """Whether cutting a generation between the live workers gains anything: they take
+        more than one job (`jobs_per_worker` each), the workers of one host that evaluate on
+        several threads counting as one worker (they share its cores)."""
+        live = self.live()
+        shared = {w.host for w in live if w.threads > 1}
+        units = len(shared) + sum(1 for w in live if w.threads == 1)
+        return units * self.policy.jobs_per_worker > 1
+
     def job_size(self, config: RunConfig, generation: int, run_id: int | None) -> int:
-        """`Policy.job_size` for the live workers, `run_id` counted among the running runs."""
+        """`Policy.job_size` for the live workers, `run_id` counted among the running runs;
+        workers that are not `sliceable` count as crowded (each job a whole generation)."""
         live = self.live()
         speeds = [w.speed if w.spans else None for w in live]
-        crowded = bool(live) and self.crowded(run_id)
+        crowded = bool(live) and (self.crowded(run_id) or not self.sliceable())
         return self.policy.job_size(config, generation, speeds, crowded=crowded)
 
     def install(self, run_id: int, loop: RunLoop, running: bool, served: int) -> None:

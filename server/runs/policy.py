@@ -37,8 +37,8 @@ class Policy:
     """A generation a worker evaluates faster than this runs in spans (0: never) while runs are
     fewer than workers: below it the round trip per generation costs more than parallel slices
     save (on 2 cores with one-thread workers, slices won from about 20 ms a generation:
-    bench/dispatch.py --sweep; local workers on every core gain nothing from slices of one
-    machine, and spans won at ten times the paper's trial too: --span-below 1).
+    bench/dispatch.py --sweep). Workers sharing one host's cores are never sliced between
+    (`Ledger.sliceable`): the scheduler counts them as crowded.
     With at least as many runs as workers (a study), every worker can evolve a run of its own:
     whole generations in spans then whatever a generation's length (bench/study.py)."""
     span_s: float = 5.0

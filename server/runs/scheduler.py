@@ -233,6 +233,7 @@ class Scheduler:
         worker: str,
         *,
         host: str | None = None,
+        threads: int = 1,
         speed: float | None = None,
         serving: bool = True,
         spans: bool = True,
@@ -246,6 +247,7 @@ class Scheduler:
             self._ledger.workers.join(
                 worker,
                 host=host,
+                threads=threads,
                 speed=speed,
                 serving=serving,
                 spans=spans,
@@ -309,9 +311,8 @@ class Scheduler:
                 and traits(chosen.config).in_state
             ):
                 loop, config = chosen.loop, chosen.config
-                wanted = self.policy.span_generations(
-                    config, record.speed, crowded=self._ledger.crowded()
-                )
+                alone = self._ledger.crowded() or not self._ledger.sliceable()
+                wanted = self.policy.span_generations(config, record.speed, crowded=alone)
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._ledger.lease(chosen, index, worker, span_left=span - 1)
             return chosen.job(index, lease_s, span=span)

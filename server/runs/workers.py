@@ -27,6 +27,9 @@ class Worker:
 
     name: str
     host: str = ""
+    threads: int = 1
+    """Threads it evaluates on, as it claims: workers of one host on several share its cores
+    (`Ledger.sliceable`), which a false claim can only waste."""
     speed: float | None = None
     """Robot-steps/s as it claims (clamped): spans and job sizes, which it can only waste."""
     measured: float | None = None
@@ -87,6 +90,7 @@ class Workers:
         worker: str,
         *,
         host: str | None,
+        threads: int,
         speed: float | None,
         serving: bool,
         spans: bool,
@@ -102,6 +106,7 @@ class Workers:
         record.listed = record.listed and listed
         if host:
             record.host = host[:255]
+        record.threads = threads
         if speed is not None:
             record.speed = clamp_speed(speed)
 
