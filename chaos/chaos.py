@@ -231,6 +231,7 @@ def chaos(args: argparse.Namespace) -> dict[str, Any]:
                 counters = lab.kill_server()
                 for name in totals:
                     totals[name] += counters.get(f"colony_jobs_{name}_total", 0.0)
+                report.setdefault("server_killed_at", []).append(gen)
                 print(f"  gen {gen}: server SIGKILLed (store held {before}); restarting")
                 lab.start_server()
                 after = committed(lab, run_id)
@@ -322,8 +323,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--population", type=int, default=40)
     parser.add_argument("--job-size", type=int, default=5)
-    parser.add_argument("--generations", type=int, default=60)
-    parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--generations", type=int, default=120)
+    parser.add_argument("--steps", type=int, default=4000, help="long enough for the schedule")
     parser.add_argument("--seed", type=int, default=0, help="the run's seed")
     parser.add_argument("--chaos-seed", type=int, default=1, help="seed of the chaos schedule")
     parser.add_argument("--workers", type=int, default=3)
@@ -334,8 +335,15 @@ def main() -> None:
     print("\nchaos report")
     for key, value in report.items():
         print(f"  {key}: {value}")
+    last = report["expected_evaluations"] // args.population - 1
+    mid_run = report["worker_kills"] > 0 and all(
+        g < last for g in report.get("server_killed_at", [last])
+    )
+    if not mid_run:
+        print("the run ended before the chaos it was to survive: lengthen it (--steps)")
     ok = (
-        report["status"] == "completed"
+        mid_run
+        and report["status"] == "completed"
         and report.get("paused_after_refusal", False)
         and report["identical"]
         and report["generations_lost"] == 0
