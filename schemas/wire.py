@@ -433,6 +433,11 @@ class Job(_Message):
             )
         return self
 
+    def evaluated(self) -> np.ndarray:
+        """The genomes a training job's worker evaluates, in its result's order: its slice,
+        then its `checks`."""
+        return self.genomes if self.checks is None else np.concatenate([self.genomes, self.checks])
+
     def _check_stage(self) -> Job:
         config, genomes, v = self.config, self.genomes, self.config.validation
         validate = self.key.stage in ("validate", "rank")

@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from evorobotics.evolution import Told
     from robot_agent.agent import Agent, AgentSettings
     from robot_agent.emulator import BasicXEmulator
-    from schemas.wire import Job, Result
+    from schemas.wire import Result
     from server.core.settings import Settings
     from server.robots.service import RobotService
     from server.robots.settings import RobotSettings
@@ -181,12 +181,6 @@ def fake_fitness(genomes: np.ndarray) -> np.ndarray:
     from schemas.run import FitnessWeights
 
     return mean_fitness(fake_components(genomes), FitnessWeights())
-
-
-def slice_genomes(job: Job) -> np.ndarray:
-    """What a worker evaluates of a training job: its slice, then its `checks` (a result
-    carries them in that order, `Result.checks` of them)."""
-    return job.genomes if job.checks is None else np.concatenate([job.genomes, job.checks])
 
 
 def plausible_forgery(config: RunConfig, components: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

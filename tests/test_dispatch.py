@@ -54,7 +54,6 @@ from tests.helpers import (
     reference,
     same_generations,
     serving,
-    slice_genomes,
     wait_status,
     worker_thread,
     zenoh_client,
@@ -307,7 +306,7 @@ def test_through_the_server_tokenless_names_and_absurd_speeds_change_no_run(
             job = ask_next(rogue, "claimer", robot_steps_per_s=speed)
             assert isinstance(job, Job), job  # the only worker asking: a job each time
             leases.append(job.lease_s)
-            f, c, d = evaluate_slice(job.config, job.key.generation, slice_genomes(job))
+            f, c, d = evaluate_slice(job.config, job.key.generation, job.evaluated())
             claimed = Result(
                 key=job.key, worker="claimer", start=job.start, stop=job.stop,
                 checks=len(f) - (job.stop - job.start), robot_steps_per_s=speed,

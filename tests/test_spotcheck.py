@@ -65,7 +65,6 @@ from tests.helpers import (
     free_port,
     plausible_forgery,
     serving,
-    slice_genomes,
     wait_status,
     worker_thread,
     zenoh_client,
@@ -172,7 +171,7 @@ def rogue_worker(
                 list(session.get(result_key(name), payload=encode(stage), timeout=WAIT))
                 continue
             fitness, components, descriptors = evaluate_slice(
-                job.config, job.key.generation, slice_genomes(job)
+                job.config, job.key.generation, job.evaluated()
             )
             real = (fitness, components, descriptors)
             forged = forge(job.config, *real) if acks else real

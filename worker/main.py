@@ -297,7 +297,7 @@ def _evaluate(
     """One generation of `job` (of `genomes` if given: a span's own), its checks after its
     slice, as a Result."""
     if genomes is None:
-        genomes = job.genomes if job.checks is None else np.concatenate([job.genomes, job.checks])
+        genomes = job.evaluated()
     began = time.perf_counter()
     try:
         fitness, components, descriptors = _checked(

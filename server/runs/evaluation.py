@@ -39,7 +39,7 @@ def run_job(job: Job, worker: str) -> Result:
     try:
         if job.key.stage != "train":
             return _run_stage(job, worker, began)
-        genomes = job.genomes if job.checks is None else np.concatenate([job.genomes, job.checks])
+        genomes = job.evaluated()
         evaluation = evaluate(job.config, job.key.generation, genomes)
         why = implausible(
             job.config, evaluation.fitness, evaluation.components, evaluation.descriptors
