@@ -125,6 +125,37 @@ def spot_check_scores(
     return None
 
 
+def implausible_claims(result: Result, work: Work | None) -> str | None:
+    """Why a generation of `result` claims what its run's trials cannot produce
+    (`implausible`), naming worker, run and generation; None if none does, or it carries no
+    evaluation or its work is not in flight. A report's or a ranking's rows: by its own
+    `implausible`. Judged before any lease or spot-check, so a forgery counts against its
+    credential even when it comes late."""
+    if work is not None and not isinstance(work, Run):
+        why = None if result.scores is None else work.implausible(result.scores)
+        return None if why is None else f"worker {result.worker} {work.label}: {why}"
+    fitness, components, descriptors = result.fitness, result.components, result.descriptors
+    if work is None or fitness is None or components is None or descriptors is None:
+        return None
+    config = work.loop.config
+    every = implausible(  # each check is per individual: all generations in one call
+        config,
+        fitness.reshape(-1),
+        components.reshape(-1, *components.shape[2:]),
+        descriptors.reshape(-1, descriptors.shape[-1]),
+    )
+    if every is None:
+        return None
+    for i in range(result.generations):  # which generation, named as a worker sees it
+        why = implausible(config, fitness[i], components[i], descriptors[i])
+        if why is not None:
+            return (
+                f"worker {result.worker} run {result.key.run_id} generation "
+                f"{result.key.generation + i}: {why}"
+            )
+    return None
+
+
 def spot_check(
     result: Result,
     lease: Lease | None,

@@ -19,8 +19,8 @@ goes to the store with the champion. A controller's report (`report`: an explora
 or a robustness map, `evorobotics.reports`) is cut into jobs of its trials the same way, leased
 before any run's, and assembled into the future its asker waits on (resolved outside the
 lock); so is a ranking (`rank`: a run's candidates validated in a robot's world,
-`evorobotics.evolution.rank_in_world`), cut into jobs of its candidates. A span lets the worker holding a generation's only
-job evolve the following ones itself (ask and tell are pure functions of the GA state and the
+`evorobotics.evolution.rank_in_world`), cut into jobs of its candidates. A span lets the
+worker holding a generation's only job evolve the following ones itself (ask and tell are pure functions of the GA state and the
 seed): each accepted generation moves the lease on to the next, and the worker proves with a
 digest that it evaluated the genomes asked here.
 
@@ -51,7 +51,6 @@ from typing import TypeVar
 
 import numpy as np
 
-from evorobotics.evaluate import implausible
 from evorobotics.evolution import Ranked, RunLoop
 from evorobotics.reports import Report as Assembled
 from evorobotics.strategies import traits
@@ -60,7 +59,13 @@ from schemas.wire import Ack, Job, JobKey, ReportSpec, ReportStage, Result, Work
 from schemas.world import World
 from server.core.logs import context
 from server.runs.choosing import Choosing
-from server.runs.evaluation import cross_check, digest_error, spot_check, spot_check_scores
+from server.runs.evaluation import (
+    cross_check,
+    digest_error,
+    implausible_claims,
+    spot_check,
+    spot_check_scores,
+)
 from server.runs.jobs import Lease, Rank, Report, Run, Slot, Work
 from server.runs.ledger import Ledger
 from server.runs.outbox import Written
@@ -332,7 +337,7 @@ class Scheduler:
             return Ack(key=result.key, accepted=False, reason="worker quarantined")
         if result.robot_steps_per_s > 0:
             record.speed = clamp_speed(result.robot_steps_per_s)
-        forged = self._implausible(result)
+        forged = implausible_claims(result, self._ledger.find(result.key))
         if forged is not None:
             self._spot["mismatches"] += 1
             self._quarantine(record.name, forged)
@@ -465,37 +470,6 @@ class Scheduler:
         if work is not None:
             self._count_errors(work.slots[key.index])
         self._ledger.accept(key, lease, result, i)
-
-    def _implausible(self, result: Result) -> str | None:
-        """Why a generation of `result` claims what its run's trials cannot produce
-        (`implausible`), naming worker, run and generation; None if none does, or it carries
-        no evaluation or its run is not in flight. Judged before any lease or spot-check, so a
-        forgery counts against its credential even when it comes late. A report's or a
-        ranking's rows: by its own `implausible`."""
-        report = self._ledger.reports.get(result.key.run_id) if result.key.report else None
-        if report is not None and result.scores is not None:
-            why = report.implausible(result.scores)
-            return None if why is None else f"worker {result.worker} {report.label}: {why}"
-        run = None if result.key.report else self._ledger.runs.get(result.key.run_id)
-        fitness, components, descriptors = result.fitness, result.components, result.descriptors
-        if run is None or fitness is None or components is None or descriptors is None:
-            return None
-        every = implausible(  # each check is per individual: all generations in one call
-            run.loop.config,
-            fitness.reshape(-1),
-            components.reshape(-1, *components.shape[2:]),
-            descriptors.reshape(-1, descriptors.shape[-1]),
-        )
-        if every is None:
-            return None
-        for i in range(result.generations):  # which generation, named as a worker sees it
-            why = implausible(run.loop.config, fitness[i], components[i], descriptors[i])
-            if why is not None:
-                return (
-                    f"worker {result.worker} run {result.key.run_id} generation "
-                    f"{result.key.generation + i}: {why}"
-                )
-        return None
 
     def _spot_check(self, result: Result, record: Worker) -> str | None:
         """`spot_check` `result`, unless this process's own evaluator sent it (it runs this
