@@ -21,7 +21,6 @@ def credential(worker: str) -> str:
 
 
 @dataclass
-@dataclass
 class Worker:
     """A name that spoke to the scheduler, as it sees it."""
 
