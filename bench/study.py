@@ -16,7 +16,8 @@ server keeps busy (prints figures; no assertions).
    (server / (server + workers)). A study of `--big-seeds` runs with ten times the trial
    length (`steps` x 10) gives the same at that scale. N = workers' CPU per generation /
    server CPU per generation: how many workers one server keeps busy (docs/deployment.md,
-   "Sizing a lab").
+   "Sizing a lab"); and the GA's ask and tell alone per generation, timed in this process,
+   which the server replays for every generation: the N no replaying server passes.
 
     .venv/bin/python bench/study.py [--seeds 8] [--repeats 3] [--generations 350]
         [--big-seeds 4] [--big-generations 20] [--quick]
@@ -43,9 +44,11 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 from _procs import children, cpu_seconds
 
 from evorobotics.evaluate import trial_steps
+from evorobotics.evolution import RunLoop
 from schemas.run import RunConfig
 
 QUICK = {
@@ -214,6 +217,24 @@ def sizing(label: str, figures: list[StudyFigures], config: RunConfig) -> None:
     print(f"  the server's share of the study's CPU: {100 * share:.1f} %")
     busy = workers / server if server > 0 else float("inf")
     print(f"  one server keeps about {busy:.0f} workers busy at {label}")
+    replay = replay_seconds(config)
+    print(
+        f"  the GA's ask and tell alone, which the server replays for every generation: "
+        f"{replay * 1e3:.2f} ms a generation in this process, so at most about "
+        f"{workers / replay:.0f} workers however lean the rest"
+    )
+
+
+def replay_seconds(config: RunConfig, generations: int = 300) -> float:
+    """CPU seconds of one generation's `RunLoop.ask` and `tell` (random fitness): what the
+    server computes for every generation to check a span's genomes and store checkpoints."""
+    loop = RunLoop(config.model_copy(update={"generations": generations + 1}))
+    fitness = np.random.default_rng(0).random((generations, config.population))
+    started = time.process_time()
+    for row in fitness:
+        loop.ask()
+        loop.tell(row)
+    return (time.process_time() - started) / generations
 
 
 def main() -> None:
