@@ -290,6 +290,30 @@ def test_rows_beyond_a_trials_physics_or_a_spot_check_quarantine_and_return_to_p
     sched.close()
 
 
+@pytest.mark.parametrize("stage", ["rank", "robustness"])
+def test_a_result_keyed_to_another_stage_is_dropped_unread(stage: ReportStage) -> None:
+    """A worker holding an exploration's job answers as if it were a ranking's or a map's
+    (fewer columns, valid on the wire): no job of that report, acknowledged as dropped."""
+    sched, _ = make_scheduler()
+    sched.join("w", speed=SLOW)
+    future = sched.report("explore", config_of(ROAMER), SPEC, ROAMER.weights)
+    job = sched.lease("w")
+    assert job is not None and job.key.stage == "explore"
+    columns = 3 if stage == "rank" else 2
+    other = Result(
+        key=job.key.model_copy(update={"stage": stage}),
+        worker="w",
+        start=job.start,
+        stop=job.stop,
+        scores=np.zeros((job.stop - job.start, columns)),
+    )
+    ack = sched.settle(decode(encode(other), Result))
+    assert not ack.accepted and "no lease held" in ack.reason
+    assert sched.quarantined() == {} and not future.done()
+    assert sched.settle(run_job(job, "w")).accepted  # its own result still counts
+    sched.close()
+
+
 def test_the_servers_own_evaluation_failing_fails_the_report_and_no_run(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

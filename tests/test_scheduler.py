@@ -165,9 +165,10 @@ def test_a_paused_run_is_not_leased_from_until_resumed() -> None:
 # leases ----------------------------------------------------------------------------------------
 
 
-def test_a_lease_expires_exactly_at_its_deadline_and_the_job_is_leased_again() -> None:
+def test_a_lease_expires_exactly_at_its_deadline_and_goes_to_another_credential() -> None:
     sched, clock = make_scheduler(Policy(lease_unknown_s=30.0))
     sched.add(1, RunLoop(CONFIG), running=True)
+    sched.join("b")
     clock.t = 5.0
     job = sched.lease("a")
     assert job is not None and job.lease_s == 30.0
@@ -178,12 +179,17 @@ def test_a_lease_expires_exactly_at_its_deadline_and_the_job_is_leased_again() -
     clock.t = 35.0
     assert sched.expire() == 1
     assert sched.next_deadline() is None
+    other = sched.lease("a")  # never its lapsed job again: the next one
+    assert other is not None and other.key != job.key
     again = sched.lease("b")
     assert again is not None and again.key == job.key
     late = sched.settle(result(job, "a"))
     assert not late.accepted and "late or duplicate" in late.reason
     assert sched.settle(result(again, "b")).accepted
-    assert sched.totals() == {"leased": 2, "done": 1, "requeued": 1, "duplicates_dropped": 1}
+    assert sched.settle(result(other, "a")).accepted
+    assert sched.quarantined() == {}  # a lapse is no error
+    assert sched.totals() == {"leased": 3, "done": 2, "requeued": 1, "duplicates_dropped": 1}
+    sched.close()
 
 
 def test_the_measured_speed_sets_the_lease_never_the_claimed_one() -> None:
@@ -233,15 +239,47 @@ def test_only_the_lease_holders_result_counts() -> None:
     assert sched.settle(result(job, "holder")).accepted
 
 
-def test_a_worker_asking_again_releases_what_it_held() -> None:
-    sched, _ = make_scheduler()
+def test_a_worker_asking_again_gets_the_job_it_held_until_that_leases_deadline() -> None:
+    """Its reply was lost: the same job, leased once. Asking again never extends the lease,
+    so no worker holds a job by asking before each deadline."""
+    sched, clock = make_scheduler(Policy(lease_unknown_s=30.0))
     sched.add(1, RunLoop(CONFIG), running=True)
     first = sched.lease("a")
-    again = sched.lease("a")  # its reply was lost: the same job, leased once
+    clock.t = 20.0
+    again = sched.lease("a")
     assert first is not None and again is not None and again.key == first.key
+    assert again.lease_s == 10.0 and sched.next_deadline() == 30.0
     assert sched.counts() == {"pending": 2, "leased": 1, "done": 0}
     assert sched.totals()["requeued"] == 1
     assert sched.settle(result(again, "a")).accepted
+    sched.close()
+
+
+def test_the_only_worker_cannot_hold_a_job_by_asking_again_or_letting_it_lapse() -> None:
+    """Its lease ends at the first deadline however it times its asks; then the job is never
+    leased to its credential again, and with no other credential live the server's referee
+    evaluates it: the run moves on."""
+    sched, clock = make_scheduler(Policy(lease_unknown_s=30.0))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    held = sched.lease("a")
+    assert held is not None
+    for _ in range(3):  # it asks again just before each deadline
+        clock.t += 9.0
+        again = sched.lease("a")
+        assert again is not None and again.key == held.key
+    clock.t += 9.0
+    again = sched.lease("a")  # past the first lease's deadline: never that job again
+    assert again is not None and again.key != held.key
+    clock.t += 31.0
+    third = sched.lease("a")  # it let the second lapse too
+    assert third is not None and third.key not in (held.key, again.key)
+    clock.t += 31.0
+    assert sched.expire() == 1  # and the third
+    told: list[Written] = []
+    assert eventually(lambda: bool(told.extend(sched.take_told()) or told), WAIT)
+    assert told[0].told.generation == 0  # the referee evaluated the jobs it let lapse
+    assert sched.quarantined() == {}  # a lapse is no error
+    sched.close()
 
 
 def test_leave_releases_at_once() -> None:
@@ -701,7 +739,12 @@ def store(sched: Scheduler) -> list[Written]:
 def test_any_interleaving_tells_the_same_generations_bit_for_bit(
     actions: list[tuple[str, int, float | None]],
 ) -> None:
-    sched, clock = make_scheduler(Policy(lease_min_s=10.0, lease_unknown_s=20.0))
+    # the drain worker below is live throughout and no job lapses on 10 credentials: the
+    # referee, whose evaluation is not these workers' fake one, never takes a job (a lapsed
+    # job never goes back to its credential: the drain worker takes it)
+    policy = Policy(lease_min_s=10.0, lease_unknown_s=20.0, lease_max_s=1e9, max_attempts=10)
+    sched, clock = make_scheduler(policy)
+    sched.join("drain")
     workers = [FakeWorker(f"w{i}") for i in range(4)]
     sched.add(1, RunLoop(CONFIG), running=True)
     written: list[Written] = []
@@ -982,6 +1025,55 @@ def test_a_worker_that_lies_about_anothers_individuals_is_the_one_quarantined() 
     assert set(sched.quarantined()) == {"liar"} and "claimed fitness" in sched.quarantined()["liar"]
     assert sched.counts() == {"pending": 1, "leased": 0, "done": 2}
     assert [w.told.generation for w in drain_honestly(sched, "a")][:1] == [0]
+
+
+def forged_but_checked(job: Job, worker: str, checked: np.ndarray) -> Result:
+    """A forger that knows which of its slot's individuals are checked (`checked`: their
+    genomes, from a job it was leased): every other individual forged."""
+    real = honest(job, worker)
+    assert real.fitness is not None and real.components is not None
+    n = job.stop - job.start
+    known = [i for i, g in enumerate(job.genomes) if any(np.array_equal(g, c) for c in checked)]
+    fitness, components = real.fitness.copy(), real.components.copy()
+    fake_f, fake_c = plausible_forgery(job.config, components[:, :n])
+    for i in set(range(n)) - set(known):
+        fitness[:, i], components[:, i] = fake_f[:, i], fake_c[:, i]
+    return real.model_copy(update={"fitness": fitness, "components": components})
+
+
+@pytest.mark.parametrize("how", ["erred", "left"])
+def test_a_credential_that_saw_its_slots_checks_is_checked_afresh_by_the_server(
+    how: str,
+) -> None:
+    """A credential leased the job that carries slot 1's check rows, filled slot 1 forging
+    every row but those, and dropped that job (an error, or that name's token vanished). Its checker agrees on them, but the server checks others it drew afresh:
+    the forgery is caught, and the generation told is the true one."""
+    config = CONFIG.model_copy(update={"population": 6})  # slots 0:3 and 3:6
+    sched, _ = make_scheduler(Policy(spot_checks=1, span_below_s=0))
+    first, second = ("L", "L") if how == "erred" else ("L.a", "L.b")
+    for name in ("H", first, second):
+        sched.join(name, speed=SLOW)
+    sched.add(1, RunLoop(config), running=True)
+    shown = sched.lease(first)
+    assert shown is not None and shown.key.index == 0 and shown.checks is not None
+    if how == "erred":
+        error = Result(
+            key=shown.key, worker=first, start=shown.start, stop=shown.stop, error="oops"
+        )
+        assert sched.settle(error).reason == "error recorded"
+    slot1 = sched.lease(second)
+    assert slot1 is not None and slot1.key.index == 1
+    sched.settle(forged_but_checked(slot1, second, shown.checks))
+    if how == "left":  # no error recorded against it at all
+        assert sched.leave(first) == [shown.key]
+    checker = sched.lease("H")
+    assert checker is not None and checker.key.index == 0
+    sched.settle(honest(checker, "H"))
+    assert {name.partition(".")[0] for name in sched.quarantined()} == {"L"}
+    told = drain_honestly(sched, "H")
+    truth, _, _ = evaluate_population(config, 0, RunLoop(config).ask())
+    assert told[0].told.generation == 0 and told[0].told.fitness.tobytes() == truth.tobytes()
+    sched.close()
 
 
 def test_a_result_without_its_jobs_checks_is_its_credentials_error() -> None:

@@ -130,12 +130,15 @@ def implausible_claims(result: Result, work: Work | None) -> str | None:
     (`implausible`), naming worker, run and generation; None if none does, or it carries no
     evaluation or its work is not in flight. A report's or a ranking's rows: by its own
     `implausible`. Judged before any lease or spot-check, so a forgery counts against its
-    credential even when it comes late."""
-    if work is not None and not isinstance(work, Run):
+    credential even when it comes late. A result keyed to another stage than its work's is no
+    job of it (no lease either): its rows are not read."""
+    if work is None or work.stage != result.key.stage:
+        return None
+    if not isinstance(work, Run):
         why = None if result.scores is None else work.implausible(result.scores)
         return None if why is None else f"worker {result.worker} {work.label}: {why}"
     fitness, components, descriptors = result.fitness, result.components, result.descriptors
-    if work is None or fitness is None or components is None or descriptors is None:
+    if fitness is None or components is None or descriptors is None:
         return None
     config = work.loop.config
     every = implausible(  # each check is per individual: all generations in one call
@@ -221,8 +224,9 @@ def cross_check(
     """Each slot's `check_rows` of a complete generation, as its worker claimed them, against
     the next slot's worker's evaluation of them (`Run.checked`): the workers that lied, each
     with why. A mismatch is judged by this process's own evaluation; so is a slot whose
-    checker shares its credential (and saw which rows are checked: others are drawn). Slots
-    of this process's own evaluators (`trusted`) are not checked."""
+    claimer's credential knew which rows are checked (it checked them, or was ever leased the
+    job that checks them: `Run.shown`), on others drawn afresh. Slots of this process's own
+    evaluators (`trusted`) are not checked."""
     config, generation, genomes = run.config, run.generation, run.loop.ask()
     liars: list[tuple[str, str]] = []
     for j, rows in enumerate(run.check_rows):
@@ -230,9 +234,11 @@ def cross_check(
         if claimer is None or entry is None or trusted(claimer):
             continue
         checker, *theirs = entry
-        if credential(checker) == credential(claimer):
+        if credential(claimer) in run.shown.get(j, set()) | {credential(checker)}:
             slot = run.slots[j]
-            rows = np.array(sorted(_CHOOSE.sample(range(slot.start, slot.stop), len(rows))))
+            unseen = sorted(set(range(slot.start, slot.stop)) - set(rows.tolist()))
+            pool = unseen if len(unseen) >= len(rows) else range(slot.start, slot.stop)
+            rows = np.array(sorted(_CHOOSE.sample(pool, len(rows))))
             theirs = []
         totals["results_checked"] += 1
         totals["individuals_checked"] += len(rows)

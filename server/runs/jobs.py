@@ -64,8 +64,15 @@ class Slot:
     erred: dict[str, tuple[str, str]] = field(default_factory=dict)
     """Credential -> (worker, error) of each whose evaluation of it erred: it is never leased
     to them again, and once it is done (so the job was fine) each error counts against them."""
+    lapsed: set[str] = field(default_factory=set)
+    """Credentials whose lease of it ended without a result (it expired, or its holder asked
+    for another job): never leased to them again, but no error against them."""
     worker: str | None = None
     """Whose result filled it (done): discarded if that worker fails a spot-check."""
+
+    def excluded(self) -> set[str]:
+        """The credentials it is never leased to: those that erred on it or let it lapse."""
+        return self.erred.keys() | self.lapsed
 
 
 @dataclass(kw_only=True)
@@ -80,17 +87,19 @@ class Slotted:
     served: int = 0
     """Sequence number of its last lease: the work served least recently goes first."""
     erred: bool = False
-    """Some slot erred: leases skip the slots a credential erred on."""
+    """Some slot erred or lapsed: leases skip the slots a credential erred on or let lapse."""
     stage: Stage = "train"
     """What its slots are: a generation's individuals, a champion's stage, or a report's."""
     scores: np.ndarray | None = None
     """A stage's rows as scored (`Result.scores`), NaN until done."""
 
     def pick(self, excluded: str | None) -> int | None:
-        """The lowest pending slot not erred on by the credential `excluded`."""
+        """The lowest pending slot the credential `excluded` neither erred on nor let lapse."""
         if not self.erred or excluded is None:
             return self.pending[0] if self.pending else None
-        return min((i for i in self.pending if excluded not in self.slots[i].erred), default=None)
+        return min(
+            (i for i in self.pending if excluded not in self.slots[i].excluded()), default=None
+        )
 
     def unpend(self, index: int) -> None:
         if self.pending[0] == index:
@@ -138,13 +147,13 @@ class Slotted:
         return discarded
 
     def stranded(self, max_attempts: int, takers: set[str] | None) -> list[int]:
-        """Pending slots that erred on `max_attempts` credentials or on each of `takers` (the
-        live credentials; None: one takes any job)."""
+        """Pending slots that erred on or lapsed with `max_attempts` credentials or each of
+        `takers` (the live credentials; None: one takes any job)."""
         return [
             index
             for index in self.pending
-            if (erred := self.slots[index].erred)
-            and (len(erred) >= max_attempts or (takers is not None and not takers - erred.keys()))
+            if (tried := self.slots[index].excluded())
+            and (len(tried) >= max_attempts or (takers is not None and not takers - tried))
         ]
 
 
@@ -175,6 +184,9 @@ class Run(Slotted):
     checked: dict[int, tuple[str, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
     """Slot -> the worker that evaluated its `check_rows` and their fitness, components and
     descriptors as it did."""
+    shown: dict[int, set[str]] = field(default_factory=dict)
+    """Slot -> the credentials leased the job that carries its `check_rows` (the next slot's),
+    whatever became of the lease: they know which of its rows are checked."""
 
     @property
     def config(self) -> RunConfig:
@@ -279,6 +291,11 @@ class Run(Slotted):
         if not self.check_rows or self.choosing is not None:
             return None
         return self.check_rows[index - 1]
+
+    def show(self, index: int, worker: str) -> None:
+        """Slot `index`'s job, with the rows it checks, is leased to `worker` (`shown`)."""
+        if self.checks_of(index) is not None:
+            self.shown.setdefault((index - 1) % len(self.slots), set()).add(credential(worker))
 
     def job(self, index: int, lease_s: float, *, span: int = 1) -> Job:
         """Slot `index` as a job (the whole run from its GA state when `span` > 1)."""

@@ -131,20 +131,29 @@ class Ledger:
         *,
         span_left: int = 0,
         asked_by_worker: bool = False,
+        until: Lease | None = None,
     ) -> float:
         """Lease slot `index` of the run's generation to `worker`; the lease's seconds, from
-        the slot's robot-steps and the worker's speed."""
+        the slot's robot-steps and the worker's speed, or what is left of `until` (the lease it
+        held of the same job: asking again never extends one)."""
         slot = run.slots[index]
-        lease_s = self.policy.lease_seconds(
-            run.robot_steps(slot.stop - slot.start), self.workers[worker].measured
-        )
+        now = self._clock()
+        if until is None:
+            lease_s = self.policy.lease_seconds(
+                run.robot_steps(slot.stop - slot.start), self.workers[worker].measured
+            )
+            deadline, leased_at = now + lease_s, now
+        else:
+            deadline, leased_at = until.deadline, until.leased_at
+            lease_s = max(deadline - now, 0.0)
         slot.status = "leased"
+        if isinstance(run, Run):
+            run.show(index, worker)
         self.sequence += 1
         run.served = self.sequence
         key = run.key(index)
-        now = self._clock()
         self.leases[key] = Lease(
-            key, worker, now + lease_s, slot.start, slot.stop, now, span_left, asked_by_worker
+            key, worker, deadline, slot.start, slot.stop, leased_at, span_left, asked_by_worker
         )
         self.totals["leased"] += 1
         return lease_s

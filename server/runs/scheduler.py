@@ -285,14 +285,17 @@ class Scheduler:
 
     def lease(self, worker: str) -> Job | None:
         """The next job for `worker`, leased to it, or None. A worker asks only with empty
-        hands, so any lease it still holds lost its reply: that job returns first."""
+        hands, so any lease it still holds lost its reply: that job returns first, until that
+        lease's deadline (asking again never extends a lease)."""
         with self._lock:
             record = self._ledger.workers.touch(worker)
-            record.asked_at = self._clock()
+            now = record.asked_at = self._clock()
+            self._lapse(lambda lease: lease.worker == worker and lease.deadline <= now)
+            held = {lease.key: lease for lease in self._ledger.leases.values()}
             self._ledger.release_where(lambda lease: lease.worker == worker)
+            self._referee.refer_stranded()
             if record.quarantine is not None:
                 return None
-            self._referee.refer_stranded()
             excluded = credential(worker) if record.listed else None
             chosen: Work | None = None
             index = 0
@@ -319,7 +322,14 @@ class Scheduler:
                 alone = self._ledger.crowded() or not self._ledger.sliceable()
                 wanted = self.policy.span_generations(config, record.speed, crowded=alone)
                 span = max(1, min(wanted, config.generations - loop.generation))
-            lease_s = self._ledger.lease(chosen, index, worker, span_left=span - 1)
+            kept = held.get(chosen.key(index))
+            lease_s = self._ledger.lease(
+                chosen,
+                index,
+                worker,
+                span_left=span - 1,
+                until=None if kept is None or kept.worker != worker else kept,
+            )
             return chosen.job(index, lease_s, span=span)
 
     def settle(self, result: Result) -> Ack:
@@ -412,8 +422,9 @@ class Scheduler:
         quarantined). The count."""
         now = self._clock()
         with self._lock:
-            released = self._ledger.release_where(lambda lease: lease.deadline <= now)
+            released = self._lapse(lambda lease: lease.deadline <= now)
             self._ledger.workers.forget_gone(now)
+            self._referee.refer_stranded()
         if released:
             self._announce()
         return len(released)
@@ -524,6 +535,23 @@ class Scheduler:
             len(released),
             discarded,
         )
+        self._referee.refer_stranded()  # no live worker may be left to take them
+
+    def _lapse(self, condition: Callable[[Lease], bool]) -> list[JobKey]:
+        """Return to pending the leases meeting `condition`, each ending without its result:
+        never leased again to its holder's credential (no error counts against it), and the
+        referee's once no other live credential may take it, so no worker holds a job for
+        good by letting its lease expire or by asking again. The keys."""
+        lapsed = [lease for lease in self._ledger.leases.values() if condition(lease)]
+        released = self._ledger.release_where(condition)
+        for lease in lapsed:
+            work = self._ledger.find(lease.key)
+            if work is None or work.key(lease.key.index) != lease.key:
+                continue
+            if not self._trusted(lease.worker):  # an in-process executor's lease just returns
+                work.slots[lease.key.index].lapsed.add(credential(lease.worker))
+                work.erred = True
+        return released
 
     def _erred(self, key: JobKey, record: Worker, error: str) -> None:
         """`record`'s evaluation of the job `key` erred: the run fails if it is the server's
