@@ -4,7 +4,9 @@
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import Future
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,10 +15,22 @@ from evorobotics.evolution import Ranked, rank_in_world, ranking_config
 from schemas.run import RunConfig, ValidationConfig
 from schemas.wire import Job, JobKey
 from schemas.world import World
+from server.core.db import make_engine, session_factory
+from server.core.errors import NotFoundError
+from server.robots.replacement import Replacements
+from server.robots.settings import RobotSettings
 from server.runs.evaluation import run_job
 from server.runs.policy import Policy
 from server.runs.scheduler import Scheduler
-from tests.helpers import WAIT, make_scheduler, random_controller
+from tests.helpers import (
+    QUICK,
+    WAIT,
+    completed_run,
+    eventually,
+    make_scheduler,
+    random_controller,
+    serve,
+)
 
 SLOW = 10.0
 """A worker speed at which no generation is a span."""
@@ -87,6 +101,37 @@ def test_a_rankings_forged_rows_quarantine_and_return_to_pending() -> None:
     sched.close()
 
 
+def test_a_ranking_its_only_worker_lets_lapse_is_the_servers() -> None:
+    """The worker takes a job and goes silent with its token held: once the lease expires the
+    job is never its credential's again, and with no other worker live the referee ranks it."""
+    sched, clock = make_scheduler(Policy(lease_unknown_s=30.0))
+    sched.join("silent", speed=SLOW)
+    future = sched.rank(CONFIG, CALIBRATED, CANDIDATES)
+    held = sched.lease("silent")
+    assert held is not None and held.key.stage == "rank"
+    clock.t += 31.0
+    assert sched.expire() == 1
+    assert sched.lease("silent") is None  # never that job again
+    assert same(future.result(WAIT), rank_in_world(CONFIG, CANDIDATES, CALIBRATED))
+    sched.close()
+
+
+def test_a_ranking_whose_only_worker_is_quarantined_is_the_servers() -> None:
+    sched, _ = make_scheduler(Policy(spot_checks=10))
+    sched.join("cheat", speed=SLOW)
+    future = sched.rank(CONFIG, CALIBRATED, CANDIDATES)
+    forged = sched.lease("cheat")
+    assert forged is not None
+    true = run_job(forged, "cheat")
+    assert true.scores is not None
+    crowned = true.scores.copy()
+    crowned[:, 2] = 1.0
+    assert not sched.settle(true.model_copy(update={"scores": crowned})).accepted
+    assert "cheat" in sched.quarantined()
+    assert same(future.result(WAIT), rank_in_world(CONFIG, CANDIDATES, CALIBRATED))
+    sched.close()
+
+
 def test_bad_candidates_are_refused_before_any_job() -> None:
     sched, _ = make_scheduler()
     sched.join("a", speed=SLOW)
@@ -114,3 +159,42 @@ def test_a_ranking_jobs_wire_checks_its_config_and_rows() -> None:
         Job(key=key, start=0, stop=6, config=gap, genomes=CANDIDATES)
     with pytest.raises(ValueError, match="slice 0:13 outside 12"):
         Job(key=key, start=0, stop=13, config=config, genomes=np.ones((13, CANDIDATES.shape[1])))
+
+
+def test_a_ranking_never_holds_up_another_and_a_failed_one_is_asked_anew(tmp_path: Path) -> None:
+    """`Replacements` over a scheduler's `rank`: a ranking its workers have not finished
+    leaves the others to start, and a failed one answers NotFoundError ("ask again", which the
+    stuck robot's policy falls back on) and is asked of the scheduler again, never cached."""
+    with serve(tmp_path) as served:
+        first, second = completed_run(served.url, QUICK), completed_run(served.url, QUICK)
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    asked: list[tuple[Future[Ranked], Ranked]] = []
+    lock = threading.Lock()
+
+    def rank(config: RunConfig, world: World, genomes: np.ndarray) -> Future[Ranked]:
+        """The scheduler's ranking, resolved when the test says."""
+        future: Future[Ranked] = Future()
+        with lock:
+            asked.append((future, rank_in_world(config, genomes, world)))
+        return future
+
+    replacements = Replacements(session_factory(engine), RobotSettings(), None, rank)
+    sessions = session_factory(engine)
+    with sessions() as db:
+        assert replacements.ranking(db, first, None, wait=False) is None
+        assert eventually(lambda: len(asked) == 1, WAIT)
+        assert replacements.ranking(db, second, None, wait=False) is None  # not behind first
+        assert eventually(lambda: len(asked) == 2, WAIT)
+        asked[0][0].set_exception(RuntimeError("its workers failed"))
+        with pytest.raises(NotFoundError, match=r"its workers failed.*ask again"):
+            replacements.ranking(db, first, None, wait=False)
+        assert replacements.ranking(db, first, None, wait=False) is None  # asked anew
+        assert eventually(lambda: len(asked) == 3, WAIT)
+        pending, ranked = asked[2]
+        pending.set_result(ranked)
+        ranking = replacements.ranking(db, first, None, wait=True)
+        assert ranking is not None and ranking.run_id == first
+    replacements.close()
+    with sessions() as db, pytest.raises(NotFoundError, match="stopping"):
+        replacements.ranking(db, second, None, wait=True)  # never waits past close
+    engine.dispose()

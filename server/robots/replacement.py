@@ -19,10 +19,11 @@ event of the robot fills in how many steps the previous one's outcome ran.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, InvalidStateError, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,8 +115,12 @@ class Replacements:
         self._rankings: dict[tuple[str, str, int, int], Future[Ranking]] = {}
 
     def close(self) -> None:
-        """Drop the rankings not yet started (one being computed finishes on its own)."""
+        """Drop the rankings not yet started (one being computed finishes on its own): each
+        fails, so no one waits for it."""
         self._ranker.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            for future in self._rankings.values():
+                _fail(future, RuntimeError("the server is stopping"))
 
     def elite(
         self, run_id: int, elite: int, *, confirm: bool = False
@@ -284,27 +289,67 @@ class Replacements:
         with self._lock:
             future = self._rankings.get(key)
             if future is None:
-                future = self._ranker.submit(
-                    self._rank, robot_id, run_id, latest.generation, calibration
-                )
-                self._rankings[key] = future
+                future = self._rankings[key] = Future()
                 while len(self._rankings) > RANKINGS_KEPT:
                     self._rankings.pop(next(iter(self._rankings)))
+                try:
+                    self._ranker.submit(
+                        self._rank, future, robot_id, run_id, latest.generation, calibration
+                    )
+                except RuntimeError as exc:  # closed
+                    _fail(future, exc)
         if not wait and not future.done():
             return None
-        return future.result()
+        try:
+            return future.result()
+        except Exception as exc:  # asked anew next time
+            with self._lock:
+                if self._rankings.get(key) is future:
+                    del self._rankings[key]
+            raise NotFoundError(
+                f"run {run_id}'s candidates could not be ranked ({exc}): ask again"
+            ) from exc
 
     def _rank(
         self,
+        ranking: Future[Ranking],
         robot_id: str | None,
         run_id: int,
         generation: int,
         calibration: RobotCalibration | None,
-    ) -> Ranking:
-        """Score the run's candidates on its validation poses in the robot's calibrated world,
-        or without one the run's world (no reality gap either way): its `validation.candidates`
-        fittest training ranks of `generation` and as many of its archive's fittest elites;
-        best first by roaming, then mean Eq 12, then candidate order."""
+    ) -> None:
+        """Resolve `ranking`: score the run's candidates on its validation poses in the
+        robot's calibrated world, or without one the run's world (no reality gap either way):
+        its `validation.candidates` fittest training ranks of `generation` and as many of its
+        archive's fittest elites; best first by roaming, then mean Eq 12, then candidate order.
+        The scores are `rank`'s jobs, which this thread does not wait for: one ranking's
+        workers never hold up another's."""
+        try:
+            config, world, top, labels = self._candidates(run_id, generation, calibration)
+            if self._rank_jobs is None:
+                ranked = rank_in_world(config, top, world)
+                ranking.set_result(_ranking(robot_id, run_id, config, top, labels, ranked))
+                return
+            scoring = self._rank_jobs(config, world, top)
+        except Exception as exc:
+            log.exception("run %d's candidates could not be ranked", run_id)
+            _fail(ranking, exc)
+            return
+
+        def scored(done: Future[Ranked]) -> None:
+            try:
+                ranking.set_result(_ranking(robot_id, run_id, config, top, labels, done.result()))
+            except Exception as exc:
+                log.warning("run %d's candidates could not be ranked: %s", run_id, exc)
+                _fail(ranking, exc)
+
+        scoring.add_done_callback(scored)
+
+    def _candidates(
+        self, run_id: int, generation: int, calibration: RobotCalibration | None
+    ) -> tuple[RunConfig, World, np.ndarray, list[tuple[int | None, int | None]]]:
+        """(config, world, genomes, (training rank, elite) of each) of the ranking `_rank`
+        scores."""
         with self._sessions() as db:
             run = db.get(Run, run_id)
             assert run is not None  # checked by the caller; runs are never deleted under it
@@ -324,25 +369,7 @@ class Replacements:
                 top = np.concatenate([top, archive.genomes[elites]])
                 labels += [(None, k) for k in elites]
         world = config.world if calibration is None else calibration.world(config.world)
-        if self._rank_jobs is None:
-            order, scored = rank_in_world(config, top, world)
-        else:
-            order, scored = self._rank_jobs(config, world, top).result()
-        seen: set[str] = set()
-        candidates = []
-        for k in (int(i) for i in order):
-            sha = controller_sha256(config.network_spec, top[k])
-            if sha not in seen:
-                seen.add(sha)
-                rank, elite = labels[k]
-                roaming, score = float(scored.roaming[k]), float(scored.score[k])
-                candidates.append(Candidate(sha, rank, elite, roaming, score))
-        ranking = Ranking(robot_id, run_id, v.poses, v.steps, tuple(candidates))
-        log.info(
-            "run %d's %d candidates validated in %s; the best roams %.0f %%",
-            run_id, len(candidates), ranking.world, 100 * candidates[0].roaming,
-        )  # fmt: skip
-        return ranking
+        return config, world, top, labels
 
     def _pick_elite(
         self, db: Session, run_id: int, failed: str | None, recent: set[str | None]
@@ -500,3 +527,38 @@ def _trim_events(db: Session, robot: str, keep: int) -> None:
         db.execute(
             delete(StuckEventRow).where(StuckEventRow.robot_id == robot, StuckEventRow.id < cutoff)
         )
+
+
+def _ranking(
+    robot_id: str | None,
+    run_id: int,
+    config: RunConfig,
+    top: np.ndarray,
+    labels: list[tuple[int | None, int | None]],
+    ranked: Ranked,
+) -> Ranking:
+    """The candidates `top` (labelled (training rank, elite)) in `ranked`'s order, each
+    controller once."""
+    order, scored = ranked
+    v = ranking_validation(config)
+    seen: set[str] = set()
+    candidates = []
+    for k in (int(i) for i in order):
+        sha = controller_sha256(config.network_spec, top[k])
+        if sha not in seen:
+            seen.add(sha)
+            rank, elite = labels[k]
+            roaming, score = float(scored.roaming[k]), float(scored.score[k])
+            candidates.append(Candidate(sha, rank, elite, roaming, score))
+    ranking = Ranking(robot_id, run_id, v.poses, v.steps, tuple(candidates))
+    log.info(
+        "run %d's %d candidates validated in %s; the best roams %.0f %%",
+        run_id, len(candidates), ranking.world, 100 * candidates[0].roaming,
+    )  # fmt: skip
+    return ranking
+
+
+def _fail(future: Future[Ranking], exc: BaseException) -> None:
+    """Fail `future` unless it is resolved already."""
+    with contextlib.suppress(InvalidStateError):
+        future.set_exception(exc)
