@@ -291,7 +291,7 @@ def test_rows_beyond_a_trials_physics_or_a_spot_check_quarantine_and_return_to_p
 
 
 @pytest.mark.parametrize("stage", ["rank", "robustness"])
-def test_a_result_keyed_to_another_stage_is_dropped_unread(stage: ReportStage) -> None:
+def test_a_result_keyed_to_another_stage_is_dropped_unread(stage: str) -> None:
     """A worker holding an exploration's job answers as if it were a ranking's or a map's
     (fewer columns, valid on the wire): no job of that report, acknowledged as dropped."""
     sched, _ = make_scheduler()

@@ -291,7 +291,7 @@ class Scheduler:
             record = self._ledger.workers.touch(worker)
             now = record.asked_at = self._clock()
             self._lapse(lambda lease: lease.worker == worker and lease.deadline <= now)
-            held = {lease.key: lease for lease in self._ledger.leases.values()}
+            held = {k: lease for k, lease in self._ledger.leases.items() if lease.worker == worker}
             self._ledger.release_where(lambda lease: lease.worker == worker)
             self._referee.refer_stranded()
             if record.quarantine is not None:
@@ -322,13 +322,8 @@ class Scheduler:
                 alone = self._ledger.crowded() or not self._ledger.sliceable()
                 wanted = self.policy.span_generations(config, record.speed, crowded=alone)
                 span = max(1, min(wanted, config.generations - loop.generation))
-            kept = held.get(chosen.key(index))
             lease_s = self._ledger.lease(
-                chosen,
-                index,
-                worker,
-                span_left=span - 1,
-                until=None if kept is None or kept.worker != worker else kept,
+                chosen, index, worker, span_left=span - 1, until=held.get(chosen.key(index))
             )
             return chosen.job(index, lease_s, span=span)
 
