@@ -20,6 +20,7 @@ from server.runs.policy import SPEED_MAX, SPEED_MIN, Policy, clamp_speed
 from server.runs.scheduler import Scheduler
 from tests.helpers import (
     WAIT,
+    Clock,
     eventually,
     fake_evaluator,
     fake_fitness,
@@ -284,6 +285,73 @@ def test_the_only_worker_cannot_hold_a_job_by_asking_again_or_letting_it_lapse()
     assert eventually(stored, WAIT)
     assert told[0].told.generation == 0  # the referee evaluated the jobs it let lapse
     assert sched.quarantined() == {}  # a lapse is no error
+    sched.close()
+
+
+def test_asking_again_never_trades_a_held_job_for_another() -> None:
+    """A worker alone with two runs, asking every 29 s: the job it holds comes back each time
+    (no fresh lease of the other run's), so the lease lapses at its deadline and the server's
+    referee evaluates it; both runs move on."""
+    sched, clock = make_scheduler(Policy(lease_unknown_s=30.0))
+    sched.add(1, RunLoop(CONFIG), running=True)
+    sched.add(2, RunLoop(CONFIG), running=True)
+    held = sched.lease("a")
+    assert held is not None
+    clock.t += 29.0
+    again = sched.lease("a")
+    assert again is not None and again.key == held.key and again.lease_s == 1.0
+    for _ in range(40):
+        clock.t += 29.0
+        sched.lease("a")
+    told: list[Written] = []
+
+    def both() -> bool:
+        told.extend(sched.take_told())
+        return {w.run_id for w in told} == {1, 2}
+
+    assert eventually(both, WAIT)  # the referee's evaluations of the lapsed jobs
+    sched.close()
+
+
+class Ticking(Clock):
+    """A clock that moves `step` s at every reading (the time a call takes)."""
+
+    step = 0.0
+
+    def __call__(self) -> float:
+        self.t += self.step
+        return self.t
+
+
+def test_asking_again_just_before_the_deadline_leases_what_is_left_never_zero() -> None:
+    clock = Ticking()
+    sched = Scheduler(Policy(lease_unknown_s=30.0), clock=clock, wall=lambda: 0.0)
+    sched.add(1, RunLoop(CONFIG), running=True)
+    held = sched.lease("a")
+    assert held is not None
+    clock.t, clock.step = 29.4, 0.5  # its deadline passes between the scheduler's readings
+    again = sched.lease("a")
+    assert again is not None and 0 < again.lease_s <= 0.6
+    sched.close()
+
+
+def test_a_span_messages_speed_is_measured_over_the_whole_message() -> None:
+    """Its later generations' leases are made as the message is taken: the speed is the
+    message's robot-steps over the time since its first generation's lease, which sets the
+    worker's next lease (lease_factor x its robot-steps / that speed)."""
+    config = CONFIG.model_copy(update={"generations": 6})
+    sched, clock = make_scheduler(Policy(lease_min_s=1e-3, lease_factor=10.0))
+    sched.join("fast", speed=FAST)
+    sched.add(1, RunLoop(config), running=True)
+    job = sched.lease("fast")
+    assert job is not None and job.span > 3
+    clock.t += 2.0
+    assert sched.settle(real_span(job, 3, "fast")).accepted
+    sched.leave("fast")  # it returns its span's next generation
+    sched.join("fast", speed=FAST)
+    following = sched.lease("fast")
+    assert following is not None and following.key.generation == 3
+    assert following.lease_s == pytest.approx(10.0 * 2.0 / 3)  # 3 generations in 2 s
     sched.close()
 
 

@@ -108,19 +108,22 @@ class Replacements:
         self._archives = archives
         """run id -> (generations, config, archive) of a QD run (`RunManager.archive`)."""
         self._rank_jobs = rank
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # a ranking failed under it resolves (`_resolved`)
         self._ranker = ThreadPoolExecutor(1, thread_name_prefix="fit-ranking")
         """Gathers and waits for rankings for the `rank` and `fit` policies off the service
         thread."""
         self._rankings: dict[tuple[str, str, int, int], Future[Ranking]] = {}
+        self._unresolved: set[Future[Ranking]] = set()
+        """Every ranking not yet resolved, kept or not: `close` fails them."""
 
     def close(self) -> None:
         """Drop the rankings not yet started (one being computed finishes on its own): each
         fails, so no one waits for it."""
         self._ranker.shutdown(wait=False, cancel_futures=True)
         with self._lock:
-            for future in self._rankings.values():
-                _fail(future, RuntimeError("the server is stopping"))
+            unresolved = list(self._unresolved)
+        for future in unresolved:
+            _fail(future, RuntimeError("the server is stopping"))
 
     def elite(
         self, run_id: int, elite: int, *, confirm: bool = False
@@ -290,6 +293,8 @@ class Replacements:
             future = self._rankings.get(key)
             if future is None:
                 future = self._rankings[key] = Future()
+                self._unresolved.add(future)
+                future.add_done_callback(self._resolved)
                 while len(self._rankings) > RANKINGS_KEPT:
                     self._rankings.pop(next(iter(self._rankings)))
                 try:
@@ -309,6 +314,10 @@ class Replacements:
             raise NotFoundError(
                 f"run {run_id}'s candidates could not be ranked ({exc}): ask again"
             ) from exc
+
+    def _resolved(self, future: Future[Ranking]) -> None:
+        with self._lock:
+            self._unresolved.discard(future)
 
     def _rank(
         self,

@@ -130,11 +130,13 @@ def implausible_claims(result: Result, work: Work | None) -> str | None:
     (`implausible`), naming worker, run and generation; None if none does, or it carries no
     evaluation or its work is not in flight. A report's or a ranking's rows: by its own
     `implausible`. Judged before any lease or spot-check, so a forgery counts against its
-    credential even when it comes late. A result keyed to another stage than its work's is no
-    job of it (no lease either): its rows are not read."""
-    if work is None or work.stage != result.key.stage:
+    credential even when it comes late. A report's or ranking's result keyed to another stage
+    than its own is no job of it (no lease either): its rows are not read."""
+    if work is None:
         return None
     if not isinstance(work, Run):
+        if work.stage != result.key.stage:
+            return None
         why = None if result.scores is None else work.implausible(result.scores)
         return None if why is None else f"worker {result.worker} {work.label}: {why}"
     fitness, components, descriptors = result.fitness, result.components, result.descriptors

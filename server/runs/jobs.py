@@ -65,8 +65,8 @@ class Slot:
     """Credential -> (worker, error) of each whose evaluation of it erred: it is never leased
     to them again, and once it is done (so the job was fine) each error counts against them."""
     lapsed: set[str] = field(default_factory=set)
-    """Credentials whose lease of it ended without a result (it expired, or its holder asked
-    for another job): never leased to them again, but no error against them."""
+    """Credentials whose lease of it reached its deadline without a result: never leased to
+    them again, but no error against them."""
     worker: str | None = None
     """Whose result filled it (done): discarded if that worker fails a spot-check."""
 

@@ -132,12 +132,14 @@ class Ledger:
         span_left: int = 0,
         asked_by_worker: bool = False,
         until: Lease | None = None,
+        now: float | None = None,
     ) -> float:
-        """Lease slot `index` of the run's generation to `worker`; the lease's seconds, from
-        the slot's robot-steps and the worker's speed, or what is left of `until` (the lease it
-        held of the same job: asking again never extends one)."""
+        """Lease slot `index` of the run's generation to `worker` at `now` (None: the clock's
+        now); the lease's seconds, from the slot's robot-steps and the worker's speed, or what
+        is left of `until` (the lease it held of the same job, whose deadline is past `now`:
+        asking again never extends one)."""
         slot = run.slots[index]
-        now = self._clock()
+        now = self._clock() if now is None else now
         if until is None:
             lease_s = self.policy.lease_seconds(
                 run.robot_steps(slot.stop - slot.start), self.workers[worker].measured

@@ -285,28 +285,31 @@ class Scheduler:
 
     def lease(self, worker: str) -> Job | None:
         """The next job for `worker`, leased to it, or None. A worker asks only with empty
-        hands, so any lease it still holds lost its reply: that job returns first, until that
-        lease's deadline (asking again never extends a lease)."""
+        hands, so a lease it still holds lost its reply: that job again, until that lease's
+        deadline (asking again never extends a lease, nor trades it for another job)."""
         with self._lock:
             record = self._ledger.workers.touch(worker)
             now = record.asked_at = self._clock()
             self._lapse(lambda lease: lease.worker == worker and lease.deadline <= now)
-            held = {k: lease for k, lease in self._ledger.leases.items() if lease.worker == worker}
+            held = sorted(
+                (lease for lease in self._ledger.leases.values() if lease.worker == worker),
+                key=lambda lease: lease.leased_at,
+            )
             self._ledger.release_where(lambda lease: lease.worker == worker)
             self._referee.refer_stranded()
             if record.quarantine is not None:
                 return None
-            excluded = credential(worker) if record.listed else None
-            chosen: Work | None = None
-            index = 0
-            for work in self._ledger.work():
-                if not self._ledger.leasable(work) or (
-                    chosen is not None and work.order >= chosen.order
-                ):
-                    continue
-                pick = work.pick(excluded)
-                if pick is not None:
-                    chosen, index = work, pick
+            chosen, index, kept = self._held_again(held)
+            if chosen is None:
+                excluded = credential(worker) if record.listed else None
+                for work in self._ledger.work():
+                    if not self._ledger.leasable(work) or (
+                        chosen is not None and work.order >= chosen.order
+                    ):
+                        continue
+                    pick = work.pick(excluded)
+                    if pick is not None:
+                        chosen, index = work, pick
             if chosen is None:
                 return None
             chosen.unpend(index)
@@ -323,9 +326,24 @@ class Scheduler:
                 wanted = self.policy.span_generations(config, record.speed, crowded=alone)
                 span = max(1, min(wanted, config.generations - loop.generation))
             lease_s = self._ledger.lease(
-                chosen, index, worker, span_left=span - 1, until=held.get(chosen.key(index))
+                chosen, index, worker, span_left=span - 1, until=kept, now=now
             )
             return chosen.job(index, lease_s, span=span)
+
+    def _held_again(self, held: list[Lease]) -> tuple[Work | None, int, Lease | None]:
+        """(work, slot, lease) of the first of `held` (leases just released from a worker that
+        asked again) whose job is still to be done, or (None, 0, None)."""
+        for lease in held:
+            work = self._ledger.find(lease.key)
+            index = lease.key.index
+            if (
+                work is not None
+                and work.key(index) == lease.key
+                and self._ledger.leasable(work)
+                and index in work.pending
+            ):
+                return work, index, lease
+        return None, 0, None
 
     def settle(self, result: Result) -> Ack:
         """Take a result: each of its generations in order while the worker holds the lease
@@ -354,6 +372,7 @@ class Scheduler:
             return Ack(key=result.key, accepted=False, reason="spot-check failed: quarantined")
         ack = Ack(key=result.key, accepted=False, reason="no lease held: late or duplicate")
         following = result.key
+        since, steps = math.nan, 0  # the message's first lease, and the robot-steps accepted
         for i in range(result.generations):
             key = result.key.at(result.key.generation + i)
             lease = self._ledger.leases.get(key)
@@ -394,8 +413,11 @@ class Scheduler:
                 work.make_pending(key.index)  # asked here next time
                 ack = Ack(key=result.key, accepted=True, reason="error recorded")
                 break
-            took = max(self._clock() - lease.leased_at, 1e-6)  # before a span's lease moves on
-            record.measured = clamp_speed(work.robot_steps(lease.stop - lease.start) / took)
+            # a span's later leases are made as this message is taken: its speed is the
+            # whole message's, from its first lease
+            since = lease.leased_at if math.isnan(since) else since
+            steps += work.robot_steps(lease.stop - lease.start)
+            record.measured = clamp_speed(steps / max(self._clock() - since, 1e-6))
             self._accept(key, lease, result, i)
             if record.quarantine is not None:  # the generation's cross-checks caught it
                 return Ack(key=result.key, accepted=False, reason="spot-check failed: quarantined")
