@@ -647,3 +647,44 @@ def test_a_stuck_request_carries_its_nonce() -> None:
     for nonce in ("", "not hex", "a" * 31):
         with pytest.raises(ValueError):
             StuckRequest(robot="r", sha256=None, reason="x", step=3, nonce=nonce)
+
+
+def test_a_trace_row_keeps_only_the_controllers_its_samples_name(tmp_path: Path) -> None:
+    """A batch may list up to MAX_TRACE_SAMPLES controllers whatever its samples: one sample
+    listing 10,000 would store 680 kB a sample (55 GB an hour within the sample budget). The
+    row keeps the one its samples name, renumbered, and reads back as sent."""
+    import hashlib
+    import json
+
+    from server.core.db import session_factory
+    from server.robots.traces import TraceIngest
+
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    ingest = TraceIngest(session_factory(engine), RobotSettings(), lambda robot: True)
+    shas = tuple(hashlib.sha256(str(i).encode()).hexdigest() for i in range(10_000))
+    named = np.array([-1, 7_321, 7_321, -1], dtype=np.int32)  # escape, a controller, escape
+    batch = TraceBatch(
+        robot="bot1",
+        boot=0,
+        controllers=shas,
+        status=RobotStatus(state="running", steps=4, sha256=shas[7_321], serial_ok=True),
+        steps=np.arange(4, dtype=np.int64),
+        whiskers=np.zeros((4, 5), np.uint8),
+        motors=np.full((4, 2), 0.5),
+        controller=named,
+        fresh=np.zeros(4, np.bool_),
+        times=np.full(4, time.time()),
+        poses=np.zeros((4, 3)),
+        pose_source="odometry",
+    )
+    assert ingest.store(batch) == (3, 4)
+    with session_factory(engine)() as db:
+        row = db.scalars(select(TraceRow)).one()
+    assert json.loads(row.controllers) == [shas[7_321]]
+    stored = np.frombuffer(row.controller, dtype="<i4")
+    assert stored.tolist() == [-1, 0, 0, -1]
+    assert [json.loads(row.controllers)[i] if i >= 0 else None for i in stored] == [
+        shas[i] if i >= 0 else None for i in named
+    ]
+    engine.dispose()

@@ -172,8 +172,13 @@ class TraceIngest:
         return boot.last, added
 
     def _add(self, db: Session, batch: TraceBatch, new: np.ndarray) -> None:
-        """The `new` samples of `batch` as a row, and their steps in the field statistics."""
-        steps, controller = batch.steps[new], batch.controller[new]
+        """The `new` samples of `batch` as a row, and their steps in the field statistics. The
+        row keeps only the controllers its samples name (indices renumbered): a batch may list
+        up to `MAX_TRACE_SAMPLES` of them, and a row's bytes must follow its samples."""
+        steps, named = batch.steps[new], batch.controller[new]
+        used = np.unique(named[named != ESCAPE])
+        controllers = [batch.controllers[int(i)] for i in used]
+        controller = np.where(named == ESCAPE, ESCAPE, np.searchsorted(used, named))
         poses, source = batch.poses[new], batch.pose_source
         tracked = self._tracker_poses(batch.robot, batch.times[new])
         if tracked is not None:  # from outside the robot: what calibration trusts
@@ -184,7 +189,7 @@ class TraceIngest:
             first=int(steps[0]),
             last=int(steps[-1]),
             count=int(steps.shape[0]),
-            controllers=json.dumps(list(batch.controllers)),
+            controllers=json.dumps(controllers),
             steps=steps.astype("<i8").tobytes(),
             whiskers=batch.whiskers[new].tobytes(),
             motors=batch.motors[new].astype("<f8").tobytes(),
@@ -198,8 +203,8 @@ class TraceIngest:
         db.add(row)
         given = served(db.get(Robot, batch.robot))
         for index, count in zip(*np.unique(controller, return_counts=True), strict=True):
-            if index != ESCAPE and batch.controllers[int(index)] in given:
-                field_row(db, batch.controllers[int(index)]).steps += int(count)
+            if index != ESCAPE and controllers[int(index)] in given:
+                field_row(db, controllers[int(index)]).steps += int(count)
 
     def forget(self, robot: str) -> None:
         """Drop what is cached of `robot`: it is read again from the database when needed."""
