@@ -1011,3 +1011,52 @@ def test_a_store_of_every_population_migrates_to_checkpoints(tmp_path: Path) -> 
     upgrade(engine)
     _assert_rebuilt(engine, 1, COPIES, expected, {COPIES.generations - 1})
     engine.dispose()
+
+
+def test_a_run_failed_while_the_store_refuses_writes_is_recorded_failed_once_it_accepts(
+    tmp_path: Path,
+) -> None:
+    """The server's own evaluation failed a run while every write was refused: the failure
+    is written once the store accepts writes again, not dropped (the run would stay
+    `running` in the store, holding a slot, with no jobs)."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    manager = RunManager(engine, Settings(**BASE))
+    run_id = manager.create_run(TINY)
+    job = manager.scheduler.lease("w")
+    assert job is not None
+    refused = {"on": True}
+
+    @sa.event.listens_for(engine, "begin")
+    def read_only(conn: sa.Connection) -> None:
+        conn.exec_driver_sql(f"PRAGMA query_only={'ON' if refused['on'] else 'OFF'}")
+
+    failing = Result(key=job.key, worker="w", start=job.start, stop=job.stop, error="x")
+    manager.scheduler.join("w", listed=False)  # an in-process executor: its error fails the run
+    manager.scheduler.settle(failing)
+    with pytest.raises(sa.exc.OperationalError):
+        manager.flush()
+    refused["on"] = False
+    manager.flush()
+    assert _run_row(manager, run_id)[0] == "failed"
+    engine.dispose()
+
+
+def test_a_stored_config_todays_validators_refuse_fails_its_run_not_the_servers_start(
+    tmp_path: Path,
+) -> None:
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    run_id = RunManager(engine, Settings(**BASE)).create_run(TINY)
+    with engine.begin() as conn:  # as an older release might have stored it
+        conn.execute(
+            sa.text("UPDATE runs SET config = :c, status = 'running' WHERE id = :i"),
+            {"c": TINY.model_copy(update={"population": 3}).model_dump_json(), "i": run_id},
+        )
+    restarted = RunManager(engine, Settings(**BASE))
+    restarted.recover()  # raised pydantic's ValidationError: the server did not start
+    with restarted.sessions() as session:
+        run = crud.get_run(session, run_id=run_id)
+        assert run is not None and run.status == "failed"
+        assert "cannot resume" in (run.error or "")
+    engine.dispose()

@@ -26,7 +26,7 @@ from server.runs.choosing import Choosing
 from server.runs.jobs import AskedWork, Lease, Run, Work
 from server.runs.outbox import Outbox, Written
 from server.runs.policy import Policy
-from server.runs.workers import Worker, Workers
+from server.runs.workers import Worker, Workers, credential
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +170,39 @@ class Ledger:
                 work.make_pending(lease.key.index)
         self.totals["requeued"] += len(released)
         return [lease.key for lease in released]
+
+    def lapse(self, condition: Callable[[Lease], bool]) -> list[JobKey]:
+        """Return to pending the leases meeting `condition`, each ending without its result:
+        never leased again to its holder's credential (no error counts against it; the
+        referee's once no other live credential may take it), so no worker holds a job for
+        good by letting its lease expire. An in-process executor's lease just returns. The
+        keys."""
+        lapsed = [lease for lease in self.leases.values() if condition(lease)]
+        released = self.release_where(condition)
+        for lease in lapsed:
+            work = self.find(lease.key)
+            record = self.workers.get(lease.worker)
+            if work is None or work.key(lease.key.index) != lease.key:
+                continue
+            if record is None or record.listed:
+                work.slots[lease.key.index].lapsed.add(credential(lease.worker))
+                work.erred = True
+        return released
+
+    def held_again(self, held: list[Lease]) -> tuple[Work | None, int, Lease | None]:
+        """(work, slot, lease) of the first of `held` (leases just released from a worker that
+        asked again) whose job is still to be done, or (None, 0, None)."""
+        for lease in held:
+            work = self.find(lease.key)
+            index = lease.key.index
+            if (
+                work is not None
+                and work.key(index) == lease.key
+                and self.leasable(work)
+                and index in work.pending
+            ):
+                return work, index, lease
+        return None, 0, None
 
     def drop_run(self, run_id: int) -> None:
         """The run is over: its work, leases and unwritten generations go."""

@@ -128,9 +128,13 @@ class RunManager:
             self._writer.write()
             failed = self.scheduler.take_failed()
             if failed:
-                with self.sessions.begin() as session:
-                    for run_id, message in failed.items():
-                        self._fail_id(session, run_id, message)
+                try:
+                    with self.sessions.begin() as session:
+                        for run_id, message in failed.items():
+                            self._fail_id(session, run_id, message)
+                except Exception:
+                    self.scheduler.put_back_failed(failed)  # recorded on the next try
+                    raise
                 self.promote()
 
     def recover(self) -> None:
@@ -144,8 +148,9 @@ class RunManager:
             )
             for run in unnamed:
                 try:
-                    self._serve(session, run)
-                except ServerError as exc:  # it stays completed, unnamed: training rank 0
+                    with session.begin_nested():
+                        self._serve(session, run)
+                except (ServerError, ValueError) as exc:  # it stays completed, unnamed
                     context(log, run=run.id).warning(
                         "run %d: its champion cannot be chosen: %s", run.id, exc
                     )
@@ -154,7 +159,7 @@ class RunManager:
                 try:
                     with session.begin_nested():
                         self._serve(session, run)
-                except ServerError as exc:  # a damaged row fails its run, not the server
+                except (ServerError, ValueError) as exc:  # a damaged row fails its run only
                     self._fail(session, run, f"cannot resume: {exc}")
         self.promote()
 

@@ -93,3 +93,7 @@ class Outbox:
         """The runs (id -> why) failed since the last call."""
         failed, self._failed = self._failed, {}
         return failed
+
+    def put_back_failed(self, failed: dict[int, str]) -> None:
+        """Failures the store could not record: taken again next time."""
+        self._failed = failed | self._failed

@@ -66,7 +66,7 @@ from server.runs.evaluation import (
     spot_check,
     spot_check_scores,
 )
-from server.runs.jobs import Lease, Rank, Report, Run, Slot, Work
+from server.runs.jobs import Lease, Rank, Report, Run, Slot
 from server.runs.ledger import Ledger
 from server.runs.outbox import Written
 from server.runs.policy import Policy, clamp_speed
@@ -181,6 +181,11 @@ class Scheduler:
         with self._lock:
             return self._ledger.outbox.take_failed()
 
+    def put_back_failed(self, failed: dict[int, str]) -> None:
+        """Failed runs the store could not record (its write refused): taken again next."""
+        with self._lock:
+            self._ledger.outbox.put_back_failed(failed)
+
     def has_pending(self) -> bool:
         with self._lock:
             return any(self._ledger.leasable(work) for work in self._ledger.work())
@@ -290,7 +295,7 @@ class Scheduler:
         with self._lock:
             record = self._ledger.workers.touch(worker)
             now = record.asked_at = self._clock()
-            self._lapse(lambda lease: lease.worker == worker and lease.deadline <= now)
+            self._ledger.lapse(lambda lease: lease.worker == worker and lease.deadline <= now)
             held = sorted(
                 (lease for lease in self._ledger.leases.values() if lease.worker == worker),
                 key=lambda lease: lease.leased_at,
@@ -299,7 +304,7 @@ class Scheduler:
             self._referee.refer_stranded()
             if record.quarantine is not None:
                 return None
-            chosen, index, kept = self._held_again(held)
+            chosen, index, kept = self._ledger.held_again(held)
             if chosen is None:
                 excluded = credential(worker) if record.listed else None
                 for work in self._ledger.work():
@@ -329,21 +334,6 @@ class Scheduler:
                 chosen, index, worker, span_left=span - 1, until=kept, now=now
             )
             return chosen.job(index, lease_s, span=span)
-
-    def _held_again(self, held: list[Lease]) -> tuple[Work | None, int, Lease | None]:
-        """(work, slot, lease) of the first of `held` (leases just released from a worker that
-        asked again) whose job is still to be done, or (None, 0, None)."""
-        for lease in held:
-            work = self._ledger.find(lease.key)
-            index = lease.key.index
-            if (
-                work is not None
-                and work.key(index) == lease.key
-                and self._ledger.leasable(work)
-                and index in work.pending
-            ):
-                return work, index, lease
-        return None, 0, None
 
     def settle(self, result: Result) -> Ack:
         """Take a result: each of its generations in order while the worker holds the lease
@@ -439,7 +429,7 @@ class Scheduler:
         quarantined). The count."""
         now = self._clock()
         with self._lock:
-            released = self._lapse(lambda lease: lease.deadline <= now)
+            released = self._ledger.lapse(lambda lease: lease.deadline <= now)
             self._ledger.workers.forget_gone(now)
             self._referee.refer_stranded()
         if released:
@@ -553,22 +543,6 @@ class Scheduler:
             discarded,
         )
         self._referee.refer_stranded()  # no live worker may be left to take them
-
-    def _lapse(self, condition: Callable[[Lease], bool]) -> list[JobKey]:
-        """Return to pending the leases meeting `condition`, each ending without its result:
-        never leased again to its holder's credential (no error counts against it), and the
-        referee's once no other live credential may take it, so no worker holds a job for
-        good by letting its lease expire or by asking again. The keys."""
-        lapsed = [lease for lease in self._ledger.leases.values() if condition(lease)]
-        released = self._ledger.release_where(condition)
-        for lease in lapsed:
-            work = self._ledger.find(lease.key)
-            if work is None or work.key(lease.key.index) != lease.key:
-                continue
-            if not self._trusted(lease.worker):  # an in-process executor's lease just returns
-                work.slots[lease.key.index].lapsed.add(credential(lease.worker))
-                work.erred = True
-        return released
 
     def _erred(self, key: JobKey, record: Worker, error: str) -> None:
         """`record`'s evaluation of the job `key` erred: the run fails if it is the server's

@@ -72,6 +72,9 @@ class Workers:
     def __getitem__(self, worker: str) -> Worker:
         return self._records[worker]
 
+    def get(self, worker: str) -> Worker | None:
+        return self._records.get(worker)
+
     def touch(self, worker: str, *, revive: bool = True) -> Worker:
         """The worker's record, seen now; live again unless `revive` is False (a result
         arriving after its token vanished does not make it live: no token would end that)."""
