@@ -579,6 +579,28 @@ def test_agent_command_key_drops_garbage_and_accepts_the_next_push(
     assert agent.wait_for(lambda: agent.controller is not None, WAIT)
 
 
+def test_a_flood_of_push_acks_is_dropped_before_the_database_and_traces_still_land(
+    robots: tuple[RobotService, zenoh.Session],
+) -> None:
+    """A robot's credential puts push acks as fast as it can: beyond its budget (ACK_BURST,
+    then ACKS_PER_S) they are dropped before any database work, and another robot's trace
+    batch is still answered at once."""
+    from server.robots.service import ACK_BURST
+
+    service, session = robots
+    before = service.dropped
+    ack = PushAck(robot="flood-bot", push_id="p", accepted=True, sha256="e" * 64)
+    payload = encode_robot_message(ack)
+    for _ in range(2_000):
+        session.put(ack_key("flood-bot"), payload)
+    assert eventually(lambda: service.dropped - before >= 2_000 - 2 * ACK_BURST, WAIT)
+    batch = trace("calm-bot", 0)
+    reply = ask(session, traces_key("calm-bot"), encode_trace(batch))
+    assert reply.ok is not None
+    answer = decode_message(reply.ok.payload.to_bytes())
+    assert isinstance(answer, TraceAck) and answer.last == batch.last
+
+
 @settings(max_examples=3, deadline=None)
 @given(junk=st.lists(garbage, min_size=1, max_size=5))
 def test_agent_drops_garbage_trace_acks_and_delivers_later(

@@ -74,6 +74,13 @@ from server.robots.traces import TraceIngest, TraceRefusedError, recent_samples,
 
 log = logging.getLogger(__name__)
 
+INBOX_MAX = 10_000
+"""Push acks and tracker poses (fire and forget) waiting beyond this many are dropped: a flood
+of them neither fills memory nor holds other robots' traces long behind it."""
+ACK_BURST, ACKS_PER_S = 20, 5.0
+"""A robot's push acks: a token bucket (an honest agent acks each push once, pushes are rare);
+acks beyond it are dropped before any database work."""
+
 
 class RobotOnlineError(ServerError):
     """The robot holds a liveliness token: it cannot be forgotten while it runs (HTTP 409)."""
@@ -105,6 +112,10 @@ class RobotService:
         self._online: set[str] = set()
         self._stuck_tokens: dict[str, tuple[float, float]] = {}
         """Per robot: stuck-request tokens left and when they were counted (service thread)."""
+        self._ack_tokens: dict[str, tuple[float, float]] = {}
+        """Per robot: push-ack tokens, likewise."""
+        self.dropped = 0
+        """Acks and tracker poses dropped: over a robot's ack budget, or the inbox full."""
         self._entities: list[Any] = []
         self._thread: threading.Thread | None = None
         self.poses_dropped = 0
@@ -129,8 +140,8 @@ class RobotService:
         self._entities = [
             z.declare_queryable(KEY_TRACES, lambda q: self._inbox.put(("trace", q))),
             z.declare_queryable(KEY_REPLACE, lambda q: self._inbox.put(("replace", q))),
-            z.declare_subscriber(KEY_ACKS, lambda s: self._inbox.put(("ack", s))),
-            z.declare_subscriber(KEY_TRACKER, lambda s: self._inbox.put(("pose", s))),
+            z.declare_subscriber(KEY_ACKS, lambda s: self._offer("ack", s)),
+            z.declare_subscriber(KEY_TRACKER, lambda s: self._offer("pose", s)),
             z.liveliness().declare_subscriber(
                 KEY_ROBOTS_ALIVE, lambda s: self._inbox.put(("alive", s)), history=True
             ),
@@ -153,6 +164,13 @@ class RobotService:
         self._replacements.close()
 
     # ------------------------------------------------------------------ service thread
+
+    def _offer(self, kind: str, sample: zenoh.Sample) -> None:
+        """Queue a fire-and-forget message unless INBOX_MAX are waiting (then dropped)."""
+        if self._inbox.qsize() >= INBOX_MAX:
+            self.dropped += 1
+            return
+        self._inbox.put((kind, sample))
 
     def _run(self) -> None:
         while True:
@@ -217,6 +235,10 @@ class RobotService:
         if ack.robot != str(sample.key_expr).split("/")[2]:
             log.warning("dropping an ack for robot %s sent on %s", ack.robot, sample.key_expr)
             return
+        if not self._allowed(self._ack_tokens, ack.robot, ACK_BURST, ACKS_PER_S):
+            self.dropped += 1
+            log.debug("dropping an ack of robot %s: over its budget", ack.robot)
+            return
         robot_log = context(log, robot=ack.robot)
         if ack.accepted:
             robot_log.info("robot %s accepted push %s (%s)", ack.robot, ack.push_id, ack.sha256)
@@ -263,7 +285,8 @@ class RobotService:
             except WireError as exc:
                 query.reply_err(f"malformed: {exc}".encode())
                 return
-            if not self._stuck_allowed(request.robot, time.monotonic()):
+            s = self.settings
+            if not self._allowed(self._stuck_tokens, request.robot, s.stuck_burst, s.stuck_per_s):
                 query.reply_err(
                     f"rate limited: more than {self.settings.stuck_burst} stuck requests at over "
                     f"{self.settings.stuck_per_s:g} a second; not recorded".encode()
@@ -281,13 +304,16 @@ class RobotService:
             )
             query.reply(query.key_expr, encode_message(reply))
 
-    def _stuck_allowed(self, robot: str, now: float) -> bool:
-        """Take a token from the robot's bucket (service thread only)."""
-        s = self.settings
-        tokens, at = self._stuck_tokens.get(robot, (float(s.stuck_burst), now))
-        tokens = min(float(s.stuck_burst), tokens + (now - at) * s.stuck_per_s)
+    @staticmethod
+    def _allowed(
+        bucket: dict[str, tuple[float, float]], robot: str, burst: int, per_s: float
+    ) -> bool:
+        """Take a token from the robot's `bucket` (service thread only)."""
+        now = time.monotonic()
+        tokens, at = bucket.get(robot, (float(burst), now))
+        tokens = min(float(burst), tokens + (now - at) * per_s)
         allowed = tokens >= 1.0
-        self._stuck_tokens[robot] = (tokens - 1.0 if allowed else tokens, now)
+        bucket[robot] = (tokens - 1.0 if allowed else tokens, now)
         return allowed
 
     def _publish(self, key: str, payload: bytes) -> None:
