@@ -198,3 +198,31 @@ def test_a_ranking_never_holds_up_another_and_a_failed_one_is_asked_anew(tmp_pat
     with sessions() as db, pytest.raises(NotFoundError, match="stopping"):
         replacements.ranking(db, second, None, wait=True)  # never waits past close
     engine.dispose()
+
+
+def test_a_robots_stuck_requests_start_at_most_one_new_ranking_a_minute(tmp_path: Path) -> None:
+    """A robot rotating through many runs' champions would start a full ranking (leased
+    before any run's jobs) with every stuck request: its second new ranking within
+    RANKING_EVERY_S answers "ask again later"; a ranking already started is anyone's, and an
+    operator's push (no asker) is not limited."""
+    with serve(tmp_path) as served:
+        first, second = completed_run(served.url, QUICK), completed_run(served.url, QUICK)
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    asked: list[Future[Ranked]] = []
+
+    def rank(config: RunConfig, world: World, genomes: np.ndarray) -> Future[Ranked]:
+        future: Future[Ranked] = Future()
+        asked.append(future)
+        return future
+
+    replacements = Replacements(session_factory(engine), RobotSettings(), None, rank)
+    with session_factory(engine)() as db:
+        assert replacements.ranking(db, first, None, wait=False, asker="r1") is None
+        with pytest.raises(NotFoundError, match=r"robot r1 started a ranking .* ask again later"):
+            replacements.ranking(db, second, None, wait=False, asker="r1")
+        assert replacements.ranking(db, first, None, wait=False, asker="r2") is None  # started
+        assert replacements.ranking(db, second, None, wait=False, asker="r2") is None
+        assert replacements.ranking(db, second, None, wait=False) is None
+        assert eventually(lambda: len(asked) == 2, WAIT)  # first's and second's, once each
+    replacements.close()
+    engine.dispose()

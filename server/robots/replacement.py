@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -48,6 +50,10 @@ from server.runs.evaluation import repeats_claim
 log = logging.getLogger(__name__)
 
 RANKINGS_KEPT = 32
+RANKING_EVERY_S = 60.0
+"""A robot's stuck requests start at most one new ranking this often (each is the workers'
+simulation of up to 2 x `validation.candidates` candidates, leased before any run's jobs): a
+robot rotating through many runs' champions cannot keep the workers from the runs."""
 """Validated rankings kept in memory, one per (robot calibration or none, run, generation)."""
 
 Ranker = Callable[[RunConfig, World, np.ndarray], "Future[Ranked]"]
@@ -113,6 +119,8 @@ class Replacements:
         """Gathers and waits for rankings for the `rank` and `fit` policies off the service
         thread."""
         self._rankings: dict[tuple[str, str, int, int], Future[Ranking]] = {}
+        self._started: dict[str, float] = {}
+        """Robot -> when its stuck requests last started a new ranking (RANKING_EVERY_S)."""
         self._unresolved: set[Future[Ranking]] = set()
         """Every ranking not yet resolved, kept or not: `close` fails them."""
 
@@ -212,18 +220,20 @@ class Replacements:
             return self._pick_elite(db, failed.run_id, request.sha256, recent)
         if policy == "fit":
             try:
-                ranking = self.ranking(db, failed.run_id, request.robot, wait=False)
+                ranking = self.ranking(
+                    db, failed.run_id, request.robot, wait=False, asker=request.robot
+                )
             except NotFoundError as exc:
-                doc, reason = self._pick_rank(db, failed.run_id, recent)
+                doc, reason = self._pick_rank(db, failed.run_id, recent, request.robot)
                 return doc, f"{exc}; {reason}"
             if ranking is not None:
                 return self._pick_ranked(db, ranking, recent)
-            doc, reason = self._pick_rank(db, failed.run_id, recent)
+            doc, reason = self._pick_rank(db, failed.run_id, recent, request.robot)
             return doc, f"the fit ranking is being computed; {reason}"
-        return self._pick_rank(db, failed.run_id, recent)
+        return self._pick_rank(db, failed.run_id, recent, request.robot)
 
     def _pick_rank(
-        self, db: Session, run_id: int, recent: set[str | None]
+        self, db: Session, run_id: int, recent: set[str | None], asker: str
     ) -> tuple[ControllerDocument | None, str]:
         """The run's validated champion, else the best of the validated ranking of its
         candidates that did not fail recently (none while that is being computed): nothing
@@ -235,7 +245,7 @@ class Replacements:
                 f"the validated champion of run {run_id}"
             )
         try:
-            ranking = self.ranking(db, run_id, None, wait=False)
+            ranking = self.ranking(db, run_id, None, wait=False, asker=asker)
         except NotFoundError as exc:
             return None, str(exc)
         if ranking is None:
@@ -268,12 +278,19 @@ class Replacements:
         return stored_document(db, ranking.run_id, generations, doc)
 
     def ranking(
-        self, db: Session, run_id: int, robot_id: str | None, *, wait: bool
+        self,
+        db: Session,
+        run_id: int,
+        robot_id: str | None,
+        *,
+        wait: bool,
+        asker: str | None = None,
     ) -> Ranking | None:
         """The run's candidates ranked by validation, in the robot's calibrated world or
         (robot None) the run's, computed once per calibration and committed generation
         (waited for on the ranking thread); None while it is being computed unless `wait`.
-        NotFoundError: no robot, no calibration, no run, no generation."""
+        NotFoundError: no robot, no calibration, no run, no generation, or robot `asker`
+        started a new ranking less than RANKING_EVERY_S ago."""
         calibration, calibrated = None, ""
         if robot_id is not None:
             robot = db.get(Robot, robot_id)
@@ -292,6 +309,14 @@ class Replacements:
         with self._lock:
             future = self._rankings.get(key)
             if future is None:
+                if asker is not None:
+                    now, last = time.monotonic(), self._started.get(asker, -math.inf)
+                    if now - last < RANKING_EVERY_S:
+                        raise NotFoundError(
+                            f"robot {asker} started a ranking {now - last:.0f} s ago (one a "
+                            f"minute at most): ask again later"
+                        )
+                    self._started[asker] = now
                 future = self._rankings[key] = Future()
                 self._unresolved.add(future)
                 future.add_done_callback(self._resolved)
