@@ -177,7 +177,7 @@ class RobotStatus(_Model):
     """The agent's state, sent with every trace batch."""
 
     state: AgentState
-    steps: int = Field(ge=0, description="control steps run since the agent started")
+    steps: int = Field(ge=0, lt=2**62, description="control steps run since the agent started")
     sha256: Sha256 | None = Field(description="controller in force")
     serial_ok: bool = Field(description="the BasicX answered the last step's requests")
     serial_errors: int = Field(0, ge=0)
@@ -350,7 +350,7 @@ class StuckRequest(_RobotMessage):
     kind: Literal["stuck"] = "stuck"
     sha256: Sha256 | None
     reason: str = Field(max_length=64)
-    step: int = Field(ge=0)
+    step: int = Field(ge=0, lt=2**62)
     nonce: str = Field(
         pattern=r"^[0-9a-f]{32}$",
         description="fresh random hex of this request: the replacement is signed over it (as its "

@@ -103,6 +103,18 @@ def test_robot_messages_bound_every_string_field(message: RobotMessage, field: s
         RobotStatus(state="running", steps=0, sha256="f" * 65, serial_ok=True)
 
 
+def test_robot_step_counters_beyond_any_agents_are_refused_on_the_wire() -> None:
+    """A step of 2**64 - 1 decoded, then overflowed SQLite's integer on the service thread
+    (an OverflowError with a traceback per message, and no reply)."""
+    huge = StuckRequest.model_construct(
+        robot="r", sha256=None, reason="x", step=2**64 - 1, nonce="0" * 32
+    )
+    with pytest.raises(WireError, match="step"):
+        decode_message(encode_message(huge))
+    with pytest.raises(ValueError, match="steps"):
+        RobotStatus(state="running", steps=2**64 - 1, sha256=None, serial_ok=True)
+
+
 def test_in_memory_database_keeps_the_signing_key_in_memory() -> None:
     assert Settings(db_url="sqlite://").server_key_path() is None
 

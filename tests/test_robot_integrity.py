@@ -688,3 +688,35 @@ def test_a_trace_row_keeps_only_the_controllers_its_samples_name(tmp_path: Path)
         shas[i] if i >= 0 else None for i in named
     ]
     engine.dispose()
+
+
+def test_samples_of_a_boot_no_longer_cached_are_still_known_as_stored(tmp_path: Path) -> None:
+    """A robot may start a new boot with every sample, so only its newest boots stay in
+    memory; a boot read back from the database still knows which of its samples it has."""
+    from server.core.db import session_factory
+    from server.robots.traces import BOOTS_CACHED, TraceIngest
+
+    engine = make_engine(f"sqlite:///{tmp_path / 'colony.db'}")
+    upgrade(engine)
+    ingest = TraceIngest(session_factory(engine), RobotSettings(), lambda robot: True)
+
+    def batch(boot: int) -> TraceBatch:
+        return TraceBatch(
+            robot="bot1",
+            boot=boot,
+            controllers=(),
+            status=RobotStatus(state="escaping", steps=2, sha256=None, serial_ok=True),
+            steps=np.arange(2, dtype=np.int64),
+            whiskers=np.zeros((2, 5), np.uint8),
+            motors=np.zeros((2, 2)),
+            controller=np.full(2, -1, np.int32),
+            fresh=np.zeros(2, np.bool_),
+            times=np.full(2, time.time()),
+            poses=np.zeros((2, 3)),
+            pose_source="odometry",
+        )
+
+    for boot in range(BOOTS_CACHED + 3):
+        assert ingest.store(batch(boot)) == (1, 2)
+    assert ingest.store(batch(0)) == (1, 0)  # boot 0 again (a lost ack): nothing added
+    engine.dispose()

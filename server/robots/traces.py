@@ -64,6 +64,8 @@ TRACKED_ROBOTS = 64
 """Robots whose tracker poses are kept (online robots only): the memory of a lab's tracker."""
 MAX_CLOCK_AHEAD = 300.0
 """Seconds a robot's clock may run ahead of the server's: a sample time beyond is refused."""
+BOOTS_CACHED = 4
+"""A robot's newest boots kept in memory; older ones are read again from the database."""
 
 
 class TraceRefusedError(ValueError):
@@ -167,6 +169,9 @@ class TraceIngest:
             boot = replace(boot, last=int(steps[-1]), at=time.monotonic())
         self._allowance[robot] = (allowance, now)
         self._boots[key] = boot
+        cached = sorted(b for r, b in self._boots if r == robot)
+        for old in cached[:-BOOTS_CACHED]:  # a robot may start a new boot with every sample
+            del self._boots[(robot, old)]
         if stored is not None:
             self._stored[robot] = stored
         return boot.last, added
