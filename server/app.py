@@ -24,7 +24,7 @@ from schemas.api import ErrorOut
 from server.core import metrics
 from server.core.auth import SecurityMiddleware
 from server.core.db import Checkpointer, is_sqlite, make_engine, upgrade
-from server.core.errors import ServerError
+from server.core.errors import BusyError, ServerError
 from server.core.settings import Settings
 from server.robots import signing
 from server.robots.service import robot_service
@@ -166,7 +166,10 @@ def create_app(
     @app.exception_handler(ServerError)
     async def _server_error(_request: Request, exc: ServerError) -> JSONResponse:
         # not found, impossible transition, robot offline: each class carries its status
-        return JSONResponse(status_code=exc.status_code, content={"detail": str(exc)})
+        headers = {"Retry-After": str(exc.retry_after_s)} if isinstance(exc, BusyError) else None
+        return JSONResponse(
+            status_code=exc.status_code, content={"detail": str(exc)}, headers=headers
+        )
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:

@@ -148,3 +148,20 @@ def test_healthz_reports_a_stopped_loop(tmp_path: Path) -> None:
         sick = client.get("/healthz")
         assert sick.status_code == 503
         assert sick.json()["status"] == "unhealthy" and sick.json()["stopped"] == ["manager"]
+
+
+def test_a_generation_rebuilt_while_another_is_answers_503_retry_after(base_url: str) -> None:
+    """Between checkpoints a generation's individuals are simulated again; one such rebuild
+    runs at a time, so open readers cannot make the server simulate on every core."""
+    from server.runs import crud
+
+    with httpx.Client(base_url=base_url, timeout=30) as client:
+        run_id = client.post("/api/runs", json=SMALL).json()["id"]
+        wait_status(client, run_id, {"completed"})
+        url = f"/api/runs/{run_id}/individuals?generation=1"  # SMALL's checkpoint is its last
+        with crud._REBUILDING:  # another reader's rebuild in progress
+            busy = client.get(url)
+        assert busy.status_code == 503 and busy.headers["Retry-After"] == "2"
+        assert "ask again" in busy.json()["detail"]
+        again = client.get(url)
+        assert again.status_code == 200 and len(again.json()["individuals"]) == 12

@@ -43,3 +43,11 @@ class UnconfirmedError(ServerError):
     the server's own evaluation does not repeat bit for bit: a forgery is never served."""
 
     status_code = 409
+
+
+class BusyError(ServerError):
+    """The server is rebuilding another request's generation (a simulation): asked again
+    soon, it answers (a reader cannot make it simulate on every core at once)."""
+
+    status_code = 503
+    retry_after_s = 2

@@ -197,7 +197,9 @@ def list_individuals(
         int | None, Query(ge=0, le=2**31 - 1, description="default: the latest")
     ] = None,
 ) -> IndividualsOut:
-    """The individuals of a committed generation, fittest first."""
+    """The individuals of a committed generation, fittest first. A generation between
+    checkpoints is rebuilt (replayed, its trials simulated again): 503 with Retry-After while
+    another is."""
     run = _run(session, run_id)
     if generation is None:
         latest = crud.latest_generation(session, run_id=run_id)
@@ -208,7 +210,9 @@ def list_individuals(
         raise HTTPException(
             404, detail=f"run {run_id} has committed generations 0..{run.generation - 1} only"
         )
-    found, genomes = crud.ranked(session, run_id=run_id, generation=generation, components=True)
+    found, genomes = crud.ranked(
+        session, run_id=run_id, generation=generation, components=True, exclusive=True
+    )
     spec = RunConfig.model_validate_json(run.config).network_spec
     return IndividualsOut(
         run_id=run_id,

@@ -6,6 +6,7 @@ The run loop's writes (generation commits) live in `server.runs.writer`; jobs in
 from __future__ import annotations
 
 import re
+import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -20,7 +21,7 @@ from schemas.api import TERMINAL
 from schemas.run import RunConfig
 from schemas.wire import WireError, decode_frame
 from server.core import integrity
-from server.core.errors import InvalidInputError, NotFoundError, ServerError
+from server.core.errors import BusyError, InvalidInputError, NotFoundError, ServerError
 from server.core.models import Controller, Generation, Run, Study, utcnow
 from server.runs import population
 from server.runs.population import Population, Stored
@@ -201,6 +202,10 @@ def retold(session: Session, *, run: Run, config: RunConfig) -> tuple[RunLoop, T
         raise ServerError(f"run {run.id} generation {last}: stored fitness: {exc}") from exc
 
 
+_REBUILDING = threading.Lock()
+"""Held while a reader's generation is rebuilt (`ranked(exclusive=True)`): one at a time."""
+
+
 def ranked(
     session: Session,
     *,
@@ -208,12 +213,14 @@ def ranked(
     generation: int,
     rank: int | None = None,
     components: bool = False,
+    exclusive: bool = False,
 ) -> tuple[Population, np.ndarray]:
     """A committed generation by rank, fittest first, with its (n, weights) genomes in rank
     order; with `rank`, (1, weights) that rank's genome only (NotFoundError if the generation
     has no such rank). Between checkpoints the genomes are replayed (`replay`) and, with
     `components`, Eq 12's components simulated again: one generation's trials, the bits its
-    workers reported."""
+    workers reported. `exclusive` (a reader's request): BusyError while another such
+    rebuild runs, so readers cannot make the server simulate on every core at once."""
     run = get_run(session, run_id=run_id)
     found = stored(session, run_id=run_id, generations=[generation]).get(generation)
     if run is None or found is None:
@@ -228,9 +235,18 @@ def ranked(
     config = RunConfig.model_validate_json(run.config)
     asked, told = found.genomes, found.components
     if asked is None:
-        asked = replay(session, run=run, config=config, generation=generation).ask()
-        if components:
-            told = evaluate(config, generation, asked).components
+        if exclusive and not _REBUILDING.acquire(blocking=False):
+            raise BusyError(
+                f"run {run_id} generation {generation} is rebuilt from its checkpoint while "
+                "another generation is: ask again"
+            )
+        try:
+            asked = replay(session, run=run, config=config, generation=generation).ask()
+            if components:
+                told = evaluate(config, generation, asked).components
+        finally:
+            if exclusive:
+                _REBUILDING.release()
     view = population.by_rank(config, generation, found.fitness, told)
     genomes = asked[view.index if rank is None else view.index[rank : rank + 1]]
     return view, genomes
