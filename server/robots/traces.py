@@ -169,7 +169,7 @@ class TraceIngest:
             boot = replace(boot, last=int(steps[-1]), at=time.monotonic())
         self._allowance[robot] = (allowance, now)
         self._boots[key] = boot
-        cached = sorted(b for r, b in self._boots if r == robot)
+        cached = sorted(b for r, b in list(self._boots) if r == robot)  # forget() may run
         for old in cached[:-BOOTS_CACHED]:  # a robot may start a new boot with every sample
             del self._boots[(robot, old)]
         if stored is not None:
