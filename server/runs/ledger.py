@@ -181,10 +181,9 @@ class Ledger:
         released = self.release_where(condition)
         for lease in lapsed:
             work = self.find(lease.key)
-            record = self.workers.get(lease.worker)
             if work is None or work.key(lease.key.index) != lease.key:
                 continue
-            if record is None or record.listed:
+            if not self.workers.trusted(lease.worker):
                 work.slots[lease.key.index].lapsed.add(credential(lease.worker))
                 work.erred = True
         return released

@@ -20,9 +20,9 @@ or a robustness map, `evorobotics.reports`) is cut into jobs of its trials the s
 before any run's, and assembled into the future its asker waits on (resolved outside the
 lock); so is a ranking (`rank`: a run's candidates validated in a robot's world,
 `evorobotics.evolution.rank_in_world`), cut into jobs of its candidates. A span lets the
-worker holding a generation's only job evolve the following ones itself (ask and tell are pure functions of the GA state and the
-seed): each accepted generation moves the lease on to the next, and the worker proves with a
-digest that it evaluated the genomes asked here.
+worker holding a generation's only job evolve the following ones itself (ask and tell are
+pure functions of the GA state and the seed): each accepted generation moves the lease on to
+the next, and the worker proves with a digest that it evaluated the genomes asked here.
 
 Spot-checks (`server.runs.evaluation`) evaluate again `Policy.spot_checks` individuals (a
 stage's: rows) of every result of a listed worker: of a generation cut into several jobs, the
@@ -522,12 +522,7 @@ class Scheduler:
 
     def _trusted(self, name: str) -> bool:
         """This process's own evaluation: the referee's, or an in-process executor's."""
-        if name == REFEREE:
-            return True
-        try:
-            return not self._ledger.workers[name].listed
-        except KeyError:  # forgotten long ago: a worker's
-            return False
+        return name == REFEREE or self._ledger.workers.trusted(name)
 
     def _quarantine(self, name: str, why: str) -> None:
         """No more jobs for any worker of `name`'s credential; their leases and every result

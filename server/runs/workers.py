@@ -72,8 +72,11 @@ class Workers:
     def __getitem__(self, worker: str) -> Worker:
         return self._records[worker]
 
-    def get(self, worker: str) -> Worker | None:
-        return self._records.get(worker)
+    def trusted(self, worker: str) -> bool:
+        """An in-process executor (unlisted: it runs this process's own code); a name
+        forgotten long ago was a worker's."""
+        record = self._records.get(worker)
+        return record is not None and not record.listed
 
     def touch(self, worker: str, *, revive: bool = True) -> Worker:
         """The worker's record, seen now; live again unless `revive` is False (a result
